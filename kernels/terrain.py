@@ -1,0 +1,123 @@
+"""Terrain kernels: the height grid as a Warp struct and its samplers (SPEC §2).
+
+The grid has posts at ``north = n0 + i*dn``, ``east = e0 + j*de`` (``i`` grows north, ``j`` east);
+``heights[i, j]`` is metres above MSL (positive up), NaN where the DEM has no data. A *cell* is the
+square between posts ``(i, j)`` and ``(i+1, j+1)``; a cell is valid only when its four posts are valid.
+
+Two interpolants of the same posts are offered:
+
+* :func:`grid_bilinear` — bilinear inside a cell (the sampler of the sliding-grid and altimeter models);
+* :func:`grid_surface` — the piecewise-planar surface of the triangulated grid (two triangles per cell,
+  diagonal from post ``(i, j)`` to ``(i+1, j+1)``), i.e. exactly the surface that ``wp.Mesh`` holds and
+  that ray casts hit.
+
+Both agree on posts and along cell edges. Off the grid, on a NaN coordinate, or in an invalid cell they
+return NaN; they never clamp to the border.
+"""
+
+import warp as wp
+
+wp.set_module_options({"enable_backward": False})
+
+
+@wp.struct
+class HeightGrid:
+    """A regular height grid on the device (all lengths in metres, NED horizontal coordinates)."""
+
+    heights: wp.array2d(dtype=wp.float32)
+    """(rows, cols) post heights above MSL in m, positive up; NaN = nodata."""
+    cell_max: wp.array2d(dtype=wp.float32)
+    """(rows-1, cols-1) highest post of each cell in m; +inf for a cell with a nodata post."""
+    n0: wp.float32
+    """North coordinate of post row 0 in m."""
+    e0: wp.float32
+    """East coordinate of post column 0 in m."""
+    dn: wp.float32
+    """Post spacing north in m (> 0)."""
+    de: wp.float32
+    """Post spacing east in m (> 0)."""
+    h_min: wp.float32
+    """Lowest valid post in m."""
+    h_max: wp.float32
+    """Highest valid post in m."""
+
+
+@wp.func
+def grid_cell(grid: HeightGrid, north: float, east: float) -> wp.vec4:
+    """Locate a horizontal position: returns ``(i, j, fu, fv)`` (cell indices as floats, fractions in
+    [0, 1]) or ``i = -1`` when the position is off the grid or not finite."""
+    u = (north - grid.n0) / grid.dn
+    v = (east - grid.e0) / grid.de
+    rows = grid.heights.shape[0]
+    cols = grid.heights.shape[1]
+    # Written so that NaN coordinates fail every comparison and land in the "off grid" branch.
+    if u >= 0.0 and u <= float(rows - 1) and v >= 0.0 and v <= float(cols - 1):
+        i = wp.min(int(wp.floor(u)), rows - 2)
+        j = wp.min(int(wp.floor(v)), cols - 2)
+        return wp.vec4(float(i), float(j), u - float(i), v - float(j))
+    return wp.vec4(-1.0, -1.0, 0.0, 0.0)
+
+
+@wp.func
+def grid_bilinear(grid: HeightGrid, north: float, east: float) -> float:
+    """Bilinear height in m at ``(north, east)``; NaN off the grid or in a cell with a nodata post."""
+    c = grid_cell(grid, north, east)
+    if c[0] < 0.0:
+        return wp.nan
+    i = int(c[0])
+    j = int(c[1])
+    fu = c[2]
+    fv = c[3]
+    h00 = grid.heights[i, j]
+    h10 = grid.heights[i + 1, j]
+    h01 = grid.heights[i, j + 1]
+    h11 = grid.heights[i + 1, j + 1]
+    # NaN posts propagate (0 * NaN = NaN), which is what marks the whole cell invalid.
+    return (1.0 - fu) * ((1.0 - fv) * h00 + fv * h01) + fu * ((1.0 - fv) * h10 + fv * h11)
+
+
+@wp.func
+def grid_surface(grid: HeightGrid, north: float, east: float) -> float:
+    """Height in m of the triangulated surface (the mesh) at ``(north, east)``; NaN where invalid."""
+    c = grid_cell(grid, north, east)
+    if c[0] < 0.0:
+        return wp.nan
+    i = int(c[0])
+    j = int(c[1])
+    fu = c[2]
+    fv = c[3]
+    h00 = grid.heights[i, j]
+    h10 = grid.heights[i + 1, j]
+    h01 = grid.heights[i, j + 1]
+    h11 = grid.heights[i + 1, j + 1]
+    if wp.isnan(h00 + h10 + h01 + h11):
+        return wp.nan
+    if fu >= fv:
+        # triangle (i,j) (i+1,j) (i+1,j+1)
+        return h00 + fu * (h10 - h00) + fv * (h11 - h10)
+    # triangle (i,j) (i,j+1) (i+1,j+1)
+    return h00 + fv * (h01 - h00) + fu * (h11 - h01)
+
+
+@wp.kernel
+def sample_bilinear_kernel(
+    grid: HeightGrid,
+    north_m: wp.array(dtype=wp.float32),
+    east_m: wp.array(dtype=wp.float32),
+    heights_out: wp.array(dtype=wp.float32),
+):
+    """One thread per query point: bilinear height (NaN = invalid)."""
+    k = wp.tid()
+    heights_out[k] = grid_bilinear(grid, north_m[k], east_m[k])
+
+
+@wp.kernel
+def sample_surface_kernel(
+    grid: HeightGrid,
+    north_m: wp.array(dtype=wp.float32),
+    east_m: wp.array(dtype=wp.float32),
+    heights_out: wp.array(dtype=wp.float32),
+):
+    """One thread per query point: triangulated-surface height (NaN = invalid)."""
+    k = wp.tid()
+    heights_out[k] = grid_surface(grid, north_m[k], east_m[k])

@@ -1,0 +1,64 @@
+"""Packaging: the installed layout (warptan + warptan.kernels) and the command line."""
+
+import os
+import subprocess
+import sys
+import venv
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def test_import_needs_only_numpy_and_warp():
+    """`import warptan` pulls in neither rasterio, trimesh nor matplotlib (the bare-GPU-machine case)."""
+    code = ("import sys, warptan, warptan.kernels.terrain; "
+            "bad = [m for m in ('rasterio', 'trimesh', 'matplotlib', 'tqdm') if m in sys.modules]; "
+            "assert not bad, bad")
+    subprocess.run([sys.executable, "-c", code], check=True, cwd="/")
+
+
+def test_fresh_virtualenv_install(tmp_path):
+    """`pip install .` into a fresh venv gives warptan and warptan.kernels; `import kernels` is not ours."""
+    env_dir = tmp_path / "venv"
+    venv.EnvBuilder(system_site_packages=True, with_pip=True).create(env_dir)
+    py = str(env_dir / "bin" / "python")
+    # --no-deps/--no-build-isolation: the dependencies come from the system site-packages, so no network.
+    subprocess.run([py, "-m", "pip", "install", "-q", "--no-deps", "--no-build-isolation", str(ROOT)],
+                   check=True, cwd=tmp_path)
+    code = ("import importlib.util, warptan, warptan.kernels, warptan.kernels.terrain; "
+            "assert 'site-packages' in warptan.kernels.__file__, warptan.kernels.__file__; "
+            "spec = importlib.util.find_spec('kernels'); "
+            "assert spec is None or 'warptan' not in (spec.origin or ''), spec; print(warptan.kernels.__file__)")
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
+    out = subprocess.run([py, "-c", code], check=True, cwd=tmp_path, capture_output=True, text=True, env=env)
+    assert "warptan/kernels/__init__.py" in out.stdout
+
+
+def _cli(*args):
+    return subprocess.run([sys.executable, "-m", "warptan.cli", *args], capture_output=True, text=True, cwd="/")
+
+
+def test_cli_terrain_info_default_and_export(tmp_path):
+    """`warptan terrain info` describes the generated default terrain; export writes a PLY."""
+    out = _cli("terrain", "info")
+    assert out.returncode == 0, out.stderr
+    assert "synthetic:rugged" in out.stdout and "nodata" in out.stdout and "spacing" in out.stdout
+    ply = tmp_path / "t.ply"
+    out = _cli("terrain", "export", "synthetic:flat,size_m=2000,spacing=50", str(ply))
+    assert out.returncode == 0, out.stderr
+    assert ply.stat().st_size > 1000
+
+
+@pytest.mark.parametrize(("spec", "message"), [
+    ("/no/such/file.dt1", "DEM file not found: /no/such/file.dt1"),
+    ("synthetic:bumpy", "unknown synthetic terrain kind 'bumpy'"),
+    ("synthetic:rugged,spacing=-1", "spacing must be a positive number"),
+    ("synthetic:rugged,colour=red", "bad option"),
+])
+def test_cli_bad_terrain_is_a_clear_error(spec, message):
+    """Bad terrain arguments exit 2 with one line naming the problem, no traceback."""
+    out = _cli("terrain", "info", spec)
+    assert out.returncode == 2
+    assert message in out.stderr and "Traceback" not in out.stderr

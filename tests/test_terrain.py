@@ -1,0 +1,334 @@
+"""Terrain: loading real DEMs, bad input, synthetic terrains, samplers and mesh (SPEC §2)."""
+
+import numpy as np
+import pytest
+import warp as wp
+from conftest import BOSPHORUS, GANGES, THURINGIA, dem_path
+
+from warptan import Terrain, TerrainError
+
+
+def _write_tif(path, data, crs="EPSG:32632", transform=None, nodata=None):
+    import rasterio
+    from rasterio.transform import from_origin
+
+    transform = transform or from_origin(600_000.0, 5_600_000.0, 30.0, 30.0)
+    with rasterio.open(path, "w", driver="GTiff", height=data.shape[0], width=data.shape[1], count=1,
+                       dtype=data.dtype, crs=crs, transform=transform, nodata=nodata) as dst:
+        dst.write(data, 1)
+    return str(path)
+
+
+def _bilinear_reference(h, n0, e0, dn, de, north, east):
+    """Float64 bilinear interpolation written independently of the package (loop over points)."""
+    rows, cols = h.shape
+    out = np.full(len(north), np.nan)
+    for k, (n, e) in enumerate(zip(north, east, strict=True)):
+        u, v = (n - n0) / dn, (e - e0) / de
+        if not (0 <= u <= rows - 1 and 0 <= v <= cols - 1):
+            continue
+        i, j = min(int(u), rows - 2), min(int(v), cols - 2)
+        a, b = u - i, v - j
+        cell = h[i:i + 2, j:j + 2]
+        if np.isnan(cell).any():
+            continue
+        out[k] = cell[0, 0] * (1 - a) * (1 - b) + cell[1, 0] * a * (1 - b) + cell[0, 1] * (1 - a) * b + cell[1, 1] * a * b
+    return out
+
+
+def _holey_terrain():
+    t = Terrain.synthetic("rugged", size_m=3000.0, spacing=30.0, seed=4)
+    h = t.heights_m.copy()
+    h[40:44, 50:53] = np.nan
+    h[10, 10] = np.nan
+    return Terrain.from_grid(h, spacing=(30.0, 25.0), origin=(-1500.0, -1250.0), name="holey")
+
+
+# ---------------------------------------------------------------- real DEMs
+def test_thuringia_highest_post_is_grosser_beerberg(thuringia):
+    """height_at(latlon_to_ne(Großer Beerberg)) is within a few metres of its 983 m."""
+    north, east = thuringia.latlon_to_ne(50.658, 10.744)
+    assert abs(float(thuringia.height_at(north, east)) - 983.0) < 5.0
+    assert abs(thuringia.h_max - 983.0) < 5.0
+
+
+def test_thuringia_nodata_posts_are_masked(thuringia):
+    """The tile's void posts (nodata -32768) read as NaN, never as -32768 or 0 m."""
+    import rasterio
+
+    with rasterio.open(dem_path(THURINGIA)) as src:
+        band = src.read(1, masked=True)
+        rows, cols = np.nonzero(np.ma.getmaskarray(band))
+        xs, ys = rasterio.transform.xy(src.transform, rows, cols)
+    assert len(rows) == 28
+    north, east = thuringia.latlon_to_ne(np.asarray(ys), np.asarray(xs))
+    assert np.isnan(thuringia.height_at(north, east)).all()
+    valid = thuringia.heights_m[thuringia.valid_posts]
+    assert valid.min() > 150.0  # no -32768 and no 0 m leaked into the data
+
+
+def test_latlon_round_trip_below_one_millimetre(thuringia):
+    """latlon_to_ne and ne_to_latlon invert each other to < 1 mm over the tile."""
+    rng = np.random.default_rng(0)
+    lat, lon = rng.uniform(50.0, 51.0, 200), rng.uniform(10.0, 11.0, 200)
+    north, east = thuringia.latlon_to_ne(lat, lon)
+    lat2, lon2 = thuringia.ne_to_latlon(north, east)
+    north2, east2 = thuringia.latlon_to_ne(lat2, lon2)
+    assert np.max(np.hypot(north2 - north, east2 - east)) < 1e-3
+    assert np.max(np.abs(lat2 - lat)) < 1e-8 and np.max(np.abs(lon2 - lon)) < 1e-8
+
+
+def test_real_tiles_load():
+    """The Bosphorus DTED0 crop and the flat Ganges tile load with plausible shapes and heights."""
+    bos = Terrain.from_raster(dem_path(BOSPHORUS))
+    assert 60 <= bos.shape[0] <= 80 and 100 <= bos.shape[1] <= 130
+    assert bos.h_min == pytest.approx(0.0, abs=1.0) and 400.0 < bos.h_max < 470.0
+    ganges = Terrain.from_raster(dem_path(GANGES))
+    assert 150.0 < ganges.h_min and ganges.h_max < 240.0
+
+
+def test_resampling_spacing(thuringia):
+    """spacing= resamples to square posts and keeps heights (coarser grid, same region)."""
+    coarse = Terrain.from_raster(dem_path(THURINGIA), spacing=500.0)
+    assert coarse.dn == coarse.de == 500.0
+    n_min, n_max, e_min, e_max = coarse.bounds_ne
+    assert n_max - n_min == pytest.approx(111_000.0, rel=0.02)
+    # Compare on a set of interior points: bilinear of a 500 m grid vs the native one, rugged terrain.
+    rng = np.random.default_rng(1)
+    north, east = rng.uniform(-40_000, 40_000, 500), rng.uniform(-25_000, 25_000, 500)
+    diff = coarse.height_at(north, east) - thuringia.height_at(north, east)
+    assert np.nanmedian(np.abs(diff)) < 20.0
+
+
+def test_projected_metric_raster_keeps_native_posts(tmp_path):
+    """A UTM GeoTIFF is used as it is: same posts (rows flipped to grow north), origin at its centre."""
+    data = np.arange(20 * 30, dtype=np.float32).reshape(20, 30)
+    data[3, 4] = -9999.0
+    t = Terrain.from_raster(_write_tif(tmp_path / "utm.tif", data, nodata=-9999.0))
+    assert t.shape == (20, 30) and t.dn == t.de == 30.0
+    assert np.isnan(t.heights_m[20 - 1 - 3, 4])
+    np.testing.assert_array_equal(t.heights_m[t.valid_posts], data[::-1][t.valid_posts])
+    n_min, n_max, e_min, e_max = t.bounds_ne
+    assert n_min == pytest.approx(-n_max) and e_min == pytest.approx(-e_max)
+    # The NE post (row 0 of the file, last column) is at UTM x = 600000 + 29.5*30, y = 5600000 - 15.
+    lat, lon = t.ne_to_latlon(n_max, e_max)
+    from warptan.raster import latlon_to_projected
+
+    x, y = latlon_to_projected(t.crs_wkt, lat, lon)
+    assert float(x) == pytest.approx(600_000.0 + 29.5 * 30.0, abs=1e-3)
+    assert float(y) == pytest.approx(5_600_000.0 - 15.0, abs=1e-3)
+
+
+def test_dem_with_holes_loads_masked(tmp_path):
+    """A geographic DEM with a nodata hole loads; the hole is masked after reprojection, not filled."""
+    from rasterio.transform import from_origin
+
+    rng = np.random.default_rng(2)
+    data = (300.0 + 10.0 * rng.standard_normal((120, 120))).astype(np.int16)
+    data[50:55, 60:70] = -32768
+    path = _write_tif(tmp_path / "holes.tif", data, crs="EPSG:4326",
+                      transform=from_origin(10.0, 51.0, 1 / 1200, 1 / 1200), nodata=-32768)
+    t = Terrain.from_raster(path)
+    lat = 51.0 - (52.5 / 1200)
+    lon = 10.0 + (65.0 / 1200)
+    assert np.isnan(t.height_at(*t.latlon_to_ne(lat, lon)))
+    assert 0.0 < t.nodata_fraction < 0.2
+    assert np.nanmin(t.heights_m) > 200.0
+
+
+# ---------------------------------------------------------------- bad input
+def test_missing_file_is_named():
+    """A missing file raises FileNotFoundError naming it."""
+    with pytest.raises(FileNotFoundError, match="no_such_dem.tif"):
+        Terrain.from_raster("/nonexistent/no_such_dem.tif")
+
+
+def test_not_a_raster(tmp_path):
+    """A text file is rejected as 'not a raster', naming the file."""
+    path = tmp_path / "notes.tif"
+    path.write_text("this is not a DEM")
+    with pytest.raises(TerrainError, match=r"notes\.tif.*not a raster"):
+        Terrain.from_raster(path)
+
+
+def test_raster_without_crs(tmp_path):
+    """A raster with no CRS cannot be placed on the metric grid."""
+    path = _write_tif(tmp_path / "nocrs.tif", np.ones((10, 10), np.float32), crs=None)
+    with pytest.raises(TerrainError, match=r"nocrs\.tif.*no CRS"):
+        Terrain.from_raster(path)
+
+
+def test_all_nodata_raster(tmp_path):
+    """A raster whose every post is nodata is rejected."""
+    path = _write_tif(tmp_path / "empty.tif", np.full((10, 10), -1.0, np.float32), nodata=-1.0)
+    with pytest.raises(TerrainError, match=r"empty\.tif.*nodata"):
+        Terrain.from_raster(path)
+
+
+@pytest.mark.parametrize("spacing", [0.0, -30.0, float("nan"), "abc"])
+def test_non_positive_spacing(spacing, tmp_path):
+    """Non-positive or non-numeric spacing is rejected for rasters and synthetic terrains."""
+    path = _write_tif(tmp_path / "ok.tif", np.ones((10, 10), np.float32))
+    with pytest.raises(TerrainError, match="spacing"):
+        Terrain.from_raster(path, spacing=spacing)
+    with pytest.raises(TerrainError, match="spacing"):
+        Terrain.synthetic("rugged", spacing=spacing)
+
+
+def test_unknown_synthetic_kind():
+    """An unknown synthetic kind names itself and the valid kinds."""
+    with pytest.raises(TerrainError, match=r"'bumpy'.*rugged, flat"):
+        Terrain.synthetic("bumpy")
+
+
+# ---------------------------------------------------------------- synthetic
+def test_synthetic_is_deterministic_with_the_promised_relief():
+    """Same seed, same heights; rugged has hundreds of metres of relief, flat a few metres."""
+    a = Terrain.synthetic("rugged", size_m=8000.0, spacing=40.0, seed=3)
+    b = Terrain.synthetic("rugged", size_m=8000.0, spacing=40.0, seed=3)
+    c = Terrain.synthetic("rugged", size_m=8000.0, spacing=40.0, seed=4)
+    np.testing.assert_array_equal(a.heights_m, b.heights_m)
+    assert not np.array_equal(a.heights_m, c.heights_m)
+    assert 300.0 < np.ptp(a.heights_m) < 1500.0
+    # Several scales: relief inside 1 km windows is still tens of metres.
+    win = a.heights_m[:25, :25]
+    assert np.ptp(win) > 10.0
+    flat = Terrain.synthetic("flat", size_m=8000.0, spacing=40.0, seed=3)
+    assert 1.0 < np.ptp(flat.heights_m) < 10.0
+
+
+def test_npz_round_trip(tmp_path):
+    """save_npz / load keep heights, mask and geographic reference."""
+    t = _holey_terrain()
+    t.save_npz(tmp_path / "t.npz")
+    u = Terrain.load(str(tmp_path / "t.npz"))
+    np.testing.assert_array_equal(np.isnan(t.heights_m), np.isnan(u.heights_m))
+    np.testing.assert_array_equal(t.heights_m[t.valid_posts], u.heights_m[u.valid_posts])
+    assert (u.n0, u.e0, u.dn, u.de) == (t.n0, t.e0, t.dn, t.de)
+
+
+# ---------------------------------------------------------------- samplers
+def _query_points(t, count, seed):
+    rng = np.random.default_rng(seed)
+    n_min, n_max, e_min, e_max = t.bounds_ne
+    north = rng.uniform(n_min - 100.0, n_max + 100.0, count)
+    east = rng.uniform(e_min - 100.0, e_max + 100.0, count)
+    north[:3], east[:3] = n_min, e_min  # exact corner posts
+    north[3], east[3] = n_max, e_max
+    north[4] = np.nan
+    return north, east
+
+
+def test_host_bilinear_matches_reference():
+    """height_at (host, float64) equals an independent bilinear reference, NaN off-grid and in holes."""
+    t = _holey_terrain()
+    north, east = _query_points(t, 3000, 0)
+    ref = _bilinear_reference(t.heights_m, t.n0, t.e0, t.dn, t.de, north, east)
+    got = t.height_at(north, east)
+    np.testing.assert_array_equal(np.isnan(got), np.isnan(ref))
+    np.testing.assert_allclose(got, ref, rtol=0, atol=1e-9)
+    assert np.isnan(ref).sum() > 100 and (~np.isnan(ref)).sum() > 2000
+
+
+def test_device_bilinear_matches_reference(device):
+    """The bilinear kernel matches the float64 reference to float32 precision on every device."""
+    t = _holey_terrain()
+    north, east = _query_points(t, 5000, 1)
+    ref = _bilinear_reference(t.heights_m, t.n0, t.e0, t.dn, t.de, north, east)
+    n32 = wp.array(north.astype(np.float32), dtype=wp.float32, device=device)
+    e32 = wp.array(east.astype(np.float32), dtype=wp.float32, device=device)
+    got = t.sample(n32, e32).numpy()
+    # Compare with the reference evaluated at the float32-rounded coordinates (what the kernel sees).
+    ref32 = _bilinear_reference(t.heights_m, t.n0, t.e0, t.dn, t.de, north.astype(np.float32).astype(float),
+                                east.astype(np.float32).astype(float))
+    # Points within float32 rounding of the border may flip validity; everything else must agree.
+    both = ~np.isnan(ref32) & ~np.isnan(got)
+    assert (np.isnan(got) != np.isnan(ref32)).sum() == 0
+    np.testing.assert_allclose(got[both], ref32[both], rtol=0, atol=1e-3)  # float32 at ~1000 m: 6e-5 m ulp
+    assert np.isnan(ref).sum() > 100
+
+
+def test_device_surface_matches_host(device):
+    """The triangulated-surface kernel matches Terrain.surface_height_at (float64) on every device."""
+    t = _holey_terrain()
+    north, east = _query_points(t, 5000, 2)
+    north, east = north.astype(np.float32).astype(float), east.astype(np.float32).astype(float)
+    got = t.sample(wp.array(north, dtype=wp.float32, device=device), wp.array(east, dtype=wp.float32, device=device),
+                   surface=True).numpy()
+    ref = t.surface_height_at(north, east)
+    np.testing.assert_array_equal(np.isnan(got), np.isnan(ref))
+    ok = ~np.isnan(ref)
+    np.testing.assert_allclose(got[ok], ref[ok], rtol=0, atol=1e-3)
+    # bilinear and surface agree on posts
+    rows, cols = t.shape
+    pn = t.n0 + t.dn * np.arange(rows)[:, None] + 0 * np.arange(cols)[None, :]
+    pe = t.e0 + t.de * np.arange(cols)[None, :] + 0 * np.arange(rows)[:, None]
+    np.testing.assert_allclose(t.surface_height_at(pn, pe), t.height_at(pn, pe), atol=1e-9)
+
+
+def test_sample_rejects_mismatched_arrays():
+    """Inputs of different shapes are a clear ValueError."""
+    t = _holey_terrain()
+    a = wp.zeros(5, dtype=wp.float32, device="cpu")
+    b = wp.zeros(6, dtype=wp.float32, device="cpu")
+    with pytest.raises(ValueError, match="same device and shape|share device and shape"):
+        t.sample(a, b)
+
+
+# ---------------------------------------------------------------- mesh
+@wp.kernel
+def _vertical_rays_kernel(mesh: wp.uint64, north: wp.array(dtype=float), east: wp.array(dtype=float),
+                          start_z: float, t_out: wp.array(dtype=float)):
+    k = wp.tid()
+    q = wp.mesh_query_ray(mesh, wp.vec3(north[k], east[k], start_z), wp.vec3(0.0, 0.0, 1.0), 1.0e7)
+    t_out[k] = wp.where(q.result, q.t, wp.nan)
+
+
+def test_mesh_vertices_and_vertical_rays(device):
+    """Mesh vertices are the grid posts (z = -h); vertical rays hit the triangulated surface, which is
+    height_at on posts and cell edges; rays over holes or off the grid miss."""
+    t = _holey_terrain()
+    mesh = t.mesh(device)
+    assert t.mesh(device) is mesh  # cached per device
+    verts = mesh.points.numpy()
+    rows, cols = t.shape
+    valid = t.valid_posts.ravel()
+    np.testing.assert_allclose(-verts[valid, 2], t.heights_m.ravel()[valid], atol=1e-4)
+    np.testing.assert_allclose(verts[:, 0].reshape(rows, cols)[:, 0], t.n0 + t.dn * np.arange(rows), atol=1e-3)
+
+    north, east = _query_points(t, 4000, 3)
+    north[4] = 0.0  # the NaN query point of _query_points is no ray
+    # Add posts and points on cell edges, where the mesh surface equals the bilinear height (away from the
+    # holes, where an edge shared by a valid and an invalid cell is legitimately both hit and invalid).
+    ii, jj = np.meshgrid(np.arange(12, 38), np.arange(12, 48), indexing="ij")
+    edge_n = np.concatenate([t.n0 + t.dn * ii.ravel(), t.n0 + t.dn * (ii.ravel() + 0.37)])
+    edge_e = np.concatenate([t.e0 + t.de * (jj.ravel() + 0.61), t.e0 + t.de * jj.ravel()])
+    north, east = np.concatenate([north, edge_n]), np.concatenate([east, edge_e])
+    start = -(t.h_max + 100.0)
+    out = wp.empty(len(north), dtype=float, device=device)
+    wp.launch(_vertical_rays_kernel, dim=len(north), inputs=[mesh.id, wp.array(north, dtype=float, device=device),
+              wp.array(east, dtype=float, device=device), start], outputs=[out], device=device)
+    hit_height = -(start + out.numpy())
+    surface = t.surface_height_at(north, east)
+    np.testing.assert_array_equal(np.isnan(hit_height), np.isnan(surface))
+    ok = ~np.isnan(surface)
+    np.testing.assert_allclose(hit_height[ok], surface[ok], atol=2e-3)
+    on_edges = slice(4000, None)
+    assert not np.isnan(hit_height[on_edges]).any()
+    np.testing.assert_allclose(hit_height[on_edges], t.height_at(north, east)[on_edges], atol=2e-3)
+
+
+def test_trimesh_export(tmp_path):
+    """to_trimesh has two faces per valid cell; export writes a PLY that trimesh reads back."""
+    import trimesh
+
+    t = _holey_terrain()
+    tm = t.to_trimesh()
+    assert len(tm.faces) == 2 * t.valid_cells.sum()
+    t.export(tmp_path / "t.ply")
+    back = trimesh.load(tmp_path / "t.ply")
+    assert len(back.faces) == len(tm.faces)
+    enu = t.to_trimesh("enu")
+    assert (enu.face_normals[:, 2] > 0).all()  # faces point up
+    with pytest.raises(ValueError, match="unsupported mesh format"):
+        t.export(tmp_path / "t.xyz")

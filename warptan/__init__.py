@@ -1,0 +1,24 @@
+"""warptan: terrain-aided navigation with a point-cloud sensor, as kernels on NVIDIA Warp.
+
+Conventions (SPEC §1), used everywhere in the package:
+
+* Navigation frame n: local-level NED (x north, y east, z down), metres, flat earth, origin at the
+  terrain's reference point; gravity ``g_n = [0, 0, 9.80665]`` m/s².
+* Body frame b = sensor frame s: FRD (x forward, y right, z down); a nadir ray is ``+z``.
+* Attitude: Hamilton unit quaternion, scalar first ``[w, x, y, z]``, ``q = q_nb``; ``R(q)`` maps body to
+  navigation vectors; Euler angles are ZYX (``R = Rz(yaw) Ry(pitch) Rx(roll)``).
+* Terrain height ``h(N, E)`` is metres above MSL, positive up; a point ``p`` is on the terrain when
+  ``p_z = -h(p_x, p_y)``.
+* SI units inside; degrees, deg/h, mg, µg/√Hz only at the configuration boundary.
+* float32 on the device for kernels; float64 on the host for the INS and the filter covariance.
+
+``import warptan`` needs only numpy and warp; rasterio, trimesh and matplotlib are imported where used.
+"""
+
+from warptan.device import resolve_device
+from warptan.raster import TerrainError
+from warptan.terrain import Terrain
+
+__version__ = "0.1.0"
+
+__all__ = ["Terrain", "TerrainError", "__version__", "resolve_device"]

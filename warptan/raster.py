@@ -1,0 +1,244 @@
+"""Reading real DEMs (DTED, SRTM .hgt, GeoTIFF) into a metric north/east height grid (SPEC §2).
+
+rasterio is imported inside the functions: ``import warptan`` needs only numpy and warp.
+
+Choices made here (SPEC leaves them open):
+
+* A geographic raster (lat/lon), a projected raster whose unit is not the metre, or a rotated one, is
+  reprojected with rasterio to a transverse Mercator (scale 1, WGS84) centred on the raster's centre;
+  that centre is the NED origin, grid north is the projection's y axis (true north on the central
+  meridian, within the meridian convergence, about 0.4° at 50° N and 0.5° of longitude, elsewhere).
+* ``spacing=None`` keeps the native post spacing: for a geographic raster the N-S and E-W spacings in
+  metres at the centre (e.g. SRTM3 at 50° N: 92.6 m north, 59.6 m east), so no resolution is lost.
+* Heights are resampled bilinearly. Nodata stays a mask: an output post is nodata when any source post
+  that contributes to it is nodata, or when it lies outside the source footprint.
+* A projected metric raster without ``spacing`` is used as it is (no resampling); its NED origin is the
+  centre of its posts.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from dataclasses import dataclass
+
+import numpy as np
+
+MAX_POSTS = 60_000_000
+"""Largest grid (posts) a load may produce; beyond it the requested spacing is almost surely a mistake."""
+
+
+class TerrainError(ValueError):
+    """A DEM or terrain argument that cannot be used; the message names the file or argument."""
+
+
+@dataclass
+class RasterGrid:
+    """A DEM laid out as a north/east grid (row 0 is the southernmost row)."""
+
+    heights_m: np.ndarray
+    """(rows, cols) float64 heights above MSL in m, NaN where nodata."""
+    n0: float
+    e0: float
+    dn: float
+    de: float
+    crs_wkt: str
+    """The metric CRS of the grid (WKT)."""
+    origin_xy: tuple[float, float]
+    """Projected (x=east, y=north) coordinates of the NED origin in ``crs_wkt``, m."""
+    description: str
+    """One line: source CRS and what was done to it."""
+
+
+def check_spacing(spacing: float | None, name: str = "spacing") -> float | None:
+    """Validate a post spacing in metres (None passes through)."""
+    if spacing is None:
+        return None
+    try:
+        value = float(spacing)
+    except (TypeError, ValueError):
+        raise TerrainError(f"{name} must be a positive number of metres, got {spacing!r}") from None
+    if not math.isfinite(value) or value <= 0.0:
+        raise TerrainError(f"{name} must be a positive number of metres, got {spacing!r}")
+    return value
+
+
+def tmerc_crs(lat_deg: float, lon_deg: float):
+    """A transverse Mercator CRS (WGS84, scale 1, no false origin) centred at ``(lat, lon)``."""
+    from rasterio.crs import CRS
+
+    return CRS.from_proj4(
+        f"+proj=tmerc +lat_0={lat_deg:.10f} +lon_0={lon_deg:.10f} +k=1 +x_0=0 +y_0=0 +datum=WGS84 +units=m +no_defs"
+    )
+
+
+def read_raster(path: str | os.PathLike, spacing: float | None = None) -> RasterGrid:
+    """Read band 1 of a DEM file into a :class:`RasterGrid`.
+
+    Args:
+        path: DTED (.dt0/.dt1/.dt2), SRTM (.hgt), GeoTIFF or any single-band raster GDAL reads.
+        spacing: Output post spacing in m (both axes); None keeps the native spacing.
+
+    Raises:
+        FileNotFoundError: ``path`` does not exist.
+        TerrainError: not a raster, no CRS, all nodata, a bad spacing, or a grid too large.
+    """
+    spacing = check_spacing(spacing)
+    path = os.fspath(path)
+    if not os.path.exists(path):
+        raise FileNotFoundError(f"DEM file not found: {path}")
+    if os.path.isdir(path):
+        raise TerrainError(f"{path}: is a directory, not a DEM file")
+
+    import rasterio
+    from rasterio.errors import RasterioError
+
+    try:
+        src = rasterio.open(path)
+    except RasterioError as err:
+        raise TerrainError(f"{path}: not a raster that rasterio/GDAL can read ({err})") from None
+    with src:
+        if src.count < 1:
+            raise TerrainError(f"{path}: raster has no bands")
+        if src.crs is None:
+            raise TerrainError(f"{path}: raster has no CRS (no georeferencing), cannot place it on a metric grid")
+        try:
+            band = src.read(1, masked=True)
+        except RasterioError as err:
+            raise TerrainError(f"{path}: cannot read band 1 ({err})") from None
+        data = np.ma.filled(band.astype(np.float64), np.nan)
+        data[~np.isfinite(data)] = np.nan
+        if not np.isfinite(data).any():
+            raise TerrainError(f"{path}: every post is nodata (nodata value {src.nodata})")
+        crs, transform, bounds = src.crs, src.transform, src.bounds
+
+    metric = crs.is_projected and math.isclose(crs.linear_units_factor[1], 1.0)
+    north_up = transform.b == 0.0 and transform.d == 0.0 and transform.e < 0.0 and transform.a > 0.0
+    if metric and north_up and spacing is None:
+        return _native_grid(data, crs, transform, path)
+    return _reprojected_grid(data, crs, transform, bounds, spacing, path)
+
+
+def _native_grid(data, crs, transform, path) -> RasterGrid:
+    rows, cols = data.shape
+    de, dn = float(transform.a), float(-transform.e)
+    # Post (pixel-centre) coordinates of the first column and of the last (southernmost) row.
+    x_first = transform.c + 0.5 * de
+    y_south = transform.f - (rows - 0.5) * dn
+    origin = (x_first + 0.5 * (cols - 1) * de, y_south + 0.5 * (rows - 1) * dn)
+    return RasterGrid(
+        heights_m=np.ascontiguousarray(data[::-1]),
+        n0=y_south - origin[1],
+        e0=x_first - origin[0],
+        dn=dn,
+        de=de,
+        crs_wkt=crs.to_wkt(),
+        origin_xy=origin,
+        description=f"{_crs_name(crs)}, native posts",
+    )
+
+
+def _reprojected_grid(data, crs, transform, bounds, spacing, path) -> RasterGrid:
+    from rasterio.enums import Resampling
+    from rasterio.warp import reproject, transform as warp_transform, transform_bounds
+    from rasterio.transform import from_origin
+
+    rows, cols = data.shape
+    # Centre of the raster, in geographic coordinates, is the projection centre and the NED origin.
+    cx = transform.c + transform.a * cols / 2.0 + transform.b * rows / 2.0
+    cy = transform.f + transform.d * cols / 2.0 + transform.e * rows / 2.0
+    lon_c, lat_c = (v[0] for v in warp_transform(crs, "EPSG:4326", [cx], [cy]))
+    dst_crs = tmerc_crs(lat_c, lon_c)
+    if spacing is None:
+        # Native spacing: the length in metres of one source pixel step along each axis at the centre.
+        px = [cx, cx + transform.a, cx + transform.b]
+        py = [cy, cy + transform.d, cy + transform.e]
+        xs, ys = warp_transform(crs, dst_crs, px, py)
+        de = math.hypot(xs[1] - xs[0], ys[1] - ys[0])
+        dn = math.hypot(xs[2] - xs[0], ys[2] - ys[0])
+        how = "native spacing"
+    else:
+        dn = de = spacing
+        how = f"resampled to {spacing:g} m"
+    left, bottom, right, top = transform_bounds(crs, dst_crs, *bounds, densify_pts=51)
+    out_cols = int(math.floor((right - left) / de))
+    out_rows = int(math.floor((top - bottom) / dn))
+    if out_rows < 2 or out_cols < 2:
+        raise TerrainError(f"{path}: spacing {spacing} m leaves fewer than 2×2 posts")
+    if out_rows * out_cols > MAX_POSTS:
+        raise TerrainError(
+            f"{path}: spacing {spacing} m would make {out_rows}×{out_cols} posts (limit {MAX_POSTS}); use a larger spacing"
+        )
+    # Centre the output grid on the footprint.
+    left += 0.5 * ((right - left) - out_cols * de)
+    top -= 0.5 * ((top - bottom) - out_rows * dn)
+    dst_transform = from_origin(left, top, de, dn)
+
+    heights = np.full((out_rows, out_cols), np.nan, dtype=np.float32)
+    reproject(
+        source=data.astype(np.float32),
+        destination=heights,
+        src_transform=transform,
+        src_crs=crs,
+        src_nodata=np.nan,
+        dst_transform=dst_transform,
+        dst_crs=dst_crs,
+        dst_nodata=np.nan,
+        resampling=Resampling.bilinear,
+    )
+    # A second pass on the nodata indicator: any contribution from a nodata post (or from outside the
+    # footprint, value 2) invalidates the output post instead of being averaged away.
+    holes = np.where(np.isfinite(data), 0.0, 1.0).astype(np.float32)
+    holes_out = np.full((out_rows, out_cols), 2.0, dtype=np.float32)
+    reproject(
+        source=holes,
+        destination=holes_out,
+        src_transform=transform,
+        src_crs=crs,
+        src_nodata=2.0,
+        dst_transform=dst_transform,
+        dst_crs=dst_crs,
+        dst_nodata=2.0,
+        resampling=Resampling.bilinear,
+    )
+    out = heights.astype(np.float64)
+    out[(holes_out != 0.0) | ~np.isfinite(out)] = np.nan
+    if not np.isfinite(out).any():
+        raise TerrainError(f"{path}: no valid post after reprojection")
+    x_first = left + 0.5 * de
+    y_south = top - (out_rows - 0.5) * dn
+    return RasterGrid(
+        heights_m=np.ascontiguousarray(out[::-1]),
+        n0=y_south,
+        e0=x_first,
+        dn=dn,
+        de=de,
+        crs_wkt=dst_crs.to_wkt(),
+        origin_xy=(0.0, 0.0),
+        description=(
+            f"{_crs_name(crs)} reprojected to transverse Mercator at {lat_c:.4f}°N {lon_c:.4f}°E, {how}"
+        ),
+    )
+
+
+def _crs_name(crs) -> str:
+    epsg = crs.to_epsg()
+    return f"EPSG:{epsg}" if epsg else (crs.to_dict().get("proj", "custom") + " CRS")
+
+
+def projected_to_latlon(crs_wkt: str, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Projected (x east, y north) in ``crs_wkt`` -> (lat, lon) in degrees, WGS84."""
+    from rasterio.crs import CRS
+    from rasterio.warp import transform as warp_transform
+
+    lon, lat = warp_transform(CRS.from_wkt(crs_wkt), "EPSG:4326", np.ravel(x), np.ravel(y))
+    return np.asarray(lat).reshape(np.shape(x)), np.asarray(lon).reshape(np.shape(x))
+
+
+def latlon_to_projected(crs_wkt: str, lat: np.ndarray, lon: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(lat, lon) in degrees, WGS84 -> projected (x east, y north) in ``crs_wkt``."""
+    from rasterio.crs import CRS
+    from rasterio.warp import transform as warp_transform
+
+    x, y = warp_transform("EPSG:4326", CRS.from_wkt(crs_wkt), np.ravel(lon), np.ravel(lat))
+    return np.asarray(x).reshape(np.shape(lat)), np.asarray(y).reshape(np.shape(lat))

@@ -1,0 +1,397 @@
+"""Terrain: a DEM as a regular north/east height grid, its samplers and its triangle mesh (SPEC §2, §9).
+
+Posts are at ``north = n0 + i*dn``, ``east = e0 + j*de`` (``i`` grows north); heights are metres above
+MSL, positive up, and a point at NED position ``p`` is on the terrain when ``p_z = -h(p_x, p_y)``.
+Nodata is kept as a mask (NaN heights); a cell is valid only when its four posts are valid, and every
+sampler reports a position off the grid or in an invalid cell as invalid (NaN), never clamped.
+
+The device-side copies (a :class:`warptan.kernels.terrain.HeightGrid` and the ``wp.Mesh`` of the
+triangulated grid, built with the SAH BVH constructor) are built lazily, once per device, and cached.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from dataclasses import dataclass, field
+
+import numpy as np
+import warp as wp
+
+from warptan.device import resolve_device
+from warptan.kernels import terrain as kterrain
+from warptan.raster import TerrainError, check_spacing, latlon_to_projected, projected_to_latlon, read_raster
+
+SYNTHETIC_KINDS = ("rugged", "flat")
+
+
+@dataclass(eq=False)
+class Terrain:
+    """A height grid in the local NED frame, with optional geographic reference.
+
+    Build one with :meth:`from_raster`, :meth:`synthetic`, :meth:`from_grid` or :meth:`load` rather than
+    directly.
+    """
+
+    heights_m: np.ndarray
+    """(rows, cols) float64 post heights above MSL in m, positive up; NaN = nodata. Row 0 is south."""
+    n0: float
+    """North coordinate of post row 0, m."""
+    e0: float
+    """East coordinate of post column 0, m."""
+    dn: float
+    """Post spacing north, m."""
+    de: float
+    """Post spacing east, m."""
+    crs_wkt: str | None = None
+    """Metric CRS of the grid (WKT), or None for a terrain without geographic reference."""
+    origin_xy: tuple[float, float] = (0.0, 0.0)
+    """Projected (x east, y north) coordinates of the NED origin in ``crs_wkt``, m."""
+    name: str = "terrain"
+    """Where it came from (file path or ``synthetic:kind``)."""
+    description: str = ""
+    """One line on the source and the processing."""
+    _device_cache: dict = field(default_factory=dict, repr=False)
+
+    def __post_init__(self):
+        h = np.asarray(self.heights_m, dtype=np.float64)
+        if h.ndim != 2 or h.shape[0] < 2 or h.shape[1] < 2:
+            raise TerrainError(f"{self.name}: heights must be a 2-D grid of at least 2×2 posts, got {h.shape}")
+        for key in ("dn", "de"):
+            check_spacing(getattr(self, key), f"{self.name}: {key}")
+        h = h.copy()
+        h[~np.isfinite(h)] = np.nan
+        if not np.isfinite(h).any():
+            raise TerrainError(f"{self.name}: every post is nodata")
+        self.heights_m = h
+        self.n0, self.e0, self.dn, self.de = float(self.n0), float(self.e0), float(self.dn), float(self.de)
+        self.valid_posts = np.isfinite(h)
+        """(rows, cols) bool: post has data."""
+        corners = np.stack([h[:-1, :-1], h[1:, :-1], h[:-1, 1:], h[1:, 1:]])
+        self.valid_cells = np.isfinite(corners).all(axis=0)
+        """(rows-1, cols-1) bool: all four posts of the cell have data."""
+        with np.errstate(invalid="ignore"):
+            self.cell_max_m = np.where(self.valid_cells, corners.max(axis=0), np.inf)
+        """(rows-1, cols-1) highest post of each cell in m (+inf for an invalid cell)."""
+        self.h_min = float(np.nanmin(h))
+        self.h_max = float(np.nanmax(h))
+
+    # ------------------------------------------------------------------ constructors
+    @classmethod
+    def from_raster(cls, path: str | os.PathLike, spacing: float | None = None) -> Terrain:
+        """Load a DEM file (DTED, SRTM .hgt, GeoTIFF; see :mod:`warptan.raster` for the projection).
+
+        Args:
+            path: The raster file.
+            spacing: Post spacing in m for both axes; None keeps the native spacing.
+        """
+        grid = read_raster(path, spacing)
+        return cls(
+            grid.heights_m, grid.n0, grid.e0, grid.dn, grid.de, crs_wkt=grid.crs_wkt, origin_xy=grid.origin_xy,
+            name=os.fspath(path), description=grid.description,
+        )
+
+    @classmethod
+    def synthetic(cls, kind: str = "rugged", size_m: float = 20_000.0, spacing: float = 30.0, seed: int = 0) -> Terrain:
+        """A deterministic generated terrain centred on the NED origin.
+
+        ``rugged``: a fractal (power-law spectrum, several octaves) surface with about 800 m of relief,
+        hills of several kilometres down to ridges of a few posts; ``flat``: a gently undulating plain with
+        a few metres of relief. Same ``(kind, size_m, spacing, seed)``, same heights.
+
+        Args:
+            kind: "rugged" or "flat".
+            size_m: Side of the square area in m.
+            spacing: Post spacing in m.
+            seed: Random seed.
+        """
+        if kind not in SYNTHETIC_KINDS:
+            raise TerrainError(f"unknown synthetic terrain kind {kind!r}; choose one of {', '.join(SYNTHETIC_KINDS)}")
+        spacing = check_spacing(spacing)
+        size_m = check_spacing(size_m, "size_m")
+        n = int(math.floor(size_m / spacing)) + 1
+        if n < 8:
+            raise TerrainError(f"size_m={size_m} with spacing={spacing} gives only {n} posts a side (need ≥ 8)")
+        if n * n > 60_000_000:
+            raise TerrainError(f"size_m={size_m} with spacing={spacing} gives {n}×{n} posts; use a larger spacing")
+        rng = np.random.default_rng(np.random.PCG64(seed))
+        if kind == "rugged":
+            heights = 200.0 + 800.0 * _fractal(rng, n, spacing, beta=2.3, longest_m=12_000.0)
+        else:
+            heights = 150.0 + 6.0 * _fractal(rng, n, spacing, beta=2.0, longest_m=8_000.0)
+        half = 0.5 * (n - 1) * spacing
+        return cls(
+            heights, -half, -half, spacing, spacing, name=f"synthetic:{kind}",
+            description=f"synthetic {kind} terrain, {size_m:g} m square, {spacing:g} m posts, seed {seed}",
+        )
+
+    @classmethod
+    def from_grid(
+        cls, heights_m: np.ndarray, spacing: float | tuple[float, float], origin: tuple[float, float] = (0.0, 0.0),
+        name: str = "grid",
+    ) -> Terrain:
+        """A terrain from a (rows, cols) height array (row 0 south) with post 0,0 at ``origin`` = (n0, e0)."""
+        dn, de = (spacing, spacing) if np.isscalar(spacing) else spacing
+        return cls(np.asarray(heights_m, dtype=np.float64), origin[0], origin[1], dn, de, name=name,
+                   description=f"grid from an array, {name}")
+
+    @classmethod
+    def load(cls, spec: str | os.PathLike, spacing: float | None = None) -> Terrain:
+        """Load from a file (raster or ``.npz`` saved by :meth:`save_npz`) or a ``synthetic:KIND[,key=value...]``
+        spec (keys ``size_m``, ``spacing``, ``seed``), e.g. ``synthetic:rugged,size_m=10000,seed=3``."""
+        text = os.fspath(spec)
+        if text.startswith("synthetic:"):
+            kind, *pairs = text[len("synthetic:"):].split(",")
+            kwargs: dict = {}
+            for pair in pairs:
+                key, sep, value = pair.partition("=")
+                if not sep or key not in ("size_m", "spacing", "seed"):
+                    raise TerrainError(f"{text}: bad option {pair!r}; use size_m=, spacing=, seed=")
+                try:
+                    kwargs[key] = int(value) if key == "seed" else float(value)
+                except ValueError:
+                    raise TerrainError(f"{text}: option {key} needs a number, got {value!r}") from None
+            if spacing is not None:
+                kwargs["spacing"] = spacing
+            return cls.synthetic(kind, **kwargs)
+        if text.endswith(".npz"):
+            return cls.from_npz(text)
+        return cls.from_raster(text, spacing=spacing)
+
+    # ------------------------------------------------------------------ persistence
+    def save_npz(self, path: str | os.PathLike) -> None:
+        """Save the grid and its reference to ``.npz`` (for machines without rasterio)."""
+        np.savez_compressed(
+            path, heights_m=self.heights_m, grid=np.array([self.n0, self.e0, self.dn, self.de]),
+            origin_xy=np.array(self.origin_xy), crs_wkt=np.array(self.crs_wkt or ""), name=np.array(self.name),
+            description=np.array(self.description),
+        )
+
+    @classmethod
+    def from_npz(cls, path: str | os.PathLike) -> Terrain:
+        """Load a terrain saved by :meth:`save_npz`."""
+        if not os.path.exists(path):
+            raise FileNotFoundError(f"terrain file not found: {path}")
+        try:
+            with np.load(path, allow_pickle=False) as z:
+                n0, e0, dn, de = (float(v) for v in z["grid"])
+                return cls(
+                    z["heights_m"], n0, e0, dn, de, crs_wkt=str(z["crs_wkt"]) or None,
+                    origin_xy=tuple(float(v) for v in z["origin_xy"]), name=str(z["name"]),
+                    description=str(z["description"]),
+                )
+        except (KeyError, ValueError, OSError) as err:
+            raise TerrainError(f"{path}: not a terrain saved by Terrain.save_npz ({err})") from None
+
+    # ------------------------------------------------------------------ geometry
+    @property
+    def shape(self) -> tuple[int, int]:
+        """(rows north, cols east)."""
+        return self.heights_m.shape
+
+    @property
+    def bounds_ne(self) -> tuple[float, float, float, float]:
+        """(north_min, north_max, east_min, east_max) of the posts, m."""
+        rows, cols = self.shape
+        return self.n0, self.n0 + (rows - 1) * self.dn, self.e0, self.e0 + (cols - 1) * self.de
+
+    @property
+    def nodata_fraction(self) -> float:
+        """Fraction of posts without data."""
+        return float(1.0 - self.valid_posts.mean())
+
+    def contains(self, north, east) -> np.ndarray:
+        """True where ``(north, east)`` lies inside the post extent (validity of the data not checked)."""
+        n_min, n_max, e_min, e_max = self.bounds_ne
+        north, east = np.asarray(north, dtype=np.float64), np.asarray(east, dtype=np.float64)
+        return (north >= n_min) & (north <= n_max) & (east >= e_min) & (east <= e_max)
+
+    def _cells(self, north, east):
+        north = np.asarray(north, dtype=np.float64)
+        east = np.asarray(east, dtype=np.float64)
+        rows, cols = self.shape
+        u = (north - self.n0) / self.dn
+        v = (east - self.e0) / self.de
+        with np.errstate(invalid="ignore"):
+            inside = (u >= 0) & (u <= rows - 1) & (v >= 0) & (v <= cols - 1)
+        i = np.clip(np.floor(np.where(inside, u, 0)).astype(np.int64), 0, rows - 2)
+        j = np.clip(np.floor(np.where(inside, v, 0)).astype(np.int64), 0, cols - 2)
+        h = self.heights_m
+        return inside, u - i, v - j, h[i, j], h[i + 1, j], h[i, j + 1], h[i + 1, j + 1]
+
+    def height_at(self, north, east) -> np.ndarray:
+        """Bilinear terrain height (m above MSL) at NED horizontal positions, float64, on the host.
+
+        Args:
+            north, east: Arrays (broadcastable) of positions in m.
+
+        Returns:
+            Heights in m; NaN off the grid or in a cell with a nodata post.
+        """
+        inside, fu, fv, h00, h10, h01, h11 = self._cells(north, east)
+        h = (1 - fu) * ((1 - fv) * h00 + fv * h01) + fu * ((1 - fv) * h10 + fv * h11)
+        return np.where(inside, h, np.nan)
+
+    def surface_height_at(self, north, east) -> np.ndarray:
+        """Height (m) of the triangulated surface (what the mesh and ray casts see); NaN where invalid."""
+        inside, fu, fv, h00, h10, h01, h11 = self._cells(north, east)
+        lower = h00 + fu * (h10 - h00) + fv * (h11 - h10)
+        upper = h00 + fv * (h01 - h00) + fu * (h11 - h01)
+        h = np.where(fu >= fv, lower, upper)
+        h = np.where(np.isfinite(h00 + h10 + h01 + h11), h, np.nan)
+        return np.where(inside, h, np.nan)
+
+    # ------------------------------------------------------------------ geographic reference
+    def _require_crs(self) -> str:
+        if not self.crs_wkt:
+            raise TerrainError(f"{self.name}: terrain has no geographic reference (synthetic or array terrain)")
+        return self.crs_wkt
+
+    def latlon_to_ne(self, lat, lon) -> tuple[np.ndarray, np.ndarray]:
+        """Geographic (degrees, WGS84) -> this terrain's (north, east) in m."""
+        x, y = latlon_to_projected(self._require_crs(), np.asarray(lat, float), np.asarray(lon, float))
+        return y - self.origin_xy[1], x - self.origin_xy[0]
+
+    def ne_to_latlon(self, north, east) -> tuple[np.ndarray, np.ndarray]:
+        """This terrain's (north, east) in m -> geographic (lat, lon) in degrees, WGS84."""
+        x = np.asarray(east, float) + self.origin_xy[0]
+        y = np.asarray(north, float) + self.origin_xy[1]
+        return projected_to_latlon(self._require_crs(), x, y)
+
+    # ------------------------------------------------------------------ device side
+    def _device_entry(self, device) -> dict:
+        device = resolve_device(device)
+        entry = self._device_cache.get(device.alias)
+        if entry is None:
+            entry = {"device": device}
+            self._device_cache[device.alias] = entry
+        return entry
+
+    def grid(self, device=None) -> kterrain.HeightGrid:
+        """The :class:`~warptan.kernels.terrain.HeightGrid` on ``device`` (cached)."""
+        entry = self._device_entry(device)
+        if "grid" not in entry:
+            g = kterrain.HeightGrid()
+            g.heights = wp.array(self.heights_m.astype(np.float32), dtype=wp.float32, device=entry["device"])
+            g.cell_max = wp.array(self.cell_max_m.astype(np.float32), dtype=wp.float32, device=entry["device"])
+            g.n0, g.e0, g.dn, g.de = self.n0, self.e0, self.dn, self.de
+            g.h_min, g.h_max = self.h_min, self.h_max
+            entry["grid"] = g
+        return entry["grid"]
+
+    def mesh_arrays(self) -> tuple[np.ndarray, np.ndarray]:
+        """Vertices (rows*cols, 3) NED in m (z = -height; 0 at nodata posts, which no face uses) and faces
+        (F, 3) int32, two per valid cell, diagonal (i,j)-(i+1,j+1), wound with normals pointing up."""
+        rows, cols = self.shape
+        north = self.n0 + self.dn * np.arange(rows)
+        east = self.e0 + self.de * np.arange(cols)
+        nn, ee = np.meshgrid(north, east, indexing="ij")
+        verts = np.stack([nn, ee, -np.nan_to_num(self.heights_m, nan=0.0)], axis=-1).reshape(-1, 3)
+        ci, cj = np.nonzero(self.valid_cells)
+        v00 = ci * cols + cj
+        v10, v01, v11 = v00 + cols, v00 + 1, v00 + cols + 1
+        faces = np.concatenate([np.stack([v00, v11, v10], 1), np.stack([v00, v01, v11], 1)]).astype(np.int32)
+        return verts, faces
+
+    def mesh(self, device=None) -> wp.Mesh:
+        """The triangulated grid as a ``wp.Mesh`` on ``device`` (SAH BVH; built once per device, cached)."""
+        entry = self._device_entry(device)
+        if "mesh" not in entry:
+            verts, faces = self.mesh_arrays()
+            d = entry["device"]
+            points = wp.array(verts.astype(np.float32), dtype=wp.vec3, device=d)
+            indices = wp.array(faces.ravel(), dtype=wp.int32, device=d)
+            entry["mesh"] = wp.Mesh(points=points, indices=indices, bvh_constructor="sah")
+        return entry["mesh"]
+
+    def sample(self, north_m: wp.array, east_m: wp.array, surface: bool = False, out: wp.array | None = None):
+        """Batch-sample heights on the device of the input arrays (float32; NaN = invalid).
+
+        Args:
+            north_m, east_m: (K,) float32 Warp arrays on the same device.
+            surface: False for bilinear heights, True for the triangulated surface.
+            out: Optional (K,) float32 output array.
+        """
+        if north_m.device != east_m.device or north_m.shape != east_m.shape:
+            raise ValueError(
+                f"north_m and east_m must share device and shape, got {north_m.device}/{north_m.shape} "
+                f"and {east_m.device}/{east_m.shape}"
+            )
+        device = north_m.device
+        if out is None:
+            out = wp.empty(north_m.shape, dtype=wp.float32, device=device)
+        elif out.device != device or out.shape != north_m.shape:
+            raise ValueError(f"out must be on {device} with shape {north_m.shape}")
+        kernel = kterrain.sample_surface_kernel if surface else kterrain.sample_bilinear_kernel
+        wp.launch(kernel, dim=north_m.shape[0], inputs=[self.grid(device), north_m, east_m], outputs=[out],
+                  device=device)
+        return out
+
+    # ------------------------------------------------------------------ export
+    def to_trimesh(self, frame: str = "ned"):
+        """The triangulated grid as a ``trimesh.Trimesh`` in NED (default) or ENU (x east, y north, z up)."""
+        import trimesh
+
+        verts, faces = self.mesh_arrays()
+        if frame == "enu":
+            verts = np.stack([verts[:, 1], verts[:, 0], -verts[:, 2]], axis=1)
+        elif frame != "ned":
+            raise ValueError(f"frame must be 'ned' or 'enu', got {frame!r}")
+        used = np.unique(faces)
+        remap = np.full(len(verts), -1, dtype=np.int64)
+        remap[used] = np.arange(len(used))
+        return trimesh.Trimesh(vertices=verts[used], faces=remap[faces], process=False)
+
+    def export(self, path: str | os.PathLike, frame: str = "enu") -> None:
+        """Write the mesh for viewing (.ply, .glb, .obj, .stl; ENU with z up by default)."""
+        ext = os.path.splitext(os.fspath(path))[1].lower()
+        if ext not in (".ply", ".glb", ".obj", ".stl"):
+            raise ValueError(f"{path}: unsupported mesh format {ext!r}; use .ply, .glb, .obj or .stl")
+        self.to_trimesh(frame).export(os.fspath(path))
+
+    def info(self) -> dict:
+        """A summary for people: source, CRS, bounds, spacing, shape, height range, nodata fraction."""
+        n_min, n_max, e_min, e_max = self.bounds_ne
+        out = {
+            "name": self.name,
+            "description": self.description,
+            "crs": _crs_summary(self.crs_wkt),
+            "shape": list(self.shape),
+            "spacing_m": [self.dn, self.de],
+            "bounds_ne_m": [n_min, n_max, e_min, e_max],
+            "height_range_m": [self.h_min, self.h_max],
+            "nodata_fraction": self.nodata_fraction,
+        }
+        if self.crs_wkt:
+            lat, lon = self.ne_to_latlon(np.array([n_min, n_max]), np.array([e_min, e_max]))
+            out["bounds_latlon_deg"] = [float(lat[0]), float(lat[1]), float(lon[0]), float(lon[1])]
+        return out
+
+
+def _crs_summary(crs_wkt: str | None) -> str:
+    if not crs_wkt:
+        return "none (local NED grid)"
+    from rasterio.crs import CRS
+
+    crs = CRS.from_wkt(crs_wkt)
+    epsg = crs.to_epsg()
+    if epsg:
+        return f"EPSG:{epsg}"
+    params = crs.to_dict()
+    if params.get("proj") == "tmerc":
+        return f"transverse Mercator, lat_0={params.get('lat_0', 0):.4f}, lon_0={params.get('lon_0', 0):.4f}, WGS84"
+    return crs.to_string()
+
+
+def _fractal(rng: np.random.Generator, n: int, spacing: float, beta: float, longest_m: float) -> np.ndarray:
+    """An (n, n) surface in [0, 1] with a power-law spectrum ``|k|^-beta`` above wavelength ``longest_m``."""
+    m = 1 << int(math.ceil(math.log2(n)))
+    k = np.fft.fftfreq(m, d=spacing)
+    kk = np.hypot(*np.meshgrid(k, k, indexing="ij"))
+    k0 = 1.0 / longest_m
+    amp = (kk * kk + k0 * k0) ** (-beta / 2.0)
+    amp[0, 0] = 0.0
+    noise = rng.standard_normal((m, m)) + 1j * rng.standard_normal((m, m))
+    z = np.fft.ifft2(noise * amp).real[:n, :n]
+    z -= z.min()
+    return z / z.max()
