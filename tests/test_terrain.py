@@ -32,7 +32,8 @@ def _bilinear_reference(h, n0, e0, dn, de, north, east):
         cell = h[i:i + 2, j:j + 2]
         if np.isnan(cell).any():
             continue
-        out[k] = cell[0, 0] * (1 - a) * (1 - b) + cell[1, 0] * a * (1 - b) + cell[0, 1] * (1 - a) * b + cell[1, 1] * a * b
+        out[k] = (cell[0, 0] * (1 - a) * (1 - b) + cell[1, 0] * a * (1 - b)
+                  + cell[0, 1] * (1 - a) * b + cell[1, 1] * a * b)
     return out
 
 
@@ -91,7 +92,7 @@ def test_resampling_spacing(thuringia):
     """spacing= resamples to square posts and keeps heights (coarser grid, same region)."""
     coarse = Terrain.from_raster(dem_path(THURINGIA), spacing=500.0)
     assert coarse.dn == coarse.de == 500.0
-    n_min, n_max, e_min, e_max = coarse.bounds_ne
+    n_min, n_max, _e_min, _e_max = coarse.bounds_ne
     assert n_max - n_min == pytest.approx(111_000.0, rel=0.02)
     # Compare on a set of interior points: bilinear of a 500 m grid vs the native one, rugged terrain.
     rng = np.random.default_rng(1)
@@ -139,7 +140,7 @@ def test_dem_with_holes_loads_masked(tmp_path):
 # ---------------------------------------------------------------- bad input
 def test_missing_file_is_named():
     """A missing file raises FileNotFoundError naming it."""
-    with pytest.raises(FileNotFoundError, match="no_such_dem.tif"):
+    with pytest.raises(FileNotFoundError, match=r"no_such_dem\.tif"):
         Terrain.from_raster("/nonexistent/no_such_dem.tif")
 
 
@@ -271,7 +272,7 @@ def test_sample_rejects_mismatched_arrays():
     t = _holey_terrain()
     a = wp.zeros(5, dtype=wp.float32, device="cpu")
     b = wp.zeros(6, dtype=wp.float32, device="cpu")
-    with pytest.raises(ValueError, match="same device and shape|share device and shape"):
+    with pytest.raises(ValueError, match="share device and shape"):
         t.sample(a, b)
 
 

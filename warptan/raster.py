@@ -140,8 +140,9 @@ def _native_grid(data, crs, transform, path) -> RasterGrid:
 
 def _reprojected_grid(data, crs, transform, bounds, spacing, path) -> RasterGrid:
     from rasterio.enums import Resampling
-    from rasterio.warp import reproject, transform as warp_transform, transform_bounds
     from rasterio.transform import from_origin
+    from rasterio.warp import reproject, transform_bounds
+    from rasterio.warp import transform as warp_transform
 
     rows, cols = data.shape
     # Centre of the raster, in geographic coordinates, is the projection centre and the NED origin.
@@ -161,13 +162,14 @@ def _reprojected_grid(data, crs, transform, bounds, spacing, path) -> RasterGrid
         dn = de = spacing
         how = f"resampled to {spacing:g} m"
     left, bottom, right, top = transform_bounds(crs, dst_crs, *bounds, densify_pts=51)
-    out_cols = int(math.floor((right - left) / de))
-    out_rows = int(math.floor((top - bottom) / dn))
+    out_cols = math.floor((right - left) / de)
+    out_rows = math.floor((top - bottom) / dn)
     if out_rows < 2 or out_cols < 2:
         raise TerrainError(f"{path}: spacing {spacing} m leaves fewer than 2×2 posts")
     if out_rows * out_cols > MAX_POSTS:
         raise TerrainError(
-            f"{path}: spacing {spacing} m would make {out_rows}×{out_cols} posts (limit {MAX_POSTS}); use a larger spacing"
+            f"{path}: spacing {spacing} m would make {out_rows}×{out_cols} posts (limit {MAX_POSTS}); "
+            "use a larger spacing"
         )
     # Centre the output grid on the footprint.
     left += 0.5 * ((right - left) - out_cols * de)

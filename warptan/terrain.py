@@ -109,7 +109,7 @@ class Terrain:
             raise TerrainError(f"unknown synthetic terrain kind {kind!r}; choose one of {', '.join(SYNTHETIC_KINDS)}")
         spacing = check_spacing(spacing)
         size_m = check_spacing(size_m, "size_m")
-        n = int(math.floor(size_m / spacing)) + 1
+        n = math.floor(size_m / spacing) + 1
         if n < 8:
             raise TerrainError(f"size_m={size_m} with spacing={spacing} gives only {n} posts a side (need ≥ 8)")
         if n * n > 60_000_000:
@@ -385,7 +385,7 @@ def _crs_summary(crs_wkt: str | None) -> str:
 
 def _fractal(rng: np.random.Generator, n: int, spacing: float, beta: float, longest_m: float) -> np.ndarray:
     """An (n, n) surface in [0, 1] with a power-law spectrum ``|k|^-beta`` above wavelength ``longest_m``."""
-    m = 1 << int(math.ceil(math.log2(n)))
+    m = 1 << math.ceil(math.log2(n))
     k = np.fft.fftfreq(m, d=spacing)
     kk = np.hypot(*np.meshgrid(k, k, indexing="ij"))
     k0 = 1.0 / longest_m
