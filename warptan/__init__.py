@@ -15,10 +15,32 @@ Conventions (SPEC §1), used everywhere in the package:
 ``import warptan`` needs only numpy and warp; rasterio, trimesh and matplotlib are imported where used.
 """
 
+from warptan import frames
 from warptan.device import resolve_device
+from warptan.measurement import AltimeterModel, Likelihood, RaycastModel, SlidingModel, make_model
 from warptan.raster import TerrainError
+from warptan.raycast import RayCaster, raycast
+from warptan.sensors import AltimeterReading, Barometer, PointCloud, PointCloudSensor, RadarAltimeter, ScanPattern
 from warptan.terrain import Terrain
 
 __version__ = "0.1.0"
 
-__all__ = ["Terrain", "TerrainError", "__version__", "resolve_device"]
+__all__ = [
+    "AltimeterModel",
+    "AltimeterReading",
+    "Barometer",
+    "Likelihood",
+    "PointCloud",
+    "PointCloudSensor",
+    "RadarAltimeter",
+    "RayCaster",
+    "RaycastModel",
+    "ScanPattern",
+    "SlidingModel",
+    "Terrain",
+    "TerrainError",
+    "__version__",
+    "make_model",
+    "raycast",
+    "resolve_device",
+]

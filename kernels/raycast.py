@@ -1,0 +1,313 @@
+"""Ray casting against the DEM (paper §III, eq. 6 and 15; SPEC §5): mesh BVH, heightfield DDA, bisection.
+
+All three backends see the same surface: the triangulated grid of :mod:`warptan.kernels.terrain` (two
+triangles per cell, diagonal (i, j)-(i+1, j+1)). A ray is ``o + t d`` in NED metres; ``d`` is normalised
+here, so ``t`` is a range in metres. Every backend returns NaN (no hit), never a made-up range, when
+
+* the origin is off the grid, or below the terrain surface (a particle inside the ground);
+* the ray leaves the grid before hitting, or points away from the terrain (up into the sky);
+* the ray meets nodata: for ``dda`` and ``bisection`` any cell with a nodata post crossed inside the
+  terrain's height band; for ``mesh`` (holes have no triangles) a ray that falls through a hole and
+  then meets the underside of the surface or nothing.
+
+``dda``: the exact traversal of the grid cells under the ray (2-D DDA, Amanatides & Woo), the ray first
+clipped to the terrain's min–max height band, cells whose highest post is below the ray skipped, and an
+exact intersection with the two triangles of every other cell (front faces only).
+``bisection``: the paper's CPU variant: march in horizontal steps of ``step_m`` (≤ half a post by
+default) until the first sample on or below the surface, then ``n_bisect`` halvings of the last step.
+It finds the first surface unless a feature is thinner than a step.
+"""
+
+import warp as wp
+from warptan.kernels.frames import quat_to_mat_wxyz
+from warptan.kernels.terrain import HeightGrid, grid_surface
+
+wp.set_module_options({"enable_backward": False})
+
+BACKEND_MESH = wp.constant(0)
+BACKEND_DDA = wp.constant(1)
+BACKEND_BISECTION = wp.constant(2)
+
+BIG = wp.constant(1.0e30)
+EDGE_EPS = wp.constant(1.0e-5)
+
+
+@wp.func
+def origin_blocked(grid: HeightGrid, o: wp.vec3) -> bool:
+    """True when a ray from ``o`` cannot be cast: off the grid, or below the known terrain surface."""
+    rows = grid.heights.shape[0]
+    cols = grid.heights.shape[1]
+    u = (o[0] - grid.n0) / grid.dn
+    v = (o[1] - grid.e0) / grid.de
+    if not (u >= 0.0 and u <= float(rows - 1) and v >= 0.0 and v <= float(cols - 1) and o[2] == o[2]):
+        return True
+    h = grid_surface(grid, o[0], o[1])
+    if not wp.isnan(h):
+        if o[2] > -h:
+            return True
+    return False
+
+
+@wp.func
+def band_interval(grid: HeightGrid, o: wp.vec3, d: wp.vec3) -> wp.vec2:
+    """``[t_in, t_out]`` (t_in ≥ 0) where the ray is inside the terrain's height band; t_in > t_out: never."""
+    z_top = -grid.h_max
+    z_bot = -grid.h_min
+    t_in = 0.0
+    t_out = float(BIG)
+    if d[2] > 0.0:
+        t_in = wp.max(0.0, (z_top - o[2]) / d[2])
+        t_out = (z_bot - o[2]) / d[2]
+    elif d[2] < 0.0:
+        t_in = wp.max(0.0, (z_bot - o[2]) / d[2])
+        t_out = (z_top - o[2]) / d[2]
+    elif o[2] < z_top or o[2] > z_bot:
+        t_out = -1.0
+    return wp.vec2(t_in, t_out)
+
+
+@wp.func
+def grid_exit(grid: HeightGrid, o: wp.vec3, d: wp.vec3) -> float:
+    """Largest ``t`` at which the ray (origin on the grid) is still over the grid, less 1 mm."""
+    rows = grid.heights.shape[0]
+    cols = grid.heights.shape[1]
+    n_max = grid.n0 + float(rows - 1) * grid.dn
+    e_max = grid.e0 + float(cols - 1) * grid.de
+    t = float(BIG)
+    if d[0] > 0.0:
+        t = wp.min(t, (n_max - o[0]) / d[0])
+    elif d[0] < 0.0:
+        t = wp.min(t, (grid.n0 - o[0]) / d[0])
+    if d[1] > 0.0:
+        t = wp.min(t, (e_max - o[1]) / d[1])
+    elif d[1] < 0.0:
+        t = wp.min(t, (grid.e0 - o[1]) / d[1])
+    return t - 1.0e-3
+
+
+@wp.func
+def cell_hit(grid: HeightGrid, i: int, j: int, o: wp.vec3, d: wp.vec3) -> float:
+    """Smallest ``t ≥ 0`` where the ray enters one of the two triangles of cell (i, j) from above; -1 if none."""
+    h00 = grid.heights[i, j]
+    h10 = grid.heights[i + 1, j]
+    h01 = grid.heights[i, j + 1]
+    h11 = grid.heights[i + 1, j + 1]
+    a = o[0] - (grid.n0 + float(i) * grid.dn)
+    b = o[1] - (grid.e0 + float(j) * grid.de)
+    best = -1.0
+    # Triangle A, U >= V: h = h00 + U (h10 - h00) + V (h11 - h10); f(t) = z(t) + h(t), above the surface f < 0.
+    su = (h10 - h00) / grid.dn
+    sv = (h11 - h10) / grid.de
+    f1 = d[2] + d[0] * su + d[1] * sv
+    if f1 > 0.0:
+        t = -(o[2] + h00 + a * su + b * sv) / f1
+        if t >= 0.0:
+            uu = (a + t * d[0]) / grid.dn
+            vv = (b + t * d[1]) / grid.de
+            if vv >= -EDGE_EPS and uu <= 1.0 + EDGE_EPS and uu >= vv - EDGE_EPS:
+                best = t
+    # Triangle B, V >= U: h = h00 + V (h01 - h00) + U (h11 - h01).
+    su = (h11 - h01) / grid.dn
+    sv = (h01 - h00) / grid.de
+    f1 = d[2] + d[0] * su + d[1] * sv
+    if f1 > 0.0:
+        t = -(o[2] + h00 + a * su + b * sv) / f1
+        if t >= 0.0 and (best < 0.0 or t < best):
+            uu = (a + t * d[0]) / grid.dn
+            vv = (b + t * d[1]) / grid.de
+            if uu >= -EDGE_EPS and vv <= 1.0 + EDGE_EPS and vv >= uu - EDGE_EPS:
+                best = t
+    return best
+
+
+@wp.func
+def cast_dda(grid: HeightGrid, o: wp.vec3, d: wp.vec3) -> float:
+    """Range (m) of the first surface hit along unit ``d`` by 2-D DDA over the cells; NaN = no hit."""
+    if origin_blocked(grid, o):
+        return wp.nan
+    band = band_interval(grid, o, d)
+    t = band[0]
+    t_end = band[1]
+    if t > t_end:
+        return wp.nan
+    rows = grid.heights.shape[0]
+    cols = grid.heights.shape[1]
+    u = (o[0] + t * d[0] - grid.n0) / grid.dn
+    v = (o[1] + t * d[1] - grid.e0) / grid.de
+    if not (u >= 0.0 and u <= float(rows - 1) and v >= 0.0 and v <= float(cols - 1)):
+        return wp.nan  # the ray leaves the map before it comes down to the terrain
+    i = wp.min(int(wp.floor(u)), rows - 2)
+    j = wp.min(int(wp.floor(v)), cols - 2)
+    du = d[0] / grid.dn
+    dv = d[1] / grid.de
+    step_i = 1
+    step_j = 1
+    t_next_u = float(BIG)
+    t_delta_u = float(BIG)
+    t_next_v = float(BIG)
+    t_delta_v = float(BIG)
+    if du > 0.0:
+        t_next_u = t + (float(i + 1) - u) / du
+        t_delta_u = 1.0 / du
+    elif du < 0.0:
+        step_i = -1
+        t_next_u = t + (float(i) - u) / du
+        t_delta_u = -1.0 / du
+    if dv > 0.0:
+        t_next_v = t + (float(j + 1) - v) / dv
+        t_delta_v = 1.0 / dv
+    elif dv < 0.0:
+        step_j = -1
+        t_next_v = t + (float(j) - v) / dv
+        t_delta_v = -1.0 / dv
+    for _it in range(rows + cols + 4):
+        t_cell_end = wp.min(wp.min(t_next_u, t_next_v), t_end)
+        # Lowest point of the ray over this cell (largest z): above the cell's highest post, skip the cell.
+        z_low = wp.max(o[2] + t * d[2], o[2] + t_cell_end * d[2])
+        cmax = grid.cell_max[i, j]
+        if -z_low <= cmax:
+            if cmax > 1.0e37:
+                return wp.nan  # nodata cell inside the height band
+            th = cell_hit(grid, i, j, o, d)
+            if th >= 0.0:
+                return th
+        if t_cell_end >= t_end:
+            return wp.nan
+        if t_next_u < t_next_v:
+            i += step_i
+            t = t_next_u
+            t_next_u += t_delta_u
+        else:
+            j += step_j
+            t = t_next_v
+            t_next_v += t_delta_v
+        if i < 0 or i > rows - 2 or j < 0 or j > cols - 2:
+            return wp.nan  # left the map
+    return wp.nan
+
+
+@wp.func
+def cast_bisection(grid: HeightGrid, o: wp.vec3, d: wp.vec3, step_m: float, n_bisect: int) -> float:
+    """Range (m) by marching ``step_m`` horizontally to the first sample on/below the surface, then bisection."""
+    if origin_blocked(grid, o):
+        return wp.nan
+    band = band_interval(grid, o, d)
+    t_prev = band[0]
+    t_end = wp.min(band[1], grid_exit(grid, o, d))
+    if t_prev > t_end:
+        return wp.nan
+    horiz = wp.sqrt(d[0] * d[0] + d[1] * d[1])
+    t_step = t_end - t_prev
+    if horiz * t_step > step_m:
+        t_step = step_m / horiz
+    t_step = wp.max(t_step, 1.0e-3)  # a flat band (h_min == h_max) crossed vertically
+    n_steps = int(wp.ceil((t_end - t_prev) / t_step)) + 1
+    for _k in range(n_steps):
+        t_cur = wp.min(t_prev + t_step, t_end)
+        p = o + t_cur * d
+        h = grid_surface(grid, p[0], p[1])
+        if wp.isnan(h):
+            return wp.nan  # left the map or met nodata
+        if p[2] + h >= 0.0:
+            lo = t_prev
+            hi = t_cur
+            for _b in range(n_bisect):
+                mid = 0.5 * (lo + hi)
+                q = o + mid * d
+                hq = grid_surface(grid, q[0], q[1])
+                if wp.isnan(hq) or q[2] + hq >= 0.0:
+                    hi = mid
+                else:
+                    lo = mid
+            return 0.5 * (lo + hi)
+        if t_cur >= t_end:
+            return wp.nan  # out of the height band (sky) or off the map
+        t_prev = t_cur
+    return wp.nan
+
+
+@wp.func
+def cast_mesh(grid: HeightGrid, mesh: wp.uint64, o: wp.vec3, d: wp.vec3) -> float:
+    """Range (m) of the first front-face hit on the triangle mesh (``wp.mesh_query_ray``); NaN = no hit."""
+    if origin_blocked(grid, o):
+        return wp.nan
+    band = band_interval(grid, o, d)
+    if band[0] > band[1]:
+        return wp.nan
+    q = wp.mesh_query_ray(mesh, o, d, band[1] + 1.0)
+    if q.result and q.sign > 0.0:
+        return q.t
+    return wp.nan
+
+
+@wp.func
+def cast_ray(
+    grid: HeightGrid, mesh: wp.uint64, backend: int, o: wp.vec3, d_raw: wp.vec3, step_m: float, n_bisect: int
+) -> float:
+    """Dispatch one ray to a backend (``BACKEND_*``); ``d_raw`` is normalised first."""
+    d = wp.normalize(d_raw)
+    if backend == BACKEND_MESH:
+        return cast_mesh(grid, mesh, o, d)
+    if backend == BACKEND_DDA:
+        return cast_dda(grid, o, d)
+    return cast_bisection(grid, o, d, step_m, n_bisect)
+
+
+@wp.kernel
+def raycast_kernel(
+    grid: HeightGrid,
+    mesh: wp.uint64,
+    backend: int,
+    step_m: float,
+    n_bisect: int,
+    origins_n: wp.array(dtype=wp.vec3),
+    dirs_n: wp.array(dtype=wp.vec3),
+    range_out: wp.array(dtype=wp.float32),
+):
+    """One thread per ray: range in m along the normalised direction, NaN = no hit."""
+    k = wp.tid()
+    range_out[k] = cast_ray(grid, mesh, backend, origins_n[k], dirs_n[k], step_m, n_bisect)
+
+
+@wp.kernel
+def raycast_pattern_kernel(
+    grid: HeightGrid,
+    mesh: wp.uint64,
+    backend: int,
+    step_m: float,
+    n_bisect: int,
+    pos_n: wp.array(dtype=wp.vec3),
+    quat_nb: wp.array(dtype=wp.vec4),
+    dirs_s: wp.array(dtype=wp.vec3),
+    range_out: wp.array2d(dtype=wp.float32),
+):
+    """One thread per (pose i, pattern ray j): cast ``R(q_i) d_j`` from ``p_i``."""
+    i, j = wp.tid()
+    d = quat_to_mat_wxyz(quat_nb[i]) * dirs_s[j]
+    range_out[i, j] = cast_ray(grid, mesh, backend, pos_n[i], d, step_m, n_bisect)
+
+
+@wp.kernel
+def raycast_residual_kernel(
+    grid: HeightGrid,
+    mesh: wp.uint64,
+    backend: int,
+    step_m: float,
+    n_bisect: int,
+    pos_n: wp.array(dtype=wp.vec3),
+    quat_nb: wp.array(dtype=wp.vec4),
+    dirs_s: wp.array(dtype=wp.vec3),
+    range_meas: wp.array(dtype=wp.float32),
+    residual_out: wp.array2d(dtype=wp.float32),
+):
+    """One thread per (particle i, point j): range residual ``r_j - t_ij`` (m); NaN where either is invalid.
+
+    With ``c_j = r_j d_j`` and ``c^_ij = t_ij d_j`` the point residual is ``(r_j - t_ij) d_j`` (eq. 15).
+    """
+    i, j = wp.tid()
+    r = range_meas[j]
+    if wp.isnan(r):
+        residual_out[i, j] = wp.nan
+        return
+    d = quat_to_mat_wxyz(quat_nb[i]) * dirs_s[j]
+    residual_out[i, j] = r - cast_ray(grid, mesh, backend, pos_n[i], d, step_m, n_bisect)
