@@ -40,6 +40,7 @@ __all__ = [
     "Terrain",
     "TerrainError",
     "__version__",
+    "frames",
     "make_model",
     "raycast",
     "resolve_device",

@@ -113,7 +113,7 @@ def mat_to_quat(m) -> np.ndarray:
             out[k] = [(r[1, 0] - r[0, 1]) / s, (r[0, 2] + r[2, 0]) / s, (r[1, 2] + r[2, 1]) / s, 0.25 * s]
     out[out[:, 0] < 0] *= -1.0
     out /= np.linalg.norm(out, axis=1, keepdims=True)
-    return out.reshape(m.shape[:-2] + (4,))
+    return out.reshape((*m.shape[:-2], 4))
 
 
 def euler_to_quat(roll, pitch, yaw) -> np.ndarray:
