@@ -57,12 +57,12 @@ def reduce_loglik_kernel(
     """One thread per particle: paper error (m), log-likelihood, and the number of usable points."""
     i = wp.tid()
     m = residual.shape[1]
-    n_ok = 0
-    n_recv = 0
-    sum_abs = 0.0
+    n_ok = int(0)
+    n_recv = int(0)
+    sum_abs = float(0.0)
     sum_axes = wp.vec3(0.0, 0.0, 0.0)
-    signed = 0.0
-    ll_points = 0.0
+    signed = float(0.0)
+    ll_points = float(0.0)
     ll_out = point_loglik(lik, k_out * sigma, sigma, nu)
     for j in range(m):
         if point_ok[j] == 0:
@@ -87,7 +87,7 @@ def reduce_loglik_kernel(
             err = sum_abs * inv
         else:
             err = signed
-    ll = 0.0
+    ll = float(0.0)
     if n_recv > 0:
         if lik == LIK_PAPER:
             if n_ok > 0:

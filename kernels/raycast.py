@@ -30,6 +30,7 @@ BACKEND_BISECTION = wp.constant(2)
 
 BIG = wp.constant(1.0e30)
 EDGE_EPS = wp.constant(1.0e-5)
+BAND_PAD = wp.constant(0.05)
 
 
 @wp.func
@@ -51,9 +52,10 @@ def origin_blocked(grid: HeightGrid, o: wp.vec3) -> bool:
 @wp.func
 def band_interval(grid: HeightGrid, o: wp.vec3, d: wp.vec3) -> wp.vec2:
     """``[t_in, t_out]`` (t_in ≥ 0) where the ray is inside the terrain's height band; t_in > t_out: never."""
-    z_top = -grid.h_max
-    z_bot = -grid.h_min
-    t_in = 0.0
+    # Widened by BAND_PAD so that rounding cannot drop a hit on a flat band (h_min == h_max).
+    z_top = -grid.h_max - BAND_PAD
+    z_bot = -grid.h_min + BAND_PAD
+    t_in = float(0.0)
     t_out = float(BIG)
     if d[2] > 0.0:
         t_in = wp.max(0.0, (z_top - o[2]) / d[2])
@@ -62,7 +64,7 @@ def band_interval(grid: HeightGrid, o: wp.vec3, d: wp.vec3) -> wp.vec2:
         t_in = wp.max(0.0, (z_bot - o[2]) / d[2])
         t_out = (z_top - o[2]) / d[2]
     elif o[2] < z_top or o[2] > z_bot:
-        t_out = -1.0
+        t_out = float(-1.0)
     return wp.vec2(t_in, t_out)
 
 
@@ -94,7 +96,7 @@ def cell_hit(grid: HeightGrid, i: int, j: int, o: wp.vec3, d: wp.vec3) -> float:
     h11 = grid.heights[i + 1, j + 1]
     a = o[0] - (grid.n0 + float(i) * grid.dn)
     b = o[1] - (grid.e0 + float(j) * grid.de)
-    best = -1.0
+    best = float(-1.0)
     # Triangle A, U >= V: h = h00 + U (h10 - h00) + V (h11 - h10); f(t) = z(t) + h(t), above the surface f < 0.
     su = (h10 - h00) / grid.dn
     sv = (h11 - h10) / grid.de
@@ -140,8 +142,8 @@ def cast_dda(grid: HeightGrid, o: wp.vec3, d: wp.vec3) -> float:
     j = wp.min(int(wp.floor(v)), cols - 2)
     du = d[0] / grid.dn
     dv = d[1] / grid.de
-    step_i = 1
-    step_j = 1
+    step_i = int(1)
+    step_j = int(1)
     t_next_u = float(BIG)
     t_delta_u = float(BIG)
     t_next_v = float(BIG)
@@ -150,14 +152,14 @@ def cast_dda(grid: HeightGrid, o: wp.vec3, d: wp.vec3) -> float:
         t_next_u = t + (float(i + 1) - u) / du
         t_delta_u = 1.0 / du
     elif du < 0.0:
-        step_i = -1
+        step_i = int(-1)
         t_next_u = t + (float(i) - u) / du
         t_delta_u = -1.0 / du
     if dv > 0.0:
         t_next_v = t + (float(j + 1) - v) / dv
         t_delta_v = 1.0 / dv
     elif dv < 0.0:
-        step_j = -1
+        step_j = int(-1)
         t_next_v = t + (float(j) - v) / dv
         t_delta_v = -1.0 / dv
     for _it in range(rows + cols + 4):
@@ -165,7 +167,7 @@ def cast_dda(grid: HeightGrid, o: wp.vec3, d: wp.vec3) -> float:
         # Lowest point of the ray over this cell (largest z): above the cell's highest post, skip the cell.
         z_low = wp.max(o[2] + t * d[2], o[2] + t_cell_end * d[2])
         cmax = grid.cell_max[i, j]
-        if -z_low <= cmax:
+        if -z_low <= cmax + BAND_PAD:
             if cmax > 1.0e37:
                 return wp.nan  # nodata cell inside the height band
             th = cell_hit(grid, i, j, o, d)

@@ -1,0 +1,240 @@
+"""Sensors and measurement models: analytic ranges, NumPy references of residuals and likelihoods."""
+
+import numpy as np
+import pytest
+import warp as wp
+
+import warptan as wt
+from warptan.frames import euler_to_quat, quat_to_mat
+
+
+def _poses(pos, quat, device):
+    pos = np.atleast_2d(pos)
+    quat = np.atleast_2d(quat)
+    return (wp.array(pos.astype(np.float32), dtype=wp.vec3, device=device),
+            wp.array(quat.astype(np.float32), dtype=wp.vec4, device=device))
+
+
+# ---------------------------------------------------------------- sensors
+def test_scan_patterns():
+    """Presets give unit directions: a 10×10 grid spanning ±30°, a ring on its cone, the nadir ray."""
+    g = wt.ScanPattern.grid(10, 10, 30.0)
+    assert g.m == 100
+    np.testing.assert_allclose(np.linalg.norm(g.dirs_s, axis=1), 1.0)
+    along = np.degrees(np.arctan2(g.dirs_s[:, 0], g.dirs_s[:, 2]))
+    assert along.min() == pytest.approx(-30.0) and along.max() == pytest.approx(30.0)
+    ring = wt.ScanPattern.ring(16, 20.0)
+    np.testing.assert_allclose(np.degrees(np.arccos(ring.dirs_s[:, 2])), 20.0)
+    np.testing.assert_array_equal(wt.ScanPattern.nadir().dirs_s, [[0.0, 0.0, 1.0]])
+
+
+@pytest.mark.parametrize(("dirs", "message"), [
+    (np.zeros((0, 3)), "empty"),
+    ([[0.0, 0.0, 0.0]], "zero-length"),
+    ([[np.nan, 0.0, 1.0]], "non-finite"),
+    ([[1.0, 2.0]], r"shape \(M, 3\)"),
+])
+def test_bad_patterns(dirs, message):
+    """Empty patterns and degenerate directions are ValueErrors."""
+    with pytest.raises(ValueError, match=message):
+        wt.ScanPattern(dirs)
+
+
+def test_point_cloud_on_a_plane_is_analytic(device):
+    """Over a flat plane, a banked and pitched sensor measures r_j = altitude / (R d_j)_z exactly."""
+    terrain = wt.Terrain.from_grid(np.full((50, 50), 120.0), spacing=50.0, origin=(-1250.0, -1250.0))
+    pos = np.array([10.0, -20.0, -520.0])
+    q = euler_to_quat(0.3, -0.1, 1.0)
+    sensor = wt.PointCloudSensor(wt.ScanPattern.grid(5, 7, (25.0, 35.0)), range_sigma_m=0.0)
+    cloud = sensor.measure(terrain, pos, q, device=device)
+    expected = 400.0 / (sensor.pattern.dirs_s @ quat_to_mat(q).T)[:, 2]
+    np.testing.assert_allclose(cloud.ranges_m, expected, rtol=2e-6)
+    np.testing.assert_allclose(cloud.points_s[:, 2], cloud.ranges_m * sensor.pattern.dirs_s[:, 2])
+
+
+def test_point_cloud_noise_and_invalid_points():
+    """Range noise has the stated σ; rays that leave the map are invalid (NaN), never a range."""
+    terrain = wt.Terrain.from_grid(np.full((20, 20), 0.0), spacing=50.0, origin=(-500.0, -500.0))
+    sensor = wt.PointCloudSensor(wt.ScanPattern.grid(30, 30, 20.0), range_sigma_m=0.5)
+    clean = sensor.measure(terrain, [0, 0, -500.0], [1, 0, 0, 0])
+    noisy = sensor.measure(terrain, [0, 0, -500.0], [1, 0, 0, 0], rng=np.random.default_rng(0))
+    assert np.nanstd(noisy.ranges_m - clean.ranges_m) == pytest.approx(0.5, rel=0.1)
+    edge = sensor.measure(terrain, [400.0, 0, -500.0], [1, 0, 0, 0])
+    assert 0 < edge.valid.sum() < sensor.pattern.m
+
+
+def test_altimeter_and_barometer():
+    """The altimeter measures -p_z - h(p), the barometer -p_z, each with its σ."""
+    terrain = wt.Terrain.synthetic("rugged", size_m=3000.0, spacing=30.0, seed=2)
+    p = np.array([100.0, -200.0, -1500.0])
+    a = wt.RadarAltimeter(sigma_m=0.0).measure(terrain, p)
+    assert a == pytest.approx(1500.0 - float(terrain.height_at(100.0, -200.0)))
+    rng = np.random.default_rng(1)
+    baro = np.array([wt.Barometer(sigma_m=2.0).measure(p, rng) for _ in range(4000)])
+    assert baro.mean() == pytest.approx(1500.0, abs=0.2) and baro.std() == pytest.approx(2.0, rel=0.1)
+    assert np.isnan(wt.RadarAltimeter().measure(terrain, [1e5, 0, -1000.0]))
+
+
+# ---------------------------------------------------------------- models at and around the truth
+def _truth_setup(terrain, seed=0):
+    rng = np.random.default_rng(seed)
+    centre_n, centre_e = 0.5 * (terrain.bounds_ne[0] + terrain.bounds_ne[1]), 0.5 * (
+        terrain.bounds_ne[2] + terrain.bounds_ne[3])
+    pos = np.array([centre_n, centre_e, -(np.nanmax(terrain.heights_m) + 600.0)])
+    q = euler_to_quat(rng.uniform(-0.1, 0.1), rng.uniform(-0.1, 0.1), rng.uniform(-3, 3))
+    cloud = wt.PointCloudSensor(wt.ScanPattern.grid(), range_sigma_m=0.0).measure(terrain, pos, q)
+    return pos, q, cloud
+
+
+def _check_truth_minimum(terrain, device, sliding_tol):
+    pos, q, cloud = _truth_setup(terrain)
+    offsets = np.array([0.0, 25.0, 50.0, 100.0, 200.0])
+    poses = pos + np.stack([offsets, 0.6 * offsets, 0.1 * offsets], axis=1)
+    p_dev, q_dev = _poses(poses, np.tile(q, (len(poses), 1)), device)
+    errors = {}
+    for model in (wt.SlidingModel(terrain), wt.SlidingModel(terrain, surface=True),
+                  wt.RaycastModel(terrain, caster=wt.RayCaster("dda")),
+                  wt.RaycastModel(terrain, caster=wt.RayCaster("mesh"))):
+        err = model.evaluate(p_dev, q_dev, cloud).error_m.numpy()
+        errors[(model.name, getattr(model, "surface", False))] = err
+        assert np.all(np.diff(err) > 0), (model.name, err)  # grows with the pose error
+        assert err[-1] > 5.0
+    assert errors[("raycast", False)][0] < 0.01
+    assert errors[("sliding", True)][0] < 0.01  # same surface as the ray casts: exact
+    assert errors[("sliding", False)][0] < sliding_tol  # bilinear vs the triangulated truth
+
+
+def test_sliding_and_raycast_vanish_at_the_truth_generated(device):
+    """Zero noise: both errors are ~0 at the true pose and grow as the pose moves away (generated terrain)."""
+    _check_truth_minimum(wt.Terrain.synthetic("rugged", size_m=8000.0, spacing=30.0, seed=5), device, 0.5)
+
+
+def test_sliding_and_raycast_vanish_at_the_truth_real(device, thuringia):
+    """The same on the real Thuringia SRTM3 tile."""
+    _check_truth_minimum(thuringia, device, 1.0)
+
+
+def _sliding_residual_reference(terrain, poses, quats, points):
+    """Float64 NumPy version of eq. 14/16 for every (particle, point)."""
+    out = np.empty((len(poses), len(points)))
+    for i, (p, q) in enumerate(zip(poses, quats, strict=True)):
+        mat = quat_to_mat(q)
+        w = p + points @ mat.T
+        h = terrain.height_at(w[:, 0], w[:, 1])
+        w_hat = np.stack([w[:, 0], w[:, 1], -h], axis=1)
+        c_hat = (w_hat - p) @ mat
+        out[i] = points[:, 2] - c_hat[:, 2]
+    return out
+
+
+def _loglik_reference(res, lik):
+    """Per-particle log-likelihoods of a residual matrix (NaN = invalid prediction), written out in NumPy."""
+    ok = np.isfinite(res)
+    r = np.where(ok, res, lik.outlier_sigmas * lik.sigma_m)
+    z2 = (r / lik.sigma_m) ** 2
+    if lik.kind == "gaussian":
+        return (-0.5 * z2).sum(axis=1)
+    if lik.kind == "student_t":
+        return (-0.5 * (lik.nu + 1) * np.log1p(z2 / lik.nu)).sum(axis=1)
+    err = np.nanmean(np.abs(res), axis=1)
+    return np.where(ok.any(axis=1), -0.5 * err**2 / lik.r_err, -0.5 * lik.outlier_sigmas**2)
+
+
+@pytest.mark.parametrize("kind", ["paper", "gaussian", "student_t"])
+def test_sliding_loglik_matches_numpy(kind, device):
+    """Sliding residuals and all three likelihoods equal a float64 NumPy computation of the same formulas,
+    including particles partly off the map (their points score as outliers, no NaN)."""
+    terrain = wt.Terrain.synthetic("rugged", size_m=4000.0, spacing=30.0, seed=6)
+    pos, _, cloud = _truth_setup(terrain)
+    rng = np.random.default_rng(2)
+    n = 64
+    poses = pos + rng.normal(0, [40, 40, 10], (n, 3))
+    poses[:4, 0] += 1800.0  # near or over the northern edge: some points off the map
+    quats = euler_to_quat(rng.normal(0, 0.01, n), rng.normal(0, 0.01, n), rng.normal(0, 0.01, n) + 0.3)
+    lik = wt.Likelihood(kind, r_err=4.0, sigma_m=3.0, nu=5.0)
+    out = wt.SlidingModel(terrain, lik).evaluate(*_poses(poses, quats, device), cloud)
+    ref_res = _sliding_residual_reference(terrain, poses, quats, cloud.points_s)
+    got_res = out.residual_m.numpy()
+    assert np.isnan(ref_res).any()
+    # Points within float32 rounding of the map edge may differ in validity; compare the rest.
+    same = np.isnan(got_res) == np.isnan(ref_res)
+    assert same.mean() > 0.999
+    ok = same & np.isfinite(ref_res)
+    np.testing.assert_allclose(got_res[ok], ref_res[ok], atol=2e-3)
+    ref_res[~same] = got_res[~same]
+    np.testing.assert_allclose(out.loglik.numpy(), _loglik_reference(ref_res, lik), rtol=1e-4, atol=1e-3)
+    np.testing.assert_array_equal(out.n_valid.numpy(), np.isfinite(ref_res).sum(axis=1))
+    assert np.isfinite(out.loglik.numpy()).all()
+
+
+def test_raycast_paper_error_matches_numpy(device):
+    """The raycast model's error is eq. 15 on the range residuals: sqrt(sum_axis (mean_j |dr_j| |d_j,axis|)^2)."""
+    terrain = wt.Terrain.synthetic("rugged", size_m=4000.0, spacing=30.0, seed=6)
+    pos, q, cloud = _truth_setup(terrain)
+    rng = np.random.default_rng(3)
+    poses = pos + rng.normal(0, 30, (16, 3))
+    quats = np.tile(q, (16, 1))
+    out = wt.RaycastModel(terrain, wt.Likelihood("paper", r_err=2.0)).evaluate(*_poses(poses, quats, device), cloud)
+    dirs_n = cloud.dirs_s @ quat_to_mat(q).T
+    t = wt.raycast(terrain, np.repeat(poses, len(dirs_n), 0), np.tile(dirs_n, (16, 1)), backend="dda").reshape(16, -1)
+    res = cloud.ranges_m - t
+    ref_err = np.linalg.norm(np.nanmean(np.abs(res)[:, :, None] * np.abs(cloud.dirs_s)[None], axis=1), axis=1)
+    np.testing.assert_allclose(out.error_m.numpy(), ref_err, rtol=1e-4, atol=2e-3)
+    np.testing.assert_allclose(out.loglik.numpy(), -0.5 * ref_err**2 / 2.0, rtol=1e-3, atol=1e-3)
+
+
+def test_all_points_invalid_gives_floor_and_flag(device):
+    """A cloud whose every point is invalid (NaN samples) gives every particle the same score and the flag."""
+    terrain = wt.Terrain.synthetic("rugged", size_m=3000.0, spacing=30.0, seed=1)
+    cloud = wt.PointCloud.from_points(np.full((25, 3), np.nan))
+    p_dev, q_dev = _poses(np.tile([0.0, 0.0, -2000.0], (10, 1)), np.tile([1.0, 0, 0, 0], (10, 1)), device)
+    for model in (wt.SlidingModel(terrain), wt.RaycastModel(terrain)):
+        out = model.evaluate(p_dev, q_dev, cloud)
+        assert out.all_points_invalid
+        ll = out.loglik.numpy()
+        assert np.isfinite(ll).all() and np.ptp(ll) == 0.0
+
+
+def test_nan_samples_are_excluded(device):
+    """NaN samples in a received cloud are ignored: same score as the cloud without them."""
+    terrain = wt.Terrain.synthetic("rugged", size_m=4000.0, spacing=30.0, seed=6)
+    pos, q, cloud = _truth_setup(terrain)
+    pts = cloud.points_s.copy()
+    pts[::7] = np.nan
+    holed = wt.PointCloud.from_points(pts)
+    kept = wt.PointCloud.from_points(pts[np.isfinite(pts[:, 0])])
+    p_dev, q_dev = _poses(pos + np.array([[0, 0, 0], [30.0, 10.0, 0]]), np.tile(q, (2, 1)), device)
+    lik = wt.Likelihood("gaussian", sigma_m=2.0)
+    a = wt.SlidingModel(terrain, lik).evaluate(p_dev, q_dev, holed).loglik.numpy()
+    b = wt.SlidingModel(terrain, lik).evaluate(p_dev, q_dev, kept).loglik.numpy()
+    np.testing.assert_allclose(a, b, rtol=1e-5)
+
+
+def test_altimeter_model(device):
+    """Altimeter residual a - (h_baro - h(p_i)) matches NumPy; an off-map particle gets the floor, no NaN."""
+    terrain = wt.Terrain.synthetic("rugged", size_m=3000.0, spacing=30.0, seed=2)
+    poses = np.array([[0.0, 0.0, -1500.0], [200.0, -300.0, -1500.0], [1e5, 0.0, -1500.0]])
+    reading = wt.AltimeterReading(range_m=700.0, baro_alt_m=1490.0)
+    lik = wt.Likelihood("paper", r_err=9.0)
+    out = wt.AltimeterModel(terrain, lik).evaluate(*_poses(poses, np.tile([1.0, 0, 0, 0], (3, 1)), device), reading)
+    ref = 700.0 - (1490.0 - terrain.height_at(poses[:, 0], poses[:, 1]))
+    np.testing.assert_allclose(out.error_m.numpy()[:2], ref[:2], atol=1e-3)
+    ll = out.loglik.numpy()
+    np.testing.assert_allclose(ll[:2], -0.5 * ref[:2] ** 2 / 9.0, rtol=1e-4)
+    assert ll[2] == pytest.approx(-0.5 * lik.outlier_sigmas**2)
+
+
+def test_bad_model_arguments():
+    """Unknown model/likelihood names and wrong measurement types are clear ValueErrors."""
+    terrain = wt.Terrain.synthetic("flat", size_m=1000.0, spacing=50.0)
+    with pytest.raises(ValueError, match="unknown measurement model 'lidar'"):
+        wt.make_model("lidar", terrain)
+    with pytest.raises(ValueError, match="unknown likelihood 'cauchy'"):
+        wt.Likelihood("cauchy")
+    with pytest.raises(ValueError, match="r_err must be a positive"):
+        wt.Likelihood(r_err=0.0)
+    p, q = _poses([[0, 0, -500.0]], [[1.0, 0, 0, 0]], "cpu")
+    with pytest.raises(ValueError, match="needs a PointCloud"):
+        wt.SlidingModel(terrain).evaluate(p, q, wt.AltimeterReading(1.0, 2.0))
+    with pytest.raises(ValueError, match="shape"):
+        wt.SlidingModel(terrain).evaluate(p, wp.zeros(2, dtype=wp.vec4), wt.PointCloud.from_points([[0, 0, 1.0]]))
