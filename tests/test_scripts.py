@@ -1,0 +1,32 @@
+"""The benchmark scripts run end to end (no timing is asserted)."""
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def test_compare_kernel_timings_quick(tmp_path):
+    """`compare_kernel_timings.py --quick` finishes and its JSON has every model, N, M and the timing fields."""
+    out = tmp_path / "t.json"
+    proc = subprocess.run([sys.executable, str(ROOT / "scripts" / "compare_kernel_timings.py"), "--quick",
+                           "--json", str(out)], capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    assert "x sliding" in proc.stdout
+    data = json.loads(out.read_text())
+    rows = data["results"]
+    assert {r["model"] for r in rows} == {"mesh", "dda", "bisection", "sliding", "altimeter"}
+    assert {r["N"] for r in rows} == {100, 500, 2000}
+    assert {r["M"] for r in rows if r["model"] != "altimeter"} == {1, 25, 100}
+    for r in rows:
+        assert r["median_s"] > 0 and r["per_s"] > 0 and r["ratio_to_sliding"] > 0, r
+    assert data["meta"]["warp_version"] and data["meta"]["repeats"] == 3
+
+
+def test_compare_kernel_timings_rejects_unknown_device():
+    """An unknown device name is a one-line error, exit 2."""
+    proc = subprocess.run([sys.executable, str(ROOT / "scripts" / "compare_kernel_timings.py"), "--quick",
+                           "--device", "tpu"], capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 2 and "unknown or absent device 'tpu'" in proc.stderr
