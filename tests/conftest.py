@@ -5,6 +5,7 @@ visible skip. Warp's kernel cache honours ``WARP_CACHE_PATH`` (``.ci/run`` point
 can keep between runs).
 """
 
+import os
 from pathlib import Path
 
 import pytest
@@ -12,7 +13,8 @@ import warp as wp
 
 wp.config.quiet = True
 
-DEM_DIR = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "dem"
+# The shared real DEMs live beside the checkout; WARPTAN_DEM_DIR points elsewhere (e.g. on a GPU machine).
+DEM_DIR = Path(os.environ.get("WARPTAN_DEM_DIR") or Path(__file__).resolve().parents[2] / "shared" / "data" / "dem")
 THURINGIA = DEM_DIR / "thuringia_hilly_srtm3_n50e010.tif"
 GANGES = DEM_DIR / "ganges_plain_flat_srtm3_n28e078.tif"
 BOSPHORUS = DEM_DIR / "bosphorus_istanbul_dted0.tif"
