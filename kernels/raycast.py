@@ -19,6 +19,7 @@ It finds the first surface unless a feature is thinner than a step.
 """
 
 import warp as wp
+
 from warptan.kernels.frames import quat_to_mat_wxyz
 from warptan.kernels.terrain import HeightGrid, grid_surface
 

@@ -8,6 +8,7 @@ A point or particle off the map, on nodata, or with a NaN input gives a NaN resi
 """
 
 import warp as wp
+
 from warptan.kernels.frames import quat_to_mat_wxyz
 from warptan.kernels.terrain import HeightGrid, grid_bilinear, grid_surface
 
