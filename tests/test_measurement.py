@@ -237,4 +237,5 @@ def test_bad_model_arguments():
     with pytest.raises(ValueError, match="needs a PointCloud"):
         wt.SlidingModel(terrain).evaluate(p, q, wt.AltimeterReading(1.0, 2.0))
     with pytest.raises(ValueError, match="shape"):
-        wt.SlidingModel(terrain).evaluate(p, wp.zeros(2, dtype=wp.vec4, device="cpu"), wt.PointCloud.from_points([[0, 0, 1.0]]))
+        cloud = wt.PointCloud.from_points([[0, 0, 1.0]])
+        wt.SlidingModel(terrain).evaluate(p, wp.zeros(2, dtype=wp.vec4, device="cpu"), cloud)
