@@ -24,7 +24,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from warptan.frames import check_unit_quat, quat_conj, quat_exp, quat_log, quat_mul, quat_to_mat, skew
+from warptan.frames import check_unit_quat, quat_conj, quat_exp, quat_log, quat_mul
 from warptan.imu import ImuGrade, check_rate
 
 GRAVITY_N = np.array([0.0, 0.0, 9.80665])
@@ -135,9 +135,11 @@ class Ins:
         self.dt = 1.0 / self.rate_hz
 
     def step(self, f_b, w_b) -> NavState:
-        """Advance by one IMU sample; returns the new state."""
-        self.state = mechanize(self.state, f_b, w_b, self.dt)
-        return self.state
+        """Advance by one IMU sample (in place); returns the state."""
+        f, w = _check_sample(f_b, w_b)
+        s = self.state
+        _step_inplace(s.pos_n, s.vel_n, s.quat_nb, s.accel_bias, s.gyro_bias, f, w, self.dt)
+        return s
 
     def run(self, f_b, w_b) -> dict[str, np.ndarray]:
         """Propagate through (K, 3) samples; returns the K+1 states as arrays ``pos_n, vel_n, quat_nb``."""
@@ -162,36 +164,50 @@ class Ins:
         return {"pos_n": pos, "vel_n": vel, "quat_nb": quat}
 
 
-def right_jacobian(phi) -> np.ndarray:
-    """``J_r(phi)`` of SO(3) (Solà eq. 143)."""
-    phi = np.asarray(phi, dtype=np.float64)
-    angle = float(np.linalg.norm(phi))
-    k = skew(phi)
-    if angle < 1e-8:
-        return np.eye(3) - 0.5 * k
-    return (np.eye(3) - (1 - math.cos(angle)) / angle**2 * k + (angle - math.sin(angle)) / angle**3 * (k @ k))
+def _rot(q) -> np.ndarray:
+    """``R(q)`` of one unit quaternion (fast scalar form of :func:`warptan.frames.quat_to_mat`)."""
+    w, x, y, z = q
+    return np.array([
+        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+    ])
+
+
+def _skew3(v) -> np.ndarray:
+    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
 
 
 def error_transition(state: NavState, f_b, w_b, dt: float, exact: bool = True) -> np.ndarray:
     """Discrete error-state transition ``F`` (15×15) for one IMU step from ``state`` (see module doc)."""
     f, w = _check_sample(f_b, w_b)
-    r = quat_to_mat(state.quat_nb)
+    r = _rot(state.quat_nb)
     a = f - state.accel_bias
     wdt = (w - state.gyro_bias) * dt
-    i3 = np.eye(3)
-    dv_dth = -r @ skew(a) * dt
+    dv_dth = -(r @ _skew3(a)) * dt
     dv_dba = -r * dt
+    # Exp(w dt) as a matrix (Rodrigues); its transpose maps the attitude error forward.
+    angle = math.sqrt(float(wdt @ wdt))
+    k = _skew3(wdt)
+    if angle < 1e-8:
+        c1, c2 = 1.0, 0.5
+        j1, j2 = 0.5, 1.0 / 6.0
+    else:
+        c1, c2 = math.sin(angle) / angle, (1 - math.cos(angle)) / angle**2
+        j1, j2 = c2, (angle - math.sin(angle)) / angle**3
+    kk = k @ k
+    exp_w = np.eye(3) + c1 * k + c2 * kk
     F = np.eye(15)
-    F[0:3, 3:6] = i3 * dt
+    F[0:3, 3:6] = np.eye(3) * dt
     F[3:6, 6:9] = dv_dth
     F[3:6, 9:12] = dv_dba
-    F[6:9, 6:9] = quat_to_mat(quat_exp(wdt)).T
+    F[6:9, 6:9] = exp_w.T
     if exact:
         F[0:3, 6:9] = 0.5 * dt * dv_dth
         F[0:3, 9:12] = 0.5 * dt * dv_dba
-        F[6:9, 12:15] = -right_jacobian(wdt) * dt
+        F[6:9, 12:15] = -(np.eye(3) - j1 * k + j2 * kk) * dt  # -J_r(w dt) dt
     else:
-        F[6:9, 12:15] = -i3 * dt
+        F[6:9, 12:15] = -np.eye(3) * dt
     return F
 
 

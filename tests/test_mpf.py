@@ -1,0 +1,226 @@
+"""Marginalized particle filter: Kalman equivalence, convergence on rugged terrain, determinism, recovery."""
+
+import numpy as np
+import pytest
+import warp as wp
+
+import warptan as wt
+from warptan.imu import ImuModel
+from warptan.ins import Ins, error_transition, process_noise
+from warptan.measurement import Likelihood, ModelOutput
+from warptan.mpf import RESAMPLERS, MarginalizedParticleFilter
+from warptan.runner import InitialErrors, initial_nominal, prior_linear_cov, run_filter
+from warptan.trajectory import Straight, Trajectory, Turn
+
+
+@wp.kernel
+def _position_loglik_kernel(pos: wp.array(dtype=wp.vec3), z: wp.vec3, inv_var: float, nan_every: int,
+                            loglik_out: wp.array(dtype=wp.float32), n_valid_out: wp.array(dtype=wp.int32)):
+    i = wp.tid()
+    r = z - pos[i]
+    ll = -0.5 * wp.dot(r, r) * inv_var
+    if nan_every > 0 and i % nan_every == 0:
+        ll = wp.nan
+    loglik_out[i] = ll
+    n_valid_out[i] = 1
+
+
+class PositionModel:
+    """A linear-Gaussian 'measurement model': z = true position + N(0, σ² I)."""
+
+    def __init__(self, sigma_m, nan_every=0):
+        self.sigma = sigma_m
+        self.nan_every = nan_every
+        self.likelihood = Likelihood()
+        self._out = None
+
+    def evaluate(self, pos, quat, z):
+        n = pos.shape[0]
+        if self._out is None:
+            d = pos.device
+            self._out = ModelOutput(wp.empty(n, dtype=wp.float32, device=d), wp.empty(n, dtype=wp.float32, device=d),
+                                    wp.empty(n, dtype=wp.int32, device=d), wp.empty((n, 1), dtype=wp.float32,
+                                                                                      device=d), 1)
+        wp.launch(_position_loglik_kernel, dim=n, inputs=[pos, wp.vec3(*z), 1.0 / self.sigma**2, self.nan_every],
+                  outputs=[self._out.loglik, self._out.n_valid], device=pos.device)
+        return self._out
+
+
+def _kalman_reference(nominal0, f_meas, w_meas, rate, grade, p0, q_n, zs, decim, sigma):
+    """A plain 15-state error-state Kalman filter on the same nominal INS and data (float64)."""
+    ins = Ins(nominal0, rate)
+    x, P = np.zeros(15), p0.copy()
+    Q = process_noise(grade, 1.0 / rate)
+    Q[0:3, 0:3] = q_n
+    out = []
+    for k in range(len(f_meas)):
+        F = error_transition(ins.state, f_meas[k], w_meas[k], 1.0 / rate)
+        x, P = F @ x, F @ P @ F.T + Q
+        ins.step(f_meas[k], w_meas[k])
+        if (k + 1) % decim == 0:
+            H = np.hstack([np.eye(3), np.zeros((3, 12))])
+            S = H @ P @ H.T + sigma**2 * np.eye(3)
+            K = P @ H.T @ np.linalg.inv(S)
+            x = x + K @ (zs[(k + 1) // decim - 1] - ins.state.pos_n - x[0:3])
+            P = (np.eye(15) - K @ H) @ P
+            out.append((x.copy(), P.copy()))
+    return out
+
+
+def _mpf_and_kalman(device, mpf_seeds, n=2000):
+    """Final (dp, dv) of MPF runs with several seeds and of the Kalman filter, on one data set."""
+    rate, decim, sigma = 100.0, 10, 15.0
+    truth = Trajectory.build([Straight(5), Turn(45, bank_deg=30), Straight(5)], 100.0, [0, 0, -1000.0])
+    imu = ImuModel("tactical", rate, seed=1)
+    f, w, _ = imu.corrupt(truth.f_b, truth.w_b)
+    initial = InitialErrors(pos_m=(30.0, 30.0, 10.0), vel_mps=1.0, att_deg=(0.5, 0.5, 1.0))
+    rng = np.random.default_rng(5)
+    nominal0 = initial_nominal(truth.state(0), initial, rng)
+    epochs = np.arange(decim, len(f) + 1, decim)
+    zs = truth.pos_n[epochs] + rng.normal(0, sigma, (len(epochs), 3))
+    p0_lin = prior_linear_cov(initial, imu)
+    finals = []
+    for seed in mpf_seeds:
+        mpf = MarginalizedParticleFilter(PositionModel(sigma), nominal0, imu.grade, rate, np.asarray(initial.pos_m),
+                                         p0_lin, n_particles=n, device=device, seed=seed)
+        for k in range(len(f)):
+            mpf.predict(f[k], w[k])
+            if (k + 1) % decim == 0:
+                mpf.update(zs[(k + 1) // decim - 1])
+        est = mpf.estimate()
+        finals.append(np.concatenate([est.dp, est.lin[0:3], np.diag(est.cov_pos)]))
+    p0 = np.zeros((15, 15))
+    p0[0:3, 0:3] = np.diag(np.square(initial.pos_m))
+    p0[3:, 3:] = p0_lin
+    x, P = _kalman_reference(nominal0, f, w, rate, imu.grade, p0, mpf.q_n, zs, decim, sigma)[-1]
+    return np.array(finals), x, P
+
+
+def test_linear_gaussian_equivalence_with_kalman(device):
+    """With a measurement linear and Gaussian in the position error, the MPF's estimates of dp and dv equal a
+    Kalman filter's on the same data within Monte-Carlo error: over 8 filter seeds, the mean is within 3
+    standard errors of the Kalman value, the seed-to-seed spread (the Monte-Carlo error of one run, about
+    0.4–0.7 Kalman σ at N = 2000) stays below 0.8 σ, and the particle variance of dp matches the Kalman
+    variance to 35 %."""
+    finals, x, P = _mpf_and_kalman(device, range(8))
+    est, kf, sd_kf = finals[:, 0:6], x[0:6], np.sqrt(np.diag(P)[0:6])
+    stderr = est.std(axis=0, ddof=1) / np.sqrt(len(est))
+    assert np.all(np.abs(est.mean(axis=0) - kf) < 3 * stderr + 0.05 * sd_kf), (est.mean(axis=0), kf, stderr)
+    assert np.all(est.std(axis=0, ddof=1) < 0.8 * sd_kf), (est.std(axis=0, ddof=1), sd_kf)
+    np.testing.assert_allclose(finals[:, 6:9].mean(axis=0), np.diag(P)[0:3], rtol=0.35)
+
+
+def _rugged_run(seed, device, n_particles=500, duration=60.0, terrain=None, r_err=4.0):
+    terrain = terrain or wt.Terrain.synthetic("rugged", size_m=20_000.0, spacing=30.0, seed=0)
+    truth = Trajectory.build([Straight(duration)], 100.0, [-3000.0, 0.0, -(terrain.h_max + 600.0)])
+    model = wt.SlidingModel(terrain, wt.Likelihood("paper", r_err=r_err))
+    sensor = wt.PointCloudSensor(wt.ScanPattern.grid(10, 10, 30.0), range_sigma_m=0.5)
+    return run_filter(truth, terrain, model, ImuModel("navigation", 100.0, seed=seed), sensor,
+                      n_particles=n_particles, device=device, seed=seed)
+
+
+@pytest.fixture(scope="module")
+def rugged():
+    return wt.Terrain.synthetic("rugged", size_m=20_000.0, spacing=30.0, seed=0)
+
+
+def test_converges_on_rugged_terrain(device, rugged):
+    """Navigation IMU, 500 particles, sliding, 60 s, initial error σ 100 m: horizontal error < 20 m from
+    30 s on, in three seeds; the INS alone stays off; the estimate is never NaN."""
+    for seed in range(3):
+        run = _rugged_run(seed, device, terrain=rugged)
+        late = run.t_s >= 30.0
+        horiz = np.linalg.norm(run.error[late, :2], axis=1)
+        assert np.isfinite(run.est_pos).all()
+        assert horiz.max() < 20.0, (seed, horiz.max())
+        assert np.linalg.norm(run.ins_pos[-1, :2] - run.truth_pos[-1, :2]) > 20.0
+        assert np.linalg.norm(run.error[0, :2]) > 20.0 or seed > 0
+
+
+def test_same_seed_same_output(device, rugged):
+    """Same seed on the same device gives bit-identical estimates; another seed does not."""
+    a = _rugged_run(7, device, duration=8.0, terrain=rugged)
+    b = _rugged_run(7, device, duration=8.0, terrain=rugged)
+    c = _rugged_run(8, device, duration=8.0, terrain=rugged)
+    np.testing.assert_array_equal(a.est_pos, b.est_pos)
+    np.testing.assert_array_equal(a.ess, b.ess)
+    assert not np.array_equal(a.est_pos, c.est_pos)
+
+
+def test_cpu_and_cuda_match_statistically(rugged):
+    """CPU and CUDA give statistically matching results: mean late horizontal RMSE over 4 seeds within 50 %."""
+    if not wp.get_cuda_device_count():
+        pytest.skip("no CUDA device visible to Warp")
+    rmse = {}
+    for device in ("cpu", "cuda:0"):
+        rmse[device] = np.mean([np.linalg.norm(_rugged_run(s, device, duration=40.0, terrain=rugged).rmse(20.0)[:2])
+                                for s in range(4)])
+    assert rmse["cuda:0"] == pytest.approx(rmse["cpu"], rel=0.5), rmse
+
+
+def test_three_sigma_covers_the_error(rugged):
+    """From 10 s on, the 3σ bounds cover the true error at ≥ 80 % of epochs (4 seeds pooled) with the paper
+    likelihood at R_err = 16 m² (σ_err = 4 m). With R_err = 4 m² the filter is overconfident along track
+    (6 seeds: 75 % north, 97 % east); that is measured in the note, not asserted."""
+    runs = [_rugged_run(s, "cpu", duration=40.0, terrain=rugged, r_err=16.0) for s in range(4)]
+    cover = np.mean([r.coverage(10.0) for r in runs], axis=0)
+    assert np.all(cover[:2] >= 0.8), cover
+
+
+def test_nan_logliks_are_floored_and_counted(device):
+    """NaN log-likelihoods score the floor and are counted; the estimate stays finite."""
+    nominal = Trajectory.build([Straight(1.0)], 100.0, [0, 0, -1000.0]).state(0)
+    mpf = MarginalizedParticleFilter(PositionModel(10.0, nan_every=3), nominal, "navigation", 100.0, [50, 50, 10],
+                                     np.eye(12) * 1e-4, n_particles=300, device=device, seed=0)
+    info = mpf.update(np.array([0.0, 0.0, -1000.0]))
+    assert info.n_bad_loglik == 100
+    assert np.isfinite(mpf.estimate().dp).all()
+
+
+def test_lost_filter_respreads(device, rugged):
+    """Every particle off the map: the update re-spreads around the estimate (counted), never NaN."""
+    truth = Trajectory.build([Straight(1.0)], 100.0, [0, 0, -(rugged.h_max + 500.0)])
+    far = truth.state(0)
+    far.pos_n = far.pos_n + np.array([50_000.0, 0.0, 0.0])  # the nominal believes it is far off the map
+    model = wt.SlidingModel(rugged)
+    mpf = MarginalizedParticleFilter(model, far, "navigation", 100.0, [100, 100, 20], np.eye(12) * 1e-4,
+                                     n_particles=200, device=device, seed=1)
+    cloud = wt.PointCloudSensor(wt.ScanPattern.grid(5, 5)).measure(rugged, truth.pos_n[0], truth.quat_nb[0])
+    info = mpf.update(cloud)
+    assert info.respread and info.n_unpredictable == 200 and mpf.n_respreads == 1
+    assert np.isfinite(mpf.estimate().dp).all()
+    empty = wt.PointCloud.from_points(np.full((4, 3), np.nan))
+    info = mpf.update(empty)
+    assert info.all_points_invalid and not info.respread
+
+
+@pytest.mark.parametrize("name", sorted(RESAMPLERS))
+def test_resamplers_follow_the_weights(name, device):
+    """Each scheme draws ancestors in proportion to the weights (systematic: counts within 1 of N w_i)."""
+    n = 2000
+    w = np.random.default_rng(0).gamma(0.5, size=n)
+    w /= w.sum()
+    cdf = wp.array(np.cumsum(w).astype(np.float32), dtype=wp.float32, device=device)
+    out = wp.empty(n, dtype=wp.int32, device=device)
+    counts = np.bincount(RESAMPLERS[name](cdf, 12, out).numpy(), minlength=n)
+    assert counts.sum() == n
+    if name == "systematic":
+        assert np.all(np.abs(counts - n * w) < 1.0 + 1e-3)
+    heavy = np.argsort(w)[-50:]
+    assert abs(counts[heavy].sum() - n * w[heavy].sum()) < 4 * np.sqrt(n * w[heavy].sum())
+
+
+def test_bad_filter_arguments(rugged):
+    """Bad particle counts, resampler names, thresholds and NaN IMU samples are clear errors."""
+    nominal = Trajectory.build([Straight(1.0)], 100.0, [0, 0, -1000.0]).state(0)
+    model = wt.SlidingModel(rugged)
+    with pytest.raises(ValueError, match="n_particles"):
+        MarginalizedParticleFilter(model, nominal, "navigation", 100.0, [1, 1, 1], np.eye(12), n_particles=0)
+    with pytest.raises(ValueError, match="unknown resampler 'residual'"):
+        MarginalizedParticleFilter(model, nominal, "navigation", 100.0, [1, 1, 1], np.eye(12), resampler="residual")
+    with pytest.raises(ValueError, match="p0_lin"):
+        MarginalizedParticleFilter(model, nominal, "navigation", 100.0, [1, 1, 1], np.eye(5))
+    mpf = MarginalizedParticleFilter(model, nominal, "navigation", 100.0, [1, 1, 1], np.eye(12) * 1e-4,
+                                     n_particles=10)
+    with pytest.raises(ValueError, match="non-finite IMU sample"):
+        mpf.predict([0, 0, np.nan], [0, 0, 0])
