@@ -75,14 +75,14 @@ def time_update_kernel(
     ``dp_i += A^n l_i + e_i`` with ``e_i ~ N(0, N_k)``; ``l_i = A^l l_i + L_k e_i``."""
     i = wp.tid()
     d = dp[i]
-    l = lin[i]
+    lm = lin[i]
     for k in range(seeds.shape[0]):
         state = wp.rand_init(seeds[k], i)
         e = chol_n[k] * gaussian3(state)
-        d = d + a_n[k] * l + e
-        l = a_l[k] * l + gain[k] * e
+        d = d + a_n[k] * lm + e
+        lm = a_l[k] * lm + gain[k] * e
     dp[i] = d
-    lin[i] = l
+    lin[i] = lm
 
 
 @wp.kernel
@@ -97,13 +97,13 @@ def particle_poses_kernel(
     """Hypothetical poses ``p_i = p_nom + dp_i`` (sum in float64), ``q_i = q_nom ⊗ Exp(dth_i)``."""
     i = wp.tid()
     d = dp[i]
-    l = lin[i]
+    lm = lin[i]
     pos_out[i] = wp.vec3(
         wp.float32(pos_nom[0] + wp.float64(d[0])),
         wp.float32(pos_nom[1] + wp.float64(d[1])),
         wp.float32(pos_nom[2] + wp.float64(d[2])),
     )
-    quat_out[i] = wp.normalize(quat_mul_wxyz(quat_nom, quat_exp_wxyz(wp.vec3(l[3], l[4], l[5]))))
+    quat_out[i] = wp.normalize(quat_mul_wxyz(quat_nom, quat_exp_wxyz(wp.vec3(lm[3], lm[4], lm[5]))))
 
 
 @wp.kernel
@@ -206,16 +206,16 @@ def moment_partials_kernel(
     while i < n:
         w = wp.float64(wp.exp(logw[i]))
         d = dp[i]
-        l = lin[i]
+        lm = lin[i]
         partial_out[c, 0] += w
         for a in range(3):
             partial_out[c, 1 + a] += w * wp.float64(d[a])
             for b in range(3):
                 partial_out[c, 4 + 3 * a + b] += w * wp.float64(d[a]) * wp.float64(d[b])
         for a in range(12):
-            partial_out[c, 13 + a] += w * wp.float64(l[a])
+            partial_out[c, 13 + a] += w * wp.float64(lm[a])
             for b in range(12):
-                partial_out[c, 25 + 12 * a + b] += w * wp.float64(l[a]) * wp.float64(l[b])
+                partial_out[c, 25 + 12 * a + b] += w * wp.float64(lm[a]) * wp.float64(lm[b])
         i += N_CHUNKS
 
 

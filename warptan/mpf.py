@@ -282,7 +282,8 @@ class MarginalizedParticleFilter:
 
     # ------------------------------------------------------------------ output
     def moments(self) -> np.ndarray:
-        """Weighted moments of the particles (host float64): [Σw, Σw dp (3), Σw dp dpᵀ (9), Σw l (12), Σw l lᵀ (144)]."""
+        """Weighted moments of the particles (host float64):
+        [Σw, Σw dp (3), Σw dp dpᵀ (9), Σw l (12), Σw l lᵀ (144)]."""
         self.flush()
         d = self.device
         wp.launch(kmpf.moment_partials_kernel, dim=kmpf.N_CHUNKS, inputs=[self.state.logw, self.state.dp,
