@@ -50,12 +50,31 @@ def sliding_residual_kernel(
 def altimeter_residual_kernel(
     grid: HeightGrid,
     surface: int,
+    use_baro: int,
     pos_n: wp.array(dtype=wp.vec3),
     range_m: float,
     baro_alt_m: float,
     residual_out: wp.array2d(dtype=wp.float32),
 ):
-    """One thread per particle: ``a - (h_baro - h(p_i,x, p_i,y))`` in m, stored as the (N, 1) residual."""
+    """One thread per particle: ``a - (h_baro - h(p_i,x, p_i,y))`` in m, stored as the (N, 1) residual;
+    without a barometer (``use_baro == 0``) the particle's own altitude ``-p_i,z`` replaces ``h_baro``."""
     i = wp.tid()
     p = pos_n[i]
-    residual_out[i, 0] = range_m - (baro_alt_m - map_height(grid, surface, p[0], p[1]))
+    alt = baro_alt_m
+    if use_baro == 0:
+        alt = -p[2]
+    residual_out[i, 0] = range_m - (alt - map_height(grid, surface, p[0], p[1]))
+
+
+@wp.kernel
+def add_baro_loglik_kernel(
+    pos_n: wp.array(dtype=wp.vec3),
+    baro_alt_m: float,
+    inv_var: float,
+    loglik: wp.array(dtype=wp.float32),
+):
+    """One thread per particle: ``loglik_i += -0.5 (h_baro - (-p_i,z))² / σ_baro²`` (the barometer as a
+    measurement of each particle's altitude)."""
+    i = wp.tid()
+    r = baro_alt_m + pos_n[i][2]
+    loglik[i] = loglik[i] - 0.5 * r * r * inv_var

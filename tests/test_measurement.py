@@ -211,17 +211,25 @@ def test_nan_samples_are_excluded(device):
 
 
 def test_altimeter_model(device):
-    """Altimeter residual a - (h_baro - h(p_i)) matches NumPy; an off-map particle gets the floor, no NaN."""
+    """Altimeter residual a - (h_baro - h(p_i)) matches NumPy, plus the barometer's altitude term; an off-map
+    particle gets the floor (no NaN); without a barometer each particle's own altitude is used."""
     terrain = wt.Terrain.synthetic("rugged", size_m=3000.0, spacing=30.0, seed=2)
-    poses = np.array([[0.0, 0.0, -1500.0], [200.0, -300.0, -1500.0], [1e5, 0.0, -1500.0]])
+    poses = np.array([[0.0, 0.0, -1500.0], [200.0, -300.0, -1504.0], [1e5, 0.0, -1500.0]])
+    quats = np.tile([1.0, 0, 0, 0], (3, 1))
     reading = wt.AltimeterReading(range_m=700.0, baro_alt_m=1490.0)
     lik = wt.Likelihood("paper", r_err=9.0)
-    out = wt.AltimeterModel(terrain, lik).evaluate(*_poses(poses, np.tile([1.0, 0, 0, 0], (3, 1)), device), reading)
-    ref = 700.0 - (1490.0 - terrain.height_at(poses[:, 0], poses[:, 1]))
+    out = wt.AltimeterModel(terrain, lik, baro_sigma_m=2.0).evaluate(*_poses(poses, quats, device), reading)
+    h = terrain.height_at(poses[:, 0], poses[:, 1])
+    ref = 700.0 - (1490.0 - h)
+    baro_term = -0.5 * ((1490.0 + poses[:, 2]) / 2.0) ** 2
     np.testing.assert_allclose(out.error_m.numpy()[:2], ref[:2], atol=1e-3)
     ll = out.loglik.numpy()
-    np.testing.assert_allclose(ll[:2], -0.5 * ref[:2] ** 2 / 9.0, rtol=1e-4)
-    assert ll[2] == pytest.approx(-0.5 * lik.outlier_sigmas**2)
+    np.testing.assert_allclose(ll[:2], -0.5 * ref[:2] ** 2 / 9.0 + baro_term[:2], rtol=1e-4)
+    assert ll[2] == pytest.approx(-0.5 * lik.outlier_sigmas**2 + baro_term[2])
+    no_baro = wt.AltimeterModel(terrain, lik, use_baro=False).evaluate(*_poses(poses, quats, device),
+                                                                         wt.AltimeterReading(700.0))
+    np.testing.assert_allclose(no_baro.error_m.numpy()[:2], (700.0 - (-poses[:, 2] - h))[:2], atol=1e-3)
+    assert not no_baro.all_points_invalid
 
 
 def test_bad_model_arguments():

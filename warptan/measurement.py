@@ -176,14 +176,31 @@ class SlidingModel(_PointCloudModel):
 
 
 class AltimeterModel(MeasurementModel):
-    """Radar altimeter with barometric altitude: ``a^_i = h_baro - h(p_i)`` (paper eq. 8, 17)."""
+    """Radar altimeter with barometric altitude: ``a^_i = h_baro - h(p_i)`` (paper eq. 8, 17).
+
+    With a barometer the altimeter residual does not depend on a particle's altitude, so the barometer is
+    also used as what it is, a measurement of altitude: each particle's log-likelihood gets
+    ``-0.5 (h_baro + p_i,z)² / baro_sigma_m²`` (without it the vertical error would be unobservable).
+
+    Args:
+        terrain: The map DEM.
+        likelihood: See :class:`Likelihood`.
+        surface: Sample the triangulated surface instead of the bilinear height.
+        use_baro: False predicts with each particle's own altitude ``-p_i,z`` (no barometer).
+        baro_sigma_m: Barometer noise σ for its altitude term, m.
+    """
 
     name = "altimeter"
     err_kind = klik.ERR_SIGNED
 
-    def __init__(self, terrain, likelihood: Likelihood | None = None, surface: bool = False):
+    def __init__(self, terrain, likelihood: Likelihood | None = None, surface: bool = False, use_baro: bool = True,
+                 baro_sigma_m: float = 1.0):
         super().__init__(terrain, likelihood)
+        if not (np.isfinite(baro_sigma_m) and baro_sigma_m > 0):
+            raise ValueError(f"baro_sigma_m must be a positive number of metres, got {baro_sigma_m!r}")
         self.surface = bool(surface)
+        self.use_baro = bool(use_baro)
+        self.baro_sigma_m = float(baro_sigma_m)
         self._consts: dict[str, tuple[wp.array, wp.array, wp.array]] = {}
 
     def evaluate(self, pos_n: wp.array, quat_nb: wp.array, reading: AltimeterReading) -> ModelOutput:
@@ -196,17 +213,24 @@ class AltimeterModel(MeasurementModel):
             self._consts[key] = (wp.array([0], dtype=wp.int32, device=device),
                                  wp.array([1], dtype=wp.int32, device=device),
                                  wp.array([wp.vec3(1.0, 1.0, 1.0)], dtype=wp.vec3, device=device))
-        point_ok = self._consts[key][int(reading.valid)]
         axis_w = self._consts[key][2]
         out = self._outputs(device, pos_n.shape[0], 1)
-        out.n_received = int(reading.valid)
-        if reading.valid:
+        valid = reading.valid and (not self.use_baro or bool(np.isfinite(reading.baro_alt_m)))
+        point_ok = self._consts[key][int(valid)]
+        out.n_received = int(valid)
+        if valid:
             wp.launch(kslide.altimeter_residual_kernel, dim=pos_n.shape[0],
-                      inputs=[self.terrain.grid(device), int(self.surface), pos_n, float(reading.range_m),
-                              float(reading.baro_alt_m)], outputs=[out.residual_m], device=device)
+                      inputs=[self.terrain.grid(device), int(self.surface), int(self.use_baro), pos_n,
+                              float(reading.range_m), float(reading.baro_alt_m)], outputs=[out.residual_m],
+                      device=device)
         else:
             out.residual_m.fill_(float("nan"))
-        return self._reduce(out, point_ok, axis_w, device)
+        self._reduce(out, point_ok, axis_w, device)
+        if self.use_baro and np.isfinite(reading.baro_alt_m):
+            wp.launch(kslide.add_baro_loglik_kernel, dim=pos_n.shape[0],
+                      inputs=[pos_n, float(reading.baro_alt_m), 1.0 / self.baro_sigma_m**2], outputs=[out.loglik],
+                      device=device)
+        return out
 
 
 MODELS = {"raycast": RaycastModel, "sliding": SlidingModel, "altimeter": AltimeterModel}

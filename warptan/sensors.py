@@ -191,15 +191,15 @@ class PointCloudSensor:
 
 @dataclass(frozen=True)
 class AltimeterReading:
-    """A radar-altimeter range with the barometric altitude used to predict it (m)."""
+    """A radar-altimeter range with the barometric altitude used to predict it (m; NaN = no barometer)."""
 
     range_m: float
-    baro_alt_m: float
+    baro_alt_m: float = float("nan")
 
     @property
     def valid(self) -> bool:
-        """Both numbers finite."""
-        return bool(np.isfinite(self.range_m) and np.isfinite(self.baro_alt_m))
+        """The range is finite (the barometer is checked by the model that uses it)."""
+        return bool(np.isfinite(self.range_m))
 
 
 class RadarAltimeter:

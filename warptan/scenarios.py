@@ -1,0 +1,453 @@
+"""Scenarios S1–S12 (paper §V, SPEC §7): TOML files, validation, flight placement and ``run_scenario``.
+
+A scenario file states every parameter (see ``warptan/scenario_files/S1.toml``); a file is validated as a
+whole before anything runs, and every problem is listed at once (missing or misspelt keys, wrong types,
+values out of range, a terrain that does not load, a flight that leaves the DEM).
+
+Choices the paper leaves open (SPEC §7 fixes the rest):
+
+* ``rugged`` / ``flat`` terrains are the real SRTM3 tiles in ``../shared/data/dem`` when present, else the
+  seeded synthetic terrains (20 km, 30 m posts); the result says which was used.
+* Flight patterns: ``straight`` (bank 0); ``s_turns`` (banked scenarios S1–S4: 10 s straight, then turns of
+  ±150° alternating at the bank angle until the end); ``orbit`` (S5/S6: 5 s straight, then circling at
+  the bank angle, placed so that the circle passes ``hill_offset_m`` beside the highest hill with the
+  hill outside the circle, so the banked sensor looks away from it, into open ground).
+* Altitude: ``high`` = 600 m above the highest terrain within 2 km of the track; ``low`` = 150 m within
+  1 km (SPEC §7); constant along the track.
+* The track must stay ``margin_m`` inside the DEM (the footprint of the scan and the initial error).
+* S4 has S1's parameters (the paper lists them identically); it differs only by its seed base.
+"""
+
+from __future__ import annotations
+
+import difflib
+import math
+import os
+from dataclasses import dataclass, field
+from importlib import resources
+from pathlib import Path
+
+import numpy as np
+
+from warptan.imu import IMU_GRADES, ImuModel
+from warptan.measurement import LIKELIHOODS, MODELS, Likelihood, make_model
+from warptan.mpf import RESAMPLERS
+from warptan.raycast import BACKENDS
+from warptan.runner import FilterRun, InitialErrors, run_filter
+from warptan.sensors import Barometer, PointCloudSensor, RadarAltimeter, ScanPattern
+from warptan.terrain import Terrain
+from warptan.trajectory import Orbit, Straight, Trajectory, Turn
+
+try:
+    import tomllib
+except ModuleNotFoundError:  # Python 3.10
+    import tomli as tomllib
+
+SCENARIO_IDS = tuple(f"S{i}" for i in range(1, 13))
+DEM_DIR_ENV = "WARPTAN_DEM_DIR"
+REAL_TERRAINS = {"rugged": "thuringia_hilly_srtm3_n50e010.tif", "flat": "ganges_plain_flat_srtm3_n28e078.tif"}
+
+
+class ScenarioError(ValueError):
+    """A scenario that cannot run; the message lists every problem found."""
+
+
+# (type, check(value) -> error text or None)
+def _pos(v):
+    return None if v > 0 else "must be > 0"
+
+
+def _nonneg(v):
+    return None if v >= 0 else "must be ≥ 0"
+
+
+def _one_of(options):
+    def check(v):
+        return None if v in options else f"must be one of {', '.join(map(str, options))}"
+    return check
+
+
+def _vec(n, check=None):
+    def inner(v):
+        if not (isinstance(v, list) and len(v) == n and all(isinstance(x, (int, float)) for x in v)):
+            return f"must be a list of {n} numbers"
+        if check:
+            bad = [check(x) for x in v if check(x)]
+            return bad[0] if bad else None
+        return None
+    return inner
+
+
+SCHEMA: dict[str, dict[str, tuple[type | tuple, object]]] = {
+    "": {"id": (str, None), "description": (str, None), "paper_rmse_m": (list, _vec(3, _nonneg))},
+    "terrain": {
+        "kind": (str, _one_of(("rugged", "flat", "path"))),
+        "path": (str, None),
+        "map_noise_m": (float, _nonneg),
+        "map_spacing_m": (float, _nonneg),
+    },
+    "flight": {
+        "speed_mps": (float, _pos),
+        "duration_s": (float, _pos),
+        "heading_deg": (float, None),
+        "pattern": (str, _one_of(("straight", "s_turns", "orbit"))),
+        "bank_deg": (float, lambda v: None if 0 <= v < 90 else "must be in [0, 90) degrees"),
+        "altitude_rule": (str, _one_of(("high", "low"))),
+        "placement": (str, _one_of(("centre", "hilltop"))),
+        "hill_offset_m": (float, _nonneg),
+        "margin_m": (float, _nonneg),
+    },
+    "imu": {"grade": (str, _one_of(tuple(IMU_GRADES))), "rate_hz": (float, _pos)},
+    "sensor": {
+        "model": (str, _one_of(tuple(MODELS))),
+        "backend": (str, _one_of(tuple(BACKENDS))),
+        "rate_hz": (float, _pos),
+        "scan_nx": (int, _pos),
+        "scan_ny": (int, _pos),
+        "scan_half_angle_deg": (float, lambda v: None if 0 <= v < 90 else "must be in [0, 90) degrees"),
+        "range_sigma_m": (float, _nonneg),
+        "altimeter_sigma_m": (float, _nonneg),
+        "baro_sigma_m": (float, _nonneg),
+        "use_baro": (bool, None),
+    },
+    "likelihood": {
+        "kind": (str, _one_of(tuple(LIKELIHOODS))),
+        "r_err_m2": (float, _pos),
+        "sigma_m": (float, _pos),
+        "nu": (float, _pos),
+    },
+    "filter": {
+        "particles": (int, _pos),
+        "resample_threshold": (float, lambda v: None if 0 <= v <= 1 else "must be in [0, 1]"),
+        "resampler": (str, _one_of(tuple(RESAMPLERS))),
+        "pos_noise_m_rthz": (float, _nonneg),
+        "converged_after_s": (float, _nonneg),
+    },
+    "initial_error": {"pos_m": (list, _vec(3, _nonneg)), "vel_mps": (float, _nonneg), "att_deg": (list, _vec(3, _nonneg))},
+    "run": {"seed": (int, _nonneg)},
+}
+
+OVERRIDES = {
+    "particles": ("filter", "particles"),
+    "duration_s": ("flight", "duration_s"),
+    "backend": ("sensor", "backend"),
+    "likelihood": ("likelihood", "kind"),
+    "model": ("sensor", "model"),
+    "meas_rate_hz": ("sensor", "rate_hz"),
+    "use_baro": ("sensor", "use_baro"),
+    "r_err_m2": ("likelihood", "r_err_m2"),
+    "sigma_m": ("likelihood", "sigma_m"),
+    "imu_grade": ("imu", "grade"),
+}
+"""run_scenario keyword -> (section, key). Also: terrain= (path, spec or Terrain), paper_rates=True."""
+
+
+def _type_ok(value, kind) -> bool:
+    if kind is float:
+        return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+    if kind is int:
+        return isinstance(value, int) and not isinstance(value, bool)
+    return isinstance(value, kind)
+
+
+def validate(config: dict, source: str = "scenario") -> list[str]:
+    """Every problem of a scenario dict (empty list: valid)."""
+    problems = []
+    known_sections = [s for s in SCHEMA if s]
+    for key, value in config.items():
+        if isinstance(value, dict) and key not in SCHEMA:
+            hint = difflib.get_close_matches(key, known_sections, n=1)
+            problems.append(f"unknown section [{key}]" + (f" (did you mean [{hint[0]}]?)" if hint else ""))
+    for section, keys in SCHEMA.items():
+        table = config if not section else config.get(section)
+        where = section + "." if section else ""
+        if table is None:
+            problems.append(f"missing section [{section}]")
+            continue
+        if not isinstance(table, dict):
+            problems.append(f"[{section}] must be a table")
+            continue
+        for key, value in table.items():
+            if isinstance(value, dict) and not section:
+                continue
+            if key not in keys:
+                hint = difflib.get_close_matches(key, list(keys), n=1)
+                problems.append(f"unknown key {where}{key}" + (f" (did you mean {where}{hint[0]}?)" if hint else ""))
+        for key, (kind, check) in keys.items():
+            if key not in table:
+                problems.append(f"missing key {where}{key}")
+                continue
+            value = table[key]
+            if not _type_ok(value, kind):
+                problems.append(f"{where}{key} = {value!r} must be of type {kind.__name__}")
+                continue
+            msg = check(value) if check else None
+            if msg:
+                problems.append(f"{where}{key} = {value!r} {msg}")
+    if not problems:
+        imu_rate, meas_rate = config["imu"]["rate_hz"], config["sensor"]["rate_hz"]
+        ratio = imu_rate / meas_rate
+        if abs(ratio - round(ratio)) > 1e-9 or ratio < 1:
+            problems.append(f"sensor.rate_hz = {meas_rate} must divide imu.rate_hz = {imu_rate}")
+        if config["terrain"]["kind"] == "path" and not config["terrain"]["path"]:
+            problems.append("terrain.path must be set when terrain.kind = 'path'")
+        if config["flight"]["pattern"] != "straight" and config["flight"]["bank_deg"] <= 0:
+            problems.append(f"flight.pattern = {config['flight']['pattern']!r} needs flight.bank_deg > 0")
+    return [f"{source}: {p}" for p in problems]
+
+
+def scenario_path(name_or_path: str | os.PathLike) -> Path:
+    """The TOML file of a scenario id (S1…S12, shipped with the package) or an explicit path."""
+    text = os.fspath(name_or_path)
+    if text.upper() in SCENARIO_IDS:
+        return Path(str(resources.files("warptan") / "scenario_files" / f"{text.upper()}.toml"))
+    path = Path(text)
+    if path.suffix == ".toml":
+        if not path.exists():
+            raise ScenarioError(f"scenario file not found: {path}")
+        return path
+    raise ScenarioError(f"unknown scenario {text!r}; use one of {', '.join(SCENARIO_IDS)}, 'all', or a .toml path")
+
+
+def load_config(name_or_path, **overrides) -> dict:
+    """Read, override and validate a scenario; raises :class:`ScenarioError` listing every problem."""
+    path = scenario_path(name_or_path)
+    try:
+        with open(path, "rb") as f:
+            config = tomllib.load(f)
+    except tomllib.TOMLDecodeError as err:
+        raise ScenarioError(f"{path}: not valid TOML ({err})") from None
+    problems = []
+    for key, value in overrides.items():
+        if value is None or key in ("terrain", "paper_rates"):
+            continue
+        if key not in OVERRIDES:
+            hint = difflib.get_close_matches(key, [*OVERRIDES, "terrain", "paper_rates"], n=1)
+            problems.append(f"unknown override {key!r}" + (f" (did you mean {hint[0]!r}?)" if hint else ""))
+            continue
+        section, k = OVERRIDES[key]
+        config.setdefault(section, {})[k] = value
+    if overrides.get("paper_rates"):
+        config.setdefault("sensor", {})["rate_hz"] = config.get("imu", {}).get("rate_hz")
+    problems = [f"{path}: {p}" for p in problems] + validate(config, str(path))
+    if problems:
+        raise ScenarioError(f"{len(problems)} problem(s) in scenario {path.stem}:\n  " + "\n  ".join(problems))
+    return config
+
+
+# ---------------------------------------------------------------------- terrain
+_TERRAIN_CACHE: dict[str, Terrain] = {}
+
+
+def dem_dir() -> Path:
+    """Where the shared real DEMs are: $WARPTAN_DEM_DIR, else ../shared/data/dem beside the working directory
+    or beside the package's source checkout."""
+    env = os.environ.get(DEM_DIR_ENV)
+    if env:
+        return Path(env)
+    for base in (Path.cwd(), Path(__file__).resolve().parents[1]):
+        candidate = base.parent / "shared" / "data" / "dem"
+        if candidate.is_dir():
+            return candidate
+    return Path.cwd().parent / "shared" / "data" / "dem"
+
+
+def resolve_terrain(config: dict, terrain=None) -> Terrain:
+    """The truth terrain: an override (Terrain, path or spec), the real DEM of the kind, or the synthetic one."""
+    if isinstance(terrain, Terrain):
+        return terrain
+    if terrain is not None:
+        spec = os.fspath(terrain)
+    elif config["terrain"]["kind"] == "path":
+        spec = config["terrain"]["path"]
+    else:
+        kind = config["terrain"]["kind"]
+        real = dem_dir() / REAL_TERRAINS[kind]
+        spec = str(real) if real.exists() else f"synthetic:{kind}"
+    if spec not in _TERRAIN_CACHE:
+        try:
+            _TERRAIN_CACHE[spec] = Terrain.load(spec)
+        except (ValueError, FileNotFoundError) as err:
+            raise ScenarioError(f"terrain {spec!r} does not load: {err}") from None
+    return _TERRAIN_CACHE[spec]
+
+
+def map_terrain(truth: Terrain, config: dict, seed: int) -> Terrain:
+    """The filter's map: the truth, or with the scenario's map error (white noise, coarser grid)."""
+    noise, coarse = config["terrain"]["map_noise_m"], config["terrain"]["map_spacing_m"]
+    if noise == 0 and coarse == 0:
+        return truth
+    h = truth.heights_m
+    step = max(1, round(coarse / min(truth.dn, truth.de))) if coarse else 1
+    h = h[::step, ::step]
+    if noise:
+        h = h + np.random.default_rng([seed, 0x3A9]).normal(0.0, noise, h.shape)
+    return Terrain(h, truth.n0, truth.e0, truth.dn * step, truth.de * step, crs_wkt=truth.crs_wkt,
+                   origin_xy=truth.origin_xy, name=truth.name + " (map with error)", description=truth.description)
+
+
+# ---------------------------------------------------------------------- flight
+def _segments(flight: dict) -> list:
+    duration, bank, pattern = flight["duration_s"], flight["bank_deg"], flight["pattern"]
+    if pattern == "straight":
+        return [Straight(duration)]
+    if pattern == "orbit":
+        lead = min(5.0, 0.1 * duration)
+        return [Straight(lead), Orbit(duration - lead, bank_deg=bank, roll_time_s=3.0)]
+    segments, t, sign = [Straight(min(10.0, 0.2 * duration))], min(10.0, 0.2 * duration), 1.0
+    rate = 9.80665 * math.tan(math.radians(bank)) / flight["speed_mps"]
+    turn_time = math.radians(150.0) / rate + 3.0
+    while t + turn_time <= duration:
+        segments.append(Turn(sign * 150.0, bank_deg=bank, roll_time_s=3.0))
+        t += turn_time
+        sign = -sign
+    if duration - t > 1e-6:
+        segments.append(Straight(duration - t))
+    return segments
+
+
+def _max_height_near(terrain: Terrain, north, east, radius: float) -> float:
+    rows, cols = terrain.shape
+    best = -np.inf
+    ri, rj = int(math.ceil(radius / terrain.dn)), int(math.ceil(radius / terrain.de))
+    for n, e in zip(north, east, strict=True):
+        i, j = round((n - terrain.n0) / terrain.dn), round((e - terrain.e0) / terrain.de)
+        window = terrain.heights_m[max(0, i - ri):min(rows, i + ri + 1), max(0, j - rj):min(cols, j + rj + 1)]
+        if window.size and np.isfinite(window).any():
+            best = max(best, float(np.nanmax(window)))
+    return best
+
+
+def build_flight(config: dict, terrain: Terrain) -> Trajectory:
+    """The truth trajectory of a scenario over ``terrain`` (placement and altitude rule applied).
+
+    Raises:
+        ScenarioError: the track does not fit ``margin_m`` inside the DEM or passes over nodata.
+    """
+    flight, rate = config["flight"], config["imu"]["rate_hz"]
+    shape = Trajectory.build(_segments(flight), flight["speed_mps"], [0.0, 0.0, 0.0], flight["heading_deg"],
+                             rate_hz=rate)
+    n_min, n_max, e_min, e_max = terrain.bounds_ne
+    path = shape.pos_n[:, :2]
+    if flight["placement"] == "hilltop":
+        margin = flight["margin_m"]
+        inner = terrain.heights_m.copy()
+        ci = int(math.ceil(margin / terrain.dn)) + 1
+        cj = int(math.ceil(margin / terrain.de)) + 1
+        inner[:ci], inner[-ci:], inner[:, :cj], inner[:, -cj:] = np.nan, np.nan, np.nan, np.nan
+        i, j = np.unravel_index(np.nanargmax(inner), inner.shape)
+        hill = np.array([terrain.n0 + i * terrain.dn, terrain.e0 + j * terrain.de])
+        centre = path[len(path) // 10:].mean(axis=0)  # centre of the circling part
+        radius = np.median(np.linalg.norm(path[len(path) // 10:] - centre, axis=1))
+        towards_middle = np.array([0.5 * (n_min + n_max), 0.5 * (e_min + e_max)]) - hill
+        towards_middle /= max(np.linalg.norm(towards_middle), 1e-9)
+        offset = hill + (radius + flight["hill_offset_m"]) * towards_middle - centre
+    else:
+        mid = 0.5 * (path.min(axis=0) + path.max(axis=0))
+        offset = np.array([0.5 * (n_min + n_max), 0.5 * (e_min + e_max)]) - mid
+    track = path + offset
+    margin = flight["margin_m"]
+    problems = []
+    if (track[:, 0].min() - margin < n_min or track[:, 0].max() + margin > n_max or
+            track[:, 1].min() - margin < e_min or track[:, 1].max() + margin > e_max):
+        problems.append(
+            f"the track (north {track[:, 0].min():.0f}…{track[:, 0].max():.0f} m, east {track[:, 1].min():.0f}…"
+            f"{track[:, 1].max():.0f} m) with a {margin:.0f} m margin leaves the DEM (north {n_min:.0f}…"
+            f"{n_max:.0f}, east {e_min:.0f}…{e_max:.0f}); shorten flight.duration_s or use a larger DEM")
+    elif np.isnan(terrain.height_at(track[:, 0], track[:, 1])).any():
+        problems.append("the track passes over nodata in the DEM")
+    if problems:
+        raise ScenarioError(f"scenario {config['id']}: " + "; ".join(problems))
+    radius = 2000.0 if flight["altitude_rule"] == "high" else 1000.0
+    above = 600.0 if flight["altitude_rule"] == "high" else 150.0
+    sub = track[:: max(1, int(rate))]
+    altitude = _max_height_near(terrain, sub[:, 0], sub[:, 1], radius) + above
+    return Trajectory.build(_segments(flight), flight["speed_mps"], [track[0, 0], track[0, 1], -altitude],
+                            flight["heading_deg"], rate_hz=rate)
+
+
+# ---------------------------------------------------------------------- running
+@dataclass
+class ScenarioResult:
+    """One run of one scenario with one seed."""
+
+    scenario: str
+    seed: int
+    device: str
+    terrain: str
+    config: dict
+    run: FilterRun
+    wall_s: float
+    rmse: np.ndarray = field(init=False)
+    """(3,) RMSE north, east, down over the whole run, m."""
+    rmse_converged: np.ndarray = field(init=False)
+    """(3,) RMSE after ``filter.converged_after_s``, m."""
+
+    def __post_init__(self):
+        self.rmse = self.run.rmse(0.0)
+        self.rmse_converged = self.run.rmse(self.config["filter"]["converged_after_s"])
+
+    def summary(self) -> dict:
+        """JSON-ready numbers of this run."""
+        r = self.run
+        return {
+            "scenario": self.scenario, "seed": self.seed, "device": self.device, "terrain": self.terrain,
+            "rmse_m": self.rmse.tolist(), "rmse_converged_m": self.rmse_converged.tolist(),
+            "ins_only_final_error_m": (r.ins_pos[-1] - r.truth_pos[-1]).tolist(),
+            "coverage_3sigma": r.coverage(self.config["filter"]["converged_after_s"]).tolist(),
+            "min_ess": float(r.ess[1:].min()) if len(r.ess) > 1 else float(r.ess[0]),
+            "resamplings": int(r.resampled.sum()), "respreads": int(r.respread.sum()),
+            "unpredictable_particle_updates": int(r.n_unpredictable.sum()),
+            "update_ms_median": 1e3 * float(np.median(r.update_time_s[1:])) if len(r.update_time_s) > 1 else 0.0,
+            "predict_s_total": r.predict_time_s, "wall_s": self.wall_s,
+        }
+
+
+def prepare(name_or_path, seed: int = 0, terrain=None, **overrides):
+    """Validate and build everything a run needs (config, truth terrain, map, flight) without running it."""
+    config = load_config(name_or_path, **overrides)
+    truth_terrain = resolve_terrain(config, terrain)
+    flight = build_flight(config, truth_terrain)
+    return config, truth_terrain, flight
+
+
+def run_scenario(name_or_path, seed: int = 0, device="cpu", progress=None, **overrides) -> ScenarioResult:
+    """Run one scenario with one seed.
+
+    Args:
+        name_or_path: "S1"…"S12" or a TOML path.
+        seed: Seed (added to the file's ``run.seed``): initial error, IMU errors, sensor noise, filter.
+        device: Warp device of the filter.
+        progress: Optional callable(k, n) per measurement epoch.
+        **overrides: ``terrain=`` (path, spec or Terrain), ``particles=``, ``duration_s=``, ``backend=``,
+            ``likelihood=``, ``model=``, ``meas_rate_hz=``, ``paper_rates=True``, ``use_baro=``, ``r_err_m2=``,
+            ``sigma_m=``, ``imu_grade=``.
+    """
+    import time
+
+    terrain = overrides.pop("terrain", None)
+    config, truth_terrain, flight = prepare(name_or_path, seed, terrain, **overrides)
+    s = config["sensor"]
+    total_seed = int(config["run"]["seed"]) + int(seed)
+    the_map = map_terrain(truth_terrain, config, total_seed)
+    lk = config["likelihood"]
+    likelihood = Likelihood(lk["kind"], r_err=lk["r_err_m2"], sigma_m=lk["sigma_m"], nu=lk["nu"])
+    model_kwargs = {"use_baro": s["use_baro"], "baro_sigma_m": max(s["baro_sigma_m"], 0.1)} \
+        if s["model"] == "altimeter" else {}
+    model = make_model(s["model"], the_map, likelihood, backend=s["backend"], **model_kwargs)
+    if s["model"] == "altimeter":
+        sensor = RadarAltimeter(s["altimeter_sigma_m"])
+    else:
+        sensor = PointCloudSensor(ScanPattern.grid(s["scan_nx"], s["scan_ny"], s["scan_half_angle_deg"]),
+                                  range_sigma_m=s["range_sigma_m"])
+    ie, f = config["initial_error"], config["filter"]
+    t0 = time.perf_counter()
+    run = run_filter(
+        flight, the_map, model, ImuModel(config["imu"]["grade"], config["imu"]["rate_hz"], seed=total_seed), sensor,
+        terrain_truth=truth_terrain, baro=Barometer(s["baro_sigma_m"]), n_particles=f["particles"], device=device,
+        seed=total_seed, meas_rate_hz=s["rate_hz"],
+        initial=InitialErrors(tuple(ie["pos_m"]), ie["vel_mps"], tuple(ie["att_deg"])), progress=progress,
+        resample_threshold=f["resample_threshold"], resampler=f["resampler"], pos_noise=f["pos_noise_m_rthz"],
+    )
+    return ScenarioResult(scenario=config["id"], seed=int(seed), device=run.device, terrain=truth_terrain.name,
+                          config=config, run=run, wall_s=time.perf_counter() - t0)
