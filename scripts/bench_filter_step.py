@@ -96,7 +96,7 @@ def main(argv=None) -> int:
     parser.add_argument("--warmup", type=int, default=3)
     parser.add_argument("--json", dest="json_out")
     args = parser.parse_args(argv)
-    wp.config.quiet = True
+    wt.device.quiet_warp()
     try:
         for d in args.device:
             wt.resolve_device(d)

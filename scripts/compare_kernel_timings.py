@@ -171,7 +171,7 @@ def main(argv=None) -> int:
     parser.add_argument("--plot", help="write a log-log PNG here")
     args = parser.parse_args(argv)
 
-    wp.config.quiet = True
+    wt.device.quiet_warp()
     try:
         for d in args.device:
             wt.resolve_device(d)

@@ -12,6 +12,7 @@ import pytest
 import warp as wp
 
 wp.config.quiet = True
+wp.config.log_level = max(wp.config.log_level, wp.LOG_WARNING)
 
 # The shared real DEMs live beside the checkout; WARPTAN_DEM_DIR points elsewhere (e.g. on a GPU machine).
 DEM_DIR = Path(os.environ.get("WARPTAN_DEM_DIR") or Path(__file__).resolve().parents[2] / "shared" / "data" / "dem")

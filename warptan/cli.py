@@ -1,4 +1,4 @@
-"""The ``warptan`` command line: terrain inspection and export (scenario runs come with the runner)."""
+"""The ``warptan`` command line: ``warptan run`` (scenarios, reports, plots) and ``warptan terrain``."""
 
 from __future__ import annotations
 
@@ -46,6 +46,58 @@ def _terrain_export(args) -> int:
     return 0
 
 
+def _run(args) -> int:
+    from warptan.device import resolve_device
+    from warptan.report import write_outputs
+    from warptan.scenarios import SCENARIO_IDS, prepare, run_scenario
+
+    demo = not args.scenarios
+    names = ["S8"] if demo else list(args.scenarios)
+    if [n.lower() for n in names] == ["all"]:
+        names = list(SCENARIO_IDS)
+    terrain = args.terrain or ("synthetic:rugged" if demo else None)
+    duration = args.duration_s or (60.0 if demo else None)
+    seeds = args.seeds or 1
+    out_dir = args.out or ("warptan-demo" if demo else "warptan-results")
+    overrides = {"particles": args.particles, "backend": args.backend, "likelihood": args.likelihood,
+                 "duration_s": duration, "paper_rates": args.paper_rates,
+                 "use_baro": False if args.no_baro else None}
+    resolve_device(args.device)
+    if seeds < 1:
+        raise ValueError(f"--seeds must be ≥ 1, got {seeds}")
+    # Validate every scenario (file, overrides, terrain, flight) before any computation starts.
+    plans = {name: prepare(name, terrain=terrain, **overrides) for name in names}
+    if args.check:
+        for config, truth, flight in plans.values():
+            print(f"{config['id']}: ok ({truth.name}, altitude {-flight.pos_n[0, 2]:.0f} m, "
+                  f"{flight.duration_s:.0f} s, {config['sensor']['model']})")
+        return 0
+    if demo:
+        print(f"warptan run: no scenario given, running the demonstration: S8 (sliding, navigation IMU) for "
+              f"{duration:.0f} s on {terrain}, {seeds} seed(s), device {args.device}")
+    from tqdm import tqdm
+
+    total = 0
+    for config, _, flight in plans.values():
+        decim = 1 if args.paper_rates else round(config["imu"]["rate_hz"] / config["sensor"]["rate_hz"])
+        total += seeds * (len(flight.f_b) // decim)
+    results, terrains = [], {}
+    with tqdm(total=total, unit="update", disable=args.quiet, dynamic_ncols=True) as bar:
+        for name in names:
+            for seed in range(seeds):
+                bar.set_description(f"{name} seed {seed}")
+                result = run_scenario(name, seed=seed, device=args.device, progress=lambda k, n: bar.update(1),
+                                      terrain=terrain, **overrides)
+                results.append(result)
+                terrains[result.scenario] = result.truth_terrain
+    written = write_outputs(results, out_dir, terrains, plots=not args.no_plots)
+    print(written["table"])
+    if not written["plots"] and not args.no_plots:
+        print("plots skipped: matplotlib is not installed (pip install 'warptan[plot]')")
+    print("wrote " + ", ".join(written["files"]))
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="warptan", description="Terrain-aided navigation on NVIDIA Warp.")
     sub = parser.add_subparsers(dest="command", required=True)
@@ -66,14 +118,34 @@ def build_parser() -> argparse.ArgumentParser:
     export.add_argument("--spacing", type=float, default=None, help="resample to this post spacing in m")
     export.add_argument("--frame", choices=("enu", "ned"), default="enu", help="vertex frame (default enu, z up)")
     export.set_defaults(func=_terrain_export)
+
+    run = sub.add_parser("run", help="run scenarios S1–S12 (no scenario: a short demonstration)",
+                         description="Run paper scenarios with several seeds; write results.json, results.md "
+                                     "and PNG plots. Without a scenario: a one-minute demonstration (S8, 60 s, "
+                                     "generated rugged terrain).")
+    run.add_argument("scenarios", nargs="*", help="S1 … S12, 'all', or scenario .toml files")
+    run.add_argument("--seeds", type=int, default=None, help="seeds per scenario (default 1)")
+    run.add_argument("--device", default="cpu", help="Warp device (cpu, cuda:0)")
+    run.add_argument("--out", default=None, help="output folder (default warptan-results, demo: warptan-demo)")
+    run.add_argument("--paper-rates", action="store_true", help="terrain measurements at the IMU rate, as the paper")
+    run.add_argument("--particles", type=int, default=None, help="override the particle count")
+    run.add_argument("--backend", default=None, help="ray-cast backend: dda, mesh, bisection")
+    run.add_argument("--likelihood", default=None, help="paper, gaussian or student_t")
+    run.add_argument("--terrain", default=None, help="DEM path or synthetic:KIND spec for every scenario")
+    run.add_argument("--duration-s", type=float, default=None, help="override the flight duration")
+    run.add_argument("--no-baro", action="store_true", help="altimeter scenarios without a barometer")
+    run.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
+    run.add_argument("--check", action="store_true", help="validate the scenarios and stop")
+    run.add_argument("--quiet", action="store_true", help="no progress bar")
+    run.set_defaults(func=_run)
     return parser
 
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the ``warptan`` command; returns the exit status."""
-    import warp as wp
+    from warptan.device import quiet_warp
 
-    wp.config.quiet = True
+    quiet_warp()
     args = build_parser().parse_args(argv)
     try:
         return args.func(args)

@@ -25,3 +25,9 @@ def resolve_device(device=None) -> wp.Device:
 def cuda_devices() -> list[str]:
     """Aliases of the CUDA devices Warp sees (empty without a GPU)."""
     return [d.alias for d in wp.get_cuda_devices()]
+
+
+def quiet_warp() -> None:
+    """Silence Warp's start-up banner and per-module load messages (for the CLI, scripts and tests)."""
+    wp.config.quiet = True
+    wp.config.log_level = max(wp.config.log_level, wp.LOG_WARNING)

@@ -63,11 +63,15 @@ class FilterRun:
     def rmse(self, after_s: float = 0.0) -> np.ndarray:
         """(3,) RMSE north, east, down of the estimate over ``t ≥ after_s``, m."""
         sel = self.t_s >= after_s
+        if not sel.any():
+            return np.full(3, np.nan)  # the run ended before after_s
         return np.sqrt(np.mean(self.error[sel] ** 2, axis=0))
 
     def coverage(self, after_s: float = 0.0) -> np.ndarray:
         """(3,) fraction of epochs where |error| ≤ 3σ, per axis."""
         sel = self.t_s >= after_s
+        if not sel.any():
+            return np.full(3, np.nan)
         return np.mean(np.abs(self.error[sel]) <= self.sigma3_pos[sel], axis=0)
 
 

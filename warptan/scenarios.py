@@ -123,7 +123,11 @@ SCHEMA: dict[str, dict[str, tuple[type | tuple, object]]] = {
         "pos_noise_m_rthz": (float, _nonneg),
         "converged_after_s": (float, _nonneg),
     },
-    "initial_error": {"pos_m": (list, _vec(3, _nonneg)), "vel_mps": (float, _nonneg), "att_deg": (list, _vec(3, _nonneg))},
+    "initial_error": {
+        "pos_m": (list, _vec(3, _nonneg)),
+        "vel_mps": (float, _nonneg),
+        "att_deg": (list, _vec(3, _nonneg)),
+    },
     "run": {"seed": (int, _nonneg)},
 }
 
@@ -309,7 +313,7 @@ def _segments(flight: dict) -> list:
 def _max_height_near(terrain: Terrain, north, east, radius: float) -> float:
     rows, cols = terrain.shape
     best = -np.inf
-    ri, rj = int(math.ceil(radius / terrain.dn)), int(math.ceil(radius / terrain.de))
+    ri, rj = math.ceil(radius / terrain.dn), math.ceil(radius / terrain.de)
     for n, e in zip(north, east, strict=True):
         i, j = round((n - terrain.n0) / terrain.dn), round((e - terrain.e0) / terrain.de)
         window = terrain.heights_m[max(0, i - ri):min(rows, i + ri + 1), max(0, j - rj):min(cols, j + rj + 1)]
@@ -332,8 +336,8 @@ def build_flight(config: dict, terrain: Terrain) -> Trajectory:
     if flight["placement"] == "hilltop":
         margin = flight["margin_m"]
         inner = terrain.heights_m.copy()
-        ci = int(math.ceil(margin / terrain.dn)) + 1
-        cj = int(math.ceil(margin / terrain.de)) + 1
+        ci = math.ceil(margin / terrain.dn) + 1
+        cj = math.ceil(margin / terrain.de) + 1
         inner[:ci], inner[-ci:], inner[:, :cj], inner[:, -cj:] = np.nan, np.nan, np.nan, np.nan
         i, j = np.unravel_index(np.nanargmax(inner), inner.shape)
         hill = np.array([terrain.n0 + i * terrain.dn, terrain.e0 + j * terrain.de])
@@ -378,6 +382,7 @@ class ScenarioResult:
     config: dict
     run: FilterRun
     wall_s: float
+    truth_terrain: Terrain = field(repr=False)
     rmse: np.ndarray = field(init=False)
     """(3,) RMSE north, east, down over the whole run, m."""
     rmse_converged: np.ndarray = field(init=False)
@@ -450,4 +455,4 @@ def run_scenario(name_or_path, seed: int = 0, device="cpu", progress=None, **ove
         resample_threshold=f["resample_threshold"], resampler=f["resampler"], pos_noise=f["pos_noise_m_rthz"],
     )
     return ScenarioResult(scenario=config["id"], seed=int(seed), device=run.device, terrain=truth_terrain.name,
-                          config=config, run=run, wall_s=time.perf_counter() - t0)
+                          config=config, run=run, wall_s=time.perf_counter() - t0, truth_terrain=truth_terrain)

@@ -1,0 +1,124 @@
+"""Scenarios S1–S12: every file validates, a short version of each runs, bad files list every problem."""
+
+import json
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import warptan as wt
+from warptan.scenarios import SCENARIO_IDS, ScenarioError, load_config, prepare, run_scenario, scenario_path
+
+SMALL = "synthetic:rugged,size_m=12000,spacing=40,seed=2"
+
+
+@pytest.mark.parametrize("sid", SCENARIO_IDS)
+def test_short_scenario_runs(sid):
+    """A short version (8 s, 64 particles, generated terrain) of each scenario runs on the CPU and returns
+    finite RMSEs and the time series."""
+    flat = "synthetic:flat,size_m=12000,spacing=40,seed=2"
+    terrain = flat if load_config(sid)["terrain"]["kind"] == "flat" else SMALL
+    r = run_scenario(sid, seed=1, device="cpu", terrain=terrain, particles=64, duration_s=8.0)
+    assert r.scenario == sid and r.rmse.shape == (3,) and np.isfinite(r.rmse).all()
+    assert np.isfinite(r.rmse_converged).all() or r.config["filter"]["converged_after_s"] > 8.0
+    assert len(r.run.t_s) == 81 and np.isfinite(r.run.est_pos).all() and (r.run.ess > 0).all()
+    assert r.terrain.startswith("synthetic")
+
+
+def test_files_state_every_parameter():
+    """Each shipped file validates on its own (no defaults are filled in) and matches SPEC §7's table."""
+    expected = {"S1": ("rugged", "navigation", 30, "high", "sliding"), "S2": ("rugged", "tactical_low", 30, "high",
+                "sliding"), "S5": ("rugged", "navigation", 60, "low", "raycast"),
+                "S9": ("rugged", "navigation", 0, "high", "altimeter"),
+                "S12": ("flat", "navigation", 0, "high", "altimeter")}
+    for sid in SCENARIO_IDS:
+        c = load_config(sid)
+        assert c["id"] == sid and c["filter"]["particles"] == 500 and c["imu"]["rate_hz"] == 100.0
+        assert c["sensor"]["rate_hz"] == 10.0 and c["flight"]["duration_s"] == 120.0
+        if sid in expected:
+            assert (c["terrain"]["kind"], c["imu"]["grade"], c["flight"]["bank_deg"], c["flight"]["altitude_rule"],
+                    c["sensor"]["model"]) == expected[sid]
+
+
+def test_paper_rates_and_overrides():
+    """--paper-rates makes the measurement rate the IMU rate; overrides land in the config."""
+    c = load_config("S8", paper_rates=True, particles=77, backend="mesh", likelihood="student_t")
+    assert c["sensor"]["rate_hz"] == 100.0 and c["filter"]["particles"] == 77
+    assert c["sensor"]["backend"] == "mesh" and c["likelihood"]["kind"] == "student_t"
+
+
+def test_bad_file_lists_every_problem(tmp_path):
+    """A file with a misspelt key, a missing key, a wrong type and a bad value reports all four at once."""
+    text = scenario_path("S8").read_text()
+    text = text.replace("bank_deg = 0.0", "bank_degs = 0.0")          # misspelt (and so missing)
+    text = text.replace('grade = "navigation"', 'grade = "navigaton"')  # unknown grade
+    text = text.replace("particles = 500", 'particles = "many"')        # wrong type
+    text = text.replace("rate_hz = 10.0", "rate_hz = -10.0")            # bad value
+    path = tmp_path / "bad.toml"
+    path.write_text(text)
+    with pytest.raises(ScenarioError) as info:
+        load_config(path)
+    msg = str(info.value)
+    for part in ("unknown key flight.bank_degs (did you mean flight.bank_deg?)", "missing key flight.bank_deg",
+                 "imu.grade = 'navigaton' must be one of", "filter.particles = 'many' must be of type int",
+                 "sensor.rate_hz = -10.0 must be > 0"):
+        assert part in msg, (part, msg)
+
+
+@pytest.mark.parametrize(("call", "message"), [
+    (lambda: load_config("S13"), "unknown scenario 'S13'"),
+    (lambda: load_config("S8", particle=5), "unknown override 'particle' (did you mean 'particles'?)"),
+    (lambda: prepare("S8", terrain="/no/such/dem.tif"), "does not load"),
+    (lambda: prepare("S8", terrain=SMALL, duration_s=1000.0), "leaves the DEM"),
+    (lambda: load_config("S8", backend="optix"), "sensor.backend = 'optix' must be one of"),
+])
+def test_bad_runs_fail_before_computing(call, message):
+    """Unknown scenario or override, a terrain that does not load, a flight leaving the DEM: clear errors."""
+    with pytest.raises(ScenarioError, match=re.escape(message)):
+        call()
+
+
+def test_flight_rules():
+    """High altitude is 600 m above the highest terrain within 2 km of the track; orbits pass beside the hill."""
+    terrain = wt.Terrain.load(SMALL)
+    _, _, flight = prepare("S8", terrain=terrain, duration_s=60.0)
+    track = flight.pos_n
+    near = [terrain.heights_m[i, j] for i in range(terrain.shape[0]) for j in range(0, terrain.shape[1], 4)
+            if np.min(np.hypot(track[::100, 0] - (terrain.n0 + i * terrain.dn),
+                               track[::100, 1] - (terrain.e0 + j * terrain.de))) < 1500.0]
+    assert -track[0, 2] >= max(near) + 600.0 - 1e-6
+    assert np.ptp(track[:, 2]) < 1e-6
+    _, _, orbit = prepare("S5", terrain=terrain)
+    i, j = np.unravel_index(np.nanargmax(terrain.heights_m), terrain.shape)
+    hill = np.array([terrain.n0 + i * terrain.dn, terrain.e0 + j * terrain.de])
+    closest = np.min(np.linalg.norm(orbit.pos_n[:, :2] - hill, axis=1))
+    assert 100.0 < closest < 700.0
+    assert -orbit.pos_n[0, 2] == pytest.approx(terrain.h_max + 150.0, abs=1.0)
+
+
+def test_warptan_run_demo(tmp_path):
+    """`warptan run` with no arguments finishes and writes results.json, results.md and the plots."""
+    proc = subprocess.run([sys.executable, "-m", "warptan.cli", "run", "--quiet"], cwd=tmp_path, capture_output=True,
+                          text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr
+    out = tmp_path / "warptan-demo"
+    names = {p.name for p in out.iterdir()}
+    assert {"results.json", "results.md", "S8_seed0_track.png", "S8_seed0_errors.png"} <= names
+    data = json.loads((out / "results.json").read_text())
+    assert data["scenarios"]["S8"]["terrain"] == "synthetic:rugged"
+    assert "| S8 |" in (out / "results.md").read_text()
+
+
+def test_warptan_run_check_and_errors(tmp_path):
+    """--check validates without running; an unknown scenario exits 2 with one clear line."""
+    ok = subprocess.run([sys.executable, "-m", "warptan.cli", "run", "S1", "S9", "--check", "--terrain", SMALL,
+                         "--duration-s", "60"],
+                        capture_output=True, text=True, cwd=tmp_path)
+    assert ok.returncode == 0 and "S1: ok" in ok.stdout and "S9: ok" in ok.stdout
+    bad = subprocess.run([sys.executable, "-m", "warptan.cli", "run", "S42"], capture_output=True, text=True,
+                         cwd=tmp_path)
+    assert bad.returncode == 2 and "unknown scenario 'S42'" in bad.stderr and "Traceback" not in bad.stderr
+    assert not Path(tmp_path / "warptan-results").exists()

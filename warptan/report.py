@@ -1,0 +1,180 @@
+"""Monte-Carlo summaries of scenario runs: results.json, a Markdown table next to the paper, and PNG plots.
+
+RMSE per axis is reported as mean ± 95 % interval over seeds (Student t, ``t_{0.975, n-1} s / √n``),
+over the whole run and after convergence (``filter.converged_after_s``). matplotlib is imported only by
+the plotting functions.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+from pathlib import Path
+
+import numpy as np
+
+_T975 = [12.706, 4.303, 3.182, 2.776, 2.571, 2.447, 2.365, 2.306, 2.262, 2.228, 2.201, 2.179, 2.160, 2.145,
+         2.131, 2.120, 2.110, 2.101, 2.093, 2.086, 2.080, 2.074, 2.069, 2.064, 2.060, 2.056, 2.052, 2.048,
+         2.045, 2.042]
+
+
+def ci95(values) -> tuple[np.ndarray, np.ndarray]:
+    """Mean and half-width of the 95 % interval of the mean over the first axis (NaN width for one value)."""
+    v = np.asarray(values, dtype=np.float64)
+    mean = v.mean(axis=0)
+    n = len(v)
+    if n < 2:
+        return mean, np.full_like(mean, np.nan)
+    t = _T975[n - 2] if n - 2 < len(_T975) else 1.96
+    return mean, t * v.std(axis=0, ddof=1) / math.sqrt(n)
+
+
+def aggregate(results) -> dict[str, dict]:
+    """Per scenario: seeds, RMSE mean ± CI (whole and converged), the paper's values, coverage, timings."""
+    by_id: dict[str, list] = {}
+    for r in results:
+        by_id.setdefault(r.scenario, []).append(r)
+    out = {}
+    for sid, runs in by_id.items():
+        rm, rh = ci95([r.rmse for r in runs])
+        cm, ch = ci95([r.rmse_converged for r in runs])
+        cfg = runs[0].config
+        out[sid] = {
+            "seeds": [r.seed for r in runs], "terrain": runs[0].terrain, "device": runs[0].device,
+            "model": cfg["sensor"]["model"], "backend": cfg["sensor"]["backend"],
+            "likelihood": cfg["likelihood"]["kind"], "imu": cfg["imu"]["grade"], "bank_deg": cfg["flight"]["bank_deg"],
+            "altitude_rule": cfg["flight"]["altitude_rule"], "particles": cfg["filter"]["particles"],
+            "meas_rate_hz": cfg["sensor"]["rate_hz"], "use_baro": cfg["sensor"]["use_baro"],
+            "rmse_mean_m": rm.tolist(), "rmse_ci95_m": rh.tolist(),
+            "rmse_converged_mean_m": cm.tolist(), "rmse_converged_ci95_m": ch.tolist(),
+            "paper_rmse_m": cfg["paper_rmse_m"],
+            "coverage_3sigma_mean": np.mean([r.run.coverage(cfg["filter"]["converged_after_s"]) for r in runs],
+                                            axis=0).tolist(),
+            "update_ms_median": float(np.median(np.concatenate([r.run.update_time_s[1:] for r in runs]))),
+            "wall_s_mean": float(np.mean([r.wall_s for r in runs])),
+        }
+    return out
+
+
+def _fmt(mean, half) -> str:
+    return " / ".join(f"{m:.2f}" if not np.isfinite(h) else f"{m:.2f}±{h:.2f}" for m, h in zip(mean, half, strict=True))
+
+
+def markdown_table(agg: dict[str, dict]) -> str:
+    """The results as a Markdown table (RMSE x / y / z = north / east / down, m)."""
+    lines = [
+        "| id | terrain | IMU | bank | alt | model | seeds | RMSE x / y / z (m), whole run | after convergence "
+        "| paper | 3σ coverage N/E/D |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for sid in sorted(agg, key=lambda s: int(s[1:]) if s[1:].isdigit() else 99):
+        a = agg[sid]
+        model = a["model"] + (f" ({a['backend']})" if a["model"] == "raycast" else "")
+        model += "" if a["model"] != "altimeter" else (" + baro" if a["use_baro"] else ", no baro")
+        terrain = Path(a["terrain"]).name if not a["terrain"].startswith("synthetic") else a["terrain"]
+        lines.append(
+            f"| {sid} | {terrain} | {a['imu']} | {a['bank_deg']:g}° | {a['altitude_rule']} | {model} | "
+            f"{len(a['seeds'])} | {_fmt(a['rmse_mean_m'], a['rmse_ci95_m'])} | "
+            f"{_fmt(a['rmse_converged_mean_m'], a['rmse_converged_ci95_m'])} | "
+            f"{' / '.join(f'{v:g}' for v in a['paper_rmse_m'])} | "
+            f"{' / '.join(f'{100 * c:.0f}%' for c in a['coverage_3sigma_mean'])} |")
+    return "\n".join(lines)
+
+
+def hillshade(heights: np.ndarray, dn: float, de: float, azimuth_deg: float = 315.0, altitude_deg: float = 45.0):
+    """Lambertian hillshade in [0, 1] of a (rows north, cols east) height grid (NaN stays NaN)."""
+    gn, ge = np.gradient(heights, dn, de)
+    slope = np.arctan(np.hypot(gn, ge))
+    aspect = np.arctan2(-ge, gn)
+    az, alt = math.radians(azimuth_deg), math.radians(altitude_deg)
+    shade = np.sin(alt) * np.cos(slope) + np.cos(alt) * np.sin(slope) * np.cos(az - aspect)
+    return np.clip(shade, 0.0, 1.0)
+
+
+def plot_run(result, terrain, out_prefix: str | os.PathLike) -> list[str]:
+    """Two PNGs for one run: ``_track.png`` (truth, INS only, estimate over a hillshade) and ``_errors.png``
+    (error per axis with ±3σ, and ESS). Returns the paths."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    run = result.run
+    prefix = os.fspath(out_prefix)
+    pad = 2000.0
+    pts = np.concatenate([run.truth_pos[:, :2], run.ins_pos[:, :2], run.est_pos[:, :2]])
+    n_lo, e_lo = pts.min(axis=0) - pad
+    n_hi, e_hi = pts.max(axis=0) + pad
+    rows, cols = terrain.shape
+    i0 = int(np.clip((n_lo - terrain.n0) / terrain.dn, 0, rows - 1))
+    i1 = int(np.clip((n_hi - terrain.n0) / terrain.dn, 0, rows - 1)) + 1
+    j0 = int(np.clip((e_lo - terrain.e0) / terrain.de, 0, cols - 1))
+    j1 = int(np.clip((e_hi - terrain.e0) / terrain.de, 0, cols - 1)) + 1
+    crop = terrain.heights_m[i0:i1, j0:j1]
+    extent = [terrain.e0 + j0 * terrain.de, terrain.e0 + (j1 - 1) * terrain.de,
+              terrain.n0 + i0 * terrain.dn, terrain.n0 + (i1 - 1) * terrain.dn]
+    fig, ax = plt.subplots(figsize=(7, 7))
+    ax.imshow(hillshade(crop, terrain.dn, terrain.de), origin="lower", extent=extent, cmap="gray", alpha=0.9)
+    ax.imshow(crop, origin="lower", extent=extent, cmap="terrain", alpha=0.35)
+    ax.plot(run.truth_pos[:, 1], run.truth_pos[:, 0], "k-", lw=2, label="truth")
+    ax.plot(run.ins_pos[:, 1], run.ins_pos[:, 0], "r--", lw=1.2, label="INS only")
+    ax.plot(run.est_pos[:, 1], run.est_pos[:, 0], "c-", lw=1.2, label="estimate")
+    ax.plot(run.truth_pos[0, 1], run.truth_pos[0, 0], "ko")
+    ax.set_xlabel("east (m)")
+    ax.set_ylabel("north (m)")
+    ax.set_title(f"{result.scenario} seed {result.seed}: {Path(result.terrain).name}")
+    ax.legend(loc="best")
+    ax.set_aspect("equal")
+    fig.tight_layout()
+    track = f"{prefix}_track.png"
+    fig.savefig(track, dpi=110)
+    plt.close(fig)
+
+    fig, axes = plt.subplots(4, 1, figsize=(8, 9), sharex=True)
+    for k, name in enumerate(("north", "east", "down")):
+        ax = axes[k]
+        ax.plot(run.t_s, run.error[:, k], "b-", lw=1, label="estimate − truth")
+        ax.fill_between(run.t_s, -run.sigma3_pos[:, k], run.sigma3_pos[:, k], color="b", alpha=0.15, label="±3σ")
+        ax.plot(run.t_s, (run.ins_pos - run.truth_pos)[:, k], "r--", lw=0.8, label="INS only")
+        lim = max(5.0, 1.5 * float(np.percentile(np.abs(run.error[:, k]), 95)))
+        ax.set_ylim(-lim, lim)
+        ax.set_ylabel(f"{name} error (m)")
+        ax.grid(alpha=0.3)
+    axes[0].legend(loc="upper right", fontsize=8)
+    axes[3].plot(run.t_s, run.ess, "g-", lw=1)
+    axes[3].axhline(0.5 * run.n_particles, color="gray", ls=":", lw=1)
+    axes[3].set_ylabel("ESS")
+    axes[3].set_xlabel("time (s)")
+    axes[0].set_title(f"{result.scenario} seed {result.seed}: RMSE N/E/D {_fmt(result.rmse, [np.nan] * 3)} m")
+    fig.tight_layout()
+    errors = f"{prefix}_errors.png"
+    fig.savefig(errors, dpi=110)
+    plt.close(fig)
+    return [track, errors]
+
+
+def write_outputs(results, out_dir: str | os.PathLike, terrains: dict, plots: bool = True) -> dict[str, object]:
+    """Write ``results.json``, ``results.md`` and (first seed of each scenario) the plots into ``out_dir``."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    agg = aggregate(results)
+    table = markdown_table(agg)
+    with open(out / "results.json", "w") as f:
+        json.dump({"scenarios": agg, "runs": [r.summary() for r in results]}, f, indent=1)
+    (out / "results.md").write_text(
+        "# warptan scenario results\n\nRMSE x / y / z = north / east / down in metres, mean ± 95 % interval over "
+        "seeds; \"after convergence\" counts from `filter.converged_after_s`.\n\n" + table + "\n")
+    written: list[str] = [str(out / "results.json"), str(out / "results.md")]
+    if plots:
+        try:
+            import matplotlib  # noqa: F401
+        except ModuleNotFoundError:
+            plots = False
+    if plots:
+        done = set()
+        for r in results:
+            if r.scenario not in done:
+                done.add(r.scenario)
+                written += plot_run(r, terrains[r.scenario], out / f"{r.scenario}_seed{r.seed}")
+    return {"aggregate": agg, "table": table, "files": written, "plots": plots}
