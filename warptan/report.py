@@ -51,7 +51,7 @@ def aggregate(results) -> dict[str, dict]:
             "paper_rmse_m": cfg["paper_rmse_m"],
             "coverage_3sigma_mean": np.mean([r.run.coverage(cfg["filter"]["converged_after_s"]) for r in runs],
                                             axis=0).tolist(),
-            "update_ms_median": float(np.median(np.concatenate([r.run.update_time_s[1:] for r in runs]))),
+            "update_ms_median": 1e3 * float(np.median(np.concatenate([r.run.update_time_s[1:] for r in runs]))),
             "wall_s_mean": float(np.mean([r.wall_s for r in runs])),
         }
     return out
