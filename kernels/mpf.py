@@ -63,6 +63,7 @@ def respread_kernel(
 
 @wp.kernel
 def time_update_kernel(
+    row0: int,
     seeds: wp.array(dtype=wp.int32),
     a_n: wp.array(dtype=mat3x12),
     a_l: wp.array(dtype=mat12),
@@ -72,12 +73,13 @@ def time_update_kernel(
     lin: wp.array(dtype=vec12),
 ):
     """K IMU steps of every particle (SPEC §6 steps 3–4), in place; step k uses the k-th matrices:
-    ``dp_i += A^n l_i + e_i`` with ``e_i ~ N(0, N_k)``; ``l_i = A^l l_i + L_k e_i``."""
+    ``dp_i += A^n l_i + e_i`` with ``e_i ~ N(0, N_k)``; ``l_i = A^l l_i + L_k e_i``. ``row0`` is the global
+    index of this launch's first particle (the random stream of particle i does not depend on chunking)."""
     i = wp.tid()
     d = dp[i]
     lm = lin[i]
     for k in range(seeds.shape[0]):
-        state = wp.rand_init(seeds[k], i)
+        state = wp.rand_init(seeds[k], row0 + i)
         e = chol_n[k] * gaussian3(state)
         d = d + a_n[k] * lm + e
         lm = a_l[k] * lm + gain[k] * e

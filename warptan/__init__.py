@@ -17,31 +17,51 @@ Conventions (SPEC §1), used everywhere in the package:
 
 from warptan import frames
 from warptan.device import resolve_device
+from warptan.imu import IMU_GRADES, ImuModel
+from warptan.ins import Ins, NavState
 from warptan.measurement import AltimeterModel, Likelihood, RaycastModel, SlidingModel, make_model
+from warptan.mpf import MarginalizedParticleFilter
 from warptan.raster import TerrainError
 from warptan.raycast import RayCaster, raycast
+from warptan.runner import InitialErrors, run_filter
+from warptan.scenarios import ScenarioError, run_scenario
 from warptan.sensors import AltimeterReading, Barometer, PointCloud, PointCloudSensor, RadarAltimeter, ScanPattern
 from warptan.terrain import Terrain
+from warptan.trajectory import Climb, Orbit, Straight, Trajectory, Turn
 
 __version__ = "0.1.0"
 
 __all__ = [
+    "IMU_GRADES",
     "AltimeterModel",
     "AltimeterReading",
     "Barometer",
+    "Climb",
+    "ImuModel",
+    "InitialErrors",
+    "Ins",
     "Likelihood",
+    "MarginalizedParticleFilter",
+    "NavState",
+    "Orbit",
     "PointCloud",
     "PointCloudSensor",
     "RadarAltimeter",
     "RayCaster",
     "RaycastModel",
     "ScanPattern",
+    "ScenarioError",
     "SlidingModel",
+    "Straight",
     "Terrain",
     "TerrainError",
+    "Trajectory",
+    "Turn",
     "__version__",
     "frames",
     "make_model",
     "raycast",
     "resolve_device",
+    "run_filter",
+    "run_scenario",
 ]

@@ -22,6 +22,7 @@ import warp as wp
 from warptan.kernels import likelihood as klik
 from warptan.kernels import raycast as kray
 from warptan.kernels import sliding as kslide
+from warptan.parallel import launch_rows
 from warptan.raycast import RayCaster, check_same_device
 from warptan.sensors import AltimeterReading, PointCloud
 
@@ -102,10 +103,11 @@ class MeasurementModel:
 
     def _reduce(self, out: ModelOutput, point_ok: wp.array, axis_w: wp.array, device) -> ModelOutput:
         lk = self.likelihood
-        wp.launch(klik.reduce_loglik_kernel, dim=out.loglik.shape[0],
-                  inputs=[out.residual_m, point_ok, axis_w, self.err_kind, LIKELIHOODS[lk.kind], float(lk.r_err),
-                          float(lk.sigma_m), float(lk.nu), float(lk.outlier_sigmas)],
-                  outputs=[out.error_m, out.loglik, out.n_valid], device=device)
+        consts = [self.err_kind, LIKELIHOODS[lk.kind], float(lk.r_err), float(lk.sigma_m), float(lk.nu),
+                  float(lk.outlier_sigmas)]
+        launch_rows(klik.reduce_loglik_kernel, out.loglik.shape[0],
+                    lambda a, b: ([out.residual_m[a:b], point_ok, axis_w, *consts],
+                                  [out.error_m[a:b], out.loglik[a:b], out.n_valid[a:b]]), device)
         return out
 
     @staticmethod
@@ -148,9 +150,10 @@ class RaycastModel(_PointCloudModel):
         self.caster = caster or RayCaster("dda")
 
     def _residuals(self, pos_n, quat_nb, dev, residual_out, device):
-        wp.launch(kray.raycast_residual_kernel, dim=residual_out.shape,
-                  inputs=[*self.caster.launch_args(self.terrain, device), pos_n, quat_nb, dev["dirs"], dev["ranges"]],
-                  outputs=[residual_out], device=device)
+        lead = self.caster.launch_args(self.terrain, device)
+        launch_rows(kray.raycast_residual_kernel, residual_out.shape[0],
+                    lambda a, b: ([*lead, pos_n[a:b], quat_nb[a:b], dev["dirs"], dev["ranges"]], [residual_out[a:b]]),
+                    device, cols=residual_out.shape[1])
 
 
 class SlidingModel(_PointCloudModel):
@@ -170,9 +173,11 @@ class SlidingModel(_PointCloudModel):
         self.surface = bool(surface)
 
     def _residuals(self, pos_n, quat_nb, dev, residual_out, device):
-        wp.launch(kslide.sliding_residual_kernel, dim=residual_out.shape,
-                  inputs=[self.terrain.grid(device), int(self.surface), pos_n, quat_nb, dev["points"]],
-                  outputs=[residual_out], device=device)
+        grid = self.terrain.grid(device)
+        surface = int(self.surface)
+        launch_rows(kslide.sliding_residual_kernel, residual_out.shape[0],
+                    lambda a, b: ([grid, surface, pos_n[a:b], quat_nb[a:b], dev["points"]], [residual_out[a:b]]),
+                    device, cols=residual_out.shape[1])
 
 
 class AltimeterModel(MeasurementModel):

@@ -30,6 +30,7 @@ from warptan.frames import quat_exp, quat_mul
 from warptan.imu import ImuGrade, check_rate, imu_grade
 from warptan.ins import Ins, NavState, error_transition, process_noise
 from warptan.kernels import mpf as kmpf
+from warptan.parallel import launch_rows
 
 SCHEMES = {"systematic": 0, "stratified": 1, "multinomial": 2}
 
@@ -213,13 +214,13 @@ class MarginalizedParticleFilter:
         seeds, a_n, a_l, gain, chol = zip(*self._pending, strict=True)
         self._pending.clear()
         d = self.device
-        wp.launch(kmpf.time_update_kernel, dim=self.n,
-                  inputs=[wp.array(np.array(seeds, dtype=np.int32), dtype=wp.int32, device=d),
-                          wp.array(np.array(a_n, dtype=np.float32), dtype=kmpf.mat3x12, device=d),
-                          wp.array(np.array(a_l, dtype=np.float32), dtype=kmpf.mat12, device=d),
-                          wp.array(np.array(gain, dtype=np.float32), dtype=kmpf.mat12x3, device=d),
-                          wp.array(np.array(chol, dtype=np.float32), dtype=wp.mat33, device=d)],
-                  outputs=[self.state.dp, self.state.lin], device=d)
+        mats = [wp.array(np.array(seeds, dtype=np.int32), dtype=wp.int32, device=d),
+                wp.array(np.array(a_n, dtype=np.float32), dtype=kmpf.mat3x12, device=d),
+                wp.array(np.array(a_l, dtype=np.float32), dtype=kmpf.mat12, device=d),
+                wp.array(np.array(gain, dtype=np.float32), dtype=kmpf.mat12x3, device=d),
+                wp.array(np.array(chol, dtype=np.float32), dtype=wp.mat33, device=d)]
+        dp, lin = self.state.dp, self.state.lin
+        launch_rows(kmpf.time_update_kernel, self.n, lambda a, b: ([a, *mats], [dp[a:b], lin[a:b]]), d)
 
     # ------------------------------------------------------------------ measurement update
     def particle_poses(self) -> tuple[wp.array, wp.array]:
