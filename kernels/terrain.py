@@ -43,60 +43,48 @@ class HeightGrid:
 
 
 @wp.func
-def grid_cell(grid: HeightGrid, north: float, east: float) -> wp.vec4:
-    """Locate a horizontal position: returns ``(i, j, fu, fv)`` (cell indices as floats, fractions in
-    [0, 1]) or ``i = -1`` when the position is off the grid or not finite."""
+def grid_bilinear(grid: HeightGrid, north: float, east: float) -> float:
+    """Bilinear height in m at ``(north, east)``; NaN off the grid or in a cell with a nodata post."""
     u = (north - grid.n0) / grid.dn
     v = (east - grid.e0) / grid.de
     rows = grid.heights.shape[0]
     cols = grid.heights.shape[1]
     # Written so that NaN coordinates fail every comparison and land in the "off grid" branch.
     if u >= 0.0 and u <= float(rows - 1) and v >= 0.0 and v <= float(cols - 1):
-        i = wp.min(int(wp.floor(u)), rows - 2)
-        j = wp.min(int(wp.floor(v)), cols - 2)
-        return wp.vec4(float(i), float(j), u - float(i), v - float(j))
-    return wp.vec4(-1.0, -1.0, 0.0, 0.0)
-
-
-@wp.func
-def grid_bilinear(grid: HeightGrid, north: float, east: float) -> float:
-    """Bilinear height in m at ``(north, east)``; NaN off the grid or in a cell with a nodata post."""
-    c = grid_cell(grid, north, east)
-    if c[0] < 0.0:
-        return wp.nan
-    i = int(c[0])
-    j = int(c[1])
-    fu = c[2]
-    fv = c[3]
-    h00 = grid.heights[i, j]
-    h10 = grid.heights[i + 1, j]
-    h01 = grid.heights[i, j + 1]
-    h11 = grid.heights[i + 1, j + 1]
-    # NaN posts propagate (0 * NaN = NaN), which is what marks the whole cell invalid.
-    return (1.0 - fu) * ((1.0 - fv) * h00 + fv * h01) + fu * ((1.0 - fv) * h10 + fv * h11)
+        i = wp.min(int(u), rows - 2)  # int() truncates, = floor for u >= 0
+        j = wp.min(int(v), cols - 2)
+        fu = u - float(i)
+        fv = v - float(j)
+        # NaN posts propagate (0 * NaN = NaN), which is what marks the whole cell invalid.
+        return (1.0 - fu) * ((1.0 - fv) * grid.heights[i, j] + fv * grid.heights[i, j + 1]) + fu * (
+            (1.0 - fv) * grid.heights[i + 1, j] + fv * grid.heights[i + 1, j + 1])
+    return wp.nan
 
 
 @wp.func
 def grid_surface(grid: HeightGrid, north: float, east: float) -> float:
     """Height in m of the triangulated surface (the mesh) at ``(north, east)``; NaN where invalid."""
-    c = grid_cell(grid, north, east)
-    if c[0] < 0.0:
-        return wp.nan
-    i = int(c[0])
-    j = int(c[1])
-    fu = c[2]
-    fv = c[3]
-    h00 = grid.heights[i, j]
-    h10 = grid.heights[i + 1, j]
-    h01 = grid.heights[i, j + 1]
-    h11 = grid.heights[i + 1, j + 1]
-    if wp.isnan(h00 + h10 + h01 + h11):
-        return wp.nan
-    if fu >= fv:
-        # triangle (i,j) (i+1,j) (i+1,j+1)
-        return h00 + fu * (h10 - h00) + fv * (h11 - h10)
-    # triangle (i,j) (i,j+1) (i+1,j+1)
-    return h00 + fv * (h01 - h00) + fu * (h11 - h01)
+    u = (north - grid.n0) / grid.dn
+    v = (east - grid.e0) / grid.de
+    rows = grid.heights.shape[0]
+    cols = grid.heights.shape[1]
+    if u >= 0.0 and u <= float(rows - 1) and v >= 0.0 and v <= float(cols - 1):
+        i = wp.min(int(u), rows - 2)
+        j = wp.min(int(v), cols - 2)
+        fu = u - float(i)
+        fv = v - float(j)
+        h00 = grid.heights[i, j]
+        h10 = grid.heights[i + 1, j]
+        h01 = grid.heights[i, j + 1]
+        h11 = grid.heights[i + 1, j + 1]
+        if wp.isnan(h00 + h10 + h01 + h11):
+            return wp.nan
+        if fu >= fv:
+            # triangle (i,j) (i+1,j) (i+1,j+1)
+            return h00 + fu * (h10 - h00) + fv * (h11 - h10)
+        # triangle (i,j) (i,j+1) (i+1,j+1)
+        return h00 + fv * (h01 - h00) + fu * (h11 - h01)
+    return wp.nan
 
 
 @wp.kernel

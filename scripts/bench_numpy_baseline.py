@@ -55,6 +55,36 @@ def timed(fn, repeats):
     return statistics.median(times)
 
 
+def compare(terrain, tm, n: int, m_side: int, repeats: int, raycast_repeats: int) -> list[dict]:
+    """Time warptan's sliding and ray-cast models against the NumPy/trimesh versions on the same inputs."""
+    rng = np.random.default_rng(0)
+    truth = np.array([0.0, 0.0, -(terrain.h_max + 600.0)])
+    q_true = euler_to_quat(0.02, -0.01, 0.8)
+    cloud = wt.PointCloudSensor(wt.ScanPattern.grid(m_side, m_side, 30.0)).measure(terrain, truth, q_true, rng)
+    pos = truth + rng.normal(0.0, [100.0, 100.0, 20.0], (n, 3))
+    quat = euler_to_quat(rng.normal(0.02, 0.002, n), rng.normal(-0.01, 0.002, n), rng.normal(0.8, 0.01, n))
+    p_d = wp.array(pos.astype(np.float32), dtype=wp.vec3, device="cpu")
+    q_d = wp.array(quat.astype(np.float32), dtype=wp.vec4, device="cpu")
+    pos32, quat32 = p_d.numpy().astype(np.float64), q_d.numpy().astype(np.float64)
+    quat32 /= np.linalg.norm(quat32, axis=1, keepdims=True)
+    cases = (
+        ("sliding", wt.SlidingModel(terrain), lambda: numpy_sliding_error(terrain, pos32, quat32, cloud.points_s),
+         repeats, "vectorised NumPy"),
+        ("raycast", wt.RaycastModel(terrain, caster=wt.RayCaster("dda")),
+         lambda: numpy_raycast_error(tm, pos32, quat32, cloud.dirs_s, cloud.ranges_m), raycast_repeats,
+         "trimesh ray-triangle (rtree)"),
+    )
+    rows = []
+    for name, model, ref_fn, reps, impl in cases:
+        t_wt = timed(lambda m=model: (m.evaluate(p_d, q_d, cloud), wp.synchronize_device("cpu")), repeats)
+        t_np = timed(ref_fn, reps)
+        diff = float(np.nanmax(np.abs(model.evaluate(p_d, q_d, cloud).error_m.numpy() - ref_fn())))
+        rows.append({"model": name, "N": n, "M": m_side * m_side, "warptan_ms": 1e3 * t_wt, "numpy_ms": 1e3 * t_np,
+                     "speedup": t_np / t_wt, "max_abs_error_difference_m": diff, "numpy_impl": impl,
+                     "warptan_impl": type(model).__name__, "cpu_threads": wt.parallel.cpu_threads()})
+    return rows
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--n", type=int, nargs="+", default=[500])
@@ -68,39 +98,14 @@ def main(argv=None) -> int:
     terrain = wt.Terrain.load(args.terrain)
     tm = terrain.to_trimesh()
     rows = []
-    print(f"{'model':8s} {'N':>6s} {'M':>5s} {'warptan ms':>11s} {'numpy ms':>10s} {'speed-up':>9s} {'max |Δerr| m':>13s}")
+    print(f"{'model':8s} {'N':>6s} {'M':>5s} {'warptan ms':>11s} {'numpy ms':>10s} {'speed-up':>9s} "
+          f"{'max |Δerr| m':>13s}")
     for m_side in args.m_side:
         for n in args.n:
-            rng = np.random.default_rng(0)
-            truth = np.array([0.0, 0.0, -(terrain.h_max + 600.0)])
-            q_true = euler_to_quat(0.02, -0.01, 0.8)
-            cloud = wt.PointCloudSensor(wt.ScanPattern.grid(m_side, m_side, 30.0)).measure(terrain, truth, q_true, rng)
-            pos = truth + rng.normal(0.0, [100.0, 100.0, 20.0], (n, 3))
-            quat = euler_to_quat(rng.normal(0.02, 0.002, n), rng.normal(-0.01, 0.002, n), rng.normal(0.8, 0.01, n))
-            p_d = wp.array(pos.astype(np.float32), dtype=wp.vec3, device="cpu")
-            q_d = wp.array(quat.astype(np.float32), dtype=wp.vec4, device="cpu")
-            pos32, quat32 = p_d.numpy().astype(np.float64), q_d.numpy().astype(np.float64)
-            quat32 /= np.linalg.norm(quat32, axis=1, keepdims=True)
-            sliding = wt.SlidingModel(terrain)
-            ray = wt.RaycastModel(terrain, caster=wt.RayCaster("dda"))
-            for name, model, ref_fn, reps in (
-                ("sliding", sliding, lambda: numpy_sliding_error(terrain, pos32, quat32, cloud.points_s), args.repeats),
-                ("raycast", ray, lambda: numpy_raycast_error(tm, pos32, quat32, cloud.dirs_s, cloud.ranges_m),
-                 args.raycast_repeats),
-            ):
-                t_wt = timed(lambda m=model: (m.evaluate(p_d, q_d, cloud), wp.synchronize_device("cpu")),
-                             args.repeats)
-                t_np = timed(ref_fn, reps)
-                err_wt = model.evaluate(p_d, q_d, cloud).error_m.numpy()
-                diff = float(np.nanmax(np.abs(err_wt - ref_fn())))
-                row = {"model": name, "N": n, "M": m_side * m_side, "warptan_ms": 1e3 * t_wt, "numpy_ms": 1e3 * t_np,
-                       "speedup": t_np / t_wt, "max_abs_error_difference_m": diff,
-                       "numpy_impl": "vectorised NumPy" if name == "sliding" else "trimesh ray-triangle (rtree)",
-                       "warptan_impl": "SlidingModel" if name == "sliding" else "RaycastModel(dda)",
-                       "cpu_threads": wt.parallel.cpu_threads()}
+            for row in compare(terrain, tm, n, m_side, args.repeats, args.raycast_repeats):
                 rows.append(row)
-                print(f"{name:8s} {n:>6d} {row['M']:>5d} {row['warptan_ms']:11.3f} {row['numpy_ms']:10.1f} "
-                      f"{row['speedup']:8.1f}x {diff:13.4f}")
+                print(f"{row['model']:8s} {n:>6d} {row['M']:>5d} {row['warptan_ms']:11.3f} {row['numpy_ms']:10.1f} "
+                      f"{row['speedup']:8.1f}x {row['max_abs_error_difference_m']:13.4f}")
     if args.json_out:
         with open(args.json_out, "w") as f:
             json.dump({"meta": {"warp_version": wp.config.version, "python": platform.python_version(),
