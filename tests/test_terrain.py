@@ -88,6 +88,34 @@ def test_real_tiles_load():
     assert 150.0 < ganges.h_min and ganges.h_max < 240.0
 
 
+def test_srtm_hgt_and_dted_files_load(tmp_path):
+    """The same data as SRTM .hgt (the Ganges tile converted) and as DTED level 0 (a generated tile) load
+    through rasterio's drivers and give the heights of the GeoTIFF."""
+    import rasterio
+    import rasterio.shutil
+    from rasterio.transform import from_origin
+
+    with rasterio.open(dem_path(GANGES)) as src:
+        profile = {k: v for k, v in src.profile.items() if k not in ("compress", "tiled", "blockxsize",
+                                                                      "blockysize", "interleave")}
+        data = src.read(1)
+    hgt = tmp_path / "N28E078.hgt"
+    with rasterio.open(hgt, "w", **{**profile, "driver": "SRTMHGT"}) as dst:
+        dst.write(data, 1)
+    a, b = Terrain.from_raster(dem_path(GANGES)), Terrain.from_raster(hgt)
+    np.testing.assert_array_equal(np.isnan(a.heights_m), np.isnan(b.heights_m))
+    np.testing.assert_allclose(a.heights_m[a.valid_posts], b.heights_m[b.valid_posts])
+
+    tile = (100 + np.add.outer(np.arange(121)[::-1], np.arange(121))).astype(np.int16)  # a plane: 1 m a post
+    tif = _write_tif(tmp_path / "tile.tif", tile, crs="EPSG:4326",
+                     transform=from_origin(29.0 - 0.5 / 120, 42.0 + 0.5 / 120, 1 / 120, 1 / 120), nodata=-32767)
+    rasterio.shutil.copy(tif, tmp_path / "n41.dt0", driver="DTED")
+    dted = Terrain.from_raster(tmp_path / "n41.dt0")
+    assert dted.dn == pytest.approx(926.6, abs=2.0) and 100 <= dted.h_min and dted.h_max <= 340
+    n, e = dted.latlon_to_ne(41.5, 29.5)
+    assert float(dted.height_at(n, e)) == pytest.approx(tile[60, 60], abs=0.5)
+
+
 def test_resampling_spacing(thuringia):
     """spacing= resamples to square posts and keeps heights (coarser grid, same region)."""
     coarse = Terrain.from_raster(dem_path(THURINGIA), spacing=500.0)
