@@ -10,17 +10,9 @@ A point or particle off the map, on nodata, or with a NaN input gives a NaN resi
 import warp as wp
 
 from warptan.kernels.frames import quat_to_mat_wxyz
-from warptan.kernels.terrain import HeightGrid, grid_bilinear, grid_surface
+from warptan.kernels.terrain import HeightGrid, grid_height
 
 wp.set_module_options({"enable_backward": False})
-
-
-@wp.func
-def map_height(grid: HeightGrid, surface: int, north: float, east: float) -> float:
-    """Bilinear height (``surface == 0``) or triangulated-surface height (``surface == 1``), NaN = invalid."""
-    if surface == 0:
-        return grid_bilinear(grid, north, east)
-    return grid_surface(grid, north, east)
 
 
 @wp.kernel
@@ -41,7 +33,7 @@ def sliding_residual_kernel(
     mat = quat_to_mat_wxyz(quat_nb[i])
     p = pos_n[i]
     w = p + mat * c
-    h = map_height(grid, surface, w[0], w[1])
+    h = grid_height(grid, surface, w[0], w[1])
     c_hat = wp.transpose(mat) * (wp.vec3(w[0], w[1], -h) - p)
     residual_out[i, j] = c[2] - c_hat[2]
 
@@ -63,7 +55,7 @@ def altimeter_residual_kernel(
     alt = baro_alt_m
     if use_baro == 0:
         alt = -p[2]
-    residual_out[i, 0] = range_m - (alt - map_height(grid, surface, p[0], p[1]))
+    residual_out[i, 0] = range_m - (alt - grid_height(grid, surface, p[0], p[1]))
 
 
 @wp.kernel

@@ -87,25 +87,22 @@ def grid_surface(grid: HeightGrid, north: float, east: float) -> float:
     return wp.nan
 
 
+@wp.func
+def grid_height(grid: HeightGrid, surface: int, north: float, east: float) -> float:
+    """Bilinear height (``surface == 0``) or triangulated-surface height (``surface == 1``), NaN = invalid."""
+    if surface == 0:
+        return grid_bilinear(grid, north, east)
+    return grid_surface(grid, north, east)
+
+
 @wp.kernel
-def sample_bilinear_kernel(
+def sample_heights_kernel(
     grid: HeightGrid,
+    surface: int,
     north_m: wp.array(dtype=wp.float32),
     east_m: wp.array(dtype=wp.float32),
     heights_out: wp.array(dtype=wp.float32),
 ):
-    """One thread per query point: bilinear height (NaN = invalid)."""
+    """One thread per query point: bilinear (``surface == 0``) or surface height in m (NaN = invalid)."""
     k = wp.tid()
-    heights_out[k] = grid_bilinear(grid, north_m[k], east_m[k])
-
-
-@wp.kernel
-def sample_surface_kernel(
-    grid: HeightGrid,
-    north_m: wp.array(dtype=wp.float32),
-    east_m: wp.array(dtype=wp.float32),
-    heights_out: wp.array(dtype=wp.float32),
-):
-    """One thread per query point: triangulated-surface height (NaN = invalid)."""
-    k = wp.tid()
-    heights_out[k] = grid_surface(grid, north_m[k], east_m[k])
+    heights_out[k] = grid_height(grid, surface, north_m[k], east_m[k])

@@ -16,6 +16,8 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from warptan.checks import check_positive
+
 G0 = 9.80665
 """Standard gravity, m/s² (also the unit of mg and µg)."""
 DEG = math.pi / 180.0
@@ -80,13 +82,7 @@ def imu_grade(name: str | ImuGrade) -> ImuGrade:
 
 def check_rate(rate_hz: float, name: str = "rate_hz") -> float:
     """A positive, finite rate in Hz."""
-    try:
-        value = float(rate_hz)
-    except (TypeError, ValueError):
-        raise ValueError(f"{name} must be a positive number, got {rate_hz!r}") from None
-    if not (math.isfinite(value) and value > 0):
-        raise ValueError(f"{name} must be a positive number, got {rate_hz!r}")
-    return value
+    return check_positive(rate_hz, name)
 
 
 @dataclass

@@ -24,6 +24,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from warptan.checks import check_positive
+
 MAX_POSTS = 60_000_000
 """Largest grid (posts) a load may produce; beyond it the requested spacing is almost surely a mistake."""
 
@@ -54,13 +56,7 @@ def check_spacing(spacing: float | None, name: str = "spacing") -> float | None:
     """Validate a post spacing in metres (None passes through)."""
     if spacing is None:
         return None
-    try:
-        value = float(spacing)
-    except (TypeError, ValueError):
-        raise TerrainError(f"{name} must be a positive number of metres, got {spacing!r}") from None
-    if not math.isfinite(value) or value <= 0.0:
-        raise TerrainError(f"{name} must be a positive number of metres, got {spacing!r}")
-    return value
+    return check_positive(spacing, f"{name} (m)", TerrainError)
 
 
 def tmerc_crs(lat_deg: float, lon_deg: float):

@@ -322,9 +322,8 @@ class Terrain:
             out = wp.empty(north_m.shape, dtype=wp.float32, device=device)
         elif out.device != device or out.shape != north_m.shape:
             raise ValueError(f"out must be on {device} with shape {north_m.shape}")
-        kernel = kterrain.sample_surface_kernel if surface else kterrain.sample_bilinear_kernel
-        wp.launch(kernel, dim=north_m.shape[0], inputs=[self.grid(device), north_m, east_m], outputs=[out],
-                  device=device)
+        wp.launch(kterrain.sample_heights_kernel, dim=north_m.shape[0],
+                  inputs=[self.grid(device), int(bool(surface)), north_m, east_m], outputs=[out], device=device)
         return out
 
     # ------------------------------------------------------------------ export

@@ -19,6 +19,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from warptan.checks import check_positive
 from warptan.frames import euler_to_quat, quat_conj, quat_log, quat_mul, quat_to_mat
 from warptan.imu import G0, check_rate
 from warptan.ins import GRAVITY_N, NavState
@@ -28,16 +29,6 @@ def smootherstep(x: np.ndarray) -> np.ndarray:
     """0 → 1 on [0, 1] with zero first and second derivatives at both ends."""
     x = np.clip(x, 0.0, 1.0)
     return x * x * x * (x * (6.0 * x - 15.0) + 10.0)
-
-
-def _positive(value, name: str) -> float:
-    try:
-        v = float(value)
-    except (TypeError, ValueError):
-        raise ValueError(f"{name} must be a positive number, got {value!r}") from None
-    if not (math.isfinite(v) and v > 0):
-        raise ValueError(f"{name} must be a positive number, got {value!r}")
-    return v
 
 
 def _bank(value: float) -> float:
@@ -132,7 +123,7 @@ class Trajectory:
             ValueError: a non-positive speed, rate or duration, a bank of 90° or more, an empty segment
                 list, a turn too short for its roll-in and roll-out, or an unknown segment.
         """
-        speed = _positive(speed_mps, "speed_mps")
+        speed = check_positive(speed_mps, "speed_mps")
         rate = check_rate(rate_hz)
         start = np.asarray(start_pos_n, dtype=np.float64).reshape(-1)
         if start.shape != (3,) or not np.isfinite(start).all():
@@ -181,13 +172,13 @@ def _plan(seg, speed: float):
     """(duration, bank function, flight-path target in rad, flight-path transition time) of a segment."""
     gamma_transition = 5.0
     if isinstance(seg, Straight | Climb):
-        duration = _positive(seg.duration_s, f"{type(seg).__name__}.duration_s")
+        duration = check_positive(seg.duration_s, f"{type(seg).__name__}.duration_s")
         fp = float(seg.flight_path_deg)
         if not (math.isfinite(fp) and abs(fp) < 45.0):
             raise ValueError(f"flight_path_deg must be within ±45°, got {seg.flight_path_deg!r}")
         return duration, (lambda tau: np.zeros_like(tau)), math.radians(fp), min(gamma_transition, duration)
     if isinstance(seg, Orbit):
-        duration = _positive(seg.duration_s, "Orbit.duration_s")
+        duration = check_positive(seg.duration_s, "Orbit.duration_s")
         bank = math.radians(_bank(seg.bank_deg))
         roll = float(seg.roll_time_s)
         if roll < 0 or 2 * roll > duration:
