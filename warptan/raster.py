@@ -56,7 +56,7 @@ def check_spacing(spacing: float | None, name: str = "spacing") -> float | None:
     """Validate a post spacing in metres (None passes through)."""
     if spacing is None:
         return None
-    return check_positive(spacing, f"{name} (m)", TerrainError)
+    return check_positive(spacing, name, TerrainError)
 
 
 def tmerc_crs(lat_deg: float, lon_deg: float):
