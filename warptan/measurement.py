@@ -107,7 +107,8 @@ class MeasurementModel:
                   float(lk.outlier_sigmas)]
         launch_rows(klik.reduce_loglik_kernel, out.loglik.shape[0],
                     lambda a, b: ([out.residual_m[a:b], point_ok, axis_w, *consts],
-                                  [out.error_m[a:b], out.loglik[a:b], out.n_valid[a:b]]), device)
+                                  [out.error_m[a:b], out.loglik[a:b], out.n_valid[a:b]]), device,
+                    row_cost=out.residual_m.shape[1])
         return out
 
     @staticmethod
@@ -153,7 +154,7 @@ class RaycastModel(_PointCloudModel):
         lead = self.caster.launch_args(self.terrain, device)
         launch_rows(kray.raycast_residual_kernel, residual_out.shape[0],
                     lambda a, b: ([*lead, pos_n[a:b], quat_nb[a:b], dev["dirs"], dev["ranges"]], [residual_out[a:b]]),
-                    device, cols=residual_out.shape[1])
+                    device, cols=residual_out.shape[1], row_cost=20)
 
 
 class SlidingModel(_PointCloudModel):
@@ -177,7 +178,7 @@ class SlidingModel(_PointCloudModel):
         surface = int(self.surface)
         launch_rows(kslide.sliding_residual_kernel, residual_out.shape[0],
                     lambda a, b: ([grid, surface, pos_n[a:b], quat_nb[a:b], dev["points"]], [residual_out[a:b]]),
-                    device, cols=residual_out.shape[1])
+                    device, cols=residual_out.shape[1], row_cost=2)
 
 
 class AltimeterModel(MeasurementModel):

@@ -220,7 +220,8 @@ class MarginalizedParticleFilter:
                 wp.array(np.array(gain, dtype=np.float32), dtype=kmpf.mat12x3, device=d),
                 wp.array(np.array(chol, dtype=np.float32), dtype=wp.mat33, device=d)]
         dp, lin = self.state.dp, self.state.lin
-        launch_rows(kmpf.time_update_kernel, self.n, lambda a, b: ([a, *mats], [dp[a:b], lin[a:b]]), d)
+        launch_rows(kmpf.time_update_kernel, self.n, lambda a, b: ([a, *mats], [dp[a:b], lin[a:b]]), d,
+                    row_cost=40 * len(seeds))
 
     # ------------------------------------------------------------------ measurement update
     def particle_poses(self) -> tuple[wp.array, wp.array]:

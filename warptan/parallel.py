@@ -16,8 +16,11 @@ from concurrent.futures import ThreadPoolExecutor
 import warp as wp
 
 MIN_ROWS_PER_CHUNK = 64
+MIN_WORK_PER_CHUNK = 16_384
+"""Below this many thread-items (rows × cols × row_cost) per chunk, splitting costs more than it saves."""
 _POOL: ThreadPoolExecutor | None = None
 _POOL_SIZE = 0
+_LOADED: set = set()
 
 
 def cpu_threads() -> int:
@@ -42,7 +45,7 @@ def _pool(size: int) -> ThreadPoolExecutor:
 
 
 def launch_rows(kernel, rows: int, args: Callable[[int, int], tuple[list, list]], device, cols: int | None = None,
-                threads: int | None = None) -> None:
+                threads: int | None = None, row_cost: int = 1) -> None:
     """Launch ``kernel`` over ``rows`` (× ``cols``) threads, split by rows across CPU threads.
 
     Args:
@@ -52,16 +55,21 @@ def launch_rows(kernel, rows: int, args: Callable[[int, int], tuple[list, list]]
         device: The Warp device.
         cols: Second launch dimension, if the kernel is 2-D.
         threads: Override of :func:`cpu_threads`.
+        row_cost: Work of one (row, col) item relative to a simple one (e.g. the number of steps it loops).
     """
     if rows == 0:
         return
     n_threads = threads or cpu_threads()
-    chunks = min(n_threads, rows // MIN_ROWS_PER_CHUNK) if device.is_cpu else 1
+    work = rows * (cols or 1) * row_cost
+    chunks = min(n_threads, rows // MIN_ROWS_PER_CHUNK, work // MIN_WORK_PER_CHUNK) if device.is_cpu else 1
     if chunks <= 1:
         inputs, outputs = args(0, rows)
         wp.launch(kernel, dim=rows if cols is None else (rows, cols), inputs=inputs, outputs=outputs, device=device)
         return
-    wp.load_module(kernel.module, device=device)  # compile once, before the threads
+    key = (kernel.module.name, device.alias)
+    if key not in _LOADED:
+        wp.load_module(kernel.module, device=device)  # compile once, before the threads
+        _LOADED.add(key)
     bounds = [rows * k // chunks for k in range(chunks + 1)]
 
     def run(k: int) -> None:
