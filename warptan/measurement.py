@@ -22,7 +22,7 @@ import warp as wp
 from warptan.kernels import likelihood as klik
 from warptan.kernels import raycast as kray
 from warptan.kernels import sliding as kslide
-from warptan.parallel import launch_rows
+from warptan.parallel import launch_rows, rows_of
 from warptan.raycast import RayCaster, check_same_device
 from warptan.sensors import AltimeterReading, PointCloud
 
@@ -106,8 +106,9 @@ class MeasurementModel:
         consts = [self.err_kind, LIKELIHOODS[lk.kind], float(lk.r_err), float(lk.sigma_m), float(lk.nu),
                   float(lk.outlier_sigmas)]
         launch_rows(klik.reduce_loglik_kernel, out.loglik.shape[0],
-                    lambda a, b: ([out.residual_m[a:b], point_ok, axis_w, *consts],
-                                  [out.error_m[a:b], out.loglik[a:b], out.n_valid[a:b]]), device,
+                    lambda a, b: ([rows_of(out.residual_m, a, b), point_ok, axis_w, *consts],
+                                  [rows_of(out.error_m, a, b), rows_of(out.loglik, a, b),
+                                   rows_of(out.n_valid, a, b)]), device,
                     row_cost=out.residual_m.shape[1])
         return out
 
@@ -153,7 +154,8 @@ class RaycastModel(_PointCloudModel):
     def _residuals(self, pos_n, quat_nb, dev, residual_out, device):
         lead = self.caster.launch_args(self.terrain, device)
         launch_rows(kray.raycast_residual_kernel, residual_out.shape[0],
-                    lambda a, b: ([*lead, pos_n[a:b], quat_nb[a:b], dev["dirs"], dev["ranges"]], [residual_out[a:b]]),
+                    lambda a, b: ([*lead, rows_of(pos_n, a, b), rows_of(quat_nb, a, b), dev["dirs"], dev["ranges"]],
+                                  [rows_of(residual_out, a, b)]),
                     device, cols=residual_out.shape[1], row_cost=20)
 
 
@@ -177,7 +179,8 @@ class SlidingModel(_PointCloudModel):
         grid = self.terrain.grid(device)
         surface = int(self.surface)
         launch_rows(kslide.sliding_residual_kernel, residual_out.shape[0],
-                    lambda a, b: ([grid, surface, pos_n[a:b], quat_nb[a:b], dev["points"]], [residual_out[a:b]]),
+                    lambda a, b: ([grid, surface, rows_of(pos_n, a, b), rows_of(quat_nb, a, b), dev["points"]],
+                                  [rows_of(residual_out, a, b)]),
                     device, cols=residual_out.shape[1], row_cost=2)
 
 

@@ -30,7 +30,7 @@ from warptan.frames import quat_exp, quat_mul
 from warptan.imu import ImuGrade, check_rate, imu_grade
 from warptan.ins import Ins, NavState, error_transition, process_noise
 from warptan.kernels import mpf as kmpf
-from warptan.parallel import launch_rows
+from warptan.parallel import launch_rows, rows_of
 
 SCHEMES = {"systematic": 0, "stratified": 1, "multinomial": 2}
 
@@ -220,7 +220,8 @@ class MarginalizedParticleFilter:
                 wp.array(np.array(gain, dtype=np.float32), dtype=kmpf.mat12x3, device=d),
                 wp.array(np.array(chol, dtype=np.float32), dtype=wp.mat33, device=d)]
         dp, lin = self.state.dp, self.state.lin
-        launch_rows(kmpf.time_update_kernel, self.n, lambda a, b: ([a, *mats], [dp[a:b], lin[a:b]]), d,
+        launch_rows(kmpf.time_update_kernel, self.n,
+                    lambda a, b: ([a or 0, *mats], [rows_of(dp, a, b), rows_of(lin, a, b)]), d,
                     row_cost=40 * len(seeds))
 
     # ------------------------------------------------------------------ measurement update

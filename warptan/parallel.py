@@ -21,6 +21,7 @@ MIN_WORK_PER_CHUNK = 16_384
 _POOL: ThreadPoolExecutor | None = None
 _POOL_SIZE = 0
 _LOADED: set = set()
+_CORES = max(1, os.cpu_count() or 1)
 
 
 def cpu_threads() -> int:
@@ -31,7 +32,7 @@ def cpu_threads() -> int:
             return max(1, int(env))
         except ValueError:
             raise ValueError(f"WARPTAN_CPU_THREADS must be a positive integer, got {env!r}") from None
-    return max(1, os.cpu_count() or 1)
+    return _CORES
 
 
 def _pool(size: int) -> ThreadPoolExecutor:
@@ -44,6 +45,12 @@ def _pool(size: int) -> ThreadPoolExecutor:
     return _POOL
 
 
+def rows_of(array, a: int | None, b: int | None):
+    """Rows ``a:b`` of ``array`` as a view, or the array itself for the whole range (``a is None``): making a
+    view costs tens of microseconds, which a single launch should not pay."""
+    return array if a is None else array[a:b]
+
+
 def launch_rows(kernel, rows: int, args: Callable[[int, int], tuple[list, list]], device, cols: int | None = None,
                 threads: int | None = None, row_cost: int = 1) -> None:
     """Launch ``kernel`` over ``rows`` (× ``cols``) threads, split by rows across CPU threads.
@@ -51,7 +58,8 @@ def launch_rows(kernel, rows: int, args: Callable[[int, int], tuple[list, list]]
     Args:
         kernel: A Warp kernel whose first launch dimension indexes rows (particles).
         rows: Number of rows.
-        args: ``args(a, b) -> (inputs, outputs)`` for rows ``a:b`` (row arrays sliced to views).
+        args: ``args(a, b) -> (inputs, outputs)`` for rows ``a:b``, row arrays taken with :func:`rows_of`
+            (``a = b = None`` means all rows; ``a`` is otherwise the first row's global index).
         device: The Warp device.
         cols: Second launch dimension, if the kernel is 2-D.
         threads: Override of :func:`cpu_threads`.
@@ -63,7 +71,7 @@ def launch_rows(kernel, rows: int, args: Callable[[int, int], tuple[list, list]]
     work = rows * (cols or 1) * row_cost
     chunks = min(n_threads, rows // MIN_ROWS_PER_CHUNK, work // MIN_WORK_PER_CHUNK) if device.is_cpu else 1
     if chunks <= 1:
-        inputs, outputs = args(0, rows)
+        inputs, outputs = args(None, None)
         wp.launch(kernel, dim=rows if cols is None else (rows, cols), inputs=inputs, outputs=outputs, device=device)
         return
     key = (kernel.module.name, device.alias)
