@@ -2,7 +2,7 @@
 
 Warp's own ``wp.quat`` is scalar-last; these functions take and return the project's scalar-first
 ``vec4`` so that device arrays match the host arrays of :mod:`warptan.frames` element for element.
-``q = q_nb``; :func:`quat_rotate_wxyz` maps a body vector to the navigation frame (``v_n = R(q) v_b``).
+``q = q_nb``; :func:`quat_to_mat_wxyz` maps body vectors to the navigation frame (``v_n = R(q) v_b``).
 """
 
 import warp as wp
@@ -44,18 +44,6 @@ def quat_exp_wxyz(phi: wp.vec3) -> wp.vec4:
         return wp.normalize(wp.vec4(1.0 - 0.125 * angle * angle, 0.5 * phi[0], 0.5 * phi[1], 0.5 * phi[2]))
     s = wp.sin(0.5 * angle) / angle
     return wp.vec4(wp.cos(0.5 * angle), s * phi[0], s * phi[1], s * phi[2])
-
-
-@wp.func
-def quat_rotate_wxyz(q: wp.vec4, v: wp.vec3) -> wp.vec3:
-    """``R(q) v``."""
-    return quat_to_mat_wxyz(q) * v
-
-
-@wp.func
-def perturbed_attitude(q_nb: wp.vec4, dth: wp.vec3) -> wp.mat33:
-    """``R(q_nb ⊗ Exp(dth))``: the attitude of a particle with attitude error ``dth`` (SPEC §5)."""
-    return quat_to_mat_wxyz(quat_mul_wxyz(q_nb, quat_exp_wxyz(dth)))
 
 
 @wp.kernel

@@ -111,19 +111,23 @@ def particle_poses_kernel(
 @wp.kernel
 def add_loglik_partials_kernel(
     loglik: wp.array(dtype=wp.float32),
+    n_valid: wp.array(dtype=wp.int32),
     floor: float,
     logw: wp.array(dtype=wp.float32),
     max_out: wp.array(dtype=wp.float32),
-    bad_out: wp.array(dtype=wp.int32),
+    counts_out: wp.array2d(dtype=wp.int32),
 ):
     """Stage 1 of the weight update, chunk c: ``logw_i += loglik_i`` (a non-finite loglik counts as bad and
-    scores ``floor``), partial maximum and bad count of the chunk."""
+    scores ``floor``), partial maximum, and the chunk's counts [bad logliks, particles with no valid point]."""
     c = wp.tid()
     n = logw.shape[0]
     best = float(-1.0e38)
     bad = int(0)
+    unpredictable = int(0)
     i = c
     while i < n:
+        if n_valid[i] == 0:
+            unpredictable += 1
         ll = loglik[i]
         if not wp.isfinite(ll):
             ll = floor
@@ -135,19 +139,24 @@ def add_loglik_partials_kernel(
         best = wp.max(best, lw)
         i += N_CHUNKS
     max_out[c] = best
-    bad_out[c] = bad
+    counts_out[c, 0] = bad
+    counts_out[c, 1] = unpredictable
 
 
 @wp.kernel
-def max_of_partials_kernel(max_in: wp.array(dtype=wp.float32), bad_in: wp.array(dtype=wp.int32),
+def max_of_partials_kernel(max_in: wp.array(dtype=wp.float32), counts_in: wp.array2d(dtype=wp.int32),
                            stats_out: wp.array(dtype=wp.float64)):
-    """One thread: stats[3] = max log-weight, stats[2] = number of bad log-likelihoods."""
+    """One thread: stats[3] = max log-weight, stats[2] = bad log-likelihoods, stats[4] = particles that
+    could predict no point."""
     m = max_in[0]
     bad = int(0)
+    unpredictable = int(0)
     for k in range(N_CHUNKS):
         m = wp.max(m, max_in[k])
-        bad += bad_in[k]
+        bad += counts_in[k, 0]
+        unpredictable += counts_in[k, 1]
     stats_out[2] = wp.float64(bad)
+    stats_out[4] = wp.float64(unpredictable)
     stats_out[3] = wp.float64(m)
 
 
@@ -292,10 +301,3 @@ def gather_kernel(
     lin_out[j] = lin_in[a]
     logw_out[j] = -wp.log(float(dp_in.shape[0]))
 
-
-@wp.kernel
-def count_zero_kernel(values: wp.array(dtype=wp.int32), count_out: wp.array(dtype=wp.int32)):
-    """Count entries equal to zero (integer atomics: order-independent, hence deterministic)."""
-    i = wp.tid()
-    if values[i] == 0:
-        wp.atomic_add(count_out, 0, 1)

@@ -22,6 +22,7 @@ import numpy as np
 import warp as wp
 
 import warptan as wt
+from warptan.cli import script_inputs
 from warptan.imu import ImuModel
 from warptan.mpf import MarginalizedParticleFilter
 from warptan.runner import InitialErrors, initial_nominal, prior_linear_cov
@@ -96,14 +97,7 @@ def main(argv=None) -> int:
     parser.add_argument("--warmup", type=int, default=3)
     parser.add_argument("--json", dest="json_out")
     args = parser.parse_args(argv)
-    wt.device.quiet_warp()
-    try:
-        for d in args.device:
-            wt.resolve_device(d)
-        terrain = wt.Terrain.load(args.terrain)
-    except (ValueError, FileNotFoundError) as err:
-        print(f"bench_filter_step: error: {err}", file=sys.stderr)
-        return 2
+    terrain = script_inputs("bench_filter_step", args.device, args.terrain)
     rows = []
     print(f"{'device':7s} {'model':9s} {'N':>7s} {'M':>5s} {'predict ms':>11s} {'update ms':>10s} {'step ms':>9s}")
     for device in args.device:

@@ -20,6 +20,7 @@ import warp as wp
 
 import warptan as wt
 import warptan.parallel
+from warptan.cli import script_inputs
 from warptan.frames import euler_to_quat, quat_to_mat
 
 
@@ -94,8 +95,7 @@ def main(argv=None) -> int:
     parser.add_argument("--raycast-repeats", type=int, default=2, help="trimesh is slow: fewer repeats")
     parser.add_argument("--json", dest="json_out")
     args = parser.parse_args(argv)
-    wt.device.quiet_warp()
-    terrain = wt.Terrain.load(args.terrain)
+    terrain = script_inputs("bench_numpy_baseline", ["cpu"], args.terrain)
     tm = terrain.to_trimesh()
     rows = []
     print(f"{'model':8s} {'N':>6s} {'M':>5s} {'warptan ms':>11s} {'numpy ms':>10s} {'speed-up':>9s} "

@@ -25,6 +25,7 @@ import numpy as np
 import warp as wp
 
 import warptan as wt
+from warptan.cli import script_inputs
 from warptan.frames import euler_to_quat
 
 FULL_N = (100, 500, 2_000, 10_000, 100_000)
@@ -171,14 +172,7 @@ def main(argv=None) -> int:
     parser.add_argument("--plot", help="write a log-log PNG here")
     args = parser.parse_args(argv)
 
-    wt.device.quiet_warp()
-    try:
-        for d in args.device:
-            wt.resolve_device(d)
-        terrain = wt.Terrain.load(args.terrain)
-    except (ValueError, FileNotFoundError) as err:
-        print(f"compare_kernel_timings: error: {err}", file=sys.stderr)
-        return 2
+    terrain = script_inputs("compare_kernel_timings", args.device, args.terrain)
     ns = tuple(args.n or (QUICK_N if args.quick else FULL_N))
     ms = tuple(args.m or (QUICK_M if args.quick else FULL_M))
     repeats = args.repeats or (3 if args.quick else 7)

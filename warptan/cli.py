@@ -98,6 +98,22 @@ def _run(args) -> int:
     return 0
 
 
+def script_inputs(prog: str, devices: list[str], terrain_spec: str):
+    """For the benchmark scripts: silence Warp, check the device names and load the terrain; a bad name or
+    terrain prints one line and exits with status 2 (no traceback)."""
+    from warptan.device import quiet_warp, resolve_device
+    from warptan.terrain import Terrain
+
+    quiet_warp()
+    try:
+        for d in devices:
+            resolve_device(d)
+        return Terrain.load(terrain_spec)
+    except (ValueError, FileNotFoundError) as err:
+        print(f"{prog}: error: {err}", file=sys.stderr)
+        raise SystemExit(2) from None
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="warptan", description="Terrain-aided navigation on NVIDIA Warp.")
     sub = parser.add_subparsers(dest="command", required=True)

@@ -22,11 +22,6 @@ def resolve_device(device=None) -> wp.Device:
         raise ValueError(f"unknown or absent device {device!r} (present: {present}): {err}") from None
 
 
-def cuda_devices() -> list[str]:
-    """Aliases of the CUDA devices Warp sees (empty without a GPU)."""
-    return [d.alias for d in wp.get_cuda_devices()]
-
-
 def quiet_warp() -> None:
     """Silence Warp's start-up banner and per-module load messages (for the CLI, scripts and tests)."""
     wp.config.quiet = True

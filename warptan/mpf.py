@@ -177,15 +177,14 @@ class MarginalizedParticleFilter:
         self._pos = wp.empty(n, dtype=wp.vec3, device=d)
         self._quat = wp.empty(n, dtype=wp.vec4, device=d)
         self._chunk_max = wp.empty(kmpf.N_CHUNKS, dtype=wp.float32, device=d)
-        self._chunk_bad = wp.empty(kmpf.N_CHUNKS, dtype=wp.int32, device=d)
+        self._chunk_counts = wp.empty((kmpf.N_CHUNKS, 2), dtype=wp.int32, device=d)
         self._chunk_sums = wp.empty((kmpf.N_CHUNKS, 2), dtype=wp.float64, device=d)
-        self._stats = wp.zeros(4, dtype=wp.float64, device=d)
+        self._stats = wp.zeros(5, dtype=wp.float64, device=d)
         self._moments_partial = wp.empty((kmpf.N_CHUNKS, kmpf.N_MOMENTS), dtype=wp.float64, device=d)
         self._moments = wp.empty(kmpf.N_MOMENTS, dtype=wp.float64, device=d)
         self._weights = wp.empty(n, dtype=wp.float32, device=d)
         self._cdf = wp.empty(n, dtype=wp.float32, device=d)
         self._ancestors = wp.empty(n, dtype=wp.int32, device=d)
-        self._unpredictable = wp.zeros(1, dtype=wp.int32, device=d)
         wp.launch(kmpf.init_particles_kernel, dim=n, inputs=[step_seed(self.seed, 0, 0), self._chol_p0],
                   outputs=[self.state.dp, self.state.lin, self.state.logw], device=d)
 
@@ -241,19 +240,17 @@ class MarginalizedParticleFilter:
         self.n_updates += 1
         d = self.device
         floor = -0.5 * self.model.likelihood.outlier_sigmas**2 * max(1, out.n_received)
-        wp.launch(kmpf.add_loglik_partials_kernel, dim=kmpf.N_CHUNKS, inputs=[out.loglik, float(floor)],
-                  outputs=[self.state.logw, self._chunk_max, self._chunk_bad], device=d)
-        wp.launch(kmpf.max_of_partials_kernel, dim=1, inputs=[self._chunk_max, self._chunk_bad],
+        wp.launch(kmpf.add_loglik_partials_kernel, dim=kmpf.N_CHUNKS, inputs=[out.loglik, out.n_valid, float(floor)],
+                  outputs=[self.state.logw, self._chunk_max, self._chunk_counts], device=d)
+        wp.launch(kmpf.max_of_partials_kernel, dim=1, inputs=[self._chunk_max, self._chunk_counts],
                   outputs=[self._stats], device=d)
         wp.launch(kmpf.exp_partials_kernel, dim=kmpf.N_CHUNKS, inputs=[self.state.logw, self._stats],
                   outputs=[self._chunk_sums], device=d)
         wp.launch(kmpf.weight_stats_kernel, dim=1, inputs=[self._chunk_sums], outputs=[self._stats], device=d)
         wp.launch(kmpf.normalize_weights_kernel, dim=self.n, inputs=[self._stats], outputs=[self.state.logw],
                   device=d)
-        self._unpredictable.zero_()
-        wp.launch(kmpf.count_zero_kernel, dim=self.n, inputs=[out.n_valid], outputs=[self._unpredictable], device=d)
-        stats = self._stats.numpy()
-        n_unpredictable = int(self._unpredictable.numpy()[0])
+        stats = self._stats.numpy()  # the one host sync of an update: ESS and the counters
+        n_unpredictable = int(stats[4])
         ess = float(stats[0])
         respread = out.n_received > 0 and n_unpredictable == self.n
         resampled = False
