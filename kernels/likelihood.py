@@ -15,7 +15,12 @@ point j a flag that the *received* point is valid and a vector of axis weights. 
   In the per-point forms a received point whose prediction is invalid scores as a residual of
   ``k_out`` sigma, so that every particle sums the same number of terms (constants dropped).
 If no received point is valid at all, every particle gets 0 (no information) and the caller flags it.
-One thread per particle loops over the M points.
+One thread per particle loops over the M points (:func:`acc_add` per point, :func:`acc_finish`), either over
+an (N, M) residual array (:func:`reduce_loglik_kernel`) or fused with the prediction (the sliding model).
+
+Filters in a batch: particle i belongs to filter ``b = i // n_per`` and reads the received measurement
+``cloud[b, :]``, rows of ``CLOUD_FIELDS`` float32 ``[c (3), d (3), range, ok]`` (point, unit direction,
+measured range, 1 = valid point).
 """
 
 import warp as wp
@@ -30,6 +35,34 @@ LIK_GAUSS = wp.constant(1)
 LIK_STUDENT = wp.constant(2)
 
 
+cloud_row = wp.types.vector(length=8, dtype=wp.float32)
+"""One received point: [c_x, c_y, c_z (m), d_x, d_y, d_z, range (m), ok (1 or 0)]."""
+
+
+@wp.struct
+class LikParams:
+    """How residuals become a log-likelihood (see the module docstring)."""
+
+    err_kind: int
+    lik: int
+    r_err: float
+    sigma: float
+    nu: float
+    k_out: float
+
+
+@wp.struct
+class LikAcc:
+    """Running sums over the points of one particle."""
+
+    n_ok: int
+    n_recv: int
+    sum_abs: float
+    sum_axes: wp.vec3
+    last_res: float
+    ll_points: float
+
+
 @wp.func
 def point_loglik(lik: int, res: float, sigma: float, nu: float) -> float:
     """Log density (constants dropped) of one residual under the per-point model."""
@@ -39,63 +72,73 @@ def point_loglik(lik: int, res: float, sigma: float, nu: float) -> float:
     return -0.5 * z2
 
 
+@wp.func
+def acc_add(acc: LikAcc, p: LikParams, res: float, axis_w: wp.vec3) -> LikAcc:
+    """Add the residual of one *received valid* point (NaN = the particle could not predict it)."""
+    out = acc
+    out.n_recv = acc.n_recv + 1
+    if wp.isnan(res):
+        out.ll_points = acc.ll_points + point_loglik(p.lik, p.k_out * p.sigma, p.sigma, p.nu)
+        return out
+    a = wp.abs(res)
+    out.n_ok = acc.n_ok + 1
+    out.sum_abs = acc.sum_abs + a
+    out.sum_axes = acc.sum_axes + a * axis_w
+    out.last_res = res
+    out.ll_points = acc.ll_points + point_loglik(p.lik, res, p.sigma, p.nu)
+    return out
+
+
+@wp.func
+def acc_finish(acc: LikAcc, p: LikParams):
+    """(paper error in m — NaN without a valid point, log-likelihood)."""
+    err = float(wp.nan)
+    if acc.n_ok > 0:
+        inv = 1.0 / float(acc.n_ok)
+        if p.err_kind == ERR_AXES:
+            err = wp.length(acc.sum_axes * inv)
+        elif p.err_kind == ERR_MEAN_ABS:
+            err = acc.sum_abs * inv
+        else:
+            err = acc.last_res
+    ll = float(0.0)
+    if acc.n_recv > 0:
+        if p.lik == LIK_PAPER:
+            if acc.n_ok > 0:
+                ll = -0.5 * err * err / p.r_err
+            else:
+                ll = -0.5 * p.k_out * p.k_out
+        else:
+            ll = acc.ll_points
+    return err, ll
+
+
+@wp.func
+def axis_weights(row: cloud_row) -> wp.vec3:
+    """|d_j| per axis: the weights of the paper's per-axis error (eq. 15)."""
+    return wp.vec3(wp.abs(row[3]), wp.abs(row[4]), wp.abs(row[5]))
+
+
 @wp.kernel
 def reduce_loglik_kernel(
+    row0: int,
+    n_per: int,
     residual: wp.array2d(dtype=wp.float32),
-    point_ok: wp.array(dtype=wp.int32),
-    axis_w: wp.array(dtype=wp.vec3),
-    err_kind: int,
-    lik: int,
-    r_err: float,
-    sigma: float,
-    nu: float,
-    k_out: float,
+    cloud: wp.array2d(dtype=cloud_row),
+    params: LikParams,
     err_out: wp.array(dtype=wp.float32),
     loglik_out: wp.array(dtype=wp.float32),
     n_valid_out: wp.array(dtype=wp.int32),
 ):
-    """One thread per particle: paper error (m), log-likelihood, and the number of usable points."""
-    i = wp.tid()
-    m = residual.shape[1]
-    n_ok = int(0)
-    n_recv = int(0)
-    sum_abs = float(0.0)
-    sum_axes = wp.vec3(0.0, 0.0, 0.0)
-    signed = float(0.0)
-    ll_points = float(0.0)
-    ll_out = point_loglik(lik, k_out * sigma, sigma, nu)
-    for j in range(m):
-        if point_ok[j] == 0:
-            continue
-        n_recv += 1
-        res = residual[i, j]
-        if wp.isnan(res):
-            ll_points += ll_out
-            continue
-        n_ok += 1
-        a = wp.abs(res)
-        sum_abs += a
-        sum_axes += a * axis_w[j]
-        signed = res
-        ll_points += point_loglik(lik, res, sigma, nu)
-    err = float(wp.nan)
-    if n_ok > 0:
-        inv = 1.0 / float(n_ok)
-        if err_kind == ERR_AXES:
-            err = wp.length(sum_axes * inv)
-        elif err_kind == ERR_MEAN_ABS:
-            err = sum_abs * inv
-        else:
-            err = signed
-    ll = float(0.0)
-    if n_recv > 0:
-        if lik == LIK_PAPER:
-            if n_ok > 0:
-                ll = -0.5 * err * err / r_err
-            else:
-                ll = -0.5 * k_out * k_out
-        else:
-            ll = ll_points
-    err_out[i] = err
-    loglik_out[i] = ll
-    n_valid_out[i] = n_ok
+    """One thread per particle (global index ``row0 + t``): paper error (m), log-likelihood, usable points."""
+    t = wp.tid()
+    b = (row0 + t) // n_per
+    acc = LikAcc()
+    for j in range(residual.shape[1]):
+        row = cloud[b, j]
+        if row[7] != 0.0:
+            acc = acc_add(acc, params, residual[t, j], axis_weights(row))
+    err, ll = acc_finish(acc, params)
+    err_out[t] = err
+    loglik_out[t] = ll
+    n_valid_out[t] = acc.n_ok

@@ -21,6 +21,7 @@ It finds the first surface unless a feature is thinner than a step.
 import warp as wp
 
 from warptan.kernels.frames import quat_to_mat_wxyz
+from warptan.kernels.likelihood import cloud_row
 from warptan.kernels.terrain import HeightGrid, grid_surface
 
 wp.set_module_options({"enable_backward": False})
@@ -297,20 +298,22 @@ def raycast_residual_kernel(
     backend: int,
     step_m: float,
     n_bisect: int,
+    row0: int,
+    n_per: int,
     pos_n: wp.array(dtype=wp.vec3),
     quat_nb: wp.array(dtype=wp.vec4),
-    dirs_s: wp.array(dtype=wp.vec3),
-    range_meas: wp.array(dtype=wp.float32),
+    cloud: wp.array2d(dtype=cloud_row),
     residual_out: wp.array2d(dtype=wp.float32),
 ):
     """One thread per (particle i, point j): range residual ``r_j - t_ij`` (m); NaN where either is invalid.
+    Particle ``row0 + i`` belongs to filter ``b = (row0 + i) // n_per`` and casts that filter's pattern.
 
     With ``c_j = r_j d_j`` and ``c^_ij = t_ij d_j`` the point residual is ``(r_j - t_ij) d_j`` (eq. 15).
     """
     i, j = wp.tid()
-    r = range_meas[j]
-    if wp.isnan(r):
+    row = cloud[(row0 + i) // n_per, j]
+    if row[7] == 0.0:
         residual_out[i, j] = wp.nan
         return
-    d = quat_to_mat_wxyz(quat_nb[i]) * dirs_s[j]
-    residual_out[i, j] = r - cast_ray(grid, mesh, backend, pos_n[i], d, step_m, n_bisect)
+    d = quat_to_mat_wxyz(quat_nb[i]) * wp.vec3(row[3], row[4], row[5])
+    residual_out[i, j] = row[6] - cast_ray(grid, mesh, backend, pos_n[i], d, step_m, n_bisect)

@@ -5,68 +5,94 @@ No ray is cast. Sliding: each received point ``c_j`` (sensor frame) is placed wi
 point is ``c^_ij = R_i^T (w^_ij - p_i)`` and the residual is ``c_j,z - c^_ij,z`` (m). Altimeter: the
 predicted range is ``a^_i = h_baro - h(p_i,x, p_i,y)`` and the residual ``a - a^_i`` (m).
 A point or particle off the map, on nodata, or with a NaN input gives a NaN residual (excluded later).
+
+The sliding kernel is fused: one thread per particle rotates once, loops over the M points and reduces them
+into the log-likelihood (:mod:`warptan.kernels.likelihood`) as it goes; the (N, M) residuals are stored too.
+Particle i belongs to filter ``b = i // n_per`` of a batch and reads that filter's measurement.
 """
 
 import warp as wp
 
 from warptan.kernels.frames import quat_to_mat_wxyz
+from warptan.kernels.likelihood import LikAcc, LikParams, acc_add, acc_finish, cloud_row
 from warptan.kernels.terrain import HeightGrid, grid_height
 
 wp.set_module_options({"enable_backward": False})
 
 
 @wp.kernel
-def sliding_residual_kernel(
+def sliding_loglik_kernel(
+    row0: int,
+    n_per: int,
     grid: HeightGrid,
     surface: int,
     pos_n: wp.array(dtype=wp.vec3),
     quat_nb: wp.array(dtype=wp.vec4),
-    points_s: wp.array(dtype=wp.vec3),
+    cloud: wp.array2d(dtype=cloud_row),
+    params: LikParams,
     residual_out: wp.array2d(dtype=wp.float32),
+    err_out: wp.array(dtype=wp.float32),
+    loglik_out: wp.array(dtype=wp.float32),
+    n_valid_out: wp.array(dtype=wp.int32),
 ):
-    """One thread per (particle i, point j): sensor-frame z residual ``c_j,z - c^_ij,z`` in m."""
-    i, j = wp.tid()
-    c = points_s[j]
-    if wp.isnan(c[0] + c[1] + c[2]):
-        residual_out[i, j] = wp.nan
-        return
-    mat = quat_to_mat_wxyz(quat_nb[i])
-    p = pos_n[i]
-    w = p + mat * c
-    h = grid_height(grid, surface, w[0], w[1])
-    c_hat = wp.transpose(mat) * (wp.vec3(w[0], w[1], -h) - p)
-    residual_out[i, j] = c[2] - c_hat[2]
+    """One thread per particle: residuals ``c_j,z - c^_ij,z`` (m) of the received points, error, log-likelihood."""
+    t = wp.tid()
+    b = (row0 + t) // n_per
+    mat = quat_to_mat_wxyz(quat_nb[t])
+    p = pos_n[t]
+    acc = LikAcc()
+    for j in range(cloud.shape[1]):
+        row = cloud[b, j]
+        res = float(wp.nan)
+        if row[7] != 0.0:
+            c = wp.vec3(row[0], row[1], row[2])
+            w = p + mat * c
+            h = grid_height(grid, surface, w[0], w[1])
+            c_hat = wp.transpose(mat) * (wp.vec3(w[0], w[1], -h) - p)
+            res = c[2] - c_hat[2]
+            acc = acc_add(acc, params, res, wp.vec3(1.0, 1.0, 1.0))
+        residual_out[t, j] = res
+    err, ll = acc_finish(acc, params)
+    err_out[t] = err
+    loglik_out[t] = ll
+    n_valid_out[t] = acc.n_ok
 
 
 @wp.kernel
-def altimeter_residual_kernel(
+def altimeter_loglik_kernel(
+    n_per: int,
     grid: HeightGrid,
     surface: int,
     use_baro: int,
     pos_n: wp.array(dtype=wp.vec3),
-    range_m: float,
-    baro_alt_m: float,
+    reading: wp.array(dtype=wp.vec4),
+    params: LikParams,
     residual_out: wp.array2d(dtype=wp.float32),
+    err_out: wp.array(dtype=wp.float32),
+    loglik_out: wp.array(dtype=wp.float32),
+    n_valid_out: wp.array(dtype=wp.int32),
 ):
-    """One thread per particle: ``a - (h_baro - h(p_i,x, p_i,y))`` in m, stored as the (N, 1) residual;
-    without a barometer (``use_baro == 0``) the particle's own altitude ``-p_i,z`` replaces ``h_baro``."""
+    """One thread per particle; ``reading[b] = [range a, h_baro, valid, 1/σ_baro²]``: residual
+    ``a - (h_baro - h(p_i,x, p_i,y))`` in m (without a barometer, ``use_baro == 0``, the particle's own altitude
+    ``-p_i,z`` replaces ``h_baro``). With a barometer it is also scored as a measurement of the particle's
+    altitude: ``loglik_i += -0.5 (h_baro + p_i,z)² / σ_baro²``."""
     i = wp.tid()
+    b = i // n_per
+    r = reading[b]
     p = pos_n[i]
-    alt = baro_alt_m
-    if use_baro == 0:
-        alt = -p[2]
-    residual_out[i, 0] = range_m - (alt - grid_height(grid, surface, p[0], p[1]))
-
-
-@wp.kernel
-def add_baro_loglik_kernel(
-    pos_n: wp.array(dtype=wp.vec3),
-    baro_alt_m: float,
-    inv_var: float,
-    loglik: wp.array(dtype=wp.float32),
-):
-    """One thread per particle: ``loglik_i += -0.5 (h_baro - (-p_i,z))² / σ_baro²`` (the barometer as a
-    measurement of each particle's altitude)."""
-    i = wp.tid()
-    r = baro_alt_m + pos_n[i][2]
-    loglik[i] = loglik[i] - 0.5 * r * r * inv_var
+    acc = LikAcc()
+    res = float(wp.nan)
+    if r[2] != 0.0:
+        alt = r[1]
+        if use_baro == 0:
+            alt = -p[2]
+        res = r[0] - (alt - grid_height(grid, surface, p[0], p[1]))
+        acc = acc_add(acc, params, res, wp.vec3(1.0, 1.0, 1.0))
+    residual_out[i, 0] = res
+    err, ll = acc_finish(acc, params)
+    if use_baro != 0 and r[2] != 0.0:
+        d = r[1] + p[2]
+        ll = ll - 0.5 * d * d * r[3]
+    err_out[i] = err
+    loglik_out[i] = ll
+    n_valid_out[i] = acc.n_ok

@@ -8,16 +8,18 @@ import warptan as wt
 from warptan.imu import ImuModel
 from warptan.ins import Ins, error_transition, process_noise
 from warptan.measurement import Likelihood, ModelOutput
-from warptan.mpf import RESAMPLERS, MarginalizedParticleFilter
+from warptan.kernels import mpf as kmpf
+from warptan.mpf import RESAMPLERS, SCHEMES, MarginalizedParticleFilter
 from warptan.runner import InitialErrors, initial_nominal, prior_linear_cov, run_filter
 from warptan.trajectory import Straight, Trajectory, Turn
 
 
 @wp.kernel
-def _position_loglik_kernel(pos: wp.array(dtype=wp.vec3), z: wp.vec3, inv_var: float, nan_every: int,
-                            loglik_out: wp.array(dtype=wp.float32), n_valid_out: wp.array(dtype=wp.int32)):
+def _position_loglik_kernel(pos: wp.array(dtype=wp.vec3), z: wp.array(dtype=wp.vec3), n_per: int, inv_var: float,
+                            nan_every: int, loglik_out: wp.array(dtype=wp.float32),
+                            n_valid_out: wp.array(dtype=wp.int32)):
     i = wp.tid()
-    r = z - pos[i]
+    r = z[i // n_per] - pos[i]
     ll = -0.5 * wp.dot(r, r) * inv_var
     if nan_every > 0 and i % nan_every == 0:
         ll = wp.nan
@@ -26,7 +28,7 @@ def _position_loglik_kernel(pos: wp.array(dtype=wp.vec3), z: wp.vec3, inv_var: f
 
 
 class PositionModel:
-    """A linear-Gaussian 'measurement model': z = true position + N(0, σ² I)."""
+    """A linear-Gaussian 'measurement model': z = true position + N(0, σ² I) (the model protocol: stage, launch)."""
 
     def __init__(self, sigma_m, nan_every=0):
         self.sigma = sigma_m
@@ -34,14 +36,22 @@ class PositionModel:
         self.likelihood = Likelihood()
         self._out = None
 
-    def evaluate(self, pos, quat, z):
-        n = pos.shape[0]
+    def stage(self, z, pos, quat):
+        zs = np.atleast_2d(np.asarray(z, dtype=np.float32))
+        n, d = pos.shape[0], pos.device
         if self._out is None:
-            d = pos.device
+            self._z = wp.empty(len(zs), dtype=wp.vec3, device=d)
             self._out = ModelOutput(wp.empty(n, dtype=wp.float32, device=d), wp.empty(n, dtype=wp.float32, device=d),
-                                    wp.empty(n, dtype=wp.int32, device=d), wp.empty((n, 1), dtype=wp.float32,
-                                                                                      device=d), 1)
-        wp.launch(_position_loglik_kernel, dim=n, inputs=[pos, wp.vec3(*z), 1.0 / self.sigma**2, self.nan_every],
+                                    wp.empty(n, dtype=wp.int32, device=d), wp.empty((n, 1), dtype=wp.float32, device=d),
+                                    wp.array(np.tile([[1.0, -8.0]], (len(zs), 1)), dtype=wp.float32, device=d),
+                                    np.ones(len(zs), dtype=np.int64))
+        self._z.assign(zs)
+        self.n_per = n // len(zs)
+        return self._out
+
+    def launch(self, pos, quat):
+        wp.launch(_position_loglik_kernel, dim=pos.shape[0],
+                  inputs=[pos, self._z, self.n_per, 1.0 / self.sigma**2, self.nan_every],
                   outputs=[self._out.loglik, self._out.n_valid], device=pos.device)
         return self._out
 
@@ -92,21 +102,21 @@ def _mpf_and_kalman(device, mpf_seeds, n=2000):
     p0 = np.zeros((15, 15))
     p0[0:3, 0:3] = np.diag(np.square(initial.pos_m))
     p0[3:, 3:] = p0_lin
-    x, P = _kalman_reference(nominal0, f, w, rate, imu.grade, p0, mpf.q_n, zs, decim, sigma)[-1]
+    x, P = _kalman_reference(nominal0, f, w, rate, imu.grade, p0, mpf.q_pos * np.eye(3), zs, decim, sigma)[-1]
     return np.array(finals), x, P
 
 
 def test_linear_gaussian_equivalence_with_kalman(device):
     """With a measurement linear and Gaussian in the position error, the MPF's estimates of dp and dv equal a
     Kalman filter's on the same data within Monte-Carlo error: over 8 filter seeds, the mean is within 3
-    standard errors of the Kalman value, the seed-to-seed spread (the Monte-Carlo error of one run, about
-    0.4–0.7 Kalman σ at N = 2000) stays below 0.8 σ, and the particle variance of dp matches the Kalman
+    standard errors of the Kalman value, the seed-to-seed spread (the Monte-Carlo error of one run: 0.33–0.70
+    Kalman σ over 24 seeds at N = 2000; an 8-seed estimate of it is uncertain by ~25 %) stays below 0.9 σ, and the particle variance of dp matches the Kalman
     variance to 35 %."""
     finals, x, P = _mpf_and_kalman(device, range(8))
     est, kf, sd_kf = finals[:, 0:6], x[0:6], np.sqrt(np.diag(P)[0:6])
     stderr = est.std(axis=0, ddof=1) / np.sqrt(len(est))
     assert np.all(np.abs(est.mean(axis=0) - kf) < 3 * stderr + 0.05 * sd_kf), (est.mean(axis=0), kf, stderr)
-    assert np.all(est.std(axis=0, ddof=1) < 0.8 * sd_kf), (est.std(axis=0, ddof=1), sd_kf)
+    assert np.all(est.std(axis=0, ddof=1) < 0.9 * sd_kf), (est.std(axis=0, ddof=1), sd_kf)
     np.testing.assert_allclose(finals[:, 6:9].mean(axis=0), np.diag(P)[0:3], rtol=0.35)
 
 
@@ -202,7 +212,11 @@ def test_resamplers_follow_the_weights(name, device):
     w /= w.sum()
     cdf = wp.array(np.cumsum(w).astype(np.float32), dtype=wp.float32, device=device)
     out = wp.empty(n, dtype=wp.int32, device=device)
-    counts = np.bincount(RESAMPLERS[name](cdf, 12, out).numpy(), minlength=n)
+    stats = np.zeros((1, kmpf.N_STATS))
+    stats[0, kmpf.ST_RESAMPLE] = 1.0
+    wp.launch(kmpf.ancestors_kernel, dim=n, inputs=[n, wp.array([12], dtype=wp.int32, device=device),
+              SCHEMES[name], wp.array(stats, dtype=wp.float64, device=device), cdf], outputs=[out], device=device)
+    counts = np.bincount(out.numpy(), minlength=n)
     assert counts.sum() == n
     if name == "systematic":
         assert np.all(np.abs(counts - n * w) < 1.0 + 1e-3)

@@ -1,20 +1,26 @@
 """Measurement models: one log-likelihood per particle from its hypothetical pose (paper eqs. 14–17, SPEC §5).
 
 Each model takes the particles' poses on the device — positions (N,) vec3 NED in m and attitudes (N,)
-vec4 [w, x, y, z] — and the received measurement, fills an (N, M) residual array with N×M threads, and
-reduces it per particle with one kernel (N threads): no Python loop over particles or points.
+vec4 [w, x, y, z] — and the received measurement, and gives every particle its log-likelihood with no
+Python loop over particles or points:
 
-* :class:`RaycastModel` — predicted ranges by ray casting (any backend), paper error of eq. 15;
-* :class:`SlidingModel` — the sliding grid, no ray cast, paper error of eq. 16;
+* :class:`RaycastModel` — predicted ranges by ray casting (any backend), paper error of eq. 15; N×M threads
+  fill the residuals, one thread per particle reduces them;
+* :class:`SlidingModel` — the sliding grid, no ray cast, paper error of eq. 16; one fused kernel;
 * :class:`AltimeterModel` — radar altimeter with barometric altitude, eq. 17.
 
 The likelihood is the paper's Gaussian on the scalar error, or a per-point Gaussian / Student-t over
 all valid residuals (:class:`Likelihood`, :mod:`warptan.kernels.likelihood` for the exact formulas).
+
+Evaluation is two steps so that a filter step can be captured in a graph: :meth:`~MeasurementModel.stage`
+copies the received measurement(s) into device buffers that the model keeps (host work O(M), not O(N)),
+:meth:`~MeasurementModel.launch` only launches kernels on those buffers. ``evaluate`` does both. A batch of
+B filters passes B measurements; its N = B·n particles are filter-major (particle i is filter ``i // n``).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import warp as wp
@@ -69,48 +75,91 @@ class ModelOutput:
     """(N,) int32 number of points the particle could predict."""
     residual_m: wp.array
     """(N, M) float32 residuals in m (NaN = invalid)."""
-    n_received: int
-    """Number of valid received points (host knows it without a sync)."""
+    meta: wp.array
+    """(B, 2) float32 per filter: [valid received points, log-likelihood floor for a non-finite value]."""
+    n_received: np.ndarray = field(default_factory=lambda: np.zeros(1, dtype=np.int64))
+    """(B,) valid received points per filter (host; known without a sync)."""
 
     @property
     def all_points_invalid(self) -> bool:
-        """Warning flag: no received point was valid, every particle got the same (no-information) score."""
-        return self.n_received == 0
+        """Warning flag: no received point was valid (in any filter), every particle got the same score."""
+        return bool(np.all(self.n_received == 0))
+
+
+def _as_batch(measurement, kind, model_name: str) -> list:
+    items = list(measurement) if isinstance(measurement, (list, tuple)) else [measurement]
+    if not items:
+        raise ValueError(f"{model_name} model got an empty list of measurements")
+    for item in items:
+        if not isinstance(item, kind):
+            raise ValueError(f"{model_name} model needs a {kind.__name__}, got {type(item).__name__}")
+    return items
 
 
 class MeasurementModel:
-    """Base class: buffers, validation and the reduction; subclasses fill the residuals."""
+    """Base class: buffers, validation, staging; subclasses launch their kernels."""
 
     name = "base"
     err_kind = klik.ERR_MEAN_ABS
+    reading_type: type = PointCloud
 
     def __init__(self, terrain, likelihood: Likelihood | None = None):
         self.terrain = terrain
         self.likelihood = likelihood or Likelihood()
-        self._buffers: dict = {}
+        self._out: ModelOutput | None = None
+        self._key = None
+        self._host: dict[str, np.ndarray] = {}
 
-    def _outputs(self, device, n: int, m: int) -> ModelOutput:
-        key = (str(device), n, m)
-        if key not in self._buffers:
-            self._buffers = {key: ModelOutput(
+    def params(self) -> klik.LikParams:
+        """The likelihood as the kernels' struct."""
+        lk = self.likelihood
+        p = klik.LikParams()
+        p.err_kind, p.lik = int(self.err_kind), int(LIKELIHOODS[lk.kind])
+        p.r_err, p.sigma, p.nu, p.k_out = float(lk.r_err), float(lk.sigma_m), float(lk.nu), float(lk.outlier_sigmas)
+        return p
+
+    def _buffers(self, device, n: int, b: int, m: int) -> ModelOutput:
+        key = (str(device), n, b, m)
+        if key != self._key:
+            self._key = key
+            self._out = ModelOutput(
                 loglik=wp.empty(n, dtype=wp.float32, device=device),
                 error_m=wp.empty(n, dtype=wp.float32, device=device),
                 n_valid=wp.empty(n, dtype=wp.int32, device=device),
                 residual_m=wp.empty((n, m), dtype=wp.float32, device=device),
-                n_received=0,
-            )}
-        return self._buffers[key]
+                meta=wp.empty((b, 2), dtype=wp.float32, device=device),
+                n_received=np.zeros(b, dtype=np.int64),
+            )
+            self._staged = self._staging_buffer(device, b, m)
+            self._params = self.params()
+        return self._out
 
-    def _reduce(self, out: ModelOutput, point_ok: wp.array, axis_w: wp.array, device) -> ModelOutput:
-        lk = self.likelihood
-        consts = [self.err_kind, LIKELIHOODS[lk.kind], float(lk.r_err), float(lk.sigma_m), float(lk.nu),
-                  float(lk.outlier_sigmas)]
-        launch_rows(klik.reduce_loglik_kernel, out.loglik.shape[0],
-                    lambda a, b: ([rows_of(out.residual_m, a, b), point_ok, axis_w, *consts],
-                                  [rows_of(out.error_m, a, b), rows_of(out.loglik, a, b),
-                                   rows_of(out.n_valid, a, b)]), device,
-                    row_cost=out.residual_m.shape[1])
+    def evaluate(self, pos_n: wp.array, quat_nb: wp.array, measurement) -> ModelOutput:
+        """Log-likelihood of the received measurement (or a list of B, one per filter of a batch)."""
+        self.stage(measurement, pos_n, quat_nb)
+        return self.launch(pos_n, quat_nb)
+
+    def stage(self, measurement, pos_n: wp.array, quat_nb: wp.array) -> ModelOutput:
+        """Copy the measurement(s) into this model's device buffers for particles of shape ``pos_n``."""
+        items = _as_batch(measurement, self.reading_type, self.name)
+        device = self._check_poses(pos_n, quat_nb)
+        n, b = pos_n.shape[0], len(items)
+        if n % b:
+            raise ValueError(f"{n} particles cannot be split evenly over {b} filters")
+        out = self._buffers(device, n, b, self._m_of(items))
+        n_received = self._fill(items)
+        out.n_received[:] = n_received
+        k = self.likelihood.outlier_sigmas
+        out.meta.assign(np.stack([n_received, -0.5 * k * k * np.maximum(1, n_received)], axis=1).astype(np.float32))
+        self.n_per = n // b
         return out
+
+    def launch(self, pos_n: wp.array, quat_nb: wp.array) -> ModelOutput:
+        """Launch the model on the staged measurement (device work only: can be captured in a graph)."""
+        if self._out is None:
+            raise RuntimeError(f"{self.name} model: stage() a measurement before launch()")
+        self._launch(pos_n, quat_nb, self._out, self._out.loglik.device)
+        return self._out
 
     @staticmethod
     def _check_poses(pos_n: wp.array, quat_nb: wp.array):
@@ -123,16 +172,31 @@ class MeasurementModel:
 
 
 class _PointCloudModel(MeasurementModel):
-    def evaluate(self, pos_n: wp.array, quat_nb: wp.array, cloud: PointCloud) -> ModelOutput:
-        """Log-likelihood of the received ``cloud`` for each particle pose."""
-        if not isinstance(cloud, PointCloud):
-            raise ValueError(f"{self.name} model needs a PointCloud, got {type(cloud).__name__}")
-        device = self._check_poses(pos_n, quat_nb)
-        dev = cloud.on_device(device)
-        out = self._outputs(device, pos_n.shape[0], len(cloud.ranges_m))
-        out.n_received = int(cloud.valid.sum())
-        self._residuals(pos_n, quat_nb, dev, out.residual_m, device)
-        return self._reduce(out, dev["point_ok"], dev["axis_w"], device)
+    @staticmethod
+    def _m_of(items) -> int:
+        m = len(items[0].ranges_m)
+        if any(len(c.ranges_m) != m for c in items):
+            raise ValueError(f"the point clouds of a batch must have the same number of points, got "
+                             f"{sorted({len(c.ranges_m) for c in items})}")
+        return m
+
+    @staticmethod
+    def _staging_buffer(device, b, m):
+        return wp.empty((b, m), dtype=klik.cloud_row, device=device)
+
+    def _fill(self, items) -> np.ndarray:
+        b, m = self._staged.shape
+        host = self._host.get("cloud")
+        if host is None or host.shape != (b, m, 8):
+            host = self._host["cloud"] = np.empty((b, m, 8), dtype=np.float32)
+        for k, cloud in enumerate(items):
+            ok = cloud.valid
+            host[k, :, 0:3] = np.where(ok[:, None], cloud.points_s, 0.0)
+            host[k, :, 3:6] = cloud.dirs_s
+            host[k, :, 6] = np.where(ok, cloud.ranges_m, np.nan)
+            host[k, :, 7] = ok
+        self._staged.assign(host)
+        return host[:, :, 7].sum(axis=1).astype(np.int64)
 
 
 class RaycastModel(_PointCloudModel):
@@ -151,12 +215,17 @@ class RaycastModel(_PointCloudModel):
         super().__init__(terrain, likelihood)
         self.caster = caster or RayCaster("dda")
 
-    def _residuals(self, pos_n, quat_nb, dev, residual_out, device):
+    def _launch(self, pos_n, quat_nb, out, device):
         lead = self.caster.launch_args(self.terrain, device)
-        launch_rows(kray.raycast_residual_kernel, residual_out.shape[0],
-                    lambda a, b: ([*lead, rows_of(pos_n, a, b), rows_of(quat_nb, a, b), dev["dirs"], dev["ranges"]],
-                                  [rows_of(residual_out, a, b)]),
-                    device, cols=residual_out.shape[1], row_cost=20)
+        res, cloud, n_per = out.residual_m, self._staged, self.n_per
+        launch_rows(kray.raycast_residual_kernel, res.shape[0],
+                    lambda a, b: ([*lead, a or 0, n_per, rows_of(pos_n, a, b), rows_of(quat_nb, a, b), cloud],
+                                  [rows_of(res, a, b)]),
+                    device, cols=res.shape[1], row_cost=20)
+        launch_rows(klik.reduce_loglik_kernel, res.shape[0],
+                    lambda a, b: ([a or 0, n_per, rows_of(res, a, b), cloud, self._params],
+                                  [rows_of(out.error_m, a, b), rows_of(out.loglik, a, b), rows_of(out.n_valid, a, b)]),
+                    device, row_cost=res.shape[1])
 
 
 class SlidingModel(_PointCloudModel):
@@ -175,13 +244,14 @@ class SlidingModel(_PointCloudModel):
         super().__init__(terrain, likelihood)
         self.surface = bool(surface)
 
-    def _residuals(self, pos_n, quat_nb, dev, residual_out, device):
-        grid = self.terrain.grid(device)
-        surface = int(self.surface)
-        launch_rows(kslide.sliding_residual_kernel, residual_out.shape[0],
-                    lambda a, b: ([grid, surface, rows_of(pos_n, a, b), rows_of(quat_nb, a, b), dev["points"]],
-                                  [rows_of(residual_out, a, b)]),
-                    device, cols=residual_out.shape[1], row_cost=2)
+    def _launch(self, pos_n, quat_nb, out, device):
+        grid, surface, cloud, n_per = self.terrain.grid(device), int(self.surface), self._staged, self.n_per
+        launch_rows(kslide.sliding_loglik_kernel, pos_n.shape[0],
+                    lambda a, b: ([a or 0, n_per, grid, surface, rows_of(pos_n, a, b), rows_of(quat_nb, a, b), cloud,
+                                   self._params],
+                                  [rows_of(out.residual_m, a, b), rows_of(out.error_m, a, b), rows_of(out.loglik, a, b),
+                                   rows_of(out.n_valid, a, b)]),
+                    device, row_cost=3 * cloud.shape[1])
 
 
 class AltimeterModel(MeasurementModel):
@@ -201,6 +271,7 @@ class AltimeterModel(MeasurementModel):
 
     name = "altimeter"
     err_kind = klik.ERR_SIGNED
+    reading_type = AltimeterReading
 
     def __init__(self, terrain, likelihood: Likelihood | None = None, surface: bool = False, use_baro: bool = True,
                  baro_sigma_m: float = 1.0):
@@ -210,36 +281,33 @@ class AltimeterModel(MeasurementModel):
         self.surface = bool(surface)
         self.use_baro = bool(use_baro)
         self.baro_sigma_m = float(baro_sigma_m)
-        self._consts: dict[str, tuple[wp.array, wp.array, wp.array]] = {}
 
-    def evaluate(self, pos_n: wp.array, quat_nb: wp.array, reading: AltimeterReading) -> ModelOutput:
-        """Log-likelihood of the altimeter ``reading`` for each particle (attitudes are not used)."""
-        if not isinstance(reading, AltimeterReading):
-            raise ValueError(f"altimeter model needs an AltimeterReading, got {type(reading).__name__}")
-        device = self._check_poses(pos_n, quat_nb)
-        key = str(device)
-        if key not in self._consts:
-            self._consts[key] = (wp.array([0], dtype=wp.int32, device=device),
-                                 wp.array([1], dtype=wp.int32, device=device),
-                                 wp.array([wp.vec3(1.0, 1.0, 1.0)], dtype=wp.vec3, device=device))
-        axis_w = self._consts[key][2]
-        out = self._outputs(device, pos_n.shape[0], 1)
-        valid = reading.valid and (not self.use_baro or bool(np.isfinite(reading.baro_alt_m)))
-        point_ok = self._consts[key][int(valid)]
-        out.n_received = int(valid)
-        if valid:
-            wp.launch(kslide.altimeter_residual_kernel, dim=pos_n.shape[0],
-                      inputs=[self.terrain.grid(device), int(self.surface), int(self.use_baro), pos_n,
-                              float(reading.range_m), float(reading.baro_alt_m)], outputs=[out.residual_m],
-                      device=device)
-        else:
-            out.residual_m.fill_(float("nan"))
-        self._reduce(out, point_ok, axis_w, device)
-        if self.use_baro and np.isfinite(reading.baro_alt_m):
-            wp.launch(kslide.add_baro_loglik_kernel, dim=pos_n.shape[0],
-                      inputs=[pos_n, float(reading.baro_alt_m), 1.0 / self.baro_sigma_m**2], outputs=[out.loglik],
-                      device=device)
-        return out
+    @staticmethod
+    def _m_of(items) -> int:
+        return 1
+
+    @staticmethod
+    def _staging_buffer(device, b, m):
+        return wp.empty(b, dtype=wp.vec4, device=device)
+
+    def _fill(self, items) -> np.ndarray:
+        rng_m = np.array([r.range_m for r in items], dtype=np.float64)
+        baro = np.array([r.baro_alt_m for r in items], dtype=np.float64)
+        valid = np.array([r.valid for r in items]) & np.logical_or(not self.use_baro, np.isfinite(baro))
+        host = np.stack([np.where(valid, rng_m, 0.0), np.where(np.isfinite(baro), baro, 0.0), valid,
+                         np.full(len(items), 1.0 / self.baro_sigma_m**2)], axis=1)
+        self._staged.assign(host.astype(np.float32))
+        return valid.astype(np.int64)
+
+    def _launch(self, pos_n, quat_nb, out, device):
+        wp.launch(kslide.altimeter_loglik_kernel, dim=pos_n.shape[0],
+                  inputs=[self.n_per, self.terrain.grid(device), int(self.surface), int(self.use_baro), pos_n,
+                          self._staged, self._params],
+                  outputs=[out.residual_m, out.error_m, out.loglik, out.n_valid], device=device)
+
+    def evaluate(self, pos_n: wp.array, quat_nb: wp.array, reading) -> ModelOutput:
+        """Log-likelihood of the altimeter ``reading`` (or B readings) for each particle (attitudes are unused)."""
+        return super().evaluate(pos_n, quat_nb, reading)
 
 
 MODELS = {"raycast": RaycastModel, "sliding": SlidingModel, "altimeter": AltimeterModel}

@@ -2,11 +2,20 @@
 
 Nonlinear state ``s^n = dp`` (3, N particles on the device); linear state ``s^l = [dv, dth, dba, dbg]``
 (12), one Kalman mean per particle on the device and one shared 12×12 covariance ``P`` on the host
-(float64): ``A^n``, ``A^l`` and ``Q`` do not depend on the particle, so neither does ``P``. Per IMU step
-(``predict``) the host runs the Riccati recursion once (``N_k``, ``L_k``, ``P``) and one kernel moves every
-particle; per measurement (``update``) the model scores every particle, weights are updated in log
-space and normalised by log-sum-exp on the device, and the particles are resampled (ancestor indices,
-systematic by default) when ``ESS < threshold · N``. Host work per step does not depend on N.
+(float64): ``A^n``, ``A^l`` and ``Q`` do not depend on the particle, so neither does ``P``.
+
+Per IMU sample (``predict``) the host only buffers the sample. Per measurement (``update``):
+
+1. host, one CPU kernel (:mod:`warptan.kernels.nav`): the buffered samples run through the nominal INS and
+   the Riccati recursion (``N_k``, ``L_k``, ``P``), and the K steps a particle would take are composed into
+   one affine map with Gaussian noise (``Φ``, ``chol S``) — the same distribution as K separate moves;
+2. device, no host decision: every particle moves, the model scores its pose, log-weights are updated and
+   normalised per filter by log-sum-exp, and the kernels decide per filter to re-spread (lost) or to
+   resample (``ESS < threshold · n``, systematic by default), then record the update's summary.
+
+Step 2 is a fixed sequence of launches on persistent buffers, so it is captured once as a graph and
+replayed (CUDA, and the CPU where Warp replays graphs in C++). Host work per step does not depend on the
+number of particles; a batch of B filters (independent seeds, same model) shares every launch.
 
 ``A^n`` and ``A^l`` are blocks of the INS error transition of :func:`warptan.ins.error_transition`
 (exact Jacobian: ``A^n = [dt I, 0.5 dt² (-R[a]x), 0.5 dt² (-R), 0]``; SPEC's ``[dt I, 0]`` plus the
@@ -28,51 +37,48 @@ import warp as wp
 from warptan.device import resolve_device
 from warptan.frames import quat_exp, quat_mul
 from warptan.imu import ImuGrade, check_rate, imu_grade
-from warptan.ins import Ins, NavState, error_transition, process_noise
+from warptan.ins import NavState, process_noise
 from warptan.kernels import mpf as kmpf
+from warptan.kernels import nav as knav
 from warptan.parallel import launch_rows, rows_of
 
 SCHEMES = {"systematic": 0, "stratified": 1, "multinomial": 2}
+RESAMPLERS = tuple(SCHEMES)
+"""Resampling schemes (ancestor indices from the cumulative weights): systematic (one uniform), stratified
+(one per slot), multinomial (independent draws)."""
+_STREAM_MOVE, _STREAM_RESAMPLE, _STREAM_INIT = 1, 2, 0
+MAX_STEPS_PER_INTERVAL = 64
+"""IMU samples buffered between measurements before the particles are moved anyway."""
 
 
-def _resampler(scheme: int):
-    def resample(cdf: wp.array, seed: int, ancestors_out: wp.array) -> wp.array:
-        """Ancestor indices (N,) int32 from the inclusive cumulative weights ``cdf`` (N,) float32."""
-        wp.launch(kmpf.ancestors_kernel, dim=cdf.shape[0], inputs=[int(seed), scheme, cdf],
-                  outputs=[ancestors_out], device=cdf.device)
-        return ancestors_out
-    return resample
-
-
-RESAMPLERS = {name: _resampler(code) for name, code in SCHEMES.items()}
-"""name -> ``resample(cdf, seed, ancestors_out)``: systematic (one uniform), stratified (one per slot),
-multinomial (independent draws)."""
-
-
-def step_seed(seed: int, counter: int, stream: int) -> int:
-    """A 31-bit seed for one kernel launch from the filter seed, a step counter and a stream id (splitmix)."""
-    x = (seed * 0x9E3779B97F4A7C15 + counter * 0xBF58476D1CE4E5B9 + stream * 0x94D049BB133111EB) % (1 << 64)
-    x ^= x >> 31
-    x = (x * 0xD6E8FEB86659FD93) % (1 << 64)
-    x ^= x >> 32
-    return int(x & 0x7FFFFFFF)
+def step_seed(seed, counter: int, stream: int):
+    """31-bit seeds for one kernel launch from filter seeds (int or array), a step counter and a stream id
+    (splitmix64, vectorised)."""
+    with np.errstate(over="ignore"):
+        x = (np.asarray(seed, dtype=np.uint64) * np.uint64(0x9E3779B97F4A7C15)
+             + np.uint64(counter) * np.uint64(0xBF58476D1CE4E5B9) + np.uint64(stream) * np.uint64(0x94D049BB133111EB))
+        x ^= x >> np.uint64(31)
+        x *= np.uint64(0xD6E8FEB86659FD93)
+        x ^= x >> np.uint64(32)
+    out = (x & np.uint64(0x7FFFFFFF)).astype(np.int64)
+    return int(out) if out.ndim == 0 else out
 
 
 @dataclass
 class ParticleState:
-    """Particles on the device."""
+    """Particles on the device (B filters × n particles, filter-major)."""
 
     dp: wp.array
     """(N,) vec3 position errors, NED, m."""
     lin: wp.array
     """(N,) vec12 Kalman means [dv (m/s), dth (rad), dba (m/s²), dbg (rad/s)]."""
     logw: wp.array
-    """(N,) float32 normalised log-weights."""
+    """(N,) float32 log-weights, normalised per filter."""
 
 
 @dataclass
 class UpdateInfo:
-    """What one measurement update did (host values)."""
+    """What one measurement update did to one filter (host values)."""
 
     ess: float
     """Effective sample size after the weight update (before resampling)."""
@@ -119,193 +125,353 @@ def _as_cov(value, n: int, name: str) -> np.ndarray:
     return a
 
 
+def _to_blocks(m: np.ndarray, k: int) -> np.ndarray:
+    """(..., 3k, 3k) -> (..., k, k, 3, 3)."""
+    lead = m.shape[:-2]
+    return np.ascontiguousarray(m.reshape(*lead, k, 3, k, 3).swapaxes(-3, -2))
+
+
+def _from_blocks(m: np.ndarray) -> np.ndarray:
+    """(..., k, k, 3, 3) -> (..., 3k, 3k)."""
+    lead, k = m.shape[:-4], m.shape[-4]
+    return m.swapaxes(-3, -2).reshape(*lead, 3 * k, 3 * k)
+
+
 class MarginalizedParticleFilter:
-    """MPF over the INS error; see the module docstring.
+    """MPF over the INS error; see the module docstring. One filter, or a batch of B independent filters
+    (same model, IMU grade and prior; own nominal INS, seed, measurements) whose particles share one array.
 
     Args:
-        model: A measurement model (:mod:`warptan.measurement`) whose ``evaluate(pos, quat, measurement)``
-            scores particle poses.
-        nominal: Initial nominal INS state (the INS's own belief).
+        model: A measurement model (:mod:`warptan.measurement`): ``stage(measurements, pos, quat)`` then
+            ``launch(pos, quat) -> ModelOutput`` with per-particle log-likelihoods.
+        nominal: Initial nominal INS state, or a list of B (a batch).
         grade: IMU grade (process noise of the Kalman part).
         rate_hz: IMU rate, Hz.
         p0_pos: Prior of the position error: 3 σ (m) or a 3×3 covariance.
         p0_lin: Prior covariance of [dv, dth, dba, dbg]: 12 σ or a 12×12 covariance.
-        n_particles: N.
+        n_particles: Particles per filter, n.
         device: Warp device of the particles.
-        seed: Seed of the filter's random numbers (counter-based: seed + step).
-        resample_threshold: Resample when ESS < threshold · N.
+        seed: Seed of the filter's random numbers (counter-based: seed + step), or B seeds.
+        resample_threshold: Resample when ESS < threshold · n.
         resampler: "systematic", "stratified" or "multinomial".
         pos_noise: Roughening, a position random walk in m/√s (``Q^n = pos_noise² dt I``).
+        graph: Capture the device work of a measurement update (particle moves, poses, model, weights,
+            resampling, record) once and replay it: True, False, or None = on CUDA only.
     """
 
-    def __init__(self, model, nominal: NavState, grade: str | ImuGrade, rate_hz: float, p0_pos, p0_lin,
-                 n_particles: int = 500, device=None, seed: int = 0, resample_threshold: float = 0.5,
-                 resampler: str = "systematic", pos_noise: float = 0.5):
+    def __init__(self, model, nominal, grade: str | ImuGrade, rate_hz: float, p0_pos, p0_lin,
+                 n_particles: int = 500, device=None, seed=0, resample_threshold: float = 0.5,
+                 resampler: str = "systematic", pos_noise: float = 0.5, graph: bool | None = None):
         if not (isinstance(n_particles, (int, np.integer)) and n_particles >= 1):
             raise ValueError(f"n_particles must be a positive integer, got {n_particles!r}")
-        if resampler not in RESAMPLERS:
-            raise ValueError(f"unknown resampler {resampler!r}; choose one of {', '.join(RESAMPLERS)}")
+        if resampler not in SCHEMES:
+            raise ValueError(f"unknown resampler {resampler!r}; choose one of {', '.join(SCHEMES)}")
         if not 0.0 <= resample_threshold <= 1.0:
             raise ValueError(f"resample_threshold must be in [0, 1], got {resample_threshold!r}")
         if not (np.isfinite(pos_noise) and pos_noise >= 0):
             raise ValueError(f"pos_noise must be ≥ 0 m/√s, got {pos_noise!r}")
+        nominals = list(nominal) if isinstance(nominal, (list, tuple)) else [nominal]
+        if not nominals or not all(isinstance(x, NavState) for x in nominals):
+            raise ValueError("nominal must be a NavState or a non-empty list of NavStates")
+        self.batched = isinstance(nominal, (list, tuple))
+        self.n_filters = b = len(nominals)
+        seeds = np.atleast_1d(np.asarray(seed, dtype=np.int64))
+        if seeds.shape != (b,) and seeds.shape != (1,):
+            raise ValueError(f"{b} filters need {b} seeds (or one), got {seeds.shape[0]}")
+        self.seeds = np.broadcast_to(seeds, (b,)).copy()
         self.model = model
         self.grade = imu_grade(grade)
-        self.ins = Ins(nominal, check_rate(rate_hz))
-        self.dt = self.ins.dt
+        self.dt = 1.0 / check_rate(rate_hz)
         self.p0_pos = _as_cov(p0_pos, 3, "p0_pos")
-        self.P = _as_cov(p0_lin, 12, "p0_lin").copy()
+        p0 = _as_cov(p0_lin, 12, "p0_lin")
         self.n = int(n_particles)
         self.device = resolve_device(device)
-        self.seed = int(seed)
         self.resample_threshold = float(resample_threshold)
-        self.resample = RESAMPLERS[resampler]
-        if pos_noise == 0 and not np.any(self.P[0:3, 0:3]):
+        self.scheme = SCHEMES[resampler]
+        if pos_noise == 0 and not np.any(p0[0:3, 0:3]):
             raise ValueError("pos_noise = 0 with a zero velocity prior makes N_k singular; give one of them")
-        self.q_n = (pos_noise**2) * self.dt * np.eye(3)
-        self.q_l = process_noise(self.grade, self.dt)[3:15, 3:15]
-        self._pending: list = []
+        self.q_pos = (pos_noise**2) * self.dt
+        ql = np.diag(process_noise(self.grade, self.dt))[3:15]
+        self._q_lin = wp.vec4d(ql[0], ql[3], ql[6], ql[9])
+        self.graph = self.device.is_cuda if graph is None else bool(graph)
         self.n_imu_steps = 0
         self.n_updates = 0
-        self.n_respreads = 0
+        self._k = 0
         self._chol_p0 = wp.mat33(*np.linalg.cholesky(self.p0_pos + 1e-12 * np.eye(3)).ravel())
-        d, n = self.device, self.n
-        self.state = ParticleState(wp.empty(n, dtype=wp.vec3, device=d), wp.empty(n, dtype=kmpf.vec12, device=d),
-                                   wp.empty(n, dtype=wp.float32, device=d))
+        # ---- host (CPU, float64): nominal INS, P, the interval's Φ and chol(S)
+        cpu = wp.get_device("cpu")
+        pinned = self.device.is_cuda
+        self._cpu = cpu
+
+        def host(shape, dtype, data=None):
+            if data is not None:
+                return wp.array(data, dtype=dtype, device=cpu, pinned=pinned)
+            return wp.zeros(shape, dtype=dtype, device=cpu, pinned=pinned)
+
+        self._nav = {
+            "pos": host(b, wp.vec3d, np.array([x.pos_n for x in nominals])),
+            "vel": host(b, wp.vec3d, np.array([x.vel_n for x in nominals])),
+            "quat": host(b, wp.vec4d, np.array([x.quat_nb for x in nominals])),
+            "ba": host(b, wp.vec3d, np.array([x.accel_bias for x in nominals])),
+            "bg": host(b, wp.vec3d, np.array([x.gyro_bias for x in nominals])),
+            "cov": host((b, 4, 4), wp.mat33d, _to_blocks(np.broadcast_to(p0, (b, 12, 12)), 4)),
+        }
+        self._scratch = [wp.zeros((b, 5, 5), dtype=wp.mat33d, device=cpu), wp.zeros((b, 5, 5), dtype=wp.mat33d,
+                         device=cpu), wp.zeros((b, 15, 15), dtype=wp.float64, device=cpu)]
+        self._f = host((b, MAX_STEPS_PER_INTERVAL), wp.vec3d)
+        self._w = host((b, MAX_STEPS_PER_INTERVAL), wp.vec3d)
+        self._f_np, self._w_np = self._f.numpy(), self._w.numpy()
+        self._interval = {"phi": host((b, 5, 5), wp.mat33), "chol": host((b, 5, 5), wp.mat33),
+                          "pose": host((b, 7), wp.float64), "seeds": host(b, wp.int32),
+                          "resample_seeds": host(b, wp.int32)}
+        self._interval["pose"].numpy()[:] = np.array([np.r_[x.pos_n, x.quat_nb] for x in nominals])
+        d = self.device
+        self._dev = self._interval if d.is_cpu else {k: wp.empty_like(v, device=d) for k, v in self._interval.items()}
+        # ---- device: particles and work arrays
+        nt = b * self.n
+        self.state = ParticleState(wp.empty(nt, dtype=wp.vec3, device=d), wp.empty(nt, dtype=kmpf.vec12, device=d),
+                                   wp.empty(nt, dtype=wp.float32, device=d))
         self._spare = ParticleState(wp.empty_like(self.state.dp), wp.empty_like(self.state.lin),
                                     wp.empty_like(self.state.logw))
-        self._pos = wp.empty(n, dtype=wp.vec3, device=d)
-        self._quat = wp.empty(n, dtype=wp.vec4, device=d)
-        self._chunk_max = wp.empty(kmpf.N_CHUNKS, dtype=wp.float32, device=d)
-        self._chunk_counts = wp.empty((kmpf.N_CHUNKS, 2), dtype=wp.int32, device=d)
-        self._chunk_sums = wp.empty((kmpf.N_CHUNKS, 2), dtype=wp.float64, device=d)
-        self._stats = wp.zeros(5, dtype=wp.float64, device=d)
-        self._moments_partial = wp.empty((kmpf.N_CHUNKS, kmpf.N_MOMENTS), dtype=wp.float64, device=d)
-        self._moments = wp.empty(kmpf.N_MOMENTS, dtype=wp.float64, device=d)
-        self._weights = wp.empty(n, dtype=wp.float32, device=d)
-        self._cdf = wp.empty(n, dtype=wp.float32, device=d)
-        self._ancestors = wp.empty(n, dtype=wp.int32, device=d)
-        wp.launch(kmpf.init_particles_kernel, dim=n, inputs=[step_seed(self.seed, 0, 0), self._chol_p0],
+        self._pos = wp.empty(nt, dtype=wp.vec3, device=d)
+        self._quat = wp.empty(nt, dtype=wp.vec4, device=d)
+        self._chunk_max = wp.empty((b, kmpf.N_CHUNKS), dtype=wp.float32, device=d)
+        self._chunk_counts = wp.empty((b, kmpf.N_CHUNKS, 2), dtype=wp.int32, device=d)
+        self._chunk_sums = wp.empty((b, kmpf.N_CHUNKS, 10), dtype=wp.float64, device=d)
+        self._cdf_sums = wp.empty((b, kmpf.N_CHUNKS), dtype=wp.float64, device=d)
+        self._stats = wp.zeros((b, kmpf.N_STATS), dtype=wp.float64, device=d)
+        self._moments_partial = wp.empty((b, kmpf.N_MOMENT_CHUNKS, kmpf.N_MOMENTS), dtype=wp.float64, device=d)
+        self._moments = wp.empty((b, kmpf.N_MOMENTS), dtype=wp.float64, device=d)
+        self._cdf = wp.empty(nt, dtype=wp.float32, device=d)
+        self._ancestors = wp.empty(nt, dtype=wp.int32, device=d)
+        self._slot = wp.zeros(1, dtype=wp.int32, device=d)
+        self._history = wp.zeros((256, b, kmpf.N_SUMMARY), dtype=wp.float64, device=d)
+        self._graph = None
+        self._graph_key = None
+        init_seeds = wp.array(step_seed(self.seeds, 0, _STREAM_INIT).astype(np.int32), dtype=wp.int32, device=d)
+        wp.launch(kmpf.init_particles_kernel, dim=nt, inputs=[self.n, init_seeds, self._chol_p0],
                   outputs=[self.state.dp, self.state.lin, self.state.logw], device=d)
 
     # ------------------------------------------------------------------ time update
     def predict(self, f_b, w_b) -> None:
-        """One IMU sample: the nominal INS step and the shared Riccati recursion on the host; the particle
-        moves are queued and run as one kernel launch before the next measurement or estimate."""
-        nominal = self.ins.state
-        F = error_transition(nominal, f_b, w_b, self.dt)  # validates the sample (NaN/inf raise)
-        a_n, a_l = F[0:3, 3:15], F[3:15, 3:15]
-        P = self.P
-        pa = P @ a_n.T
-        n_k = a_n @ pa + self.q_n
-        n_k = 0.5 * (n_k + n_k.T)
-        gain = np.linalg.solve(n_k, (a_l @ pa).T).T
-        P = a_l @ P @ a_l.T + self.q_l - gain @ n_k @ gain.T
-        self.P = 0.5 * (P + P.T)
+        """One IMU sample, (3,) or (B, 3) for a batch. Buffered on the host; the nominal INS, the Riccati
+        recursion and the particle moves of all samples since the last measurement run in one launch each."""
+        b = self.n_filters
+        f = np.asarray(f_b, dtype=np.float64)
+        w = np.asarray(w_b, dtype=np.float64)
+        if f.size != 3 * b or w.size != 3 * b:
+            raise ValueError(f"IMU sample must be {'(3,)' if b == 1 else f'({b}, 3)'}, got {f.shape} and {w.shape}")
+        if not (np.isfinite(f).all() and np.isfinite(w).all()):
+            raise ValueError(f"non-finite IMU sample: specific force {f.tolist()}, body rate {w.tolist()}")
+        if self._k == MAX_STEPS_PER_INTERVAL:
+            self.flush()
+        self._f_np[:, self._k] = f.reshape(b, 3)
+        self._w_np[:, self._k] = w.reshape(b, 3)
+        self._k += 1
         self.n_imu_steps += 1
-        self._pending.append((step_seed(self.seed, self.n_imu_steps, 1), a_n, a_l, gain, np.linalg.cholesky(n_k)))
-        self.ins.step(f_b, w_b)
+
+    def _host_interval(self) -> None:
+        """Run the buffered IMU samples through the nominal INS and the Riccati (host), compose the interval's
+        Φ and chol(S), draw its seeds, and send them to the device."""
+        nav, out, k = self._nav, self._interval, self._k
+        phi, noise, scratch = self._scratch
+        launch_rows(knav.nav_interval_kernel, self.n_filters,
+                    lambda a, b: ([a or 0, k, self.dt, self.q_pos, self._q_lin, self._f, self._w, nav["pos"],
+                                   nav["vel"], nav["quat"], nav["ba"], nav["bg"], nav["cov"], phi, noise, scratch],
+                                  [out["phi"], out["chol"], out["pose"]]),
+                    self._cpu, row_cost=4000 * max(k, 1))
+        self._k = 0
+        out["seeds"].numpy()[:] = step_seed(self.seeds, self.n_imu_steps, _STREAM_MOVE)
+        out["resample_seeds"].numpy()[:] = step_seed(self.seeds, self.n_updates + 1, _STREAM_RESAMPLE)
+        if self.device.is_cuda:
+            for key, src in out.items():
+                wp.copy(self._dev[key], src)
+
+    def _launch_time_update(self) -> None:
+        dv, n, st = self._dev, self.n, self.state
+        launch_rows(kmpf.time_update_kernel, self.n_filters * n,
+                    lambda a, b: ([a or 0, n, dv["seeds"], dv["phi"], dv["chol"]],
+                                  [rows_of(st.dp, a, b), rows_of(st.lin, a, b)]), self.device, row_cost=30)
 
     def flush(self) -> None:
-        """Run the queued particle time updates (one launch for all of them)."""
-        if not self._pending:
+        """Move the particles through the buffered IMU samples now (before an estimate, or a full buffer)."""
+        if self._k == 0:
             return
-        seeds, a_n, a_l, gain, chol = zip(*self._pending, strict=True)
-        self._pending.clear()
-        d = self.device
-        mats = [wp.array(np.array(seeds, dtype=np.int32), dtype=wp.int32, device=d),
-                wp.array(np.array(a_n, dtype=np.float32), dtype=kmpf.mat3x12, device=d),
-                wp.array(np.array(a_l, dtype=np.float32), dtype=kmpf.mat12, device=d),
-                wp.array(np.array(gain, dtype=np.float32), dtype=kmpf.mat12x3, device=d),
-                wp.array(np.array(chol, dtype=np.float32), dtype=wp.mat33, device=d)]
-        dp, lin = self.state.dp, self.state.lin
-        launch_rows(kmpf.time_update_kernel, self.n,
-                    lambda a, b: ([a or 0, *mats], [rows_of(dp, a, b), rows_of(lin, a, b)]), d,
-                    row_cost=40 * len(seeds))
+        self._host_interval()
+        self._launch_time_update()
 
     # ------------------------------------------------------------------ measurement update
     def particle_poses(self) -> tuple[wp.array, wp.array]:
         """Each particle's hypothetical pose: (N,) vec3 positions and (N,) vec4 attitudes on the device."""
         self.flush()
-        s = self.ins.state
-        wp.launch(kmpf.particle_poses_kernel, dim=self.n,
-                  inputs=[wp.vec3d(*s.pos_n), wp.vec4(*s.quat_nb), self.state.dp, self.state.lin],
-                  outputs=[self._pos, self._quat], device=self.device)
+        self._launch_poses()
         return self._pos, self._quat
 
-    def update(self, measurement) -> UpdateInfo:
-        """Weight the particles by ``measurement`` (taken at the current nominal time) and resample if needed."""
-        pos, quat = self.particle_poses()
-        out = self.model.evaluate(pos, quat, measurement)
-        self.n_updates += 1
-        d = self.device
-        floor = -0.5 * self.model.likelihood.outlier_sigmas**2 * max(1, out.n_received)
-        wp.launch(kmpf.add_loglik_partials_kernel, dim=kmpf.N_CHUNKS, inputs=[out.loglik, out.n_valid, float(floor)],
-                  outputs=[self.state.logw, self._chunk_max, self._chunk_counts], device=d)
-        wp.launch(kmpf.max_of_partials_kernel, dim=1, inputs=[self._chunk_max, self._chunk_counts],
+    def _launch_poses(self) -> None:
+        wp.launch(kmpf.particle_poses_kernel, dim=self.n_filters * self.n,
+                  inputs=[self.n, self._dev["pose"], self.state.dp, self.state.lin],
+                  outputs=[self._pos, self._quat], device=self.device)
+
+    def _launch_weights(self, out) -> None:
+        d, b, n, st = self.device, self.n_filters, self.n, self.state
+        wp.launch(kmpf.add_loglik_partials_kernel, dim=(b, kmpf.N_CHUNKS), inputs=[n, out.loglik, out.n_valid, out.meta],
+                  outputs=[st.logw, self._chunk_max, self._chunk_counts], device=d)
+        wp.launch(kmpf.max_of_partials_kernel, dim=b, inputs=[self._chunk_max, self._chunk_counts],
                   outputs=[self._stats], device=d)
-        wp.launch(kmpf.exp_partials_kernel, dim=kmpf.N_CHUNKS, inputs=[self.state.logw, self._stats],
+        wp.launch(kmpf.exp_partials_kernel, dim=(b, kmpf.N_CHUNKS), inputs=[n, st.logw, st.dp, self._stats],
                   outputs=[self._chunk_sums], device=d)
-        wp.launch(kmpf.weight_stats_kernel, dim=1, inputs=[self._chunk_sums], outputs=[self._stats], device=d)
-        wp.launch(kmpf.normalize_weights_kernel, dim=self.n, inputs=[self._stats], outputs=[self.state.logw],
-                  device=d)
-        stats = self._stats.numpy()  # the one host sync of an update: ESS and the counters
-        n_unpredictable = int(stats[4])
-        ess = float(stats[0])
-        respread = out.n_received > 0 and n_unpredictable == self.n
-        resampled = False
-        if respread:
-            self._respread()
-        elif ess < self.resample_threshold * self.n:
-            self._resample()
-            resampled = True
-        return UpdateInfo(ess=ess, resampled=resampled, n_bad_loglik=int(stats[2]), n_unpredictable=n_unpredictable,
-                          all_points_invalid=out.all_points_invalid, respread=respread)
+        wp.launch(kmpf.weight_stats_kernel, dim=b, inputs=[n, self.resample_threshold, self._chunk_sums, out.meta],
+                  outputs=[self._stats], device=d)
+        wp.launch(kmpf.normalize_weights_kernel, dim=b * n, inputs=[n, self._stats], outputs=[st.logw], device=d)
 
-    def _resample(self) -> None:
-        d = self.device
-        wp.launch(kmpf.weights_from_log_kernel, dim=self.n, inputs=[self.state.logw], outputs=[self._weights],
-                  device=d)
-        wp.utils.array_scan(self._weights, self._cdf, inclusive=True)
-        self.resample(self._cdf, step_seed(self.seed, self.n_updates, 2), self._ancestors)
-        wp.launch(kmpf.gather_kernel, dim=self.n, inputs=[self._ancestors, self.state.dp, self.state.lin],
-                  outputs=[self._spare.dp, self._spare.lin, self._spare.logw], device=d)
-        self.state, self._spare = self._spare, self.state
+    def _launch_resample(self) -> None:
+        """Resample / re-spread the filters whose flags say so (device decisions; others are copied)."""
+        d, b, n, st, sp = self.device, self.n_filters, self.n, self.state, self._spare
+        seeds = self._dev["resample_seeds"]
+        wp.launch(kmpf.cdf_partials_kernel, dim=(b, kmpf.N_CHUNKS), inputs=[n, st.logw, self._stats],
+                  outputs=[self._cdf_sums], device=d)
+        wp.launch(kmpf.cdf_kernel, dim=(b, kmpf.N_CHUNKS), inputs=[n, st.logw, self._stats, self._cdf_sums],
+                  outputs=[self._cdf], device=d)
+        wp.launch(kmpf.ancestors_kernel, dim=b * n, inputs=[n, seeds, self.scheme, self._stats, self._cdf],
+                  outputs=[self._ancestors], device=d)
+        wp.launch(kmpf.gather_kernel, dim=b * n, inputs=[n, seeds, self._chol_p0, self._stats, self._ancestors,
+                  st.dp, st.lin, st.logw], outputs=[sp.dp, sp.lin, sp.logw], device=d)
+        wp.launch(kmpf.copy_particles_kernel, dim=b * n, inputs=[sp.dp, sp.lin, sp.logw],
+                  outputs=[st.dp, st.lin, st.logw], device=d)
 
-    def _respread(self) -> None:
-        """Lost (no particle can predict the scan): re-spread dp around the estimate with the prior spread."""
-        centre = self.estimate().dp
-        self.n_respreads += 1
-        wp.launch(kmpf.respread_kernel, dim=self.n,
-                  inputs=[step_seed(self.seed, self.n_updates, 3), wp.vec3(*centre), self._chol_p0],
-                  outputs=[self.state.dp, self.state.logw], device=self.device)
+    def _launch_record(self) -> None:
+        d, b, st = self.device, self.n_filters, self.state
+        wp.launch(kmpf.summary_partials_kernel, dim=(b, kmpf.N_CHUNKS), inputs=[self.n, st.logw, st.dp],
+                  outputs=[self._chunk_sums], device=d)
+        wp.launch(kmpf.summary_kernel, dim=b, inputs=[self._chunk_sums, self._stats, self._slot],
+                  outputs=[self._history], device=d)
+        wp.launch(kmpf.advance_slot_kernel, dim=1, inputs=[self._slot], device=d)
+
+    def _device_update(self, out, skip_resample: bool = False) -> None:
+        self._launch_time_update()
+        self._launch_poses()
+        self.model.launch(self._pos, self._quat)
+        self._launch_weights(out)
+        if not skip_resample:
+            self._launch_resample()
+        self._launch_record()
+
+    def update(self, measurement, sync: bool = True):
+        """Weight the particles by ``measurement`` (a list of B for a batch; taken at the current nominal time)
+        and resample / re-spread where needed.
+
+        Returns:
+            :class:`UpdateInfo` (a list of B for a batch); with ``sync=False`` nothing (no host sync: the
+            records are read later with :meth:`history`).
+        """
+        if self.batched and not (isinstance(measurement, (list, tuple)) and len(measurement) == self.n_filters):
+            raise ValueError(f"a batch of {self.n_filters} filters needs a list of {self.n_filters} measurements")
+        self._ensure_history()
+        self._host_interval()
+        out = self.model.stage(measurement, self._pos, self._quat)
+        self.n_updates += 1
+        if self.graph:
+            key = (id(out), id(getattr(self.model, "_staged", None)), id(self._history))
+            if self._graph is None or key != self._graph_key:
+                if self._graph_key is None:  # the first update runs eagerly: modules load, buffers settle
+                    self._graph_key = ()
+                    self._device_update(out)
+                    return self._info(out) if sync else None
+                wp.capture_begin(device=self.device)
+                try:
+                    self._device_update(out)
+                finally:
+                    self._graph = wp.capture_end(device=self.device)
+                self._graph_key = key
+            wp.capture_launch(self._graph)
+        elif self.device.is_cpu:
+            # The CPU runs launches in order: the flags can be read for free and idle kernels skipped.
+            self._launch_time_update()
+            self._launch_poses()
+            self.model.launch(self._pos, self._quat)
+            self._launch_weights(out)
+            flags = self._stats.numpy()[:, kmpf.ST_RESPREAD:kmpf.ST_RESAMPLE + 1]
+            if flags.any():
+                self._launch_resample()
+            self._launch_record()
+        else:
+            self._device_update(out)
+        return self._info(out) if sync else None
+
+    def _info(self, out):
+        stats = self._stats.numpy()
+        infos = [UpdateInfo(ess=float(s[kmpf.ST_ESS]), resampled=bool(s[kmpf.ST_RESAMPLE]),
+                            n_bad_loglik=int(s[kmpf.ST_BAD]), n_unpredictable=int(s[kmpf.ST_UNPREDICTABLE]),
+                            all_points_invalid=bool(out.n_received[b] == 0), respread=bool(s[kmpf.ST_RESPREAD]))
+                 for b, s in enumerate(stats)]
+        return infos if self.batched else infos[0]
+
+    def _ensure_history(self) -> None:
+        cap = self._history.shape[0]
+        if self.n_updates < cap:
+            return
+        bigger = wp.zeros((2 * cap, self.n_filters, kmpf.N_SUMMARY), dtype=wp.float64, device=self.device)
+        wp.copy(bigger, self._history, count=self._history.size)
+        self._history = bigger
+
+    def history(self) -> np.ndarray:
+        """(updates, B, 16) record of every update so far (one host sync): ESS, resampled, respread, bad
+        log-likelihoods, unpredictable particles, Σw, mean dp (3, m), covariance of dp (xx, yy, zz, xy, xz, yz,
+        m²), 0 — after the update. See :data:`warptan.kernels.mpf.N_SUMMARY`."""
+        return self._history.numpy()[: self.n_updates]
+
+    @property
+    def n_respreads(self) -> int:
+        """Re-spreads so far (all filters)."""
+        return int(self.history()[:, :, 2].sum())
 
     # ------------------------------------------------------------------ output
+    @property
+    def P(self) -> np.ndarray:
+        """The shared Kalman covariance (12, 12) of [dv, dth, dba, dbg] ((B, 12, 12) for a batch)."""
+        self.flush()
+        p = _from_blocks(self._nav["cov"].numpy())
+        return p if self.batched else p[0]
+
+    def nominal(self, b: int = 0) -> NavState:
+        """The nominal INS state of filter b (after the buffered IMU samples)."""
+        self.flush()
+        nav = {k: v.numpy()[b] for k, v in self._nav.items() if k != "cov"}
+        return NavState(nav["pos"], nav["vel"], nav["quat"], nav["ba"], nav["bg"])
+
+    def nominal_positions(self) -> np.ndarray:
+        """(B, 3) nominal positions at the last measurement update or flush (host, no device sync)."""
+        return self._interval["pose"].numpy()[:, 0:3].copy()
+
     def moments(self) -> np.ndarray:
-        """Weighted moments of the particles (host float64):
+        """Weighted moments of the particles of each filter (host float64, (B, 169)):
         [Σw, Σw dp (3), Σw dp dpᵀ (9), Σw l (12), Σw l lᵀ (144)]."""
         self.flush()
-        d = self.device
-        wp.launch(kmpf.moment_partials_kernel, dim=kmpf.N_CHUNKS, inputs=[self.state.logw, self.state.dp,
-                  self.state.lin], outputs=[self._moments_partial], device=d)
-        wp.launch(kmpf.combine_partials_kernel, dim=kmpf.N_MOMENTS, inputs=[self._moments_partial],
+        d, b = self.device, self.n_filters
+        wp.launch(kmpf.moment_partials_kernel, dim=(b, kmpf.N_MOMENT_CHUNKS),
+                  inputs=[self.n, self.state.logw, self.state.dp, self.state.lin], outputs=[self._moments_partial],
+                  device=d)
+        wp.launch(kmpf.combine_partials_kernel, dim=(b, kmpf.N_MOMENTS), inputs=[self._moments_partial],
                   outputs=[self._moments], device=d)
         return self._moments.numpy()
 
-    def estimate(self) -> Estimate:
-        """The corrected navigation solution, with the mixture covariance."""
-        m = self.moments()
-        total = m[0]
-        if not (np.isfinite(m).all() and total > 0):
-            raise FloatingPointError(f"particle moments are not finite (Σw = {total}); this is a bug")
-        dp = m[1:4] / total
-        cov_pos = m[4:13].reshape(3, 3) / total - np.outer(dp, dp)
-        lin = m[13:25] / total
-        spread = m[25:169].reshape(12, 12) / total - np.outer(lin, lin)
-        cov_lin = self.P + 0.5 * (spread + spread.T)
-        s = self.ins.state
-        q = quat_mul(s.quat_nb, quat_exp(lin[3:6]))
-        nav = NavState(s.pos_n + dp, s.vel_n + lin[0:3], q / np.linalg.norm(q), s.accel_bias + lin[6:9],
-                       s.gyro_bias + lin[9:12])
-        return Estimate(nav=nav, dp=dp, lin=lin, cov_pos=0.5 * (cov_pos + cov_pos.T), cov_lin=cov_lin)
-
+    def estimate(self):
+        """The corrected navigation solution, with the mixture covariance (a list of B for a batch)."""
+        moments = self.moments()
+        P = _from_blocks(self._nav["cov"].numpy())
+        out = []
+        for b, m in enumerate(moments):
+            total = m[0]
+            if not (np.isfinite(m).all() and total > 0):
+                raise FloatingPointError(f"particle moments of filter {b} are not finite (Σw = {total}); this is a bug")
+            dp = m[1:4] / total
+            cov_pos = m[4:13].reshape(3, 3) / total - np.outer(dp, dp)
+            lin = m[13:25] / total
+            spread = m[25:169].reshape(12, 12) / total - np.outer(lin, lin)
+            s = self.nominal(b)
+            q = quat_mul(s.quat_nb, quat_exp(lin[3:6]))
+            nav = NavState(s.pos_n + dp, s.vel_n + lin[0:3], q / np.linalg.norm(q), s.accel_bias + lin[6:9],
+                           s.gyro_bias + lin[9:12])
+            out.append(Estimate(nav=nav, dp=dp, lin=lin, cov_pos=0.5 * (cov_pos + cov_pos.T),
+                                cov_lin=P[b] + 0.5 * (spread + spread.T)))
+        return out if self.batched else out[0]

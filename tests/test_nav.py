@@ -1,0 +1,90 @@
+"""The host navigation kernel (nominal INS + Riccati + interval composition) against the float64 Python path."""
+
+import numpy as np
+import warp as wp
+
+from warptan.imu import ImuModel
+from warptan.ins import Ins, error_transition, process_noise
+from warptan.kernels import nav as knav
+from warptan.runner import InitialErrors, initial_nominal, prior_linear_cov
+from warptan.trajectory import Straight, Trajectory, Turn
+
+
+def _python_interval(nominal, f, w, dt, P, q_n, q_l):
+    """Reference: the MPF Riccati of SPEC §6 step by step, and Φ, S composed from the 15×15 transitions."""
+    ins = Ins(nominal, 1.0 / dt)
+    phi, S = np.eye(15), np.zeros((15, 15))
+    for k in range(len(f)):
+        F = error_transition(ins.state, f[k], w[k], dt)
+        a_n, a_l = F[0:3, 3:15], F[3:15, 3:15]
+        pa = P @ a_n.T
+        n_k = a_n @ pa + q_n
+        gain = np.linalg.solve(n_k, (a_l @ pa).T).T
+        P = a_l @ P @ a_l.T + q_l - gain @ n_k @ gain.T
+        P = 0.5 * (P + P.T)
+        T = np.eye(15)
+        T[0:3, 3:15] = a_n
+        T[3:15, 3:15] = a_l
+        G = np.vstack([np.eye(3), gain])
+        phi = T @ phi
+        S = T @ S @ T.T + G @ n_k @ G.T
+        ins.step(f[k], w[k])
+    return ins.state, P, phi, S
+
+
+def _blocks(a):
+    """(B, 5, 5, 3, 3) blocks -> (B, 15, 15)."""
+    b = a.shape[0]
+    return a.transpose(0, 1, 3, 2, 4).reshape(b, a.shape[1] * 3, a.shape[2] * 3)
+
+
+def test_nav_kernel_matches_python():
+    rate, k_steps = 100.0, 10
+    dt = 1.0 / rate
+    truth = Trajectory.build([Straight(0.05), Turn(20, bank_deg=30)], rate, [0, 0, -1000.0])
+    imu = ImuModel("tactical", rate, seed=3)
+    initial = InitialErrors()
+    rng = np.random.default_rng(0)
+    nominals = [initial_nominal(truth.state(0), initial, rng) for _ in range(2)]
+    f, w, _ = imu.corrupt(truth.f_b[:2 * k_steps], truth.w_b[:2 * k_steps])
+    fb = np.stack([f[:k_steps], f[k_steps:]])
+    wb = np.stack([w[:k_steps], w[k_steps:]])
+    P0 = prior_linear_cov(initial, imu)
+    q_n = 0.25 * dt * np.eye(3)
+    q_l = process_noise(imu.grade, dt)[3:15, 3:15]
+    d = "cpu"
+    B = 2
+    pos = wp.array([n.pos_n for n in nominals], dtype=wp.vec3d, device=d)
+    vel = wp.array([n.vel_n for n in nominals], dtype=wp.vec3d, device=d)
+    quat = wp.array([n.quat_nb for n in nominals], dtype=wp.vec4d, device=d)
+    ba = wp.zeros(B, dtype=wp.vec3d, device=d)
+    bg = wp.zeros(B, dtype=wp.vec3d, device=d)
+    cov = wp.array(np.stack([P0, P0]).reshape(B, 4, 3, 4, 3).transpose(0, 1, 3, 2, 4).copy(), dtype=wp.mat33d,
+                   device=d)
+    phi = wp.empty((B, 5, 5), dtype=wp.mat33d, device=d)
+    noise = wp.empty((B, 5, 5), dtype=wp.mat33d, device=d)
+    scratch = wp.empty((B, 15, 15), dtype=wp.float64, device=d)
+    phi_out = wp.empty((B, 5, 5), dtype=wp.mat33, device=d)
+    chol_out = wp.empty((B, 5, 5), dtype=wp.mat33, device=d)
+    pose_out = wp.empty((B, 7), dtype=wp.float64, device=d)
+    qd = np.diag(q_l)
+    wp.launch(knav.nav_interval_kernel, dim=B,
+              inputs=[0, k_steps, dt, 0.25 * dt, wp.vec4d(qd[0], qd[3], qd[6], qd[9]),
+                      wp.array(fb, dtype=wp.vec3d, device=d), wp.array(wb, dtype=wp.vec3d, device=d),
+                      pos, vel, quat, ba, bg, cov, phi, noise, scratch],
+              outputs=[phi_out, chol_out, pose_out], device=d)
+    covs = _blocks(cov.numpy())
+    phis = _blocks(phi_out.numpy().astype(np.float64))
+    chols = _blocks(chol_out.numpy().astype(np.float64))
+    for b in range(B):
+        state, P, phi_ref, S_ref = _python_interval(nominals[b], fb[b], wb[b], dt, P0.copy(), q_n, q_l)
+        np.testing.assert_allclose(pos.numpy()[b], state.pos_n, rtol=0, atol=1e-9)
+        np.testing.assert_allclose(vel.numpy()[b], state.vel_n, rtol=0, atol=1e-11)
+        np.testing.assert_allclose(quat.numpy()[b], state.quat_nb, rtol=0, atol=1e-13)
+        np.testing.assert_allclose(pose_out.numpy()[b], np.r_[state.pos_n, state.quat_nb], atol=1e-9)
+        np.testing.assert_allclose(covs[b], P, rtol=1e-9, atol=1e-18)
+        np.testing.assert_allclose(phis[b], phi_ref, rtol=1e-6, atol=1e-7)
+        S_got = chols[b] @ chols[b].T
+        scale = np.sqrt(np.outer(np.diag(S_ref), np.diag(S_ref)))
+        assert np.all(np.abs(S_got - S_ref) <= 2e-3 * scale + 1e-30), np.max(np.abs(S_got - S_ref) / (scale + 1e-30))
+        assert np.allclose(np.triu(chols[b], 1), 0.0)
