@@ -39,7 +39,7 @@ def build(model_name: str, terrain, likelihood):
     return wt.RaycastModel(terrain, likelihood, caster=wt.RayCaster(model_name))
 
 
-def bench(terrain, model_name, n, m_side, device, repeats, warmup, imu_per_meas=10, seed=0):
+def bench(terrain, model_name, n, m_side, device, repeats, warmup, imu_per_meas=10, seed=0, graph=None):
     intervals = repeats + warmup
     truth = Trajectory.build([Straight(intervals * imu_per_meas / 100.0 + 0.5)], 100.0,
                              [0.0, 0.0, -(terrain.h_max + 600.0)])
@@ -50,7 +50,7 @@ def bench(terrain, model_name, n, m_side, device, repeats, warmup, imu_per_meas=
     mpf = MarginalizedParticleFilter(build(model_name, terrain, wt.Likelihood("paper", r_err=16.0)),
                                      initial_nominal(truth.state(0), initial, rng), imu.grade, 100.0,
                                      np.asarray(initial.pos_m), prior_linear_cov(initial, imu), n_particles=n,
-                                     device=device, seed=seed)
+                                     device=device, seed=seed, graph=graph)
     sensor = wt.PointCloudSensor(wt.ScanPattern.grid(m_side, m_side, 30.0))
     alt, baro = wt.RadarAltimeter(), wt.Barometer()
     t_pred, t_upd, t_step, t_est = [], [], [], []

@@ -122,3 +122,17 @@ def test_warptan_run_check_and_errors(tmp_path):
                          cwd=tmp_path)
     assert bad.returncode == 2 and "unknown scenario 'S42'" in bad.stderr and "Traceback" not in bad.stderr
     assert not Path(tmp_path / "warptan-results").exists()
+
+
+def test_warptan_run_batch_equals_one_by_one(tmp_path):
+    """`warptan run S7 --seeds 3 --batch` (one batched filter) reports the same numbers as without --batch."""
+    rmse = {}
+    for flag in ([], ["--batch"]):
+        out = tmp_path / ("batch" if flag else "single")
+        proc = subprocess.run([sys.executable, "-m", "warptan.cli", "run", "S7", "--seeds", "3", *flag, "--terrain",
+                               SMALL, "--duration-s", "4", "--particles", "200", "--no-plots", "--quiet", "--out",
+                               str(out)], capture_output=True, text=True, timeout=600)
+        assert proc.returncode == 0, proc.stderr
+        runs = json.loads((out / "results.json").read_text())["runs"]
+        rmse[bool(flag)] = [r["rmse_m"] for r in runs]
+    assert len(rmse[True]) == 3 and rmse[True] == rmse[False]

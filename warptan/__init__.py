@@ -24,7 +24,7 @@ from warptan.mpf import MarginalizedParticleFilter
 from warptan.raster import TerrainError
 from warptan.raycast import RayCaster, raycast
 from warptan.runner import InitialErrors, run_filter
-from warptan.scenarios import ScenarioError, run_scenario
+from warptan.scenarios import ScenarioError, run_scenario, run_scenario_batch
 from warptan.sensors import AltimeterReading, Barometer, PointCloud, PointCloudSensor, RadarAltimeter, ScanPattern
 from warptan.terrain import Terrain
 from warptan.trajectory import Climb, Orbit, Straight, Trajectory, Turn
@@ -64,4 +64,5 @@ __all__ = [
     "resolve_device",
     "run_filter",
     "run_scenario",
+    "run_scenario_batch",
 ]

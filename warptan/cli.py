@@ -49,7 +49,7 @@ def _terrain_export(args) -> int:
 def _run(args) -> int:
     from warptan.device import resolve_device
     from warptan.report import write_outputs
-    from warptan.scenarios import SCENARIO_IDS, prepare, run_scenario
+    from warptan.scenarios import SCENARIO_IDS, prepare, run_scenario, run_scenario_batch
 
     demo = not args.scenarios
     names = ["S8"] if demo else list(args.scenarios)
@@ -84,12 +84,18 @@ def _run(args) -> int:
     results, terrains = [], {}
     with tqdm(total=total, unit="update", disable=args.quiet, dynamic_ncols=True) as bar:
         for name in names:
-            for seed in range(seeds):
-                bar.set_description(f"{name} seed {seed}")
-                result = run_scenario(name, seed=seed, device=args.device, progress=lambda k, n: bar.update(1),
-                                      terrain=terrain, **overrides)
-                results.append(result)
-                terrains[result.scenario] = result.truth_terrain
+            if args.batch:
+                bar.set_description(f"{name} seeds 0-{seeds - 1} (batch)")
+                batch = run_scenario_batch(name, list(range(seeds)), device=args.device,
+                                           progress=lambda k, n: bar.update(seeds), terrain=terrain, **overrides)
+            else:
+                batch = []
+                for seed in range(seeds):
+                    bar.set_description(f"{name} seed {seed}")
+                    batch.append(run_scenario(name, seed=seed, device=args.device,
+                                              progress=lambda k, n: bar.update(1), terrain=terrain, **overrides))
+            results.extend(batch)
+            terrains[batch[0].scenario] = batch[0].truth_terrain
     written = write_outputs(results, out_dir, terrains, plots=not args.no_plots)
     print(written["table"])
     if not written["plots"] and not args.no_plots:
@@ -141,6 +147,9 @@ def build_parser() -> argparse.ArgumentParser:
                                      "generated rugged terrain).")
     run.add_argument("scenarios", nargs="*", help="S1 … S12, 'all', or scenario .toml files")
     run.add_argument("--seeds", type=int, default=None, help="seeds per scenario (default 1)")
+    run.add_argument("--batch", action="store_true",
+                     help="run the seeds of a scenario as one batched filter (one launch per kernel for all; "
+                          "results as without it)")
     run.add_argument("--device", default="cpu", help="Warp device (cpu, cuda:0)")
     run.add_argument("--out", default=None, help="output folder (default warptan-results, demo: warptan-demo)")
     run.add_argument("--paper-rates", action="store_true", help="terrain measurements at the IMU rate, as the paper")

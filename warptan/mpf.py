@@ -314,7 +314,8 @@ class MarginalizedParticleFilter:
 
     def _launch_weights(self, out) -> None:
         d, b, n, st = self.device, self.n_filters, self.n, self.state
-        wp.launch(kmpf.add_loglik_partials_kernel, dim=(b, kmpf.N_CHUNKS), inputs=[n, out.loglik, out.n_valid, out.meta],
+        wp.launch(kmpf.add_loglik_partials_kernel, dim=(b, kmpf.N_CHUNKS),
+                  inputs=[n, out.loglik, out.n_valid, out.meta],
                   outputs=[st.logw, self._chunk_max, self._chunk_counts], device=d)
         wp.launch(kmpf.max_of_partials_kernel, dim=b, inputs=[self._chunk_max, self._chunk_counts],
                   outputs=[self._stats], device=d)
@@ -369,6 +370,7 @@ class MarginalizedParticleFilter:
         self._ensure_history()
         self._host_interval()
         out = self.model.stage(measurement, self._pos, self._quat)
+        self.last_n_received = np.array(out.n_received)
         self.n_updates += 1
         if self.graph:
             key = (id(out), id(getattr(self.model, "_staged", None)), id(self._history))

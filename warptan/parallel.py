@@ -69,7 +69,9 @@ def launch_rows(kernel, rows: int, args: Callable[[int, int], tuple[list, list]]
         return
     n_threads = threads or cpu_threads()
     work = rows * (cols or 1) * row_cost
-    chunks = min(n_threads, rows // MIN_ROWS_PER_CHUNK, work // MIN_WORK_PER_CHUNK) if device.is_cpu else 1
+    chunks = 1
+    if device.is_cpu and not device.is_capturing:  # a captured graph replays on one thread, in order
+        chunks = min(n_threads, rows // MIN_ROWS_PER_CHUNK, work // MIN_WORK_PER_CHUNK)
     if chunks <= 1:
         inputs, outputs = args(None, None)
         wp.launch(kernel, dim=rows if cols is None else (rows, cols), inputs=inputs, outputs=outputs, device=device)

@@ -9,6 +9,7 @@ measurement epoch. All randomness comes from ``seed``.
 from __future__ import annotations
 
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -48,9 +49,10 @@ class FilterRun:
     respread: np.ndarray
     all_points_invalid: np.ndarray
     update_time_s: np.ndarray
-    """Wall time of each measurement update (model + weights + resampling), s."""
+    """Host wall time of each measurement update call, s (the whole update on the CPU; on CUDA the host part
+    and the enqueue of the captured device work, which runs asynchronously)."""
     predict_time_s: float
-    """Wall time of all time updates together, s."""
+    """Host wall time of all ``predict`` calls together (buffering the IMU samples), s."""
     n_particles: int
     device: str
     info: dict = field(default_factory=dict)
@@ -92,31 +94,42 @@ def prior_linear_cov(errors: InitialErrors, imu: ImuModel) -> np.ndarray:
     return np.diag(sig**2)
 
 
-def run_filter(truth: Trajectory, terrain_map, model, imu: ImuModel, sensor=None, *, terrain_truth=None,
-               baro: Barometer | None = None, n_particles: int = 500, device=None, seed: int = 0,
-               meas_rate_hz: float = 10.0, initial: InitialErrors | None = None, progress=None,
-               **filter_kwargs) -> FilterRun:
-    """Run one filter over a simulated flight.
+def run_filter(truth: Trajectory, terrain_map, model, imu: ImuModel | Sequence[ImuModel], sensor=None, *,
+               terrain_truth=None, baro: Barometer | None = None, n_particles: int = 500, device=None,
+               seed: int | Sequence[int] = 0, meas_rate_hz: float = 10.0, initial: InitialErrors | None = None,
+               progress=None, **filter_kwargs) -> FilterRun | list[FilterRun]:
+    """Run one filter over a simulated flight — or a batch of independent runs (one per seed) in one filter.
 
     Args:
         truth: The true trajectory (IMU rate = its rate).
         terrain_map: The DEM the filter predicts with (the model's terrain).
         model: A measurement model built on ``terrain_map``.
-        imu: IMU error model (grade, rate, seed of the IMU errors).
+        imu: IMU error model (grade, rate, seed of the IMU errors); a list of them for a batch.
         sensor: A :class:`~warptan.sensors.PointCloudSensor` for point-cloud models, or a
             :class:`~warptan.sensors.RadarAltimeter` (default) for the altimeter model.
         terrain_truth: The terrain the sensor sees (default: the map).
         baro: Barometer for the altimeter model (default σ = 1 m).
-        n_particles, device, seed: Filter size, device and seed.
+        n_particles, device: Particles per filter and device.
+        seed: Seed of a run (initial error, sensor noise, filter); a list of seeds runs a batch: every run
+            has its own INS, IMU errors, measurements and particles, and they share every kernel launch.
         meas_rate_hz: Measurement rate; a divisor of the IMU rate (``--paper-rates``: equal to it).
         initial: Initial-error σ (drawn for the INS and used as the prior).
         progress: Optional callable(k, n_steps) called at every measurement epoch.
         **filter_kwargs: Passed to :class:`~warptan.mpf.MarginalizedParticleFilter`.
+
+    Returns:
+        A :class:`FilterRun`, or a list of them (one per seed) for a batch.
     """
+    batched = isinstance(seed, (list, tuple, np.ndarray))
+    seeds = [int(s) for s in (seed if batched else [seed])]
+    imus = list(imu) if isinstance(imu, (list, tuple)) else [imu] * len(seeds)
+    if len(imus) != len(seeds):
+        raise ValueError(f"{len(seeds)} seeds need {len(seeds)} IMU models (or one), got {len(imus)}")
     initial = initial or InitialErrors()
     terrain_truth = terrain_truth or terrain_map
-    if abs(imu.rate_hz - truth.rate_hz) > 1e-9:
-        raise ValueError(f"IMU rate {imu.rate_hz} Hz differs from the trajectory's {truth.rate_hz} Hz")
+    for m in imus:
+        if abs(m.rate_hz - truth.rate_hz) > 1e-9:
+            raise ValueError(f"IMU rate {m.rate_hz} Hz differs from the trajectory's {truth.rate_hz} Hz")
     decim = truth.rate_hz / meas_rate_hz
     if meas_rate_hz <= 0 or abs(decim - round(decim)) > 1e-9:
         raise ValueError(f"measurement rate {meas_rate_hz} Hz must divide the IMU rate {truth.rate_hz} Hz")
@@ -127,55 +140,58 @@ def run_filter(truth: Trajectory, terrain_map, model, imu: ImuModel, sensor=None
         baro = baro or Barometer()
     elif sensor is None:
         raise ValueError("a point-cloud model needs a PointCloudSensor")
-    rng = np.random.default_rng(np.random.SeedSequence([seed, 0x7A4]))
-    nominal0 = initial_nominal(truth.state(0), initial, rng)
-    f_meas, w_meas, _ = imu.corrupt(truth.f_b, truth.w_b)
-    ins_only = Ins(nominal0, truth.rate_hz).run(f_meas, w_meas)["pos_n"]
-    mpf = MarginalizedParticleFilter(model, nominal0, imu.grade, truth.rate_hz, np.asarray(initial.pos_m),
-                                     prior_linear_cov(initial, imu), n_particles=n_particles, device=device,
-                                     seed=seed, **filter_kwargs)
+    rngs = [np.random.default_rng(np.random.SeedSequence([s, 0x7A4])) for s in seeds]
+    nominal0 = [initial_nominal(truth.state(0), initial, rng) for rng in rngs]
+    corrupted = [m.corrupt(truth.f_b, truth.w_b)[:2] for m in imus]
+    f_meas = np.stack([c[0] for c in corrupted], axis=1)  # (K, B, 3)
+    w_meas = np.stack([c[1] for c in corrupted], axis=1)
+    ins_only = [Ins(nominal0[b], truth.rate_hz).run(f_meas[:, b], w_meas[:, b])["pos_n"] for b in range(len(seeds))]
+    mpf = MarginalizedParticleFilter(model, nominal0 if batched else nominal0[0], imus[0].grade, truth.rate_hz,
+                                     np.asarray(initial.pos_m), prior_linear_cov(initial, imus[0]),
+                                     n_particles=n_particles, device=device, seed=seeds if batched else seeds[0],
+                                     **filter_kwargs)
     n_steps = len(truth.f_b)
     epochs = [0, *range(decim, n_steps + 1, decim)]
-    rec = {key: [] for key in ("est", "sig", "ess", "res", "unp", "bad", "spread", "inval", "tupd")}
-
-    def record(est, info, t_update):
-        rec["est"].append(est.nav.pos_n)
-        rec["sig"].append(est.sigma3_pos)
-        rec["ess"].append(info.ess if info else float(n_particles))
-        rec["res"].append(bool(info and info.resampled))
-        rec["unp"].append(info.n_unpredictable if info else 0)
-        rec["bad"].append(info.n_bad_loglik if info else 0)
-        rec["spread"].append(bool(info and info.respread))
-        rec["inval"].append(bool(info and info.all_points_invalid))
-        rec["tupd"].append(t_update)
-
-    record(mpf.estimate(), None, 0.0)
+    prior = mpf.estimate()
+    prior = prior if batched else [prior]
+    nominal_pos, received, update_time = [], [], []
     predict_time = 0.0
     k = 0
     for epoch in epochs[1:]:
         t0 = time.perf_counter()
         while k < epoch:
-            mpf.predict(f_meas[k], w_meas[k])
+            mpf.predict(f_meas[k] if batched else f_meas[k, 0], w_meas[k] if batched else w_meas[k, 0])
             k += 1
         predict_time += time.perf_counter() - t0
         p_true, q_true = truth.pos_n[k], truth.quat_nb[k]
         if altimeter:
-            measurement = AltimeterReading(sensor.measure(terrain_truth, p_true, rng), baro.measure(p_true, rng))
+            meas = [AltimeterReading(sensor.measure(terrain_truth, p_true, rng), baro.measure(p_true, rng))
+                    for rng in rngs]
         else:
-            measurement = sensor.measure(terrain_truth, p_true, q_true, rng, device=mpf.device)
+            meas = sensor.measure_many(terrain_truth, p_true, q_true, rngs, device=mpf.device)
         t0 = time.perf_counter()
-        info = mpf.update(measurement)
-        wp.synchronize_device(mpf.device)
-        t_update = time.perf_counter() - t0
-        record(mpf.estimate(), info, t_update)
+        mpf.update(meas if batched else meas[0], sync=False)
+        update_time.append(time.perf_counter() - t0)
+        nominal_pos.append(mpf.nominal_positions())
+        received.append(mpf.last_n_received)
         if progress is not None:
             progress(k, n_steps)
+    wp.synchronize_device(mpf.device)
+    hist = mpf.history()  # (T, B, 16): the one read-back of the run
     idx = np.array(epochs)
-    return FilterRun(
-        t_s=truth.t_s[idx], truth_pos=truth.pos_n[idx], ins_pos=ins_only[idx], est_pos=np.array(rec["est"]),
-        sigma3_pos=np.array(rec["sig"]), ess=np.array(rec["ess"]), resampled=np.array(rec["res"]),
-        n_unpredictable=np.array(rec["unp"]), n_bad_loglik=np.array(rec["bad"]), respread=np.array(rec["spread"]),
-        all_points_invalid=np.array(rec["inval"]), update_time_s=np.array(rec["tupd"]),
-        predict_time_s=predict_time, n_particles=n_particles, device=mpf.device.alias,
-        info={"respreads": mpf.n_respreads, "imu_steps": n_steps, "meas_rate_hz": meas_rate_hz},
-    )
+    runs = []
+    for b in range(len(seeds)):
+        h = hist[:, b]
+        est = np.vstack([prior[b].nav.pos_n, np.array(nominal_pos)[:, b] + h[:, 6:9]])
+        sig = np.vstack([prior[b].sigma3_pos, 3.0 * np.sqrt(np.maximum(h[:, 9:12], 0.0))])
+        runs.append(FilterRun(
+            t_s=truth.t_s[idx], truth_pos=truth.pos_n[idx], ins_pos=ins_only[b][idx], est_pos=est, sigma3_pos=sig,
+            ess=np.r_[float(n_particles), h[:, 0]], resampled=np.r_[False, h[:, 1] > 0],
+            n_unpredictable=np.r_[0, h[:, 4]].astype(int), n_bad_loglik=np.r_[0, h[:, 3]].astype(int),
+            respread=np.r_[False, h[:, 2] > 0], all_points_invalid=np.r_[False, np.array(received)[:, b] == 0],
+            update_time_s=np.r_[0.0, update_time], predict_time_s=predict_time, n_particles=n_particles,
+            device=mpf.device.alias,
+            info={"respreads": int((h[:, 2] > 0).sum()), "imu_steps": n_steps, "meas_rate_hz": meas_rate_hz,
+                  "batch": len(seeds)},
+        ))
+    return runs if batched else runs[0]

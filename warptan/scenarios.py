@@ -428,13 +428,26 @@ def run_scenario(name_or_path, seed: int = 0, device="cpu", progress=None, **ove
             ``likelihood=``, ``model=``, ``meas_rate_hz=``, ``paper_rates=True``, ``use_baro=``, ``r_err_m2=``,
             ``sigma_m=``, ``imu_grade=``.
     """
+    return run_scenario_batch(name_or_path, [seed], device, progress, **overrides)[0]
+
+
+def run_scenario_batch(name_or_path, seeds, device="cpu", progress=None, **overrides) -> list[ScenarioResult]:
+    """Run one scenario with several seeds as one batched filter (every run's particles in one array, one
+    launch per kernel for all of them); each result is the same as :func:`run_scenario` with that seed on the
+    same device. A scenario whose map has per-seed error cannot be batched (its runs use different maps)."""
     import time
 
+    seeds = [int(s) for s in seeds]
+    if not seeds:
+        raise ValueError("run_scenario_batch needs at least one seed")
     terrain = overrides.pop("terrain", None)
-    config, truth_terrain, flight = prepare(name_or_path, seed, terrain, **overrides)
+    config, truth_terrain, flight = prepare(name_or_path, seeds[0], terrain, **overrides)
     s = config["sensor"]
-    total_seed = int(config["run"]["seed"]) + int(seed)
-    the_map = map_terrain(truth_terrain, config, total_seed)
+    total_seeds = [int(config["run"]["seed"]) + seed for seed in seeds]
+    if len(seeds) > 1 and config["terrain"]["map_noise_m"]:
+        raise ValueError(f"{config['id']}: map_noise_m = {config['terrain']['map_noise_m']} gives every seed its own "
+                         "map; run the seeds one by one (without --batch)")
+    the_map = map_terrain(truth_terrain, config, total_seeds[0])
     lk = config["likelihood"]
     likelihood = Likelihood(lk["kind"], r_err=lk["r_err_m2"], sigma_m=lk["sigma_m"], nu=lk["nu"])
     model_kwargs = {"use_baro": s["use_baro"], "baro_sigma_m": max(s["baro_sigma_m"], 0.1)} \
@@ -446,13 +459,15 @@ def run_scenario(name_or_path, seed: int = 0, device="cpu", progress=None, **ove
         sensor = PointCloudSensor(ScanPattern.grid(s["scan_nx"], s["scan_ny"], s["scan_half_angle_deg"]),
                                   range_sigma_m=s["range_sigma_m"])
     ie, f = config["initial_error"], config["filter"]
+    imus = [ImuModel(config["imu"]["grade"], config["imu"]["rate_hz"], seed=ts) for ts in total_seeds]
     t0 = time.perf_counter()
-    run = run_filter(
-        flight, the_map, model, ImuModel(config["imu"]["grade"], config["imu"]["rate_hz"], seed=total_seed), sensor,
-        terrain_truth=truth_terrain, baro=Barometer(s["baro_sigma_m"]), n_particles=f["particles"], device=device,
-        seed=total_seed, meas_rate_hz=s["rate_hz"],
+    runs = run_filter(
+        flight, the_map, model, imus, sensor, terrain_truth=truth_terrain, baro=Barometer(s["baro_sigma_m"]),
+        n_particles=f["particles"], device=device, seed=total_seeds, meas_rate_hz=s["rate_hz"],
         initial=InitialErrors(tuple(ie["pos_m"]), ie["vel_mps"], tuple(ie["att_deg"])), progress=progress,
         resample_threshold=f["resample_threshold"], resampler=f["resampler"], pos_noise=f["pos_noise_m_rthz"],
     )
-    return ScenarioResult(scenario=config["id"], seed=int(seed), device=run.device, terrain=truth_terrain.name,
-                          config=config, run=run, wall_s=time.perf_counter() - t0, truth_terrain=truth_terrain)
+    wall = time.perf_counter() - t0
+    return [ScenarioResult(scenario=config["id"], seed=seed, device=run.device, terrain=truth_terrain.name,
+                           config=config, run=run, wall_s=wall, truth_terrain=truth_terrain)
+            for seed, run in zip(seeds, runs, strict=True)]

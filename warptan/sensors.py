@@ -172,21 +172,29 @@ class PointCloudSensor:
 
     def measure(self, terrain, pos_n, quat_nb, rng: np.random.Generator | None = None, device=None) -> PointCloud:
         """One scan from the true pose ``(pos_n (3,), quat_nb (4,))``; ``rng=None`` means no noise."""
+        return self.measure_many(terrain, pos_n, quat_nb, [rng], device)[0]
+
+    def measure_many(self, terrain, pos_n, quat_nb, rngs, device=None) -> list[PointCloud]:
+        """Scans from one true pose with independent noise, one per generator in ``rngs`` (one ray cast)."""
         pos = np.asarray(pos_n, dtype=np.float64).reshape(3)
         if not np.isfinite(pos).all():
             raise ValueError(f"sensor position is not finite: {pos}")
         q = check_unit_quat(np.asarray(quat_nb).reshape(4), "sensor attitude")
         device = wp.get_device(device)
-        ranges = raycast_pattern(
+        exact = raycast_pattern(
             terrain, wp.array(pos[None].astype(np.float32), dtype=wp.vec3, device=device),
             wp.array(q[None].astype(np.float32), dtype=wp.vec4, device=device),
             self.pattern.device_dirs(device), self.caster,
         ).numpy()[0].astype(np.float64)
-        if rng is not None and self.range_sigma_m > 0:
-            ranges = ranges + rng.normal(0.0, self.range_sigma_m, ranges.shape)
-        if self.max_range_m is not None:
-            ranges[ranges > self.max_range_m] = np.nan
-        return PointCloud(self.pattern.dirs_s, ranges)
+        clouds = []
+        for rng in rngs:
+            ranges = exact
+            if rng is not None and self.range_sigma_m > 0:
+                ranges = exact + rng.normal(0.0, self.range_sigma_m, exact.shape)
+            if self.max_range_m is not None:
+                ranges = np.where(ranges > self.max_range_m, np.nan, ranges)
+            clouds.append(PointCloud(self.pattern.dirs_s, ranges))
+        return clouds
 
 
 @dataclass(frozen=True)
