@@ -1,12 +1,16 @@
 #!/usr/bin/env python3
-"""Whole filter-step timings: one measurement interval of the MPF (``imu_per_meas`` IMU time updates and one
-measurement update, resampling included when the filter decides to) for N particles, per model and device.
+"""Whole filter-step timings: one measurement interval of the MPF (``imu_per_meas`` IMU samples and one
+measurement update, resampling included when the filter decides to) for B filters × N particles, per model,
+device and launch mode (eager launches or a replayed graph).
 
-Reported per configuration (medians over ``--repeats`` intervals after ``--warmup`` intervals, synchronised):
-``predict_ms`` (one IMU step: host INS + Riccati, queued particle move), ``update_ms`` (queued moves + poses +
-model + weights + resampling), ``step_ms`` (the whole interval) and ``estimate_ms`` (moments → host).
+Reported per configuration (medians over ``--repeats`` intervals after ``--warmup`` intervals, synchronised
+before the clock stops): ``predict_ms`` (one ``predict`` call: the host buffers the sample), ``update_ms``
+(host INS + Riccati for the interval, particle moves, poses, model, weights, resampling, record),
+``step_ms`` (the whole interval), ``filter_steps_per_s`` (B / step time) and ``estimate_ms`` (moments → host,
+not part of a step). The measurement upload is part of the step (``stage``); simulating it is not.
 
     python scripts/bench_filter_step.py --n 500 5000 --models sliding dda --json step.json
+    python scripts/bench_filter_step.py --device cuda:0 --n 500 --batch 1 100 --m-side 20 --graph on off
 """
 
 from __future__ import annotations
@@ -39,7 +43,7 @@ def build(model_name: str, terrain, likelihood):
     return wt.RaycastModel(terrain, likelihood, caster=wt.RayCaster(model_name))
 
 
-def bench(terrain, model_name, n, m_side, device, repeats, warmup, imu_per_meas=10, seed=0, graph=None):
+def bench(terrain, model_name, n, m_side, device, repeats, warmup, imu_per_meas=10, seed=0, graph=None, batch=1):
     intervals = repeats + warmup
     truth = Trajectory.build([Straight(intervals * imu_per_meas / 100.0 + 0.5)], 100.0,
                              [0.0, 0.0, -(terrain.h_max + 600.0)])
@@ -47,10 +51,14 @@ def bench(terrain, model_name, n, m_side, device, repeats, warmup, imu_per_meas=
     f, w, _ = imu.corrupt(truth.f_b, truth.w_b)
     rng = np.random.default_rng(seed)
     initial = InitialErrors()
+    nominal = [initial_nominal(truth.state(0), initial, rng) for _ in range(batch)]
     mpf = MarginalizedParticleFilter(build(model_name, terrain, wt.Likelihood("paper", r_err=16.0)),
-                                     initial_nominal(truth.state(0), initial, rng), imu.grade, 100.0,
+                                     nominal if batch > 1 else nominal[0], imu.grade, 100.0,
                                      np.asarray(initial.pos_m), prior_linear_cov(initial, imu), n_particles=n,
-                                     device=device, seed=seed, graph=graph)
+                                     device=device, seed=list(range(seed, seed + batch)) if batch > 1 else seed,
+                                     graph=graph)
+    f = np.repeat(f[:, None], batch, axis=1) if batch > 1 else f
+    w = np.repeat(w[:, None], batch, axis=1) if batch > 1 else w
     sensor = wt.PointCloudSensor(wt.ScanPattern.grid(m_side, m_side, 30.0))
     alt, baro = wt.RadarAltimeter(), wt.Barometer()
     t_pred, t_upd, t_step, t_est = [], [], [], []
@@ -58,18 +66,18 @@ def bench(terrain, model_name, n, m_side, device, repeats, warmup, imu_per_meas=
     for it in range(intervals):
         k_meas = k + imu_per_meas
         if model_name == "altimeter":
-            meas = wt.AltimeterReading(alt.measure(terrain, truth.pos_n[k_meas], rng),
-                                       baro.measure(truth.pos_n[k_meas], rng))
+            meas = [wt.AltimeterReading(alt.measure(terrain, truth.pos_n[k_meas], rng),
+                                        baro.measure(truth.pos_n[k_meas], rng)) for _ in range(batch)]
         else:
-            meas = sensor.measure(terrain, truth.pos_n[k_meas], truth.quat_nb[k_meas], rng, device=device)
-            meas.on_device(device)  # the upload of a scan is part of receiving it, not of the filter step
+            meas = sensor.measure_many(terrain, truth.pos_n[k_meas], truth.quat_nb[k_meas], [rng] * batch,
+                                       device=device)
         wp.synchronize_device(device)
         t0 = time.perf_counter()
         for _ in range(imu_per_meas):
             mpf.predict(f[k], w[k])
             k += 1
         t1 = time.perf_counter()
-        mpf.update(meas)
+        mpf.update(meas if batch > 1 else meas[0], sync=False)
         wp.synchronize_device(device)
         t2 = time.perf_counter()
         mpf.estimate()
@@ -80,7 +88,8 @@ def bench(terrain, model_name, n, m_side, device, repeats, warmup, imu_per_meas=
             t_step.append(t2 - t0)
             t_est.append(t3 - t2)
     med = statistics.median
-    return {"model": model_name, "N": n, "M": 1 if model_name == "altimeter" else m_side * m_side,
+    return {"model": model_name, "B": batch, "N": n, "graph": mpf.graph,
+            "filter_steps_per_s": batch / med(t_step), "M": 1 if model_name == "altimeter" else m_side * m_side,
             "device": wt.resolve_device(device).alias, "imu_per_meas": imu_per_meas,
             "predict_ms": 1e3 * med(t_pred), "update_ms": 1e3 * med(t_upd), "step_ms": 1e3 * med(t_step),
             "estimate_ms": 1e3 * med(t_est), "repeats": repeats}
@@ -92,6 +101,9 @@ def main(argv=None) -> int:
     parser.add_argument("--n", type=int, nargs="+", default=[500, 5000])
     parser.add_argument("--m-side", type=int, nargs="+", default=[10], help="scan is m_side × m_side rays")
     parser.add_argument("--models", nargs="+", default=["sliding", "dda"], choices=MODELS)
+    parser.add_argument("--batch", type=int, nargs="+", default=[1], help="filters per batch B")
+    parser.add_argument("--graph", nargs="+", default=["auto"], choices=["auto", "on", "off"],
+                        help="replay a captured graph (auto: on CUDA only)")
     parser.add_argument("--terrain", default="synthetic:rugged")
     parser.add_argument("--repeats", type=int, default=20)
     parser.add_argument("--warmup", type=int, default=3)
@@ -99,20 +111,27 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     terrain = script_inputs("bench_filter_step", args.device, args.terrain)
     rows = []
-    print(f"{'device':7s} {'model':9s} {'N':>7s} {'M':>5s} {'predict ms':>11s} {'update ms':>10s} {'step ms':>9s}")
+    print(f"{'device':7s} {'model':9s} {'graph':5s} {'B':>4s} {'N':>7s} {'M':>5s} {'predict ms':>11s} "
+          f"{'update ms':>10s} {'step ms':>9s} {'filter-steps/s':>15s}")
+    modes = {"auto": None, "on": True, "off": False}
     for device in args.device:
         for m_side in args.m_side:
             for model in args.models:
-                for n in args.n:
-                    r = bench(terrain, model, n, m_side, device, args.repeats, args.warmup)
-                    rows.append(r)
-                    print(f"{r['device']:7s} {model:9s} {n:>7d} {r['M']:>5d} {r['predict_ms']:11.3f} "
-                          f"{r['update_ms']:10.3f} {r['step_ms']:9.3f}")
+                for b in args.batch:
+                    for n in args.n:
+                        for g in args.graph:
+                            r = bench(terrain, model, n, m_side, device, args.repeats, args.warmup, graph=modes[g],
+                                      batch=b)
+                            rows.append(r)
+                            print(f"{r['device']:7s} {model:9s} {str(r['graph']):5s} {b:>4d} {n:>7d} {r['M']:>5d} "
+                                  f"{r['predict_ms']:11.3f} {r['update_ms']:10.3f} {r['step_ms']:9.3f} "
+                                  f"{r['filter_steps_per_s']:15.0f}")
     if args.json_out:
         meta = {"warp_version": wp.config.version, "python": platform.python_version(),
                 "devices": {d: wt.resolve_device(d).name for d in args.device}, "terrain": terrain.name,
-                "what": "median ms per IMU predict, per measurement update, and per whole interval "
-                        "(imu_per_meas predicts + one update)"}
+                "what": "median ms per IMU predict call, per measurement update, and per whole interval "
+                        "(imu_per_meas predicts + one update) of B filters x N particles; filter_steps_per_s = B / "
+                        "step time"}
         with open(args.json_out, "w") as f:
             json.dump({"meta": meta, "results": rows}, f, indent=1)
         print(f"wrote {args.json_out}")

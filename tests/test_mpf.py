@@ -109,14 +109,16 @@ def _mpf_and_kalman(device, mpf_seeds, n=2000):
 def test_linear_gaussian_equivalence_with_kalman(device):
     """With a measurement linear and Gaussian in the position error, the MPF's estimates of dp and dv equal a
     Kalman filter's on the same data within Monte-Carlo error: over 8 filter seeds, the mean is within 3
-    standard errors of the Kalman value, the seed-to-seed spread (the Monte-Carlo error of one run: 0.33–0.70
-    Kalman σ over 24 seeds at N = 2000; an 8-seed estimate of it is uncertain by ~25 %) stays below 0.9 σ,
-    and the particle variance of dp matches the Kalman variance to 35 %."""
+    standard errors of the Kalman value; the seed-to-seed spread (the Monte-Carlo error of one run: 0.33–0.70
+    Kalman σ per component over 24 seeds at N = 2000), pooled over the 6 components (42 degrees of freedom;
+    one component's 8-seed estimate is too noisy to bound), stays below 0.8 σ; and the particle variance of
+    dp matches the Kalman variance to 35 %."""
     finals, x, P = _mpf_and_kalman(device, range(8))
     est, kf, sd_kf = finals[:, 0:6], x[0:6], np.sqrt(np.diag(P)[0:6])
     stderr = est.std(axis=0, ddof=1) / np.sqrt(len(est))
     assert np.all(np.abs(est.mean(axis=0) - kf) < 3 * stderr + 0.05 * sd_kf), (est.mean(axis=0), kf, stderr)
-    assert np.all(est.std(axis=0, ddof=1) < 0.9 * sd_kf), (est.std(axis=0, ddof=1), sd_kf)
+    ratio = est.std(axis=0, ddof=1) / sd_kf
+    assert np.sqrt(np.mean(ratio**2)) < 0.8, ratio
     np.testing.assert_allclose(finals[:, 6:9].mean(axis=0), np.diag(P)[0:3], rtol=0.35)
 
 
