@@ -15,7 +15,7 @@ point j a flag that the *received* point is valid and a vector of axis weights. 
   In the per-point forms a received point whose prediction is invalid scores as a residual of
   ``k_out`` sigma, so that every particle sums the same number of terms (constants dropped).
 If no received point is valid at all, every particle gets 0 (no information) and the caller flags it.
-One thread per particle loops over the M points (:func:`acc_add` per point, :func:`acc_finish`), either over
+One thread per particle loops over the M points (:func:`acc_add` per valid prediction, :func:`acc_finish`), either over
 an (N, M) residual array (:func:`reduce_loglik_kernel`) or fused with the prediction (the sliding model).
 
 Filters in a batch: particle i belongs to filter ``b = i // n_per`` and reads the received measurement
@@ -51,18 +51,6 @@ class LikParams:
     k_out: float
 
 
-@wp.struct
-class LikAcc:
-    """Running sums over the points of one particle."""
-
-    n_ok: int
-    n_recv: int
-    sum_abs: float
-    sum_axes: wp.vec3
-    last_res: float
-    ll_points: float
-
-
 @wp.func
 def point_loglik(lik: int, res: float, sigma: float, nu: float) -> float:
     """Log density (constants dropped) of one residual under the per-point model."""
@@ -73,43 +61,36 @@ def point_loglik(lik: int, res: float, sigma: float, nu: float) -> float:
 
 
 @wp.func
-def acc_add(acc: LikAcc, p: LikParams, res: float, axis_w: wp.vec3) -> LikAcc:
-    """Add the residual of one *received valid* point (NaN = the particle could not predict it)."""
-    out = acc
-    out.n_recv = acc.n_recv + 1
-    if wp.isnan(res):
-        out.ll_points = acc.ll_points + point_loglik(p.lik, p.k_out * p.sigma, p.sigma, p.nu)
-        return out
+def acc_add(n_ok: int, sum_abs: float, sum_axes: wp.vec3, last: float, ll_points: float, p: LikParams, res: float,
+            axis_w: wp.vec3):
+    """Running sums over the valid predictions of one particle: add one residual (m, finite)."""
     a = wp.abs(res)
-    out.n_ok = acc.n_ok + 1
-    out.sum_abs = acc.sum_abs + a
-    out.sum_axes = acc.sum_axes + a * axis_w
-    out.last_res = res
-    out.ll_points = acc.ll_points + point_loglik(p.lik, res, p.sigma, p.nu)
-    return out
+    return n_ok + 1, sum_abs + a, sum_axes + a * axis_w, res, ll_points + point_loglik(p.lik, res, p.sigma, p.nu)
 
 
 @wp.func
-def acc_finish(acc: LikAcc, p: LikParams):
-    """(paper error in m — NaN without a valid point, log-likelihood)."""
+def acc_finish(n_recv: int, n_ok: int, sum_abs: float, sum_axes: wp.vec3, last: float, ll_points: float,
+               p: LikParams):
+    """(paper error in m — NaN without a valid point, log-likelihood) of a particle that could predict ``n_ok``
+    of the ``n_recv`` received valid points; each unpredictable one scores as a ``k_out`` σ residual."""
     err = float(wp.nan)
-    if acc.n_ok > 0:
-        inv = 1.0 / float(acc.n_ok)
+    if n_ok > 0:
+        inv = 1.0 / float(n_ok)
         if p.err_kind == ERR_AXES:
-            err = wp.length(acc.sum_axes * inv)
+            err = wp.length(sum_axes * inv)
         elif p.err_kind == ERR_MEAN_ABS:
-            err = acc.sum_abs * inv
+            err = sum_abs * inv
         else:
-            err = acc.last_res
+            err = last
     ll = float(0.0)
-    if acc.n_recv > 0:
+    if n_recv > 0:
         if p.lik == LIK_PAPER:
-            if acc.n_ok > 0:
+            if n_ok > 0:
                 ll = -0.5 * err * err / p.r_err
             else:
                 ll = -0.5 * p.k_out * p.k_out
         else:
-            ll = acc.ll_points
+            ll = ll_points + float(n_recv - n_ok) * point_loglik(p.lik, p.k_out * p.sigma, p.sigma, p.nu)
     return err, ll
 
 
@@ -133,12 +114,21 @@ def reduce_loglik_kernel(
     """One thread per particle (global index ``row0 + t``): paper error (m), log-likelihood, usable points."""
     t = wp.tid()
     b = (row0 + t) // n_per
-    acc = LikAcc()
+    n_recv = int(0)
+    n_ok = int(0)
+    sum_abs = float(0.0)
+    sum_axes = wp.vec3()
+    last = float(0.0)
+    llp = float(0.0)
     for j in range(residual.shape[1]):
         row = cloud[b, j]
+        res = residual[t, j]
         if row[7] != 0.0:
-            acc = acc_add(acc, params, residual[t, j], axis_weights(row))
-    err, ll = acc_finish(acc, params)
+            n_recv += 1
+            if not wp.isnan(res):
+                n_ok, sum_abs, sum_axes, last, llp = acc_add(n_ok, sum_abs, sum_axes, last, llp, params, res,
+                                                             axis_weights(row))
+    err, ll = acc_finish(n_recv, n_ok, sum_abs, sum_axes, last, llp, params)
     err_out[t] = err
     loglik_out[t] = ll
-    n_valid_out[t] = acc.n_ok
+    n_valid_out[t] = n_ok

@@ -14,7 +14,7 @@ Particle i belongs to filter ``b = i // n_per`` of a batch and reads that filter
 import warp as wp
 
 from warptan.kernels.frames import quat_to_mat_wxyz
-from warptan.kernels.likelihood import LikAcc, LikParams, acc_add, acc_finish, cloud_row
+from warptan.kernels.likelihood import LikParams, acc_add, acc_finish, cloud_row
 from warptan.kernels.terrain import HeightGrid, grid_height
 
 wp.set_module_options({"enable_backward": False})
@@ -40,22 +40,30 @@ def sliding_loglik_kernel(
     b = (row0 + t) // n_per
     mat = quat_to_mat_wxyz(quat_nb[t])
     p = pos_n[t]
-    acc = LikAcc()
+    ones = wp.vec3(1.0, 1.0, 1.0)
+    n_recv = int(0)
+    n_ok = int(0)
+    sum_abs = float(0.0)
+    sum_axes = wp.vec3()
+    last = float(0.0)
+    llp = float(0.0)
     for j in range(cloud.shape[1]):
         row = cloud[b, j]
         res = float(wp.nan)
         if row[7] != 0.0:
+            n_recv += 1
             c = wp.vec3(row[0], row[1], row[2])
             w = p + mat * c
             h = grid_height(grid, surface, w[0], w[1])
             c_hat = wp.transpose(mat) * (wp.vec3(w[0], w[1], -h) - p)
             res = c[2] - c_hat[2]
-            acc = acc_add(acc, params, res, wp.vec3(1.0, 1.0, 1.0))
+            if not wp.isnan(res):
+                n_ok, sum_abs, sum_axes, last, llp = acc_add(n_ok, sum_abs, sum_axes, last, llp, params, res, ones)
         residual_out[t, j] = res
-    err, ll = acc_finish(acc, params)
+    err, ll = acc_finish(n_recv, n_ok, sum_abs, sum_axes, last, llp, params)
     err_out[t] = err
     loglik_out[t] = ll
-    n_valid_out[t] = acc.n_ok
+    n_valid_out[t] = n_ok
 
 
 @wp.kernel
@@ -80,19 +88,27 @@ def altimeter_loglik_kernel(
     b = i // n_per
     r = reading[b]
     p = pos_n[i]
-    acc = LikAcc()
+    n_recv = int(0)
+    n_ok = int(0)
+    sum_abs = float(0.0)
+    sum_axes = wp.vec3()
+    last = float(0.0)
+    llp = float(0.0)
     res = float(wp.nan)
     if r[2] != 0.0:
+        n_recv = 1
         alt = r[1]
         if use_baro == 0:
             alt = -p[2]
         res = r[0] - (alt - grid_height(grid, surface, p[0], p[1]))
-        acc = acc_add(acc, params, res, wp.vec3(1.0, 1.0, 1.0))
+        if not wp.isnan(res):
+            n_ok, sum_abs, sum_axes, last, llp = acc_add(n_ok, sum_abs, sum_axes, last, llp, params, res,
+                                                         wp.vec3(1.0, 1.0, 1.0))
     residual_out[i, 0] = res
-    err, ll = acc_finish(acc, params)
+    err, ll = acc_finish(n_recv, n_ok, sum_abs, sum_axes, last, llp, params)
     if use_baro != 0 and r[2] != 0.0:
         d = r[1] + p[2]
         ll = ll - 0.5 * d * d * r[3]
     err_out[i] = err
     loglik_out[i] = ll
-    n_valid_out[i] = acc.n_ok
+    n_valid_out[i] = n_ok
