@@ -123,7 +123,7 @@ def main(argv=None) -> int:
                             r = bench(terrain, model, n, m_side, device, args.repeats, args.warmup, graph=modes[g],
                                       batch=b)
                             rows.append(r)
-                            print(f"{r['device']:7s} {model:9s} {str(r['graph']):5s} {b:>4d} {n:>7d} {r['M']:>5d} "
+                            print(f"{r['device']:7s} {model:9s} {r['graph']!s:5s} {b:>4d} {n:>7d} {r['M']:>5d} "
                                   f"{r['predict_ms']:11.3f} {r['update_ms']:10.3f} {r['step_ms']:9.3f} "
                                   f"{r['filter_steps_per_s']:15.0f}")
     if args.json_out:
