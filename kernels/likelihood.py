@@ -61,6 +61,12 @@ def point_loglik(lik: int, res: float, sigma: float, nu: float) -> float:
 
 
 @wp.func
+def acc_init():
+    """Empty running sums: received points, valid predictions, Σ|r|, Σ|r| |d|, last r, Σ point log-densities."""
+    return int(0), int(0), float(0.0), wp.vec3(), float(0.0), float(0.0)
+
+
+@wp.func
 def acc_add(n_ok: int, sum_abs: float, sum_axes: wp.vec3, last: float, ll_points: float, p: LikParams, res: float,
             axis_w: wp.vec3):
     """Running sums over the valid predictions of one particle: add one residual (m, finite)."""
@@ -114,12 +120,7 @@ def reduce_loglik_kernel(
     """One thread per particle (global index ``row0 + t``): paper error (m), log-likelihood, usable points."""
     t = wp.tid()
     b = (row0 + t) // n_per
-    n_recv = int(0)
-    n_ok = int(0)
-    sum_abs = float(0.0)
-    sum_axes = wp.vec3()
-    last = float(0.0)
-    llp = float(0.0)
+    n_recv, n_ok, sum_abs, sum_axes, last, llp = acc_init()
     for j in range(residual.shape[1]):
         row = cloud[b, j]
         res = residual[t, j]

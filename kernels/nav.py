@@ -76,6 +76,20 @@ def apply_l(x1: wp.mat33d, x2: wp.mat33d, x3: wp.mat33d, x4: wp.mat33d, a: wp.ma
     return x1 + a * x2 + b * x3, e * x2 + j * x4
 
 
+@wp.func
+def block_of(k: int, m0: wp.mat33d, m1: wp.mat33d, m2: wp.mat33d, m3: wp.mat33d, m4: wp.mat33d) -> wp.mat33d:
+    """The k-th of five blocks (a block column held in locals)."""
+    if k == 1:
+        return m1
+    if k == 2:
+        return m2
+    if k == 3:
+        return m3
+    if k == 4:
+        return m4
+    return m0
+
+
 @wp.kernel
 def nav_interval_kernel(
     row0: int,
@@ -163,22 +177,9 @@ def nav_interval_kernel(
             cov[b, r, 1] = wp.transpose(y1)
         # - L N Lᵀ + Q^l, symmetrised
         for r in range(4):
-            gr = g0
-            if r == 1:
-                gr = g1
-            elif r == 2:
-                gr = g2
-            elif r == 3:
-                gr = g3
+            gn = block_of(r + 1, eye, g0, g1, g2, g3) * nk
             for c in range(4):
-                gc = g0
-                if c == 1:
-                    gc = g1
-                elif c == 2:
-                    gc = g2
-                elif c == 3:
-                    gc = g3
-                cov[b, r, c] = cov[b, r, c] - gr * nk * wp.transpose(gc)
+                cov[b, r, c] = cov[b, r, c] - gn * wp.transpose(block_of(c + 1, eye, g0, g1, g2, g3))
             cov[b, r, r] = cov[b, r, r] + q_lin[r] * eye
         for r in range(4):
             cov[b, r, r] = sym_d(cov[b, r, r])
@@ -205,27 +206,9 @@ def nav_interval_kernel(
             noise[b, r, 1] = wp.transpose(y1)
             noise[b, r, 2] = wp.transpose(y2)
         for r in range(5):
-            gr = eye
-            if r == 1:
-                gr = g0
-            elif r == 2:
-                gr = g1
-            elif r == 3:
-                gr = g2
-            elif r == 4:
-                gr = g3
-            gn = gr * nk
+            gn = block_of(r, eye, g0, g1, g2, g3) * nk
             for c in range(5):
-                gc = eye
-                if c == 1:
-                    gc = g0
-                elif c == 2:
-                    gc = g1
-                elif c == 3:
-                    gc = g2
-                elif c == 4:
-                    gc = g3
-                noise[b, r, c] = noise[b, r, c] + gn * wp.transpose(gc)
+                noise[b, r, c] = noise[b, r, c] + gn * wp.transpose(block_of(c, eye, g0, g1, g2, g3))
         # ---- mechanization (warptan.ins._step_inplace)
         an = rot * acc + wp.vec3d(wp.float64(0.0), wp.float64(0.0), wp.float64(GRAVITY_D))
         p = p + v * dt + half * dt * dt * an

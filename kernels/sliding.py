@@ -14,7 +14,7 @@ Particle i belongs to filter ``b = i // n_per`` of a batch and reads that filter
 import warp as wp
 
 from warptan.kernels.frames import quat_to_mat_wxyz
-from warptan.kernels.likelihood import LikParams, acc_add, acc_finish, cloud_row
+from warptan.kernels.likelihood import LikParams, acc_add, acc_finish, acc_init, cloud_row
 from warptan.kernels.terrain import HeightGrid, grid_height
 
 wp.set_module_options({"enable_backward": False})
@@ -41,12 +41,7 @@ def sliding_loglik_kernel(
     mat = quat_to_mat_wxyz(quat_nb[t])
     p = pos_n[t]
     ones = wp.vec3(1.0, 1.0, 1.0)
-    n_recv = int(0)
-    n_ok = int(0)
-    sum_abs = float(0.0)
-    sum_axes = wp.vec3()
-    last = float(0.0)
-    llp = float(0.0)
+    n_recv, n_ok, sum_abs, sum_axes, last, llp = acc_init()
     for j in range(cloud.shape[1]):
         row = cloud[b, j]
         res = float(wp.nan)
@@ -88,12 +83,7 @@ def altimeter_loglik_kernel(
     b = i // n_per
     r = reading[b]
     p = pos_n[i]
-    n_recv = int(0)
-    n_ok = int(0)
-    sum_abs = float(0.0)
-    sum_axes = wp.vec3()
-    last = float(0.0)
-    llp = float(0.0)
+    n_recv, n_ok, sum_abs, sum_axes, last, llp = acc_init()
     res = float(wp.nan)
     if r[2] != 0.0:
         n_recv = 1

@@ -8,7 +8,7 @@ stays NaN. Noise comes from a ``numpy.random.Generator`` the caller passes (expl
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 import warp as wp
@@ -99,7 +99,6 @@ class PointCloud:
 
     dirs_s: np.ndarray
     ranges_m: np.ndarray
-    _device: dict = field(default_factory=dict, repr=False)
 
     def __post_init__(self):
         self.dirs_s = np.asarray(self.dirs_s, dtype=np.float64)
@@ -134,21 +133,6 @@ class PointCloud:
     def points_s(self) -> np.ndarray:
         """(M, 3) points ``c_j = r_j d_j`` in m (NaN rows invalid)."""
         return self.ranges_m[:, None] * self.dirs_s
-
-    def on_device(self, device) -> dict[str, wp.array]:
-        """Device copies (cached): dirs (vec3), ranges (float32, NaN invalid), points (vec3), point_ok
-        (int32), axis_w (vec3 = |d_j| per axis, the weights of the paper's per-axis error)."""
-        key = str(device)
-        if key not in self._device:
-            ok = self.valid
-            self._device[key] = {
-                "dirs": wp.array(self.dirs_s.astype(np.float32), dtype=wp.vec3, device=device),
-                "ranges": wp.array(self.ranges_m.astype(np.float32), dtype=wp.float32, device=device),
-                "points": wp.array(self.points_s.astype(np.float32), dtype=wp.vec3, device=device),
-                "point_ok": wp.array(ok.astype(np.int32), dtype=wp.int32, device=device),
-                "axis_w": wp.array(np.abs(self.dirs_s).astype(np.float32), dtype=wp.vec3, device=device),
-            }
-        return self._device[key]
 
 
 class PointCloudSensor:
