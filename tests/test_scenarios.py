@@ -131,7 +131,7 @@ def test_warptan_run_batch_equals_one_by_one(tmp_path):
         out = tmp_path / ("batch" if flag else "single")
         proc = subprocess.run([sys.executable, "-m", "warptan.cli", "run", "S7", "--seeds", "3", *flag, "--terrain",
                                SMALL, "--duration-s", "4", "--particles", "200", "--no-plots", "--quiet", "--out",
-                               str(out)], capture_output=True, text=True, timeout=600)
+                               str(out)], capture_output=True, text=True, timeout=600, cwd=tmp_path)
         assert proc.returncode == 0, proc.stderr
         runs = json.loads((out / "results.json").read_text())["runs"]
         rmse[bool(flag)] = [r["rmse_m"] for r in runs]
