@@ -6,6 +6,7 @@ Writes into --out: results.json / results.md / plots (as ``warptan run``), ``no_
 runs), and ``claims.md`` + ``claims.json`` (each claim: holds or not, with the numbers behind it).
 
     python scripts/reproduce_paper.py --seeds 10 --device cpu --out paper-results
+    python scripts/reproduce_paper.py --seeds 10 --batch --out paper-results   # the seeds of a scenario batched
 """
 
 from __future__ import annotations
@@ -20,7 +21,7 @@ import numpy as np
 
 import warptan as wt
 from warptan.report import ci95, write_outputs
-from warptan.scenarios import SCENARIO_IDS, prepare, run_scenario
+from warptan.scenarios import SCENARIO_IDS, prepare, run_scenario, run_scenario_batch
 
 
 def horiz(agg, sid, key="rmse_mean_m"):
@@ -99,6 +100,7 @@ def main(argv=None) -> int:
     parser.add_argument("--paper-rates", action="store_true")
     parser.add_argument("--no-baro-runs", action="store_true", help="skip the altitude-observability runs")
     parser.add_argument("--no-plots", action="store_true")
+    parser.add_argument("--batch", action="store_true", help="run the seeds of a scenario as one batched filter")
     args = parser.parse_args(argv)
     wt.device.quiet_warp()
     overrides = {"particles": args.particles, "duration_s": args.duration_s, "paper_rates": args.paper_rates}
@@ -112,17 +114,23 @@ def main(argv=None) -> int:
     from tqdm import tqdm
 
     t0 = time.perf_counter()
-    jobs = [(sid, s, {}) for sid in args.scenarios for s in range(args.seeds)]
+    seeds = list(range(args.seeds))
+    groups = [(sid, seeds if args.batch else [s], {}) for sid in args.scenarios for s in ([0] if args.batch else seeds)]
     if not args.no_baro_runs:
-        jobs += [(sid, s, {"use_baro": False}) for sid in ("S8", "S9") for s in range(args.seeds)]
+        groups += [(sid, seeds if args.batch else [s], {"use_baro": False}) for sid in ("S8", "S9")
+                   for s in ([0] if args.batch else seeds)]
     results, no_baro, terrains = [], {}, {}
-    for sid, seed, extra in tqdm(jobs, unit="run", dynamic_ncols=True):
-        r = run_scenario(sid, seed=seed, device=args.device, terrain=args.terrain, **overrides, **extra)
-        terrains[r.scenario] = r.truth_terrain
-        if extra:
-            no_baro.setdefault(sid, []).append(r)
+    for sid, group, extra in tqdm(groups, unit="batch" if args.batch else "run", dynamic_ncols=True):
+        if args.batch:
+            runs = run_scenario_batch(sid, group, device=args.device, terrain=args.terrain, **overrides, **extra)
         else:
-            results.append(r)
+            runs = [run_scenario(sid, seed=group[0], device=args.device, terrain=args.terrain, **overrides, **extra)]
+        for r in runs:
+            terrains[r.scenario] = r.truth_terrain
+            if extra:
+                no_baro.setdefault(sid, []).append(r)
+            else:
+                results.append(r)
     out = Path(args.out)
     written = write_outputs(results, out, terrains, plots=not args.no_plots)
     if no_baro:
