@@ -273,3 +273,22 @@ def test_graph_replay_equals_eager(device, rugged, model_name):
         assert eager.resampled.any()
         np.testing.assert_array_equal(eager.est_pos, replay.est_pos)
         np.testing.assert_array_equal(eager.ess, replay.ess)
+
+
+def test_rejected_measurement_loses_nothing(rugged):
+    """A measurement the model rejects raises before the filter moves: the buffered IMU samples, the nominal
+    INS and the particles are as if it had never been offered."""
+    truth = Trajectory.build([Straight(1.0)], 100.0, [0, 0, -(rugged.h_max + 600.0)])
+    runs = []
+    for offer_bad in (False, True):
+        mpf = MarginalizedParticleFilter(wt.SlidingModel(rugged), truth.state(0), "navigation", 100.0, [30, 30, 10],
+                                         np.eye(12) * 1e-4, n_particles=200, seed=4)
+        for k in range(10):
+            mpf.predict(truth.f_b[k], truth.w_b[k])
+        if offer_bad:
+            with pytest.raises(ValueError, match="sliding model needs a PointCloud"):
+                mpf.update(wt.AltimeterReading(500.0, 1000.0))
+            assert mpf.n_updates == 0
+        runs.append(mpf.estimate())
+    np.testing.assert_array_equal(runs[0].nav.pos_n, runs[1].nav.pos_n)
+    np.testing.assert_array_equal(runs[0].cov_pos, runs[1].cov_pos)

@@ -257,6 +257,7 @@ class SlidingModel(_PointCloudModel):
 class AltimeterModel(MeasurementModel):
     """Radar altimeter with barometric altitude: ``a^_i = h_baro - h(p_i)`` (paper eq. 8, 17).
 
+    It takes :class:`~warptan.sensors.AltimeterReading` measurements; particle attitudes are not used.
     With a barometer the altimeter residual does not depend on a particle's altitude, so the barometer is
     also used as what it is, a measurement of altitude: each particle's log-likelihood gets
     ``-0.5 (h_baro + p_i,z)² / baro_sigma_m²`` (without it the vertical error would be unobservable).
@@ -304,10 +305,6 @@ class AltimeterModel(MeasurementModel):
                   inputs=[self.n_per, self.terrain.grid(device), int(self.surface), int(self.use_baro), pos_n,
                           self._staged, self._params],
                   outputs=[out.residual_m, out.error_m, out.loglik, out.n_valid], device=device)
-
-    def evaluate(self, pos_n: wp.array, quat_nb: wp.array, reading) -> ModelOutput:
-        """Log-likelihood of the altimeter ``reading`` (or B readings) for each particle (attitudes are unused)."""
-        return super().evaluate(pos_n, quat_nb, reading)
 
 
 MODELS = {"raycast": RaycastModel, "sliding": SlidingModel, "altimeter": AltimeterModel}

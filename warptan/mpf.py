@@ -196,6 +196,8 @@ class MarginalizedParticleFilter:
         self.graph = self.device.is_cuda if graph is None else bool(graph)
         self.n_imu_steps = 0
         self.n_updates = 0
+        self.last_n_received = np.zeros(b, dtype=np.int64)
+        """Valid received points per filter in the last update."""
         self._k = 0
         self._chol_p0 = wp.mat33(*np.linalg.cholesky(self.p0_pos + 1e-12 * np.eye(3)).ravel())
         # ---- host (CPU, float64): nominal INS, P, the interval's Φ and chol(S)
@@ -203,10 +205,11 @@ class MarginalizedParticleFilter:
         pinned = self.device.is_cuda
         self._cpu = cpu
 
-        def host(shape, dtype, data=None):
+        def host(shape, dtype, data=None, upload=False):
+            """A host array; pinned when it is copied to a CUDA device every update."""
             if data is not None:
-                return wp.array(data, dtype=dtype, device=cpu, pinned=pinned)
-            return wp.zeros(shape, dtype=dtype, device=cpu, pinned=pinned)
+                return wp.array(data, dtype=dtype, device=cpu, pinned=pinned and upload)
+            return wp.zeros(shape, dtype=dtype, device=cpu, pinned=pinned and upload)
 
         self._nav = {
             "pos": host(b, wp.vec3d, np.array([x.pos_n for x in nominals])),
@@ -216,14 +219,13 @@ class MarginalizedParticleFilter:
             "bg": host(b, wp.vec3d, np.array([x.gyro_bias for x in nominals])),
             "cov": host((b, 4, 4), wp.mat33d, _to_blocks(np.broadcast_to(p0, (b, 12, 12)), 4)),
         }
-        self._scratch = [wp.zeros((b, 5, 5), dtype=wp.mat33d, device=cpu), wp.zeros((b, 5, 5), dtype=wp.mat33d,
-                         device=cpu), wp.zeros((b, 15, 15), dtype=wp.float64, device=cpu)]
+        self._scratch = [host((b, 5, 5), wp.mat33d), host((b, 5, 5), wp.mat33d), host((b, 15, 15), wp.float64)]
         self._f = host((b, MAX_STEPS_PER_INTERVAL), wp.vec3d)
         self._w = host((b, MAX_STEPS_PER_INTERVAL), wp.vec3d)
         self._f_np, self._w_np = self._f.numpy(), self._w.numpy()
-        self._interval = {"phi": host((b, 5, 5), wp.mat33), "chol": host((b, 5, 5), wp.mat33),
-                          "pose": host((b, 7), wp.float64), "seeds": host(b, wp.int32),
-                          "resample_seeds": host(b, wp.int32)}
+        self._interval = {"phi": host((b, 5, 5), wp.mat33, upload=True), "chol": host((b, 5, 5), wp.mat33, upload=True),
+                          "pose": host((b, 7), wp.float64, upload=True), "seeds": host(b, wp.int32, upload=True),
+                          "resample_seeds": host(b, wp.int32, upload=True)}
         self._interval["pose"].numpy()[:] = np.array([np.r_[x.pos_n, x.quat_nb] for x in nominals])
         d = self.device
         self._dev = self._interval if d.is_cpu else {k: wp.empty_like(v, device=d) for k, v in self._interval.items()}
@@ -348,18 +350,20 @@ class MarginalizedParticleFilter:
                   outputs=[self._history], device=d)
         wp.launch(kmpf.advance_slot_kernel, dim=1, inputs=[self._slot], device=d)
 
-    def _device_update(self, out, skip_resample: bool = False) -> None:
+    def _device_update(self, out, read_flags: bool = False) -> None:
+        """The device part of an update. ``read_flags``: read the resample / re-spread flags on the host and skip
+        the resampling kernels when no filter needs them (free on the CPU, which runs launches in order)."""
         self._launch_time_update()
         self._launch_poses()
         self.model.launch(self._pos, self._quat)
         self._launch_weights(out)
-        if not skip_resample:
+        if not read_flags or self._stats.numpy()[:, kmpf.ST_RESPREAD:kmpf.ST_RESAMPLE + 1].any():
             self._launch_resample()
         self._launch_record()
 
     def update(self, measurement, sync: bool = True):
         """Weight the particles by ``measurement`` (a list of B for a batch; taken at the current nominal time)
-        and resample / re-spread where needed.
+        and resample / re-spread where needed. A measurement the model rejects raises before anything moves.
 
         Returns:
             :class:`UpdateInfo` (a list of B for a batch); with ``sync=False`` nothing (no host sync: the
@@ -367,18 +371,20 @@ class MarginalizedParticleFilter:
         """
         if self.batched and not (isinstance(measurement, (list, tuple)) and len(measurement) == self.n_filters):
             raise ValueError(f"a batch of {self.n_filters} filters needs a list of {self.n_filters} measurements")
+        out = self.model.stage(measurement, self._pos, self._quat)  # validates first: a bad one loses nothing
         self._ensure_history()
         self._host_interval()
-        out = self.model.stage(measurement, self._pos, self._quat)
         self.last_n_received = np.array(out.n_received)
         self.n_updates += 1
-        if self.graph:
-            key = (id(out), id(getattr(self.model, "_staged", None)), id(self._history))
-            if self._graph is None or key != self._graph_key:
-                if self._graph_key is None:  # the first update runs eagerly: modules load, buffers settle
-                    self._graph_key = ()
-                    self._device_update(out)
-                    return self._info(out) if sync else None
+        if not self.graph:
+            self._device_update(out, read_flags=self.device.is_cpu)
+            return self._info(out) if sync else None
+        key = (id(out), id(getattr(self.model, "_staged", None)), id(self._history))
+        if self._graph_key is None:  # the first update runs eagerly: modules load, buffers settle
+            self._graph_key = ()
+            self._device_update(out)
+        else:
+            if key != self._graph_key:  # (re)capture when a buffer the graph holds was replaced
                 wp.capture_begin(device=self.device)
                 try:
                     self._device_update(out)
@@ -386,18 +392,6 @@ class MarginalizedParticleFilter:
                     self._graph = wp.capture_end(device=self.device)
                 self._graph_key = key
             wp.capture_launch(self._graph)
-        elif self.device.is_cpu:
-            # The CPU runs launches in order: the flags can be read for free and idle kernels skipped.
-            self._launch_time_update()
-            self._launch_poses()
-            self.model.launch(self._pos, self._quat)
-            self._launch_weights(out)
-            flags = self._stats.numpy()[:, kmpf.ST_RESPREAD:kmpf.ST_RESAMPLE + 1]
-            if flags.any():
-                self._launch_resample()
-            self._launch_record()
-        else:
-            self._device_update(out)
         return self._info(out) if sync else None
 
     def _info(self, out):
