@@ -25,23 +25,76 @@ vec10d = wp.types.vector(length=10, dtype=wp.float64)
 
 N_CHUNKS = wp.constant(64)
 """Partial sums per filter in the weight reductions (threads of their first stage, per filter)."""
+N_CHUNK_SUMS = wp.constant(12)
+"""Values per chunk of the weight reductions: Σe, Σe², Σe dp (3), Σe dp∘dp (3), Σe (xy, xz, yz), Σe nis."""
 N_MOMENT_CHUNKS = wp.constant(16)
 """Partial sums per filter of the moments of the estimate."""
 N_MOMENTS = wp.constant(1 + 3 + 9 + 12 + 144)
 """Moments reduced for the estimate: Σw, Σw dp, Σw dp dpᵀ, Σw l, Σw l lᵀ."""
-N_STATS = wp.constant(12)
-"""Per-filter statistics of an update (columns of ``stats``, ``ST_*``)."""
-ST_ESS = wp.constant(0)
+N_TEMPER = wp.constant(20)
+"""Candidate exponents of a tempering stage: ``γ_k = remaining · TEMPER_RATIO^k``."""
+TEMPER_RATIO = wp.constant(0.57434918)  # 2^-0.8: the smallest candidate is 2^-15.2 ≈ 2.7e-5 of the remaining
+
+# ---- per-filter statistics of an update (columns of ``stats``)
+N_STATS = wp.constant(32)
+ST_ESS = wp.constant(0)  # ESS after the last applied stage's weights (before its resampling)
 ST_LOGNORM = wp.constant(1)
-ST_BAD = wp.constant(2)
+ST_BAD = wp.constant(2)  # particles whose log-likelihood was not finite (scored the floor)
 ST_MAX = wp.constant(3)
-ST_UNPREDICTABLE = wp.constant(4)
+ST_UNPREDICTABLE = wp.constant(4)  # particles that could predict no received point
 ST_MEAN_DP = wp.constant(5)  # 3 values: the weighted mean of dp (before resampling)
-ST_RESPREAD = wp.constant(8)
-ST_RESAMPLE = wp.constant(9)
-N_SUMMARY = wp.constant(16)
-"""Per-filter record of an update: ESS, resampled, respread, bad, unpredictable, Σw, mean dp (3),
-covariance of dp (xx, yy, zz, xy, xz, yz), 0."""
+ST_RESPREAD = wp.constant(8)  # the integrity monitor re-spread the filter at the end of this update
+ST_RESAMPLE = wp.constant(9)  # this stage resamples
+ST_CHOL = wp.constant(10)  # 6 values: lower Cholesky factor of the weighted covariance of dp (00 10 11 20 21 22)
+ST_REMAIN = wp.constant(16)  # exponent of the log-likelihood still to apply in this update
+ST_GAMMA = wp.constant(17)  # exponent of this stage
+ST_ACTIVE = wp.constant(18)  # this stage changes the filter
+ST_STAGES = wp.constant(19)  # stages applied in this update
+ST_RESAMPLES = wp.constant(20)  # resamplings in this update
+ST_SKIP = wp.constant(21)  # the update carried no usable information (see temper_select_kernel)
+ST_NIS = wp.constant(22)  # posterior-weighted normalised squared residual
+ST_APPLIED = wp.constant(23)  # total exponent applied
+ST_UNPRED_FRAC = wp.constant(24)  # prior-weighted fraction of the received points the particles cannot predict
+ST_NIS_MIN = wp.constant(25)  # smallest NIS of any particle (the integrity monitor's input)
+
+# ---- persistent integrity state per filter (columns of ``integrity``)
+MAX_WINDOW = wp.constant(64)
+N_INTEGRITY = wp.constant(3 + 64)
+IN_MEAN = wp.constant(0)  # mean smallest NIS over the last ``window`` informative updates
+IN_SINCE = wp.constant(1)  # informative updates since the start or the last re-spread
+IN_RESPREADS = wp.constant(2)  # re-spreads so far
+IN_RING = wp.constant(3)  # MAX_WINDOW values: the last smallest-NIS values (ring, index since % window)
+
+# ---- per-filter record of an update (columns of ``history``)
+N_SUMMARY = wp.constant(21)
+H_ESS = wp.constant(0)  # ESS of the last applied stage (before its resampling)
+H_RESAMPLES = wp.constant(1)  # resamplings in the update
+H_RESPREAD = wp.constant(2)  # 1: the integrity monitor declared the filter lost and re-spread it
+H_BAD = wp.constant(3)  # particles with a non-finite log-likelihood
+H_UNPREDICTABLE = wp.constant(4)  # particles that could predict no received point
+H_SUM_W = wp.constant(5)
+H_MEAN_DP = wp.constant(6)  # 3 values: weighted mean of dp after the update, m
+H_COV_DP = wp.constant(9)  # 6 values: its covariance xx yy zz xy xz yz, m²
+H_STAGES = wp.constant(15)  # tempering stages applied
+H_NIS = wp.constant(16)  # smallest normalised squared residual of any particle (best hypothesis)
+H_NIS_AVG = wp.constant(17)  # its window mean (the integrity statistic)
+H_SKIPPED = wp.constant(18)  # 1: the update carried no usable information and changed nothing
+H_APPLIED = wp.constant(19)  # exponent of the likelihood applied (1 unless skipped or capped)
+H_NIS_POST = wp.constant(20)  # posterior-weighted normalised squared residual
+
+
+@wp.struct
+class UpdateParams:
+    """How a measurement update weights, tempers, resamples and monitors (see :mod:`warptan.mpf`)."""
+
+    resample_threshold: float  # resample when ESS < this · n
+    temper_ess: float  # a tempering stage keeps ESS ≥ this · n (0: one stage with the whole likelihood)
+    bandwidth: float  # regularisation kernel bandwidth h (0: none)
+    max_unpredictable: float  # skip the update when more than this fraction of the predictions is impossible
+    integrity_window: int  # informative updates in the window mean of the posterior NIS (≤ MAX_WINDOW)
+    integrity_threshold: float  # the filter is lost when the window mean exceeds this
+    integrity_min_updates: int  # informative updates (since the start / a re-spread) before it may be declared lost
+    respread_chol: wp.mat33  # Cholesky factor of the re-spread covariance of dp, m
 
 
 @wp.func
@@ -148,32 +201,173 @@ def particle_poses_kernel(
 
 
 @wp.kernel
+def begin_update_kernel(stats: wp.array2d(dtype=wp.float64)):
+    """One thread per filter: the whole log-likelihood (exponent 1) is still to apply; counters reset."""
+    b = wp.tid()
+    for k in range(N_STATS):
+        stats[b, k] = wp.float64(0.0)
+    stats[b, ST_REMAIN] = wp.float64(1.0)
+
+
+@wp.func
+def stage_loglik(ll: float, floor: float) -> float:
+    """A particle's log-likelihood, the filter's floor when it is not finite."""
+    if wp.isfinite(ll):
+        return ll
+    return floor
+
+
+@wp.kernel
+def temper_partials_kernel(
+    n_per: int,
+    stage: int,
+    loglik: wp.array(dtype=wp.float32),
+    n_valid: wp.array(dtype=wp.int32),
+    meta: wp.array2d(dtype=wp.float32),
+    logw: wp.array(dtype=wp.float32),
+    stats: wp.array2d(dtype=wp.float64),
+    partial_out: wp.array4d(dtype=wp.float64),
+    unpred_out: wp.array2d(dtype=wp.float64),
+):
+    """Filter b, chunk c, for each candidate exponent ``γ_k``: streaming log-sum-exp partials ``[max, Σe, Σe²]`` of
+    ``logw_i + γ_k loglik_i`` (rescaled to the running maximum), and at stage 0 the weighted fraction of the
+    received points the particles cannot predict."""
+    b, c = wp.tid()
+    rem = stats[b, ST_REMAIN]
+    if stage > 0 and rem <= wp.float64(0.0):
+        return
+    lo, hi = chunk_range(c, n_per)
+    floor = meta[b, 1]
+    n_recv = wp.float64(meta[b, 0])
+    unpred = wp.float64(0.0)
+    if stage == 0 and n_recv > wp.float64(0.0):
+        for k in range(lo, hi):
+            i = b * n_per + k
+            unpred += wp.float64(wp.exp(logw[i])) * (wp.float64(1.0) - wp.float64(n_valid[i]) / n_recv)
+    unpred_out[b, c] = unpred
+    gamma = rem
+    for g in range(N_TEMPER):
+        m = wp.float64(-1.0e300)
+        s1 = wp.float64(0.0)
+        s2 = wp.float64(0.0)
+        for k in range(lo, hi):
+            i = b * n_per + k
+            x = wp.float64(logw[i]) + gamma * wp.float64(stage_loglik(loglik[i], floor))
+            if x > m:
+                scale = wp.exp(m - x)
+                s1 = s1 * scale + wp.float64(1.0)
+                s2 = s2 * scale * scale + wp.float64(1.0)
+                m = x
+            else:
+                e = wp.exp(x - m)
+                s1 += e
+                s2 += e * e
+        partial_out[b, c, g, 0] = m
+        partial_out[b, c, g, 1] = s1
+        partial_out[b, c, g, 2] = s2
+        gamma = gamma * wp.float64(TEMPER_RATIO)
+
+
+@wp.kernel
+def temper_select_kernel(
+    n_per: int,
+    stage: int,
+    last_stage: int,
+    params: UpdateParams,
+    meta: wp.array2d(dtype=wp.float32),
+    partial_in: wp.array4d(dtype=wp.float64),
+    unpred_in: wp.array2d(dtype=wp.float64),
+    stats: wp.array2d(dtype=wp.float64),
+):
+    """One thread per filter: this stage's exponent, the largest candidate that keeps ESS ≥ ``temper_ess · n``
+    (the smallest candidate when none does; all that remains when ``temper_ess`` is 0). At stage 0 an update
+    with no valid received point, or one whose predictions are mostly impossible (``max_unpredictable``: the
+    map does not cover the scan), is skipped: exponent 0. At the last stage what remains is dropped (the
+    update is then softer than the likelihood, never sharper)."""
+    b = wp.tid()
+    rem = stats[b, ST_REMAIN]
+    stats[b, ST_RESAMPLE] = wp.float64(0.0)
+    stats[b, ST_GAMMA] = wp.float64(0.0)
+    active = stage == 0 or rem > wp.float64(0.0)
+    stats[b, ST_ACTIVE] = wp.float64(0.0)
+    if not active:
+        return
+    stats[b, ST_ACTIVE] = wp.float64(1.0)
+    if stage == 0:
+        frac = wp.float64(0.0)
+        for c in range(N_CHUNKS):
+            frac += unpred_in[b, c]
+        stats[b, ST_UNPRED_FRAC] = frac
+        if meta[b, 0] <= 0.0 or frac > wp.float64(params.max_unpredictable):
+            stats[b, ST_SKIP] = wp.float64(1.0)
+            stats[b, ST_REMAIN] = wp.float64(0.0)
+            return
+    gamma = rem
+    if params.temper_ess > 0.0:
+        target = wp.float64(params.temper_ess) * wp.float64(n_per)
+        cand = rem
+        found = int(0)
+        for g in range(N_TEMPER):
+            if found == 0:
+                big = partial_in[b, 0, g, 0]
+                for c in range(N_CHUNKS):
+                    big = wp.max(big, partial_in[b, c, g, 0])
+                s1 = wp.float64(0.0)
+                s2 = wp.float64(0.0)
+                for c in range(N_CHUNKS):
+                    scale = wp.exp(partial_in[b, c, g, 0] - big)
+                    s1 += partial_in[b, c, g, 1] * scale
+                    s2 += partial_in[b, c, g, 2] * scale * scale
+                gamma = cand
+                if s1 * s1 >= target * s2:
+                    found = 1
+                cand = cand * wp.float64(TEMPER_RATIO)
+    left = rem - gamma
+    if gamma >= rem or last_stage != 0:
+        left = wp.float64(0.0)
+    stats[b, ST_GAMMA] = gamma
+    stats[b, ST_REMAIN] = left
+    stats[b, ST_APPLIED] = stats[b, ST_APPLIED] + gamma
+    stats[b, ST_STAGES] = stats[b, ST_STAGES] + wp.float64(1.0)
+
+
+@wp.kernel
 def add_loglik_partials_kernel(
     n_per: int,
     loglik: wp.array(dtype=wp.float32),
     n_valid: wp.array(dtype=wp.int32),
     meta: wp.array2d(dtype=wp.float32),
+    stats: wp.array2d(dtype=wp.float64),
+    nis: wp.array(dtype=wp.float32),
     logw: wp.array(dtype=wp.float32),
     max_out: wp.array2d(dtype=wp.float32),
     counts_out: wp.array3d(dtype=wp.int32),
+    min_nis_out: wp.array2d(dtype=wp.float32),
 ):
-    """Stage 1 of the weight update, filter b, chunk c: ``logw_i += loglik_i`` (a non-finite loglik counts as
-    bad and scores the filter's floor ``meta[b, 1]``), partial maximum, and the chunk's counts [bad logliks,
-    particles with no valid point]."""
+    """Filter b (active in this stage), chunk c: ``logw_i += γ loglik_i`` (a non-finite loglik counts as bad
+    and scores the filter's floor ``meta[b, 1]``), partial maximum, the chunk's counts [bad logliks,
+    particles with no valid point] and its smallest NIS."""
     b, c = wp.tid()
+    if stats[b, ST_ACTIVE] == wp.float64(0.0):
+        return
+    gamma = wp.float32(stats[b, ST_GAMMA])
     lo, hi = chunk_range(c, n_per)
     best = float(-1.0e38)
+    least = float(1.0e38)
     bad = int(0)
     unpredictable = int(0)
     for k in range(lo, hi):
         i = b * n_per + k
         if n_valid[i] == 0:
             unpredictable += 1
+        z = nis[i]
+        if wp.isfinite(z):
+            least = wp.min(least, z)
         ll = loglik[i]
         if not wp.isfinite(ll):
             ll = meta[b, 1]
             bad += 1
-        lw = logw[i] + ll
+        lw = logw[i] + gamma * ll
         if not wp.isfinite(lw):
             lw = -1.0e30
         logw[i] = lw
@@ -181,23 +375,30 @@ def add_loglik_partials_kernel(
     max_out[b, c] = best
     counts_out[b, c, 0] = bad
     counts_out[b, c, 1] = unpredictable
+    min_nis_out[b, c] = least
 
 
 @wp.kernel
 def max_of_partials_kernel(max_in: wp.array2d(dtype=wp.float32), counts_in: wp.array3d(dtype=wp.int32),
-                           stats_out: wp.array2d(dtype=wp.float64)):
-    """One thread per filter: the maximum log-weight, bad log-likelihoods, unpredictable particles."""
+                           min_nis_in: wp.array2d(dtype=wp.float32), stats: wp.array2d(dtype=wp.float64)):
+    """One thread per active filter: the maximum log-weight, bad log-likelihoods, unpredictable particles, the
+    smallest NIS."""
     b = wp.tid()
+    if stats[b, ST_ACTIVE] == wp.float64(0.0):
+        return
     m = max_in[b, 0]
+    least = min_nis_in[b, 0]
     bad = int(0)
     unpredictable = int(0)
     for k in range(N_CHUNKS):
         m = wp.max(m, max_in[b, k])
+        least = wp.min(least, min_nis_in[b, k])
         bad += counts_in[b, k, 0]
         unpredictable += counts_in[b, k, 1]
-    stats_out[b, ST_BAD] = wp.float64(bad)
-    stats_out[b, ST_UNPREDICTABLE] = wp.float64(unpredictable)
-    stats_out[b, ST_MAX] = wp.float64(m)
+    stats[b, ST_NIS_MIN] = wp.float64(least)
+    stats[b, ST_BAD] = wp.float64(bad)
+    stats[b, ST_UNPREDICTABLE] = wp.float64(unpredictable)
+    stats[b, ST_MAX] = wp.float64(m)
 
 
 @wp.kernel
@@ -205,67 +406,121 @@ def exp_partials_kernel(
     n_per: int,
     logw: wp.array(dtype=wp.float32),
     dp: wp.array(dtype=wp.vec3),
+    nis: wp.array(dtype=wp.float32),
     stats: wp.array2d(dtype=wp.float64),
     sums_out: wp.array3d(dtype=wp.float64),
 ):
-    """Stage 2, filter b, chunk c: partial ``Σ e_i``, ``Σ e_i²`` and ``Σ e_i dp_i`` with ``e_i = exp(lw_i - max)``."""
+    """Active filter b, chunk c, with ``e_i = exp(lw_i - max)``: partial ``Σe``, ``Σe²``, ``Σe dp``, ``Σe dp dpᵀ``
+    and ``Σe nis`` (``N_CHUNK_SUMS`` values)."""
     b, c = wp.tid()
+    if stats[b, ST_ACTIVE] == wp.float64(0.0):
+        return
     lo, hi = chunk_range(c, n_per)
     m = wp.float32(stats[b, ST_MAX])
     s1 = wp.float64(0.0)
     s2 = wp.float64(0.0)
-    sd = wp.vec3d()
+    sz = wp.float64(0.0)
+    m1 = wp.vec3d()
+    m2 = wp.vec3d()
+    m3 = wp.vec3d()
     for k in range(lo, hi):
         i = b * n_per + k
         x = wp.float64(wp.exp(logw[i] - m))
+        d = wp.vec3d(dp[i])
         s1 += x
         s2 += x * x
-        sd += x * wp.vec3d(dp[i])
+        m1 += x * d
+        m2 += x * wp.cw_mul(d, d)
+        m3 += x * wp.vec3d(d[0] * d[1], d[0] * d[2], d[1] * d[2])
+        z = nis[i]
+        if wp.isfinite(z):
+            sz += x * wp.float64(z)
     sums_out[b, c, 0] = s1
     sums_out[b, c, 1] = s2
-    sums_out[b, c, 2] = sd[0]
-    sums_out[b, c, 3] = sd[1]
-    sums_out[b, c, 4] = sd[2]
+    for a in range(3):
+        sums_out[b, c, 2 + a] = m1[a]
+        sums_out[b, c, 5 + a] = m2[a]
+        sums_out[b, c, 8 + a] = m3[a]
+    sums_out[b, c, 11] = sz
+
+
+@wp.func
+def weighted_cov(s: wp.float64, m1: wp.vec3d, m2: wp.vec3d, m3: wp.vec3d) -> wp.mat33d:
+    """Covariance from Σw, Σw d, Σw d∘d, Σw (d0d1, d0d2, d1d2)."""
+    mean = m1 / s
+    xy = m3[0] / s - mean[0] * mean[1]
+    xz = m3[1] / s - mean[0] * mean[2]
+    yz = m3[2] / s - mean[1] * mean[2]
+    return wp.mat33d(m2[0] / s - mean[0] * mean[0], xy, xz,
+                     xy, m2[1] / s - mean[1] * mean[1], yz,
+                     xz, yz, m2[2] / s - mean[2] * mean[2])
+
+
+@wp.func
+def chol3(a: wp.mat33d) -> wp.mat33d:
+    """Lower Cholesky factor of a symmetric 3×3 matrix, semi-definite safe (a non-positive pivot gives a zero
+    column)."""
+    lo = wp.mat33d()
+    for j in range(3):
+        d = a[j, j]
+        for k in range(j):
+            d -= lo[j, k] * lo[j, k]
+        if d > wp.float64(0.0):
+            d = wp.sqrt(d)
+            lo[j, j] = d
+            for i in range(j + 1, 3):
+                s = a[i, j]
+                for k in range(j):
+                    s -= lo[i, k] * lo[j, k]
+                lo[i, j] = s / d
+    return lo
 
 
 @wp.kernel
 def weight_stats_kernel(
     n_per: int,
-    threshold: float,
+    params: UpdateParams,
     sums_in: wp.array3d(dtype=wp.float64),
-    meta: wp.array2d(dtype=wp.float32),
-    stats_out: wp.array2d(dtype=wp.float64),
+    stats: wp.array2d(dtype=wp.float64),
 ):
-    """One thread per filter: ESS = (Σw)²/Σw², log-normaliser, mean dp, and the decisions: re-spread when
-    every particle was unpredictable for a measurement with valid points, else resample when
-    ESS < threshold · n."""
+    """One thread per active filter: ESS = (Σw)²/Σw², log-normaliser, weighted mean and Cholesky factor of the
+    covariance of dp (the regularisation kernel's shape), posterior NIS, and the decision to resample: when
+    ESS < threshold · n, or when exponent remains (between tempering stages)."""
     b = wp.tid()
-    s1 = wp.float64(0.0)
-    s2 = wp.float64(0.0)
-    sd = wp.vec3d()
+    if stats[b, ST_ACTIVE] == wp.float64(0.0):
+        return
+    tot = wp.vector(length=12, dtype=wp.float64)
     for k in range(N_CHUNKS):
-        s1 += sums_in[b, k, 0]
-        s2 += sums_in[b, k, 1]
-        sd += wp.vec3d(sums_in[b, k, 2], sums_in[b, k, 3], sums_in[b, k, 4])
-    ess = s1 * s1 / s2
-    stats_out[b, ST_ESS] = ess
-    stats_out[b, ST_LOGNORM] = stats_out[b, ST_MAX] + wp.log(s1)
+        for a in range(12):
+            tot[a] += sums_in[b, k, a]
+    s1 = tot[0]
+    ess = s1 * s1 / tot[1]
+    stats[b, ST_ESS] = ess
+    stats[b, ST_LOGNORM] = stats[b, ST_MAX] + wp.log(s1)
+    m1 = wp.vec3d(tot[2], tot[3], tot[4])
     for a in range(3):
-        stats_out[b, ST_MEAN_DP + a] = sd[a] / s1
-    respread = meta[b, 0] > 0.0 and stats_out[b, ST_UNPREDICTABLE] == wp.float64(n_per)
-    stats_out[b, ST_RESPREAD] = wp.float64(0.0)
-    stats_out[b, ST_RESAMPLE] = wp.float64(0.0)
-    if respread:
-        stats_out[b, ST_RESPREAD] = wp.float64(1.0)
-    elif ess < wp.float64(threshold) * wp.float64(n_per):
-        stats_out[b, ST_RESAMPLE] = wp.float64(1.0)
+        stats[b, ST_MEAN_DP + a] = m1[a] / s1
+    cov = weighted_cov(s1, m1, wp.vec3d(tot[5], tot[6], tot[7]), wp.vec3d(tot[8], tot[9], tot[10]))
+    lo = chol3(cov + wp.float64(1.0e-6) * wp.identity(n=3, dtype=wp.float64))
+    stats[b, ST_CHOL + 0] = lo[0, 0]
+    stats[b, ST_CHOL + 1] = lo[1, 0]
+    stats[b, ST_CHOL + 2] = lo[1, 1]
+    stats[b, ST_CHOL + 3] = lo[2, 0]
+    stats[b, ST_CHOL + 4] = lo[2, 1]
+    stats[b, ST_CHOL + 5] = lo[2, 2]
+    stats[b, ST_NIS] = tot[11] / s1
+    if ess < wp.float64(params.resample_threshold) * wp.float64(n_per) or stats[b, ST_REMAIN] > wp.float64(0.0):
+        stats[b, ST_RESAMPLE] = wp.float64(1.0)
+        stats[b, ST_RESAMPLES] = stats[b, ST_RESAMPLES] + wp.float64(1.0)
 
 
 @wp.kernel
 def normalize_weights_kernel(n_per: int, stats: wp.array2d(dtype=wp.float64), logw: wp.array(dtype=wp.float32)):
-    """``lw_i -= log-normaliser``: the weights of each filter sum to one."""
+    """``lw_i -= log-normaliser`` in the active filters: the weights of each filter sum to one."""
     i = wp.tid()
-    logw[i] = wp.float32(wp.float64(logw[i]) - stats[i // n_per, ST_LOGNORM])
+    b = i // n_per
+    if stats[b, ST_ACTIVE] != wp.float64(0.0):
+        logw[i] = wp.float32(wp.float64(logw[i]) - stats[b, ST_LOGNORM])
 
 
 @wp.kernel
@@ -315,6 +570,7 @@ def search_cdf(cdf: wp.array(dtype=wp.float32), lo_in: int, hi_in: int, u: float
 @wp.kernel
 def ancestors_kernel(
     n_per: int,
+    stage: int,
     seeds: wp.array(dtype=wp.int32),
     scheme: int,
     stats: wp.array2d(dtype=wp.float64),
@@ -322,7 +578,8 @@ def ancestors_kernel(
     ancestors_out: wp.array(dtype=wp.int32),
 ):
     """Ancestor of slot j of a resampling filter: 0 systematic ``(j + U)/n`` (one U), 1 stratified
-    ``(j + U_j)/n``, 2 multinomial ``U_j``; a filter that does not resample keeps its particles."""
+    ``(j + U_j)/n``, 2 multinomial ``U_j``; a filter that does not resample keeps its particles. Random
+    streams: ``stage · 2n + j``."""
     i = wp.tid()
     b = i // n_per
     j = i % n_per
@@ -330,25 +587,35 @@ def ancestors_kernel(
         ancestors_out[i] = i
         return
     lo = b * n_per
+    base = stage * 2 * n_per
     total = cdf[lo + n_per - 1]
     u = float(0.0)
     if scheme == 0:
-        shared = wp.rand_init(seeds[b], 0)
+        shared = wp.rand_init(seeds[b], base)
         u = (float(j) + wp.randf(shared)) / float(n_per)
     elif scheme == 1:
-        own = wp.rand_init(seeds[b], j)
+        own = wp.rand_init(seeds[b], base + j)
         u = (float(j) + wp.randf(own)) / float(n_per)
     else:
-        own = wp.rand_init(seeds[b], j)
+        own = wp.rand_init(seeds[b], base + j)
         u = wp.randf(own)
     ancestors_out[i] = search_cdf(cdf, lo, lo + n_per, u * total)
+
+
+@wp.func
+def stats_chol(stats: wp.array2d(dtype=wp.float64), b: int) -> wp.mat33:
+    z = wp.float32(0.0)
+    return wp.mat33(wp.float32(stats[b, ST_CHOL]), z, z,
+                    wp.float32(stats[b, ST_CHOL + 1]), wp.float32(stats[b, ST_CHOL + 2]), z,
+                    wp.float32(stats[b, ST_CHOL + 3]), wp.float32(stats[b, ST_CHOL + 4]), wp.float32(stats[b, ST_CHOL + 5]))
 
 
 @wp.kernel
 def gather_kernel(
     n_per: int,
+    stage: int,
     seeds: wp.array(dtype=wp.int32),
-    chol_pos: wp.mat33,
+    params: UpdateParams,
     stats: wp.array2d(dtype=wp.float64),
     ancestors: wp.array(dtype=wp.int32),
     dp_in: wp.array(dtype=wp.vec3),
@@ -358,22 +625,22 @@ def gather_kernel(
     lin_out: wp.array(dtype=vec12),
     logw_out: wp.array(dtype=wp.float32),
 ):
-    """Slot i takes its ancestor (uniform weights) in a resampling filter; a lost filter re-spreads dp around
-    its mean with the prior spread (uniform weights); other filters copy their particles."""
+    """Slot i takes its ancestor in a resampling filter, with uniform weights and the regularisation jitter
+    ``dp += h · chol(Σ̂) · z`` (Σ̂ the weighted covariance of dp before resampling; stream
+    ``stage · 2n + n + j``); the Kalman mean is the ancestor's (see :mod:`warptan.mpf`). Other filters copy."""
     i = wp.tid()
     b = i // n_per
     a = ancestors[i]
-    dp_out[i] = dp_in[a]
-    lin_out[i] = lin_in[a]
-    logw_out[i] = logw_in[a]
+    d = dp_in[a]
+    lw = logw_in[a]
     if stats[b, ST_RESAMPLE] != wp.float64(0.0):
-        logw_out[i] = -wp.log(float(n_per))
-    if stats[b, ST_RESPREAD] != wp.float64(0.0):
-        state = wp.rand_init(seeds[b], i % n_per)
-        centre = wp.vec3(wp.float32(stats[b, ST_MEAN_DP]), wp.float32(stats[b, ST_MEAN_DP + 1]),
-                         wp.float32(stats[b, ST_MEAN_DP + 2]))
-        dp_out[i] = centre + chol_pos * gaussian3(state)
-        logw_out[i] = -wp.log(float(n_per))
+        lw = -wp.log(float(n_per))
+        if params.bandwidth > 0.0:
+            state = wp.rand_init(seeds[b], stage * 2 * n_per + n_per + i % n_per)
+            d = d + params.bandwidth * (stats_chol(stats, b) * gaussian3(state))
+    dp_out[i] = d
+    lin_out[i] = lin_in[a]
+    logw_out[i] = lw
 
 
 @wp.kernel
@@ -387,9 +654,60 @@ def copy_particles_kernel(dp_in: wp.array(dtype=wp.vec3), lin_in: wp.array(dtype
 
 
 @wp.kernel
+def integrity_kernel(params: UpdateParams, stats: wp.array2d(dtype=wp.float64),
+                     integrity: wp.array2d(dtype=wp.float64)):
+    """One thread per filter, after the last stage (MBARI TRN style): the mean over the last ``integrity_window``
+    informative updates of the smallest NIS of any particle — large only when no hypothesis explains the scan,
+    whereas a wide but healthy cloud (acquisition, a flat likelihood) still holds particles that do; above ``integrity_threshold`` (after ``integrity_min_updates``
+    informative updates, so that acquisition is not judged) the filter is lost: flag it for a re-spread and
+    restart the window."""
+    b = wp.tid()
+    if stats[b, ST_SKIP] != wp.float64(0.0):
+        return
+    w = params.integrity_window
+    k = int(integrity[b, IN_SINCE])
+    integrity[b, IN_RING + k % w] = stats[b, ST_NIS_MIN]
+    k += 1
+    count = wp.min(k, w)
+    total = wp.float64(0.0)
+    for j in range(count):
+        total += integrity[b, IN_RING + j]
+    mean = total / wp.float64(count)
+    integrity[b, IN_MEAN] = mean
+    if k >= params.integrity_min_updates and mean > wp.float64(params.integrity_threshold):
+        stats[b, ST_RESPREAD] = wp.float64(1.0)
+        integrity[b, IN_RESPREADS] = integrity[b, IN_RESPREADS] + wp.float64(1.0)
+        k = 0
+    integrity[b, IN_SINCE] = wp.float64(k)
+
+
+@wp.kernel
+def respread_kernel(
+    n_per: int,
+    offset: int,
+    seeds: wp.array(dtype=wp.int32),
+    params: UpdateParams,
+    stats: wp.array2d(dtype=wp.float64),
+    dp: wp.array(dtype=wp.vec3),
+    logw: wp.array(dtype=wp.float32),
+):
+    """A filter flagged lost re-spreads dp around its weighted mean with the re-spread covariance, uniform
+    weights (Kalman means kept); stream ``offset + j``."""
+    i = wp.tid()
+    b = i // n_per
+    if stats[b, ST_RESPREAD] == wp.float64(0.0):
+        return
+    state = wp.rand_init(seeds[b], offset + i % n_per)
+    centre = wp.vec3(wp.float32(stats[b, ST_MEAN_DP]), wp.float32(stats[b, ST_MEAN_DP + 1]),
+                     wp.float32(stats[b, ST_MEAN_DP + 2]))
+    dp[i] = centre + params.respread_chol * gaussian3(state)
+    logw[i] = -wp.log(float(n_per))
+
+
+@wp.kernel
 def summary_partials_kernel(n_per: int, logw: wp.array(dtype=wp.float32), dp: wp.array(dtype=wp.vec3),
                             partial_out: wp.array3d(dtype=wp.float64)):
-    """Filter b, chunk c: Σw, Σw dp (3), Σw dp dpᵀ (xx, yy, zz, xy, xz, yz) after the update."""
+    """Filter b, chunk c: Σw, Σw dp (3), Σw dp∘dp (3), Σw (xy, xz, yz) after the update."""
     b, c = wp.tid()
     lo, hi = chunk_range(c, n_per)
     s = wp.float64(0.0)
@@ -413,8 +731,9 @@ def summary_partials_kernel(n_per: int, logw: wp.array(dtype=wp.float32), dp: wp
 
 @wp.kernel
 def summary_kernel(partial_in: wp.array3d(dtype=wp.float64), stats: wp.array2d(dtype=wp.float64),
-                   slot: wp.array(dtype=wp.int32), history: wp.array3d(dtype=wp.float64)):
-    """One thread per filter: the update's record in ``history[slot[0], b]`` (``N_SUMMARY`` values)."""
+                   integrity: wp.array2d(dtype=wp.float64), slot: wp.array(dtype=wp.int32),
+                   history: wp.array3d(dtype=wp.float64)):
+    """One thread per filter: the update's record in ``history[slot[0], b]`` (``H_*`` columns)."""
     b = wp.tid()
     t = slot[0]
     if t >= history.shape[0]:
@@ -424,20 +743,26 @@ def summary_kernel(partial_in: wp.array3d(dtype=wp.float64), stats: wp.array2d(d
         for a in range(10):
             tot[a] += partial_in[b, c, a]
     s = tot[0]
-    mean = wp.vec3d(tot[1], tot[2], tot[3]) / s
-    history[t, b, 0] = stats[b, ST_ESS]
-    history[t, b, 1] = stats[b, ST_RESAMPLE]
-    history[t, b, 2] = stats[b, ST_RESPREAD]
-    history[t, b, 3] = stats[b, ST_BAD]
-    history[t, b, 4] = stats[b, ST_UNPREDICTABLE]
-    history[t, b, 5] = s
+    cov = weighted_cov(s, wp.vec3d(tot[1], tot[2], tot[3]), wp.vec3d(tot[4], tot[5], tot[6]),
+                       wp.vec3d(tot[7], tot[8], tot[9]))
+    history[t, b, H_ESS] = stats[b, ST_ESS]
+    history[t, b, H_RESAMPLES] = stats[b, ST_RESAMPLES]
+    history[t, b, H_RESPREAD] = stats[b, ST_RESPREAD]
+    history[t, b, H_BAD] = stats[b, ST_BAD]
+    history[t, b, H_UNPREDICTABLE] = stats[b, ST_UNPREDICTABLE]
+    history[t, b, H_SUM_W] = s
     for a in range(3):
-        history[t, b, 6 + a] = mean[a]
-        history[t, b, 9 + a] = tot[4 + a] / s - mean[a] * mean[a]
-    history[t, b, 12] = tot[7] / s - mean[0] * mean[1]
-    history[t, b, 13] = tot[8] / s - mean[0] * mean[2]
-    history[t, b, 14] = tot[9] / s - mean[1] * mean[2]
-    history[t, b, 15] = wp.float64(0.0)
+        history[t, b, H_MEAN_DP + a] = tot[1 + a] / s
+        history[t, b, H_COV_DP + a] = cov[a, a]
+    history[t, b, H_COV_DP + 3] = cov[0, 1]
+    history[t, b, H_COV_DP + 4] = cov[0, 2]
+    history[t, b, H_COV_DP + 5] = cov[1, 2]
+    history[t, b, H_STAGES] = stats[b, ST_STAGES]
+    history[t, b, H_NIS] = stats[b, ST_NIS_MIN]
+    history[t, b, H_NIS_POST] = stats[b, ST_NIS]
+    history[t, b, H_NIS_AVG] = integrity[b, IN_MEAN]
+    history[t, b, H_SKIPPED] = stats[b, ST_SKIP]
+    history[t, b, H_APPLIED] = stats[b, ST_APPLIED]
 
 
 @wp.kernel

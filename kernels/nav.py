@@ -96,6 +96,7 @@ def nav_interval_kernel(
     n_steps: int,
     dt: wp.float64,
     q_pos: wp.float64,
+    q_rough: wp.float64,
     q_lin: wp.vec4d,
     f_b: wp.array2d(dtype=wp.vec3d),
     w_b: wp.array2d(dtype=wp.vec3d),
@@ -115,7 +116,10 @@ def nav_interval_kernel(
     """Thread b: K = ``n_steps`` IMU samples ``f_b[b, k], w_b[b, k]`` of filter ``b = row0 + t``: advances its nominal
     state and ``cov`` (P, 4×4 blocks) in place; writes Φ and the lower Cholesky factor of S (5×5 blocks,
     float32) and the nominal pose ``[p (3), q (4)]`` at the end of the interval.
-    ``q_lin`` = diagonal of Q^l per block (dv, dth, dba, dbg); ``q_pos`` = diagonal of Q^n."""
+    ``q_lin`` = diagonal of Q^l per block (dv, dth, dba, dbg); ``q_pos`` = diagonal of Q^n (the position noise
+    the Kalman part models, in N_k and L_k); ``q_rough`` = per-step variance of the roughening, added to the
+    particles' dp only (``S_dpdp += K q_rough I``: T_k leaves a dp-only noise on dp), so that L_k never reads it
+    as velocity."""
     t = wp.tid()
     b = row0 + t
     zero = wp.mat33d()
@@ -232,6 +236,7 @@ def nav_interval_kernel(
     pos[b] = p
     vel[b] = v
     quat[b] = q
+    noise[b, 0, 0] = noise[b, 0, 0] + wp.float64(n_steps) * q_rough * eye
     # ---- outputs: Φ (float32) and chol(S), scalar Cholesky on a 15×15 scratch (semi-definite safe)
     for r in range(5):
         for c in range(5):

@@ -33,6 +33,7 @@ def sliding_loglik_kernel(
     residual_out: wp.array2d(dtype=wp.float32),
     err_out: wp.array(dtype=wp.float32),
     loglik_out: wp.array(dtype=wp.float32),
+    nis_out: wp.array(dtype=wp.float32),
     n_valid_out: wp.array(dtype=wp.int32),
 ):
     """One thread per particle: residuals ``c_j,z - c^_ij,z`` (m) of the received points, error, log-likelihood."""
@@ -41,7 +42,7 @@ def sliding_loglik_kernel(
     mat = quat_to_mat_wxyz(quat_nb[t])
     p = pos_n[t]
     ones = wp.vec3(1.0, 1.0, 1.0)
-    n_recv, n_ok, sum_abs, sum_axes, last, llp = acc_init()
+    n_recv, n_ok, sum_abs, sum_axes, last, llp, ssq = acc_init()
     for j in range(cloud.shape[1]):
         row = cloud[b, j]
         res = float(wp.nan)
@@ -53,11 +54,13 @@ def sliding_loglik_kernel(
             c_hat = wp.transpose(mat) * (wp.vec3(w[0], w[1], -h) - p)
             res = c[2] - c_hat[2]
             if not wp.isnan(res):
-                n_ok, sum_abs, sum_axes, last, llp = acc_add(n_ok, sum_abs, sum_axes, last, llp, params, res, ones)
+                n_ok, sum_abs, sum_axes, last, llp, ssq = acc_add(n_ok, sum_abs, sum_axes, last, llp, ssq, params,
+                                                                  res, ones)
         residual_out[t, j] = res
-    err, ll = acc_finish(n_recv, n_ok, sum_abs, sum_axes, last, llp, params)
+    err, ll, nis = acc_finish(n_recv, n_ok, sum_abs, sum_axes, last, llp, ssq, params)
     err_out[t] = err
     loglik_out[t] = ll
+    nis_out[t] = nis
     n_valid_out[t] = n_ok
 
 
@@ -73,6 +76,7 @@ def altimeter_loglik_kernel(
     residual_out: wp.array2d(dtype=wp.float32),
     err_out: wp.array(dtype=wp.float32),
     loglik_out: wp.array(dtype=wp.float32),
+    nis_out: wp.array(dtype=wp.float32),
     n_valid_out: wp.array(dtype=wp.int32),
 ):
     """One thread per particle; ``reading[b] = [range a, h_baro, valid, 1/σ_baro²]``: residual
@@ -83,7 +87,7 @@ def altimeter_loglik_kernel(
     b = i // n_per
     r = reading[b]
     p = pos_n[i]
-    n_recv, n_ok, sum_abs, sum_axes, last, llp = acc_init()
+    n_recv, n_ok, sum_abs, sum_axes, last, llp, ssq = acc_init()
     res = float(wp.nan)
     if r[2] != 0.0:
         n_recv = 1
@@ -92,13 +96,14 @@ def altimeter_loglik_kernel(
             alt = -p[2]
         res = r[0] - (alt - grid_height(grid, surface, p[0], p[1]))
         if not wp.isnan(res):
-            n_ok, sum_abs, sum_axes, last, llp = acc_add(n_ok, sum_abs, sum_axes, last, llp, params, res,
-                                                         wp.vec3(1.0, 1.0, 1.0))
+            n_ok, sum_abs, sum_axes, last, llp, ssq = acc_add(n_ok, sum_abs, sum_axes, last, llp, ssq, params, res,
+                                                              wp.vec3(1.0, 1.0, 1.0))
     residual_out[i, 0] = res
-    err, ll = acc_finish(n_recv, n_ok, sum_abs, sum_axes, last, llp, params)
+    err, ll, nis = acc_finish(n_recv, n_ok, sum_abs, sum_axes, last, llp, ssq, params)
     if use_baro != 0 and r[2] != 0.0:
         d = r[1] + p[2]
         ll = ll - 0.5 * d * d * r[3]
     err_out[i] = err
     loglik_out[i] = ll
+    nis_out[i] = nis
     n_valid_out[i] = n_ok

@@ -137,7 +137,15 @@ def _loglik_reference(res, lik):
     if lik.kind == "student_t":
         return (-0.5 * (lik.nu + 1) * np.log1p(z2 / lik.nu)).sum(axis=1)
     err = np.nanmean(np.abs(res), axis=1)
-    return np.where(ok.any(axis=1), -0.5 * err**2 / lik.r_err, -0.5 * lik.outlier_sigmas**2)
+    frac = ok.mean(axis=1)
+    floor = -0.5 * lik.outlier_sigmas**2
+    return np.where(ok.any(axis=1), frac * (-0.5 * err**2 / lik.r_err) + (1 - frac) * floor, floor)
+
+
+def _nis_reference(res, lik):
+    """Mean over the received points of min((r/σ)², k²), an unpredictable point counting k² (k = outlier_sigmas)."""
+    k2 = lik.outlier_sigmas**2
+    return np.where(np.isfinite(res), np.minimum((res / lik.sigma_m) ** 2, k2), k2).mean(axis=1)
 
 
 @pytest.mark.parametrize("kind", ["paper", "gaussian", "student_t"])
@@ -163,8 +171,38 @@ def test_sliding_loglik_matches_numpy(kind, device):
     np.testing.assert_allclose(got_res[ok], ref_res[ok], atol=2e-3)
     ref_res[~same] = got_res[~same]
     np.testing.assert_allclose(out.loglik.numpy(), _loglik_reference(ref_res, lik), rtol=1e-4, atol=1e-3)
+    np.testing.assert_allclose(out.nis.numpy(), _nis_reference(ref_res, lik), rtol=1e-4, atol=1e-4)
     np.testing.assert_array_equal(out.n_valid.numpy(), np.isfinite(ref_res).sum(axis=1))
     assert np.isfinite(out.loglik.numpy()).all()
+
+
+def test_paper_likelihood_never_rewards_unpredictable_points(device):
+    """A particle that can predict only part of the scan (over the map edge) scores no better than the same fit
+    with every point predicted: the paper form blends in the floor for the missing points."""
+    terrain = wt.Terrain.synthetic("rugged", size_m=4000.0, spacing=30.0, seed=6)
+    pos, q, cloud = _truth_setup(terrain)
+    poses = np.stack([pos, pos + np.array([1800.0, 0.0, 0.0])])
+    model = wt.SlidingModel(terrain, wt.Likelihood("paper", r_err=4.0))
+    out = model.evaluate(*_poses(poses, np.tile(q, (2, 1)), device), cloud)
+    n_valid = out.n_valid.numpy()
+    assert n_valid[0] == cloud.valid.sum() and 0 < n_valid[1] < n_valid[0]
+    assert out.loglik.numpy()[1] < out.loglik.numpy()[0]
+
+
+def test_calibrated_sigma(thuringia):
+    """sigma_m=None is sqrt(sensor² + map² + the model's surface mismatch); the mismatch is the RMS of the
+    bilinear-minus-triangles difference (checked against dense sampling of both surfaces), 0 for ray casts."""
+    t = thuringia
+    lik = wt.Likelihood("gaussian", sensor_sigma_m=0.5, map_sigma_m=1.0)
+    mism = t.bilinear_mismatch_sigma_m
+    rng = np.random.default_rng(0)
+    n0, n1, e0, e1 = t.bounds_ne
+    north, east = rng.uniform(n0, n1, 400_000), rng.uniform(e0, e1, 400_000)
+    diff = t.height_at(north, east) - t.surface_height_at(north, east)
+    assert mism == pytest.approx(np.sqrt(np.nanmean(diff**2)), rel=0.02)
+    assert wt.SlidingModel(t, lik).sigma_m == pytest.approx(np.sqrt(0.25 + 1.0 + mism**2))
+    assert wt.RaycastModel(t, lik).sigma_m == pytest.approx(np.sqrt(1.25))
+    assert wt.SlidingModel(t, wt.Likelihood("gaussian", sigma_m=2.0)).sigma_m == 2.0
 
 
 def test_raycast_paper_error_matches_numpy(device):

@@ -69,7 +69,7 @@ def test_nav_kernel_matches_python():
     pose_out = wp.empty((B, 7), dtype=wp.float64, device=d)
     qd = np.diag(q_l)
     wp.launch(knav.nav_interval_kernel, dim=B,
-              inputs=[0, k_steps, dt, 0.25 * dt, wp.vec4d(qd[0], qd[3], qd[6], qd[9]),
+              inputs=[0, k_steps, dt, 0.25 * dt, 0.0, wp.vec4d(qd[0], qd[3], qd[6], qd[9]),
                       wp.array(fb, dtype=wp.vec3d, device=d), wp.array(wb, dtype=wp.vec3d, device=d),
                       pos, vel, quat, ba, bg, cov, phi, noise, scratch],
               outputs=[phi_out, chol_out, pose_out], device=d)

@@ -11,6 +11,11 @@ Python loop over particles or points:
 
 The likelihood is the paper's Gaussian on the scalar error, or a per-point Gaussian / Student-t over
 all valid residuals (:class:`Likelihood`, :mod:`warptan.kernels.likelihood` for the exact formulas).
+The per-point scale is calibrated unless given: ``σ_eff² = σ_sensor² + σ_map²`` with ``σ_map`` the RMS
+difference between the surface the model reads and the triangulated truth (bilinear vs triangles,
+:attr:`~warptan.terrain.Terrain.bilinear_mismatch_sigma_m`, 0 for ray casts, which read the triangles) plus
+any known map error (``map_sigma_m``). Every model also returns each particle's normalised squared residual
+(the filter's integrity statistic).
 
 Evaluation is two steps so that a filter step can be captured in a graph: :meth:`~MeasurementModel.stage`
 copies the received measurement(s) into device buffers that the model keeps (host work O(M), not O(N)),
@@ -20,6 +25,7 @@ B filters passes B measurements; its N = B·n particles are filter-major (partic
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -42,25 +48,43 @@ class Likelihood:
     Attributes:
         kind: "paper" (Gaussian on the scalar error), "gaussian" or "student_t" (per point).
         r_err: Variance of the paper's scalar error, m².
-        sigma_m: Per-point residual scale σ, m.
+        sigma_m: Per-point residual scale σ, m; None = calibrated, ``sqrt(sensor_sigma_m² + σ_map²)``.
         nu: Student-t degrees of freedom.
         outlier_sigmas: A point the particle cannot predict (off the map, nodata, no hit) scores as a
-            residual of this many σ; a particle with no valid point gets ``-0.5 outlier_sigmas²`` (paper).
+            residual of this many σ (per point); the paper form blends its score with ``-0.5 outlier_sigmas²``
+            by the fraction of unpredictable points.
+        sensor_sigma_m: Noise of one measured residual, m (range noise; the altimeter's noise).
+        map_sigma_m: Known error of the map, m, added to the model's own surface mismatch (calibrated σ only).
     """
 
     kind: str = "paper"
     r_err: float = 1.0
-    sigma_m: float = 1.0
+    sigma_m: float | None = None
     nu: float = 4.0
     outlier_sigmas: float = 4.0
+    sensor_sigma_m: float = 0.5
+    map_sigma_m: float = 0.0
 
     def __post_init__(self):
         if self.kind not in LIKELIHOODS:
             raise ValueError(f"unknown likelihood {self.kind!r}; choose one of {', '.join(LIKELIHOODS)}")
         for name in ("r_err", "sigma_m", "nu", "outlier_sigmas"):
             value = getattr(self, name)
+            if name == "sigma_m" and value is None:
+                continue
             if not (np.isfinite(value) and value > 0):
                 raise ValueError(f"likelihood {name} must be a positive number, got {value!r}")
+        for name in ("sensor_sigma_m", "map_sigma_m"):
+            value = getattr(self, name)
+            if not (np.isfinite(value) and value >= 0):
+                raise ValueError(f"likelihood {name} must be a number ≥ 0, got {value!r}")
+
+    def sigma_eff(self, model_mismatch_m: float) -> float:
+        """The per-point σ in m: ``sigma_m`` when given, else ``sqrt(sensor² + map² + model_mismatch²)``
+        (at least 1 cm)."""
+        if self.sigma_m is not None:
+            return float(self.sigma_m)
+        return max(0.01, math.sqrt(self.sensor_sigma_m**2 + self.map_sigma_m**2 + model_mismatch_m**2))
 
 
 @dataclass
@@ -73,6 +97,9 @@ class ModelOutput:
     """(N,) float32 paper error in m (NaN for a particle with no valid point)."""
     n_valid: wp.array
     """(N,) int32 number of points the particle could predict."""
+    nis: wp.array
+    """(N,) float32 normalised squared residual: mean over the received points of (residual/σ)², an
+    unpredictable point counting ``outlier_sigmas²``."""
     residual_m: wp.array
     """(N, M) float32 residuals in m (NaN = invalid)."""
     meta: wp.array
@@ -105,17 +132,39 @@ class MeasurementModel:
 
     def __init__(self, terrain, likelihood: Likelihood | None = None):
         self.terrain = terrain
-        self.likelihood = likelihood or Likelihood()
         self._out: ModelOutput | None = None
         self._key = None
         self._host: dict[str, np.ndarray] = {}
+        self.likelihood = likelihood or Likelihood()
+
+    @property
+    def likelihood(self) -> Likelihood:
+        """How residuals become a log-likelihood; may be reassigned between updates."""
+        return self._likelihood
+
+    @likelihood.setter
+    def likelihood(self, value: Likelihood) -> None:
+        if not isinstance(value, Likelihood):
+            raise ValueError(f"likelihood must be a Likelihood, got {type(value).__name__}")
+        self._likelihood = value
+        self._params = self.params()
+
+    @property
+    def sigma_m(self) -> float:
+        """The per-point residual scale σ_eff in m (see :meth:`Likelihood.sigma_eff`)."""
+        return self.likelihood.sigma_eff(self.surface_mismatch_m())
+
+    def surface_mismatch_m(self) -> float:
+        """RMS difference (m) between the surface this model reads and the triangulated map: 0 for models that
+        read the triangles (ray casts, ``surface=True``), the bilinear-vs-triangles RMS otherwise."""
+        return 0.0 if getattr(self, "surface", True) else self.terrain.bilinear_mismatch_sigma_m
 
     def params(self) -> klik.LikParams:
         """The likelihood as the kernels' struct."""
         lk = self.likelihood
         p = klik.LikParams()
         p.err_kind, p.lik = int(self.err_kind), int(LIKELIHOODS[lk.kind])
-        p.r_err, p.sigma, p.nu, p.k_out = float(lk.r_err), float(lk.sigma_m), float(lk.nu), float(lk.outlier_sigmas)
+        p.r_err, p.sigma, p.nu, p.k_out = float(lk.r_err), self.sigma_m, float(lk.nu), float(lk.outlier_sigmas)
         return p
 
     def _buffers(self, device, n: int, b: int, m: int) -> ModelOutput:
@@ -126,12 +175,12 @@ class MeasurementModel:
                 loglik=wp.empty(n, dtype=wp.float32, device=device),
                 error_m=wp.empty(n, dtype=wp.float32, device=device),
                 n_valid=wp.empty(n, dtype=wp.int32, device=device),
+                nis=wp.empty(n, dtype=wp.float32, device=device),
                 residual_m=wp.empty((n, m), dtype=wp.float32, device=device),
                 meta=wp.empty((b, 2), dtype=wp.float32, device=device),
                 n_received=np.zeros(b, dtype=np.int64),
             )
             self._staged = self._staging_buffer(device, b, m)
-            self._params = self.params()
         return self._out
 
     def evaluate(self, pos_n: wp.array, quat_nb: wp.array, measurement) -> ModelOutput:
@@ -224,7 +273,8 @@ class RaycastModel(_PointCloudModel):
                     device, cols=res.shape[1], row_cost=20)
         launch_rows(klik.reduce_loglik_kernel, res.shape[0],
                     lambda a, b: ([a or 0, n_per, rows_of(res, a, b), cloud, self._params],
-                                  [rows_of(out.error_m, a, b), rows_of(out.loglik, a, b), rows_of(out.n_valid, a, b)]),
+                                  [rows_of(out.error_m, a, b), rows_of(out.loglik, a, b), rows_of(out.nis, a, b),
+                                   rows_of(out.n_valid, a, b)]),
                     device, row_cost=res.shape[1])
 
 
@@ -241,8 +291,8 @@ class SlidingModel(_PointCloudModel):
     err_kind = klik.ERR_MEAN_ABS
 
     def __init__(self, terrain, likelihood: Likelihood | None = None, surface: bool = False):
-        super().__init__(terrain, likelihood)
         self.surface = bool(surface)
+        super().__init__(terrain, likelihood)
 
     def _launch(self, pos_n, quat_nb, out, device):
         grid, surface, cloud, n_per = self.terrain.grid(device), int(self.surface), self._staged, self.n_per
@@ -250,7 +300,7 @@ class SlidingModel(_PointCloudModel):
                     lambda a, b: ([a or 0, n_per, grid, surface, rows_of(pos_n, a, b), rows_of(quat_nb, a, b), cloud,
                                    self._params],
                                   [rows_of(out.residual_m, a, b), rows_of(out.error_m, a, b), rows_of(out.loglik, a, b),
-                                   rows_of(out.n_valid, a, b)]),
+                                   rows_of(out.nis, a, b), rows_of(out.n_valid, a, b)]),
                     device, row_cost=3 * cloud.shape[1])
 
 
@@ -276,10 +326,10 @@ class AltimeterModel(MeasurementModel):
 
     def __init__(self, terrain, likelihood: Likelihood | None = None, surface: bool = False, use_baro: bool = True,
                  baro_sigma_m: float = 1.0):
+        self.surface = bool(surface)
         super().__init__(terrain, likelihood)
         if not (np.isfinite(baro_sigma_m) and baro_sigma_m > 0):
             raise ValueError(f"baro_sigma_m must be a positive number of metres, got {baro_sigma_m!r}")
-        self.surface = bool(surface)
         self.use_baro = bool(use_baro)
         self.baro_sigma_m = float(baro_sigma_m)
 
@@ -304,7 +354,7 @@ class AltimeterModel(MeasurementModel):
         wp.launch(kslide.altimeter_loglik_kernel, dim=pos_n.shape[0],
                   inputs=[self.n_per, self.terrain.grid(device), int(self.surface), int(self.use_baro), pos_n,
                           self._staged, self._params],
-                  outputs=[out.residual_m, out.error_m, out.loglik, out.n_valid], device=device)
+                  outputs=[out.residual_m, out.error_m, out.loglik, out.nis, out.n_valid], device=device)
 
 
 MODELS = {"raycast": RaycastModel, "sliding": SlidingModel, "altimeter": AltimeterModel}

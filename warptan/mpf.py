@@ -9,22 +9,42 @@ Per IMU sample (``predict``) the host only buffers the sample. Per measurement (
 1. host, one CPU kernel (:mod:`warptan.kernels.nav`): the buffered samples run through the nominal INS and
    the Riccati recursion (``N_k``, ``L_k``, ``P``), and the K steps a particle would take are composed into
    one affine map with Gaussian noise (``Φ``, ``chol S``) — the same distribution as K separate moves;
-2. device, no host decision: every particle moves, the model scores its pose, log-weights are updated and
-   normalised per filter by log-sum-exp, and the kernels decide per filter to re-spread (lost) or to
-   resample (``ESS < threshold · n``, systematic by default), then record the update's summary.
+2. device, no host decision: every particle moves, the model scores its pose, and the log-likelihood is
+   applied in tempering stages (progressive correction, Oudjane & Musso 2000; SPEC §6b): each stage applies
+   the largest exponent ``γ`` of what remains that keeps ESS ≥ ``temper_ess · n`` (chosen on the device from
+   20 geometric candidates by streaming log-sum-exp reductions), normalises per filter, and resamples when
+   exponent remains or ESS < ``resample_threshold · n``; the next stage re-evaluates the model at the moved
+   particles. Every resampling is regularised (Musso, Oudjane & Le Gland 2001): ``dp_i += h · chol(Σ̂) z_i``,
+   Σ̂ the weighted covariance of dp before resampling, ``h`` Silverman's bandwidth for d = 3 times
+   ``regularize``. Then the integrity monitor and the update's record.
 
-Step 2 is a fixed sequence of launches on persistent buffers, so it is captured once as a graph and
-replayed (CUDA, and the CPU where Warp replays graphs in C++). Host work per step does not depend on the
-number of particles; a batch of B filters (independent seeds, same model) shares every launch.
+Step 2 is a fixed sequence of launches on persistent buffers (``max_stages`` stages; a filter that is done
+ignores the later ones), so it is captured once as a graph and replayed (CUDA, and the CPU where Warp replays
+graphs in C++); eagerly on the CPU, stages no filter needs are not launched, with the same result. Host work
+per step does not depend on the number of particles; a batch of B filters (independent seeds, same model)
+shares every launch.
 
 ``A^n`` and ``A^l`` are blocks of the INS error transition of :func:`warptan.ins.error_transition`
 (exact Jacobian: ``A^n = [dt I, 0.5 dt² (-R[a]x), 0.5 dt² (-R), 0]``; SPEC's ``[dt I, 0]`` plus the
-O(dt²) terms). ``Q^n`` is a small position random walk (roughening, ``pos_noise`` m/√s).
+O(dt²) terms). ``Q^n`` (``kalman_pos_noise``) is the position noise the Kalman part models. Roughening
+(``pos_noise``) is added to the particles' dp outside the Kalman part: fed through ``L_k`` it was read as
+velocity (a filter with zero initial velocity error "learned" 1.6 m/s and drifted 31 m).
+
+Jitter and the linear means: a jittered particle keeps its ancestor's Kalman mean ``l``. The kernel is a
+smoothing of the dp marginal whose width (``h`` ≈ 0.4 of the cloud's spread) is well inside the scale on
+which ``l | dp`` varies, i.e. ``l | dp`` is taken as locally constant over the kernel, as in the
+regularised MPF of Schön et al.; the shared ``P`` is untouched (the jitter does not inform ``l``).
+
+Integrity (MBARI TRN style): every model returns each particle's normalised squared residual (NIS, mean of
+``(r/σ)²`` over the received points; ≈ 1 at the true pose); its posterior-weighted value per update is
+averaged over informative updates (weight ``1/integrity_window``). Above ``integrity_threshold`` the filter
+is lost: it re-spreads around its estimate with ``respread_scale`` × the prior σ, and the record says so.
 
 The INS runs open loop: the output is nominal ⊕ estimated error, with the mixture covariance (Kalman
 ``P`` plus the spread of the particles). Trouble is recovered and counted, never returned as NaN: a
-non-finite log-likelihood scores the floor; a scan no particle can predict (every particle off the map)
-re-spreads the particles around the estimate with the prior spread.
+non-finite log-likelihood scores the floor; an update with no valid point, or whose points the particles
+mostly cannot predict (the map does not cover the scan: the aircraft, or the filter, is off the map), is
+skipped — no information, so it cannot drag the estimate towards the map — and recorded as skipped.
 """
 
 from __future__ import annotations
@@ -81,7 +101,7 @@ class UpdateInfo:
     """What one measurement update did to one filter (host values)."""
 
     ess: float
-    """Effective sample size after the weight update (before resampling)."""
+    """Effective sample size after the (last stage's) weight update, before resampling."""
     resampled: bool
     n_bad_loglik: int
     """Particles whose log-likelihood was NaN/inf (scored the floor)."""
@@ -90,7 +110,16 @@ class UpdateInfo:
     all_points_invalid: bool
     """The measurement had no valid point: weights unchanged in effect."""
     respread: bool
-    """Every particle was unpredictable: re-spread around the estimate with the prior spread."""
+    """The integrity monitor declared the filter lost: re-spread around the estimate."""
+    stages: int = 1
+    """Tempering stages applied."""
+    skipped: bool = False
+    """The update carried no usable information (no valid point, or the map does not cover the scan)."""
+    applied: float = 1.0
+    """Exponent of the likelihood applied (1 unless skipped or capped at ``max_stages``)."""
+    nis: float = float("nan")
+    """Smallest normalised squared residual of any particle (≈ 1 when a particle is at the truth and σ is
+    right; the integrity monitor's input)."""
 
 
 @dataclass
@@ -154,22 +183,52 @@ class MarginalizedParticleFilter:
         seed: Seed of the filter's random numbers (counter-based: seed + step), or B seeds.
         resample_threshold: Resample when ESS < threshold · n.
         resampler: "systematic", "stratified" or "multinomial".
-        pos_noise: Roughening, a position random walk in m/√s (``Q^n = pos_noise² dt I``).
+        pos_noise: Roughening, a position random walk of the particles in m/√s, outside the Kalman part (it
+            never enters N_k or L_k, so it is not read as velocity).
+        kalman_pos_noise: Position noise the Kalman part models (``Q^n = kalman_pos_noise² dt I`` in N_k, L_k),
+            m/√s; the particles move with it too.
+        regularize: Factor on the regularisation bandwidth, ``h = regularize · (4 / (n (d + 2)))^(1/(d + 4))``
+            with d = 3 (Silverman's rule for a Gaussian kernel; 0.39 at n = 500): after every resampling
+            ``dp_i += h · chol(Σ̂) · z_i``, Σ̂ the weighted covariance of dp before resampling. 0 disables it.
+        temper_ess: Tempering: each stage of an update applies the largest exponent of the log-likelihood that
+            keeps ESS ≥ temper_ess · n, then resamples and regularises, re-evaluates the model at the moved
+            particles and goes on with the rest. 0 applies every update in one stage.
+        max_stages: Cap on the stages of one update; exponent left at the cap is dropped (recorded).
+        max_unpredictable: An update whose received points the particles cannot predict (off the map, nodata)
+            in more than this weighted fraction is skipped (the map does not cover the scan: no information).
+        integrity_window: The integrity statistic is the mean of the posterior-weighted normalised squared
+            residual over the last ``integrity_window`` informative updates (≤ 64).
+        integrity_threshold: Above it (and after 2 · ``integrity_window`` informative updates since the start or
+            the last re-spread: acquisition is not judged) the filter is lost: it re-spreads around its estimate
+            with ``respread_scale`` times the prior σ and counts it.
+        respread_scale: Re-spread covariance = respread_scale² · p0_pos.
         graph: Capture the device work of a measurement update (particle moves, poses, model, weights,
             resampling, record) once and replay it: True, False, or None = on CUDA only.
     """
 
     def __init__(self, model, nominal, grade: str | ImuGrade, rate_hz: float, p0_pos, p0_lin,
                  n_particles: int = 500, device=None, seed=0, resample_threshold: float = 0.5,
-                 resampler: str = "systematic", pos_noise: float = 0.5, graph: bool | None = None):
+                 resampler: str = "systematic", pos_noise: float = 0.5, kalman_pos_noise: float = 0.5,
+                 regularize: float = 1.0, temper_ess: float = 0.5, max_stages: int = 8,
+                 max_unpredictable: float = 0.5, integrity_window: int = 20, integrity_threshold: float = 9.0,
+                 respread_scale: float = 1.0, graph: bool | None = None):
         if not (isinstance(n_particles, (int, np.integer)) and n_particles >= 1):
             raise ValueError(f"n_particles must be a positive integer, got {n_particles!r}")
         if resampler not in SCHEMES:
             raise ValueError(f"unknown resampler {resampler!r}; choose one of {', '.join(SCHEMES)}")
-        if not 0.0 <= resample_threshold <= 1.0:
-            raise ValueError(f"resample_threshold must be in [0, 1], got {resample_threshold!r}")
-        if not (np.isfinite(pos_noise) and pos_noise >= 0):
-            raise ValueError(f"pos_noise must be ≥ 0 m/√s, got {pos_noise!r}")
+        for name, value in (("resample_threshold", resample_threshold), ("temper_ess", temper_ess),
+                            ("max_unpredictable", max_unpredictable)):
+            if not (np.isfinite(value) and 0.0 <= value <= 1.0):
+                raise ValueError(f"{name} must be in [0, 1], got {value!r}")
+        for name, value in (("pos_noise", pos_noise), ("kalman_pos_noise", kalman_pos_noise),
+                            ("regularize", regularize), ("respread_scale", respread_scale)):
+            if not (np.isfinite(value) and value >= 0):
+                raise ValueError(f"{name} must be a number ≥ 0, got {value!r}")
+        for name, value in (("max_stages", max_stages), ("integrity_window", integrity_window)):
+            if not (isinstance(value, (int, np.integer)) and 1 <= value <= 64):
+                raise ValueError(f"{name} must be an integer in [1, 64], got {value!r}")
+        if not (np.isfinite(integrity_threshold) and integrity_threshold > 0):
+            raise ValueError(f"integrity_threshold must be a positive number, got {integrity_threshold!r}")
         nominals = list(nominal) if isinstance(nominal, (list, tuple)) else [nominal]
         if not nominals or not all(isinstance(x, NavState) for x in nominals):
             raise ValueError("nominal must be a NavState or a non-empty list of NavStates")
@@ -188,11 +247,25 @@ class MarginalizedParticleFilter:
         self.device = resolve_device(device)
         self.resample_threshold = float(resample_threshold)
         self.scheme = SCHEMES[resampler]
-        if pos_noise == 0 and not np.any(p0[0:3, 0:3]):
-            raise ValueError("pos_noise = 0 with a zero velocity prior makes N_k singular; give one of them")
-        self.q_pos = (pos_noise**2) * self.dt
+        if kalman_pos_noise == 0 and not np.any(p0[0:3, 0:3]):
+            raise ValueError("kalman_pos_noise = 0 with a zero velocity prior makes N_k singular; give one of them")
+        self.q_pos = (kalman_pos_noise**2) * self.dt
+        self.q_rough = (pos_noise**2) * self.dt
         ql = np.diag(process_noise(self.grade, self.dt))[3:15]
         self._q_lin = wp.vec4d(ql[0], ql[3], ql[6], ql[9])
+        self.max_stages = int(max_stages)
+        self.bandwidth = float(regularize) * (4.0 / (self.n * 5.0)) ** (1.0 / 7.0)
+        """Regularisation bandwidth h (Silverman's rule for d = 3 times ``regularize``)."""
+        params = kmpf.UpdateParams()
+        params.resample_threshold = self.resample_threshold
+        params.temper_ess = float(temper_ess)
+        params.bandwidth = self.bandwidth
+        params.max_unpredictable = float(max_unpredictable)
+        params.integrity_window = int(integrity_window)
+        params.integrity_threshold = float(integrity_threshold)
+        params.integrity_min_updates = 2 * int(integrity_window)
+        params.respread_chol = wp.mat33(*(respread_scale * np.linalg.cholesky(self.p0_pos + 1e-12 * np.eye(3))).ravel())
+        self.params = params
         self.graph = self.device.is_cuda if graph is None else bool(graph)
         self.n_imu_steps = 0
         self.n_updates = 0
@@ -238,8 +311,12 @@ class MarginalizedParticleFilter:
         self._pos = wp.empty(nt, dtype=wp.vec3, device=d)
         self._quat = wp.empty(nt, dtype=wp.vec4, device=d)
         self._chunk_max = wp.empty((b, kmpf.N_CHUNKS), dtype=wp.float32, device=d)
+        self._chunk_min_nis = wp.empty((b, kmpf.N_CHUNKS), dtype=wp.float32, device=d)
         self._chunk_counts = wp.empty((b, kmpf.N_CHUNKS, 2), dtype=wp.int32, device=d)
-        self._chunk_sums = wp.empty((b, kmpf.N_CHUNKS, 10), dtype=wp.float64, device=d)
+        self._chunk_sums = wp.empty((b, kmpf.N_CHUNKS, kmpf.N_CHUNK_SUMS), dtype=wp.float64, device=d)
+        self._temper_partials = wp.empty((b, kmpf.N_CHUNKS, kmpf.N_TEMPER, 3), dtype=wp.float64, device=d)
+        self._unpred_partials = wp.empty((b, kmpf.N_CHUNKS), dtype=wp.float64, device=d)
+        self._integrity = wp.zeros((b, kmpf.N_INTEGRITY), dtype=wp.float64, device=d)
         self._cdf_sums = wp.empty((b, kmpf.N_CHUNKS), dtype=wp.float64, device=d)
         self._stats = wp.zeros((b, kmpf.N_STATS), dtype=wp.float64, device=d)
         self._moments_partial = wp.empty((b, kmpf.N_MOMENT_CHUNKS, kmpf.N_MOMENTS), dtype=wp.float64, device=d)
@@ -278,7 +355,7 @@ class MarginalizedParticleFilter:
         nav, out, k = self._nav, self._interval, self._k
         phi, noise, scratch = self._scratch
         launch_rows(knav.nav_interval_kernel, self.n_filters,
-                    lambda a, b: ([a or 0, k, self.dt, self.q_pos, self._q_lin, self._f, self._w, nav["pos"],
+                    lambda a, b: ([a or 0, k, self.dt, self.q_pos, self.q_rough, self._q_lin, self._f, self._w, nav["pos"],
                                    nav["vel"], nav["quat"], nav["ba"], nav["bg"], nav["cov"], phi, noise, scratch],
                                   [out["phi"], out["chol"], out["pose"]]),
                     self._cpu, row_cost=4000 * max(k, 1))
@@ -314,51 +391,75 @@ class MarginalizedParticleFilter:
                   inputs=[self.n, self._dev["pose"], self.state.dp, self.state.lin],
                   outputs=[self._pos, self._quat], device=self.device)
 
-    def _launch_weights(self, out) -> None:
+    def _launch_stage(self, out, stage: int) -> None:
+        """One tempering stage: choose the exponent, weight, normalise and decide to resample (device)."""
         d, b, n, st = self.device, self.n_filters, self.n, self.state
+        wp.launch(kmpf.temper_partials_kernel, dim=(b, kmpf.N_CHUNKS),
+                  inputs=[n, stage, out.loglik, out.n_valid, out.meta, st.logw, self._stats],
+                  outputs=[self._temper_partials, self._unpred_partials], device=d)
+        wp.launch(kmpf.temper_select_kernel, dim=b,
+                  inputs=[n, stage, int(stage == self.max_stages - 1), self.params, out.meta, self._temper_partials,
+                          self._unpred_partials], outputs=[self._stats], device=d)
         wp.launch(kmpf.add_loglik_partials_kernel, dim=(b, kmpf.N_CHUNKS),
-                  inputs=[n, out.loglik, out.n_valid, out.meta],
-                  outputs=[st.logw, self._chunk_max, self._chunk_counts], device=d)
-        wp.launch(kmpf.max_of_partials_kernel, dim=b, inputs=[self._chunk_max, self._chunk_counts],
+                  inputs=[n, out.loglik, out.n_valid, out.meta, self._stats, out.nis],
+                  outputs=[st.logw, self._chunk_max, self._chunk_counts, self._chunk_min_nis], device=d)
+        wp.launch(kmpf.max_of_partials_kernel, dim=b, inputs=[self._chunk_max, self._chunk_counts, self._chunk_min_nis],
                   outputs=[self._stats], device=d)
-        wp.launch(kmpf.exp_partials_kernel, dim=(b, kmpf.N_CHUNKS), inputs=[n, st.logw, st.dp, self._stats],
+        wp.launch(kmpf.exp_partials_kernel, dim=(b, kmpf.N_CHUNKS), inputs=[n, st.logw, st.dp, out.nis, self._stats],
                   outputs=[self._chunk_sums], device=d)
-        wp.launch(kmpf.weight_stats_kernel, dim=b, inputs=[n, self.resample_threshold, self._chunk_sums, out.meta],
+        wp.launch(kmpf.weight_stats_kernel, dim=b, inputs=[n, self.params, self._chunk_sums],
                   outputs=[self._stats], device=d)
         wp.launch(kmpf.normalize_weights_kernel, dim=b * n, inputs=[n, self._stats], outputs=[st.logw], device=d)
 
-    def _launch_resample(self) -> None:
-        """Resample / re-spread the filters whose flags say so (device decisions; others are copied)."""
+    def _launch_resample(self, stage: int) -> None:
+        """Resample and regularise the filters whose flags say so (device decisions; others are copied)."""
         d, b, n, st, sp = self.device, self.n_filters, self.n, self.state, self._spare
         seeds = self._dev["resample_seeds"]
         wp.launch(kmpf.cdf_partials_kernel, dim=(b, kmpf.N_CHUNKS), inputs=[n, st.logw, self._stats],
                   outputs=[self._cdf_sums], device=d)
         wp.launch(kmpf.cdf_kernel, dim=(b, kmpf.N_CHUNKS), inputs=[n, st.logw, self._stats, self._cdf_sums],
                   outputs=[self._cdf], device=d)
-        wp.launch(kmpf.ancestors_kernel, dim=b * n, inputs=[n, seeds, self.scheme, self._stats, self._cdf],
+        wp.launch(kmpf.ancestors_kernel, dim=b * n, inputs=[n, stage, seeds, self.scheme, self._stats, self._cdf],
                   outputs=[self._ancestors], device=d)
-        wp.launch(kmpf.gather_kernel, dim=b * n, inputs=[n, seeds, self._chol_p0, self._stats, self._ancestors,
+        wp.launch(kmpf.gather_kernel, dim=b * n, inputs=[n, stage, seeds, self.params, self._stats, self._ancestors,
                   st.dp, st.lin, st.logw], outputs=[sp.dp, sp.lin, sp.logw], device=d)
         wp.launch(kmpf.copy_particles_kernel, dim=b * n, inputs=[sp.dp, sp.lin, sp.logw],
                   outputs=[st.dp, st.lin, st.logw], device=d)
+
+    def _launch_integrity(self) -> None:
+        d, b, n, st = self.device, self.n_filters, self.n, self.state
+        wp.launch(kmpf.integrity_kernel, dim=b, inputs=[self.params, self._stats, self._integrity], device=d)
+        wp.launch(kmpf.respread_kernel, dim=b * n,
+                  inputs=[n, 2 * n * self.max_stages, self._dev["resample_seeds"], self.params, self._stats,
+                          st.dp, st.logw], device=d)
 
     def _launch_record(self) -> None:
         d, b, st = self.device, self.n_filters, self.state
         wp.launch(kmpf.summary_partials_kernel, dim=(b, kmpf.N_CHUNKS), inputs=[self.n, st.logw, st.dp],
                   outputs=[self._chunk_sums], device=d)
-        wp.launch(kmpf.summary_kernel, dim=b, inputs=[self._chunk_sums, self._stats, self._slot],
+        wp.launch(kmpf.summary_kernel, dim=b, inputs=[self._chunk_sums, self._stats, self._integrity, self._slot],
                   outputs=[self._history], device=d)
         wp.launch(kmpf.advance_slot_kernel, dim=1, inputs=[self._slot], device=d)
 
     def _device_update(self, out, read_flags: bool = False) -> None:
-        """The device part of an update. ``read_flags``: read the resample / re-spread flags on the host and skip
-        the resampling kernels when no filter needs them (free on the CPU, which runs launches in order)."""
+        """The device part of an update: move, then up to ``max_stages`` tempering stages (each after the first
+        re-evaluates the model at the moved particles), the integrity monitor, the record. ``read_flags``: read
+        the per-filter flags on the host to skip work no filter needs (free on the CPU, which runs launches in
+        order); the result is the same as running every stage (inactive filters ignore a stage)."""
         self._launch_time_update()
         self._launch_poses()
         self.model.launch(self._pos, self._quat)
-        self._launch_weights(out)
-        if not read_flags or self._stats.numpy()[:, kmpf.ST_RESPREAD:kmpf.ST_RESAMPLE + 1].any():
-            self._launch_resample()
+        wp.launch(kmpf.begin_update_kernel, dim=self.n_filters, outputs=[self._stats], device=self.device)
+        for stage in range(self.max_stages):
+            if stage > 0:
+                if read_flags and not (self._stats.numpy()[:, kmpf.ST_REMAIN] > 0).any():
+                    break
+                self._launch_poses()
+                self.model.launch(self._pos, self._quat)
+            self._launch_stage(out, stage)
+            if not read_flags or self._stats.numpy()[:, kmpf.ST_RESAMPLE].any():
+                self._launch_resample(stage)
+        self._launch_integrity()
         self._launch_record()
 
     def update(self, measurement, sync: bool = True):
@@ -379,7 +480,8 @@ class MarginalizedParticleFilter:
         if not self.graph:
             self._device_update(out, read_flags=self.device.is_cpu)
             return self._info(out) if sync else None
-        key = (id(out), id(getattr(self.model, "_staged", None)), id(self._history))
+        key = (id(out), id(getattr(self.model, "_staged", None)), id(self._history),
+               id(getattr(self.model, "_params", None)))
         if self._graph_key is None:  # the first update runs eagerly: modules load, buffers settle
             self._graph_key = ()
             self._device_update(out)
@@ -396,9 +498,11 @@ class MarginalizedParticleFilter:
 
     def _info(self, out):
         stats = self._stats.numpy()
-        infos = [UpdateInfo(ess=float(s[kmpf.ST_ESS]), resampled=bool(s[kmpf.ST_RESAMPLE]),
+        infos = [UpdateInfo(ess=float(s[kmpf.ST_ESS]), resampled=bool(s[kmpf.ST_RESAMPLES]),
                             n_bad_loglik=int(s[kmpf.ST_BAD]), n_unpredictable=int(s[kmpf.ST_UNPREDICTABLE]),
-                            all_points_invalid=bool(out.n_received[b] == 0), respread=bool(s[kmpf.ST_RESPREAD]))
+                            all_points_invalid=bool(out.n_received[b] == 0), respread=bool(s[kmpf.ST_RESPREAD]),
+                            stages=int(s[kmpf.ST_STAGES]), skipped=bool(s[kmpf.ST_SKIP]),
+                            applied=float(s[kmpf.ST_APPLIED]), nis=float(s[kmpf.ST_NIS_MIN]))
                  for b, s in enumerate(stats)]
         return infos if self.batched else infos[0]
 
@@ -411,15 +515,16 @@ class MarginalizedParticleFilter:
         self._history = bigger
 
     def history(self) -> np.ndarray:
-        """(updates, B, 16) record of every update so far (one host sync): ESS, resampled, respread, bad
-        log-likelihoods, unpredictable particles, Σw, mean dp (3, m), covariance of dp (xx, yy, zz, xy, xz, yz,
-        m²), 0 — after the update. See :data:`warptan.kernels.mpf.N_SUMMARY`."""
+        """(updates, B, N_SUMMARY) record of every update so far (one host sync); columns
+        :data:`warptan.kernels.mpf.H_ESS` … ``H_APPLIED``: ESS, resamplings, re-spread, bad log-likelihoods,
+        unpredictable particles, Σw, mean dp (3, m) and its covariance (xx, yy, zz, xy, xz, yz, m²) after the
+        update, tempering stages, posterior NIS, its moving average (integrity), skipped, exponent applied."""
         return self._history.numpy()[: self.n_updates]
 
     @property
     def n_respreads(self) -> int:
         """Re-spreads so far (all filters)."""
-        return int(self.history()[:, :, 2].sum())
+        return int(self.history()[:, :, kmpf.H_RESPREAD].sum())
 
     # ------------------------------------------------------------------ output
     @property

@@ -17,6 +17,7 @@ import warp as wp
 
 from warptan.frames import quat_exp, quat_mul
 from warptan.imu import ImuModel
+from warptan.kernels import mpf as kmpf
 from warptan.ins import Ins, NavState
 from warptan.measurement import AltimeterModel
 from warptan.mpf import MarginalizedParticleFilter
@@ -47,7 +48,16 @@ class FilterRun:
     n_unpredictable: np.ndarray
     n_bad_loglik: np.ndarray
     respread: np.ndarray
+    """Per epoch: the integrity monitor declared the filter lost and re-spread it."""
     all_points_invalid: np.ndarray
+    stages: np.ndarray
+    """Per epoch: tempering stages of the update."""
+    nis: np.ndarray
+    """Per epoch: posterior-weighted normalised squared residual of the update."""
+    nis_avg: np.ndarray
+    """Per epoch: its moving average, the integrity statistic."""
+    skipped: np.ndarray
+    """Per epoch: the update carried no usable information (map gap, no valid point)."""
     update_time_s: np.ndarray
     """Host wall time of each measurement update call, s (the whole update on the CPU; on CUDA the host part
     and the enqueue of the captured device work, which runs asynchronously)."""
@@ -177,21 +187,28 @@ def run_filter(truth: Trajectory, terrain_map, model, imu: ImuModel | Sequence[I
         if progress is not None:
             progress(k, n_steps)
     wp.synchronize_device(mpf.device)
-    hist = mpf.history()  # (T, B, 16): the one read-back of the run
+    hist = mpf.history()  # (T, B, N_SUMMARY): the one read-back of the run
     idx = np.array(epochs)
     runs = []
     for b in range(len(seeds)):
         h = hist[:, b]
-        est = np.vstack([prior[b].nav.pos_n, np.array(nominal_pos)[:, b] + h[:, 6:9]])
-        sig = np.vstack([prior[b].sigma3_pos, 3.0 * np.sqrt(np.maximum(h[:, 9:12], 0.0))])
+        mean = h[:, kmpf.H_MEAN_DP:kmpf.H_MEAN_DP + 3]
+        var = h[:, kmpf.H_COV_DP:kmpf.H_COV_DP + 3]
+        est = np.vstack([prior[b].nav.pos_n, np.array(nominal_pos)[:, b] + mean])
+        sig = np.vstack([prior[b].sigma3_pos, 3.0 * np.sqrt(np.maximum(var, 0.0))])
+        respread = h[:, kmpf.H_RESPREAD] > 0
         runs.append(FilterRun(
             t_s=truth.t_s[idx], truth_pos=truth.pos_n[idx], ins_pos=ins_only[b][idx], est_pos=est, sigma3_pos=sig,
-            ess=np.r_[float(n_particles), h[:, 0]], resampled=np.r_[False, h[:, 1] > 0],
-            n_unpredictable=np.r_[0, h[:, 4]].astype(int), n_bad_loglik=np.r_[0, h[:, 3]].astype(int),
-            respread=np.r_[False, h[:, 2] > 0], all_points_invalid=np.r_[False, np.array(received)[:, b] == 0],
+            ess=np.r_[float(n_particles), h[:, kmpf.H_ESS]], resampled=np.r_[False, h[:, kmpf.H_RESAMPLES] > 0],
+            n_unpredictable=np.r_[0, h[:, kmpf.H_UNPREDICTABLE]].astype(int),
+            n_bad_loglik=np.r_[0, h[:, kmpf.H_BAD]].astype(int), respread=np.r_[False, respread],
+            all_points_invalid=np.r_[False, np.array(received)[:, b] == 0],
+            stages=np.r_[0, h[:, kmpf.H_STAGES]].astype(int), nis=np.r_[np.nan, h[:, kmpf.H_NIS]],
+            nis_avg=np.r_[np.nan, h[:, kmpf.H_NIS_AVG]], skipped=np.r_[False, h[:, kmpf.H_SKIPPED] > 0],
             update_time_s=np.r_[0.0, update_time], predict_time_s=predict_time, n_particles=n_particles,
             device=mpf.device.alias,
-            info={"respreads": int((h[:, 2] > 0).sum()), "imu_steps": n_steps, "meas_rate_hz": meas_rate_hz,
-                  "batch": len(seeds)},
+            info={"respreads": int(respread.sum()), "skipped_updates": int((h[:, kmpf.H_SKIPPED] > 0).sum()),
+                  "imu_steps": n_steps, "meas_rate_hz": meas_rate_hz, "batch": len(seeds),
+                  "sigma_m": float(model.sigma_m)},
         ))
     return runs if batched else runs[0]

@@ -113,7 +113,8 @@ SCHEMA: dict[str, dict[str, tuple[type | tuple, object]]] = {
     "likelihood": {
         "kind": (str, _one_of(tuple(LIKELIHOODS))),
         "r_err_m2": (float, _pos),
-        "sigma_m": (float, _pos),
+        "sigma_m": ((float, str), lambda v: None if v == "auto" or (not isinstance(v, str) and v > 0)
+                    else "must be 'auto' (σ_sensor ⊕ σ_map) or a positive number of metres"),
         "nu": (float, _pos),
     },
     "filter": {
@@ -121,6 +122,12 @@ SCHEMA: dict[str, dict[str, tuple[type | tuple, object]]] = {
         "resample_threshold": (float, lambda v: None if 0 <= v <= 1 else "must be in [0, 1]"),
         "resampler": (str, _one_of(tuple(RESAMPLERS))),
         "pos_noise_m_rthz": (float, _nonneg),
+        "kalman_pos_noise_m_rthz": (float, _nonneg),
+        "regularize": (float, _nonneg),
+        "temper_ess": (float, lambda v: None if 0 <= v <= 1 else "must be in [0, 1]"),
+        "max_stages": (int, lambda v: None if 1 <= v <= 64 else "must be in [1, 64]"),
+        "integrity_window": (int, lambda v: None if 1 <= v <= 64 else "must be in [1, 64]"),
+        "integrity_threshold": (float, _pos),
         "converged_after_s": (float, _nonneg),
     },
     "initial_error": {
@@ -142,11 +149,20 @@ OVERRIDES = {
     "r_err_m2": ("likelihood", "r_err_m2"),
     "sigma_m": ("likelihood", "sigma_m"),
     "imu_grade": ("imu", "grade"),
+    "pos_noise": ("filter", "pos_noise_m_rthz"),
+    "kalman_pos_noise": ("filter", "kalman_pos_noise_m_rthz"),
+    "regularize": ("filter", "regularize"),
+    "temper_ess": ("filter", "temper_ess"),
+    "max_stages": ("filter", "max_stages"),
+    "integrity_threshold": ("filter", "integrity_threshold"),
+    "integrity_window": ("filter", "integrity_window"),
 }
 """run_scenario keyword -> (section, key). Also: terrain= (path, spec or Terrain), paper_rates=True."""
 
 
 def _type_ok(value, kind) -> bool:
+    if isinstance(kind, tuple):
+        return any(_type_ok(value, k) for k in kind)
     if kind is float:
         return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
     if kind is int:
@@ -183,7 +199,8 @@ def validate(config: dict, source: str = "scenario") -> list[str]:
                 continue
             value = table[key]
             if not _type_ok(value, kind):
-                problems.append(f"{where}{key} = {value!r} must be of type {kind.__name__}")
+                names = " or ".join(k.__name__ for k in kind) if isinstance(kind, tuple) else kind.__name__
+                problems.append(f"{where}{key} = {value!r} must be of type {names}")
                 continue
             msg = check(value) if check else None
             if msg:
@@ -449,7 +466,9 @@ def run_scenario_batch(name_or_path, seeds, device="cpu", progress=None, **overr
                          "map; run the seeds one by one (without --batch)")
     the_map = map_terrain(truth_terrain, config, total_seeds[0])
     lk = config["likelihood"]
-    likelihood = Likelihood(lk["kind"], r_err=lk["r_err_m2"], sigma_m=lk["sigma_m"], nu=lk["nu"])
+    noise_m = s["altimeter_sigma_m"] if s["model"] == "altimeter" else s["range_sigma_m"]
+    likelihood = Likelihood(lk["kind"], r_err=lk["r_err_m2"], sigma_m=None if lk["sigma_m"] == "auto" else lk["sigma_m"],
+                            nu=lk["nu"], sensor_sigma_m=noise_m, map_sigma_m=config["terrain"]["map_noise_m"])
     model_kwargs = {"use_baro": s["use_baro"], "baro_sigma_m": max(s["baro_sigma_m"], 0.1)} \
         if s["model"] == "altimeter" else {}
     model = make_model(s["model"], the_map, likelihood, backend=s["backend"], **model_kwargs)
@@ -466,6 +485,9 @@ def run_scenario_batch(name_or_path, seeds, device="cpu", progress=None, **overr
         n_particles=f["particles"], device=device, seed=total_seeds, meas_rate_hz=s["rate_hz"],
         initial=InitialErrors(tuple(ie["pos_m"]), ie["vel_mps"], tuple(ie["att_deg"])), progress=progress,
         resample_threshold=f["resample_threshold"], resampler=f["resampler"], pos_noise=f["pos_noise_m_rthz"],
+        kalman_pos_noise=f["kalman_pos_noise_m_rthz"], regularize=f["regularize"], temper_ess=f["temper_ess"],
+        max_stages=f["max_stages"], integrity_window=f["integrity_window"],
+        integrity_threshold=f["integrity_threshold"],
     )
     wall = time.perf_counter() - t0
     return [ScenarioResult(scenario=config["id"], seed=seed, device=run.device, terrain=truth_terrain.name,

@@ -11,6 +11,7 @@ triangulated grid, built with the SAH BVH constructor) are built lazily, once pe
 
 from __future__ import annotations
 
+import functools
 import math
 import os
 from dataclasses import dataclass, field
@@ -240,6 +241,19 @@ class Terrain:
         h = np.where(fu >= fv, lower, upper)
         h = np.where(np.isfinite(h00 + h10 + h01 + h11), h, np.nan)
         return np.where(inside, h, np.nan)
+
+    @functools.cached_property
+    def bilinear_mismatch_sigma_m(self) -> float:
+        """RMS difference (m) between the bilinear height and the triangulated surface over the valid cells.
+
+        In a cell with corner heights ``h00, h10, h01, h11`` the two interpolants differ by ``c·u(1-v)`` (or
+        ``c·v(1-u)`` in the other triangle) with the twist ``c = h00 - h10 - h01 + h11``; its mean square over a
+        triangle is ``c²/90``. This is the map error a model that reads bilinear heights (sliding, altimeter)
+        sees when the world is the triangulated grid (the surface the ray casts, and the simulated sensor, see).
+        """
+        h = self.heights_m
+        twist = (h[:-1, :-1] - h[1:, :-1] - h[:-1, 1:] + h[1:, 1:])[self.valid_cells]
+        return float(np.sqrt(np.mean(twist**2) / 90.0)) if twist.size else 0.0
 
     # ------------------------------------------------------------------ geographic reference
     def _require_crs(self) -> str:
