@@ -13,7 +13,11 @@ point j a flag that the *received* point is valid and a vector of axis weights. 
     ``-0.5 k_out^2`` by the fraction of received points it cannot predict (off the map, nodata, no hit):
     ``ll = (n_ok/n_recv)(-0.5 err^2/r_err) + (1 - n_ok/n_recv)(-0.5 k_out^2)``, so that a particle over a hole
     or off the map is never rewarded for predicting fewer points;
-  - ``LIK_GAUSS``: ``sum_j -0.5 (res_ij / sigma)^2`` over the received valid points;
+  - ``LIK_GAUSS``: ``sum_j -0.5 (res_ij / sigma)^2`` over the received valid points, marginalised over the
+    particle's attitude uncertainty (its Kalman covariance ``A`` of dθ): with ``H_ij`` the residual's Jacobian
+    w.r.t. dθ, ``Λ = Σ Hᵀ H / σ²``, ``b = Σ Hᵀ r / σ²``, it adds ``0.5 bᵀ A (I + ΛA)⁻¹ b - 0.5 log det(I + AΛ)``
+    (the log of ``N(r; 0, H A Hᵀ + σ² I)`` up to a constant, SPEC §6b). Without it the attitude error the
+    filter cannot see biases the position: the position absorbs the residual pattern a tilt or yaw causes;
   - ``LIK_STUDENT``: ``sum_j -(nu+1)/2 log(1 + res_ij^2 / (nu sigma^2))``.
   In the per-point forms a received point whose prediction is invalid scores as a residual of
   ``k_out`` sigma, so that every particle sums the same number of terms (constants dropped).
@@ -68,38 +72,88 @@ def point_loglik(lik: int, res: float, sigma: float, nu: float) -> float:
     return -0.5 * z2
 
 
-@wp.func
-def acc_init():
-    """Empty running sums: received points, valid predictions, Σ|r|, Σ|r| |d|, last r, Σ point log-densities,
-    Σ (r/σ)²."""
-    return int(0), int(0), float(0.0), wp.vec3(), float(0.0), float(0.0), float(0.0)
+@wp.struct
+class Acc:
+    """Running sums over the received points of one particle."""
+
+    n_recv: int  # received valid points
+    n_ok: int  # of them, predictable by the particle
+    sum_abs: float  # Σ|r|, m
+    sum_axes: wp.vec3  # Σ|r| |d| per axis, m
+    last: float  # the last residual, m
+    ll_points: float  # Σ point log-densities
+    sum_sq: float  # Σ min((r/σ)², k_out²)
+    lam: wp.mat33  # Λ = Σ Hᵀ H / σ² (H: the residual's Jacobian w.r.t. the attitude error dθ, m/rad)
+    info: wp.vec3  # b = Σ Hᵀ r / σ²
 
 
 @wp.func
-def acc_add(n_ok: int, sum_abs: float, sum_axes: wp.vec3, last: float, ll_points: float, sum_sq: float,
-            p: LikParams, res: float, axis_w: wp.vec3):
-    """Running sums over the valid predictions of one particle: add one residual (m, finite)."""
-    a = wp.abs(res)
+def acc_init() -> Acc:
+    """Empty running sums."""
+    a = Acc()
+    a.n_recv = 0
+    a.n_ok = 0
+    a.sum_abs = 0.0
+    a.sum_axes = wp.vec3()
+    a.last = 0.0
+    a.ll_points = 0.0
+    a.sum_sq = 0.0
+    a.lam = wp.mat33()
+    a.info = wp.vec3()
+    return a
+
+
+@wp.func
+def acc_add(acc: Acc, p: LikParams, res: float, axis_w: wp.vec3, jac: wp.vec3) -> Acc:
+    """Add one predictable residual ``res`` (m, finite) with its Jacobian ``jac`` w.r.t. dθ (m/rad)."""
+    a = acc
+    r = wp.abs(res)
     z = res / p.sigma
-    return (n_ok + 1, sum_abs + a, sum_axes + a * axis_w, res, ll_points + point_loglik(p.lik, res, p.sigma, p.nu),
-            sum_sq + wp.min(z * z, p.k_out * p.k_out))
+    a.n_ok = a.n_ok + 1
+    a.sum_abs = a.sum_abs + r
+    a.sum_axes = a.sum_axes + r * axis_w
+    a.last = res
+    a.ll_points = a.ll_points + point_loglik(p.lik, res, p.sigma, p.nu)
+    a.sum_sq = a.sum_sq + wp.min(z * z, p.k_out * p.k_out)
+    inv_var = 1.0 / (p.sigma * p.sigma)
+    a.lam = a.lam + wp.outer(jac, jac) * inv_var
+    a.info = a.info + jac * (res * inv_var)
+    return a
 
 
 @wp.func
-def acc_finish(n_recv: int, n_ok: int, sum_abs: float, sum_axes: wp.vec3, last: float, ll_points: float,
-               sum_sq: float, p: LikParams):
+def attitude_marginal(acc: Acc, att_cov: wp.mat33) -> float:
+    """``0.5 bᵀ A (I + ΛA)⁻¹ b - 0.5 log det(I + AΛ)`` (float64 inside): what integrating the residuals'
+    dependence on the attitude error, ``r ≈ H dθ + e`` with ``dθ ~ N(0, A)``, adds to the per-point Gaussian
+    log-likelihood (Woodbury and the determinant lemma; 0 when A = 0)."""
+    am = wp.mat33d(att_cov)
+    lam = wp.mat33d(acc.lam)
+    info = wp.vec3d(acc.info)
+    m = wp.identity(n=3, dtype=wp.float64) + lam * am
+    det = wp.determinant(m)
+    if not (det > wp.float64(0.0)):
+        return 0.0
+    x = wp.inverse(m) * info
+    return float(wp.float64(0.5) * wp.dot(info, am * x) - wp.float64(0.5) * wp.log(det))
+
+
+@wp.func
+def acc_finish(acc: Acc, p: LikParams, att_cov: wp.mat33):
     """(paper error in m — NaN without a valid point, log-likelihood, normalised squared residual) of a particle
     that could predict ``n_ok`` of the ``n_recv`` received valid points; each unpredictable one scores the floor
-    (a ``k_out`` σ residual; see the module docstring for the paper form)."""
+    (a ``k_out`` σ residual; see the module docstring for the paper form). The per-point Gaussian is marginalised
+    over the attitude uncertainty ``att_cov`` (the Kalman covariance of dθ)."""
+    n_recv = acc.n_recv
+    n_ok = acc.n_ok
     err = float(wp.nan)
     if n_ok > 0:
         inv = 1.0 / float(n_ok)
         if p.err_kind == ERR_AXES:
-            err = wp.length(sum_axes * inv)
+            err = wp.length(acc.sum_axes * inv)
         elif p.err_kind == ERR_MEAN_ABS:
-            err = sum_abs * inv
+            err = acc.sum_abs * inv
         else:
-            err = last
+            err = acc.last
     ll = float(0.0)
     nis = float(0.0)
     if n_recv > 0:
@@ -111,8 +165,10 @@ def acc_finish(n_recv: int, n_ok: int, sum_abs: float, sum_axes: wp.vec3, last: 
                 frac = float(n_ok) / float(n_recv)
                 ll = frac * (-0.5 * err * err / p.r_err) + (1.0 - frac) * floor
         else:
-            ll = ll_points + n_bad * point_loglik(p.lik, p.k_out * p.sigma, p.sigma, p.nu)
-        nis = (sum_sq + n_bad * p.k_out * p.k_out) / float(n_recv)
+            ll = acc.ll_points + n_bad * point_loglik(p.lik, p.k_out * p.sigma, p.sigma, p.nu)
+            if p.lik == LIK_GAUSS and n_ok > 0:
+                ll = ll + attitude_marginal(acc, att_cov)
+        nis = (acc.sum_sq + n_bad * p.k_out * p.k_out) / float(n_recv)
     return err, ll, nis
 
 
@@ -127,7 +183,9 @@ def reduce_loglik_kernel(
     row0: int,
     n_per: int,
     residual: wp.array2d(dtype=wp.float32),
+    jacobian: wp.array2d(dtype=wp.vec3),
     cloud: wp.array2d(dtype=cloud_row),
+    att_cov: wp.array(dtype=wp.mat33),
     params: LikParams,
     err_out: wp.array(dtype=wp.float32),
     loglik_out: wp.array(dtype=wp.float32),
@@ -135,20 +193,20 @@ def reduce_loglik_kernel(
     n_valid_out: wp.array(dtype=wp.int32),
 ):
     """One thread per particle (global index ``row0 + t``): paper error (m), log-likelihood, normalised squared
-    residual, usable points."""
+    residual, usable points; ``jacobian[t, j]`` is the residual's derivative w.r.t. dθ, ``att_cov[b]`` the
+    filter's attitude covariance."""
     t = wp.tid()
     b = (row0 + t) // n_per
-    n_recv, n_ok, sum_abs, sum_axes, last, llp, ssq = acc_init()
+    acc = acc_init()
     for j in range(residual.shape[1]):
         row = cloud[b, j]
         res = residual[t, j]
         if row[7] != 0.0:
-            n_recv += 1
+            acc.n_recv = acc.n_recv + 1
             if not wp.isnan(res):
-                n_ok, sum_abs, sum_axes, last, llp, ssq = acc_add(n_ok, sum_abs, sum_axes, last, llp, ssq, params,
-                                                                  res, axis_weights(row))
-    err, ll, nis = acc_finish(n_recv, n_ok, sum_abs, sum_axes, last, llp, ssq, params)
+                acc = acc_add(acc, params, res, axis_weights(row), jacobian[t, j])
+    err, ll, nis = acc_finish(acc, params, att_cov[b])
     err_out[t] = err
     loglik_out[t] = ll
     nis_out[t] = nis
-    n_valid_out[t] = n_ok
+    n_valid_out[t] = acc.n_ok

@@ -22,7 +22,7 @@ import warp as wp
 
 from warptan.kernels.frames import quat_to_mat_wxyz
 from warptan.kernels.likelihood import cloud_row
-from warptan.kernels.terrain import HeightGrid, grid_surface
+from warptan.kernels.terrain import HeightGrid, grid_gradient, grid_surface
 
 wp.set_module_options({"enable_backward": False})
 
@@ -304,16 +304,31 @@ def raycast_residual_kernel(
     quat_nb: wp.array(dtype=wp.vec4),
     cloud: wp.array2d(dtype=cloud_row),
     residual_out: wp.array2d(dtype=wp.float32),
+    jacobian_out: wp.array2d(dtype=wp.vec3),
 ):
     """One thread per (particle i, point j): range residual ``r_j - t_ij`` (m); NaN where either is invalid.
     Particle ``row0 + i`` belongs to filter ``b = (row0 + i) // n_per`` and casts that filter's pattern.
 
     With ``c_j = r_j d_j`` and ``c^_ij = t_ij d_j`` the point residual is ``(r_j - t_ij) d_j`` (eq. 15).
+    Also the range's derivative w.r.t. the attitude error (m/rad): with the surface ``F = z + h(n, e) = 0``,
+    ``∇F = (h_n, h_e, 1)`` at the hit and ``u = R d``, ``∂t/∂dθ = t ((Rᵀ∇F) × d) / (∇F · u)`` (SPEC §6b).
     """
     i, j = wp.tid()
     row = cloud[(row0 + i) // n_per, j]
+    jacobian_out[i, j] = wp.vec3()
     if row[7] == 0.0:
         residual_out[i, j] = wp.nan
         return
-    d = quat_to_mat_wxyz(quat_nb[i]) * wp.vec3(row[3], row[4], row[5])
-    residual_out[i, j] = row[6] - cast_ray(grid, mesh, backend, pos_n[i], d, step_m, n_bisect)
+    mat = quat_to_mat_wxyz(quat_nb[i])
+    d_s = wp.vec3(row[3], row[4], row[5])
+    d = mat * d_s
+    p = pos_n[i]
+    t = cast_ray(grid, mesh, backend, p, d, step_m, n_bisect)
+    residual_out[i, j] = row[6] - t
+    if not wp.isnan(t):
+        hit = p + t * d
+        grad = grid_gradient(grid, 1, hit[0], hit[1])
+        nrm = wp.vec3(grad[0], grad[1], 1.0)
+        den = wp.dot(nrm, d)
+        if wp.isfinite(den) and wp.abs(den) > 1.0e-3:
+            jacobian_out[i, j] = (t / den) * wp.cross(wp.transpose(mat) * nrm, d_s)

@@ -15,9 +15,18 @@ import warp as wp
 
 from warptan.kernels.frames import quat_to_mat_wxyz
 from warptan.kernels.likelihood import LikParams, acc_add, acc_finish, acc_init, cloud_row
-from warptan.kernels.terrain import HeightGrid, grid_height
+from warptan.kernels.terrain import HeightGrid, grid_gradient, grid_height
 
 wp.set_module_options({"enable_backward": False})
+
+
+@wp.func
+def sliding_jacobian(mat: wp.mat33, c: wp.vec3, c_hat: wp.vec3, grad: wp.vec2) -> wp.vec3:
+    """``∂ĉ_z/∂dθ`` of the sliding prediction (SPEC §6b): with ``g = R e₃``, the map gradient ``(h_n, h_e)`` under
+    the point and ``u = (g_n - h_n g_z, g_e - h_e g_z, 0)``: ``H = e₃ × ĉ - (Rᵀu) × c`` (m/rad)."""
+    g = wp.vec3(mat[0, 2], mat[1, 2], mat[2, 2])
+    u = wp.vec3(g[0] - grad[0] * g[2], g[1] - grad[1] * g[2], 0.0)
+    return wp.cross(wp.vec3(0.0, 0.0, 1.0), c_hat) - wp.cross(wp.transpose(mat) * u, c)
 
 
 @wp.kernel
@@ -29,6 +38,7 @@ def sliding_loglik_kernel(
     pos_n: wp.array(dtype=wp.vec3),
     quat_nb: wp.array(dtype=wp.vec4),
     cloud: wp.array2d(dtype=cloud_row),
+    att_cov: wp.array(dtype=wp.mat33),
     params: LikParams,
     residual_out: wp.array2d(dtype=wp.float32),
     err_out: wp.array(dtype=wp.float32),
@@ -36,32 +46,33 @@ def sliding_loglik_kernel(
     nis_out: wp.array(dtype=wp.float32),
     n_valid_out: wp.array(dtype=wp.int32),
 ):
-    """One thread per particle: residuals ``c_j,z - c^_ij,z`` (m) of the received points, error, log-likelihood."""
+    """One thread per particle: residuals ``c_j,z - c^_ij,z`` (m) of the received points, error, log-likelihood
+    (marginalised over the filter's attitude covariance ``att_cov[b]`` for the per-point Gaussian), NIS."""
     t = wp.tid()
     b = (row0 + t) // n_per
     mat = quat_to_mat_wxyz(quat_nb[t])
     p = pos_n[t]
     ones = wp.vec3(1.0, 1.0, 1.0)
-    n_recv, n_ok, sum_abs, sum_axes, last, llp, ssq = acc_init()
+    acc = acc_init()
     for j in range(cloud.shape[1]):
         row = cloud[b, j]
         res = float(wp.nan)
         if row[7] != 0.0:
-            n_recv += 1
+            acc.n_recv = acc.n_recv + 1
             c = wp.vec3(row[0], row[1], row[2])
             w = p + mat * c
             h = grid_height(grid, surface, w[0], w[1])
             c_hat = wp.transpose(mat) * (wp.vec3(w[0], w[1], -h) - p)
             res = c[2] - c_hat[2]
             if not wp.isnan(res):
-                n_ok, sum_abs, sum_axes, last, llp, ssq = acc_add(n_ok, sum_abs, sum_axes, last, llp, ssq, params,
-                                                                  res, ones)
+                jac = sliding_jacobian(mat, c, c_hat, grid_gradient(grid, surface, w[0], w[1]))
+                acc = acc_add(acc, params, res, ones, jac)
         residual_out[t, j] = res
-    err, ll, nis = acc_finish(n_recv, n_ok, sum_abs, sum_axes, last, llp, ssq, params)
+    err, ll, nis = acc_finish(acc, params, att_cov[b])
     err_out[t] = err
     loglik_out[t] = ll
     nis_out[t] = nis
-    n_valid_out[t] = n_ok
+    n_valid_out[t] = acc.n_ok
 
 
 @wp.kernel
@@ -87,23 +98,22 @@ def altimeter_loglik_kernel(
     b = i // n_per
     r = reading[b]
     p = pos_n[i]
-    n_recv, n_ok, sum_abs, sum_axes, last, llp, ssq = acc_init()
+    acc = acc_init()
     res = float(wp.nan)
     if r[2] != 0.0:
-        n_recv = 1
+        acc.n_recv = 1
         alt = r[1]
         if use_baro == 0:
             alt = -p[2]
         res = r[0] - (alt - grid_height(grid, surface, p[0], p[1]))
         if not wp.isnan(res):
-            n_ok, sum_abs, sum_axes, last, llp, ssq = acc_add(n_ok, sum_abs, sum_axes, last, llp, ssq, params, res,
-                                                              wp.vec3(1.0, 1.0, 1.0))
+            acc = acc_add(acc, params, res, wp.vec3(1.0, 1.0, 1.0), wp.vec3())
     residual_out[i, 0] = res
-    err, ll, nis = acc_finish(n_recv, n_ok, sum_abs, sum_axes, last, llp, ssq, params)
+    err, ll, nis = acc_finish(acc, params, wp.mat33())
     if use_baro != 0 and r[2] != 0.0:
         d = r[1] + p[2]
         ll = ll - 0.5 * d * d * r[3]
     err_out[i] = err
     loglik_out[i] = ll
     nis_out[i] = nis
-    n_valid_out[i] = n_ok
+    n_valid_out[i] = acc.n_ok

@@ -95,6 +95,32 @@ def grid_height(grid: HeightGrid, surface: int, north: float, east: float) -> fl
     return grid_surface(grid, north, east)
 
 
+@wp.func
+def grid_gradient(grid: HeightGrid, surface: int, north: float, east: float) -> wp.vec2:
+    """``(∂h/∂north, ∂h/∂east)`` of the bilinear (``surface == 0``) or triangulated surface at ``(north, east)``;
+    NaN where the height is invalid."""
+    u = (north - grid.n0) / grid.dn
+    v = (east - grid.e0) / grid.de
+    rows = grid.heights.shape[0]
+    cols = grid.heights.shape[1]
+    if u >= 0.0 and u <= float(rows - 1) and v >= 0.0 and v <= float(cols - 1):
+        i = wp.min(int(u), rows - 2)
+        j = wp.min(int(v), cols - 2)
+        fu = u - float(i)
+        fv = v - float(j)
+        h00 = grid.heights[i, j]
+        h10 = grid.heights[i + 1, j]
+        h01 = grid.heights[i, j + 1]
+        h11 = grid.heights[i + 1, j + 1]
+        if surface == 0:
+            return wp.vec2(((1.0 - fv) * (h10 - h00) + fv * (h11 - h01)) / grid.dn,
+                           ((1.0 - fu) * (h01 - h00) + fu * (h11 - h10)) / grid.de)
+        if fu >= fv:
+            return wp.vec2((h10 - h00) / grid.dn, (h11 - h10) / grid.de)
+        return wp.vec2((h11 - h01) / grid.dn, (h01 - h00) / grid.de)
+    return wp.vec2(wp.nan, wp.nan)
+
+
 @wp.kernel
 def sample_heights_kernel(
     grid: HeightGrid,

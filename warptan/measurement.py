@@ -104,6 +104,8 @@ class ModelOutput:
     """(N, M) float32 residuals in m (NaN = invalid)."""
     meta: wp.array
     """(B, 2) float32 per filter: [valid received points, log-likelihood floor for a non-finite value]."""
+    jacobian: wp.array | None = None
+    """(N, M) vec3 derivative of each residual w.r.t. the particle's attitude error dθ, m/rad (ray casts)."""
     n_received: np.ndarray = field(default_factory=lambda: np.zeros(1, dtype=np.int64))
     """(B,) valid received points per filter (host; known without a sync)."""
 
@@ -135,6 +137,7 @@ class MeasurementModel:
         self._out: ModelOutput | None = None
         self._key = None
         self._host: dict[str, np.ndarray] = {}
+        self._att_cov: wp.array | None = None
         self.likelihood = likelihood or Likelihood()
 
     @property
@@ -148,6 +151,20 @@ class MeasurementModel:
             raise ValueError(f"likelihood must be a Likelihood, got {type(value).__name__}")
         self._likelihood = value
         self._params = self.params()
+
+    def bind_attitude_cov(self, att_cov: wp.array | None) -> None:
+        """Use ``att_cov`` ((B,) mat33 on the particles' device, rad²: each filter's Kalman covariance of dθ,
+        kept current by its owner) to marginalise the per-point Gaussian over the attitude uncertainty; None
+        (the default) is a zero covariance (the pose's attitude taken as exact)."""
+        self._att_cov = att_cov
+
+    def _attitude_cov(self, device, b: int) -> wp.array:
+        a = self._att_cov
+        if a is not None and a.shape == (b,) and a.device == device:
+            return a
+        if getattr(self, "_zero_att", None) is None or self._zero_att.shape != (b,) or self._zero_att.device != device:
+            self._zero_att = wp.zeros(b, dtype=wp.mat33, device=device)
+        return self._zero_att
 
     @property
     def sigma_m(self) -> float:
@@ -179,6 +196,7 @@ class MeasurementModel:
                 residual_m=wp.empty((n, m), dtype=wp.float32, device=device),
                 meta=wp.empty((b, 2), dtype=wp.float32, device=device),
                 n_received=np.zeros(b, dtype=np.int64),
+                jacobian=wp.empty((n, m), dtype=wp.vec3, device=device) if self.name == "raycast" else None,
             )
             self._staged = self._staging_buffer(device, b, m)
         return self._out
@@ -201,6 +219,7 @@ class MeasurementModel:
         k = self.likelihood.outlier_sigmas
         out.meta.assign(np.stack([n_received, -0.5 * k * k * np.maximum(1, n_received)], axis=1).astype(np.float32))
         self.n_per = n // b
+        self.n_filters = b
         return out
 
     def launch(self, pos_n: wp.array, quat_nb: wp.array) -> ModelOutput:
@@ -266,13 +285,14 @@ class RaycastModel(_PointCloudModel):
 
     def _launch(self, pos_n, quat_nb, out, device):
         lead = self.caster.launch_args(self.terrain, device)
-        res, cloud, n_per = out.residual_m, self._staged, self.n_per
+        res, jac, cloud, n_per = out.residual_m, out.jacobian, self._staged, self.n_per
+        att = self._attitude_cov(device, self.n_filters)
         launch_rows(kray.raycast_residual_kernel, res.shape[0],
                     lambda a, b: ([*lead, a or 0, n_per, rows_of(pos_n, a, b), rows_of(quat_nb, a, b), cloud],
-                                  [rows_of(res, a, b)]),
+                                  [rows_of(res, a, b), rows_of(jac, a, b)]),
                     device, cols=res.shape[1], row_cost=20)
         launch_rows(klik.reduce_loglik_kernel, res.shape[0],
-                    lambda a, b: ([a or 0, n_per, rows_of(res, a, b), cloud, self._params],
+                    lambda a, b: ([a or 0, n_per, rows_of(res, a, b), rows_of(jac, a, b), cloud, att, self._params],
                                   [rows_of(out.error_m, a, b), rows_of(out.loglik, a, b), rows_of(out.nis, a, b),
                                    rows_of(out.n_valid, a, b)]),
                     device, row_cost=res.shape[1])
@@ -296,9 +316,10 @@ class SlidingModel(_PointCloudModel):
 
     def _launch(self, pos_n, quat_nb, out, device):
         grid, surface, cloud, n_per = self.terrain.grid(device), int(self.surface), self._staged, self.n_per
+        att = self._attitude_cov(device, self.n_filters)
         launch_rows(kslide.sliding_loglik_kernel, pos_n.shape[0],
                     lambda a, b: ([a or 0, n_per, grid, surface, rows_of(pos_n, a, b), rows_of(quat_nb, a, b), cloud,
-                                   self._params],
+                                   att, self._params],
                                   [rows_of(out.residual_m, a, b), rows_of(out.error_m, a, b), rows_of(out.loglik, a, b),
                                    rows_of(out.nis, a, b), rows_of(out.n_valid, a, b)]),
                     device, row_cost=3 * cloud.shape[1])

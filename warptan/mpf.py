@@ -298,7 +298,7 @@ class MarginalizedParticleFilter:
         self._f_np, self._w_np = self._f.numpy(), self._w.numpy()
         self._interval = {"phi": host((b, 5, 5), wp.mat33, upload=True), "chol": host((b, 5, 5), wp.mat33, upload=True),
                           "pose": host((b, 7), wp.float64, upload=True), "seeds": host(b, wp.int32, upload=True),
-                          "resample_seeds": host(b, wp.int32, upload=True)}
+                          "resample_seeds": host(b, wp.int32, upload=True), "att_cov": host(b, wp.mat33, upload=True)}
         self._interval["pose"].numpy()[:] = np.array([np.r_[x.pos_n, x.quat_nb] for x in nominals])
         d = self.device
         self._dev = self._interval if d.is_cpu else {k: wp.empty_like(v, device=d) for k, v in self._interval.items()}
@@ -360,6 +360,7 @@ class MarginalizedParticleFilter:
                                   [out["phi"], out["chol"], out["pose"]]),
                     self._cpu, row_cost=4000 * max(k, 1))
         self._k = 0
+        out["att_cov"].numpy()[:] = nav["cov"].numpy()[:, 1, 1]  # P_θθ: the attitude uncertainty of every particle
         out["seeds"].numpy()[:] = step_seed(self.seeds, self.n_imu_steps, _STREAM_MOVE)
         out["resample_seeds"].numpy()[:] = step_seed(self.seeds, self.n_updates + 1, _STREAM_RESAMPLE)
         if self.device.is_cuda:
@@ -473,6 +474,8 @@ class MarginalizedParticleFilter:
         if self.batched and not (isinstance(measurement, (list, tuple)) and len(measurement) == self.n_filters):
             raise ValueError(f"a batch of {self.n_filters} filters needs a list of {self.n_filters} measurements")
         out = self.model.stage(measurement, self._pos, self._quat)  # validates first: a bad one loses nothing
+        if hasattr(self.model, "bind_attitude_cov"):
+            self.model.bind_attitude_cov(self._dev["att_cov"])
         self._ensure_history()
         self._host_interval()
         self.last_n_received = np.array(out.n_received)
