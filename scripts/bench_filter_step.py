@@ -28,6 +28,7 @@ import warp as wp
 import warptan as wt
 from warptan.cli import script_inputs
 from warptan.imu import ImuModel
+from warptan.kernels import mpf as kmpf
 from warptan.mpf import MarginalizedParticleFilter
 from warptan.runner import InitialErrors, initial_nominal, prior_linear_cov
 from warptan.trajectory import Straight, Trajectory
@@ -43,7 +44,8 @@ def build(model_name: str, terrain, likelihood):
     return wt.RaycastModel(terrain, likelihood, caster=wt.RayCaster(model_name))
 
 
-def bench(terrain, model_name, n, m_side, device, repeats, warmup, imu_per_meas=10, seed=0, graph=None, batch=1):
+def bench(terrain, model_name, n, m_side, device, repeats, warmup, imu_per_meas=10, seed=0, graph=None, batch=1,
+          likelihood="paper"):
     intervals = repeats + warmup
     truth = Trajectory.build([Straight(intervals * imu_per_meas / 100.0 + 0.5)], 100.0,
                              [0.0, 0.0, -(terrain.h_max + 600.0)])
@@ -52,7 +54,7 @@ def bench(terrain, model_name, n, m_side, device, repeats, warmup, imu_per_meas=
     rng = np.random.default_rng(seed)
     initial = InitialErrors()
     nominal = [initial_nominal(truth.state(0), initial, rng) for _ in range(batch)]
-    mpf = MarginalizedParticleFilter(build(model_name, terrain, wt.Likelihood("paper", r_err=16.0)),
+    mpf = MarginalizedParticleFilter(build(model_name, terrain, wt.Likelihood(likelihood, r_err=16.0)),
                                      nominal if batch > 1 else nominal[0], imu.grade, 100.0,
                                      np.asarray(initial.pos_m), prior_linear_cov(initial, imu), n_particles=n,
                                      device=device, seed=list(range(seed, seed + batch)) if batch > 1 else seed,
@@ -88,7 +90,9 @@ def bench(terrain, model_name, n, m_side, device, repeats, warmup, imu_per_meas=
             t_step.append(t2 - t0)
             t_est.append(t3 - t2)
     med = statistics.median
-    return {"model": model_name, "B": batch, "N": n, "graph": mpf.graph,
+    stages = mpf.history()[warmup:, :, kmpf.H_STAGES]
+    return {"model": model_name, "likelihood": likelihood, "B": batch, "N": n, "graph": mpf.graph,
+            "tempering_stages_mean": float(stages.mean()), "tempering_stages_max": int(stages.max()),
             "filter_steps_per_s": batch / med(t_step), "M": 1 if model_name == "altimeter" else m_side * m_side,
             "device": wt.resolve_device(device).alias, "imu_per_meas": imu_per_meas,
             "predict_ms": 1e3 * med(t_pred), "update_ms": 1e3 * med(t_upd), "step_ms": 1e3 * med(t_step),
@@ -105,14 +109,15 @@ def main(argv=None) -> int:
     parser.add_argument("--graph", nargs="+", default=["auto"], choices=["auto", "on", "off"],
                         help="replay a captured graph (auto: on CUDA only)")
     parser.add_argument("--terrain", default="synthetic:rugged")
+    parser.add_argument("--likelihood", nargs="+", default=["paper"], choices=["paper", "gaussian", "student_t"])
     parser.add_argument("--repeats", type=int, default=20)
     parser.add_argument("--warmup", type=int, default=3)
     parser.add_argument("--json", dest="json_out")
     args = parser.parse_args(argv)
     terrain = script_inputs("bench_filter_step", args.device, args.terrain)
     rows = []
-    print(f"{'device':7s} {'model':9s} {'graph':5s} {'B':>4s} {'N':>7s} {'M':>5s} {'predict ms':>11s} "
-          f"{'update ms':>10s} {'step ms':>9s} {'filter-steps/s':>15s}")
+    print(f"{'device':7s} {'model':9s} {'lik':8s} {'graph':5s} {'B':>4s} {'N':>7s} {'M':>5s} {'predict ms':>11s} "
+          f"{'update ms':>10s} {'step ms':>9s} {'filter-steps/s':>15s} {'stages':>6s}")
     modes = {"auto": None, "on": True, "off": False}
     for device in args.device:
         for m_side in args.m_side:
@@ -120,12 +125,14 @@ def main(argv=None) -> int:
                 for b in args.batch:
                     for n in args.n:
                         for g in args.graph:
-                            r = bench(terrain, model, n, m_side, device, args.repeats, args.warmup, graph=modes[g],
-                                      batch=b)
-                            rows.append(r)
-                            print(f"{r['device']:7s} {model:9s} {r['graph']!s:5s} {b:>4d} {n:>7d} {r['M']:>5d} "
-                                  f"{r['predict_ms']:11.3f} {r['update_ms']:10.3f} {r['step_ms']:9.3f} "
-                                  f"{r['filter_steps_per_s']:15.0f}")
+                            for lik in args.likelihood:
+                                r = bench(terrain, model, n, m_side, device, args.repeats, args.warmup,
+                                          graph=modes[g], batch=b, likelihood=lik)
+                                rows.append(r)
+                                print(f"{r['device']:7s} {model:9s} {lik:8s} {r['graph']!s:5s} {b:>4d} {n:>7d} "
+                                      f"{r['M']:>5d} {r['predict_ms']:11.3f} {r['update_ms']:10.3f} "
+                                      f"{r['step_ms']:9.3f} {r['filter_steps_per_s']:15.0f} "
+                                      f"{r['tempering_stages_mean']:6.2f}")
     if args.json_out:
         meta = {"warp_version": wp.config.version, "python": platform.python_version(),
                 "devices": {d: wt.resolve_device(d).name for d in args.device}, "terrain": terrain.name,

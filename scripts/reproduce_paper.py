@@ -21,6 +21,7 @@ import numpy as np
 
 import warptan as wt
 from warptan.report import ci95, write_outputs
+from warptan.measurement import LIKELIHOODS
 from warptan.scenarios import SCENARIO_IDS, prepare, run_scenario, run_scenario_batch
 
 
@@ -101,9 +102,61 @@ def main(argv=None) -> int:
     parser.add_argument("--no-baro-runs", action="store_true", help="skip the altitude-observability runs")
     parser.add_argument("--no-plots", action="store_true")
     parser.add_argument("--batch", action="store_true", help="run the seeds of a scenario as one batched filter")
+    parser.add_argument("--likelihoods", nargs="+", default=None, choices=sorted(LIKELIHOODS),
+                        help="run every scenario with each of these likelihoods, into OUT/<likelihood>/, and write "
+                             "OUT/likelihoods.md/.json side by side (default: the scenario files' likelihood, into OUT)")
     args = parser.parse_args(argv)
+    if args.likelihoods:
+        rows = {}
+        for kind in args.likelihoods:
+            code = run_one(args, Path(args.out) / kind, kind)
+            if code:
+                return code
+            with open(Path(args.out) / kind / "results.json") as f:
+                rows[kind] = json.load(f)
+        write_side_by_side(rows, Path(args.out), args)
+        return 0
+    return run_one(args, Path(args.out), None)
+
+
+def write_side_by_side(rows: dict, out: Path, args) -> None:
+    """OUT/likelihoods.json and .md: converged RMSE (mean ± 95 % interval) and pooled 3σ coverage per scenario,
+    one column group per likelihood."""
+    kinds = list(rows)
+    table = {}
+    for kind, data in rows.items():
+        for sid, agg in data["scenarios"].items():
+            table.setdefault(sid, {})[kind] = {k: agg[k] for k in ("rmse_converged_mean_m", "rmse_converged_ci95_m",
+                                                                  "coverage_3sigma_mean", "seeds")}
+    with open(out / "likelihoods.json", "w") as f:
+        json.dump({"seeds": args.seeds, "device": args.device, "likelihoods": kinds, "scenarios": table}, f, indent=1)
+    head = "| id | paper RMSE x / y / z (m) | " + " | ".join(
+        f"{k}: RMSE after convergence | {k}: 3σ coverage N/E/D" for k in kinds) + " |"
+    lines = ["# Paper likelihood vs per-point likelihood", "",
+             f"{args.seeds} seeds per scenario, device {args.device}; converged RMSE north / east / down in metres, "
+             "mean ± 95 % interval over seeds; 3σ coverage pooled over seeds and epochs after convergence.", "",
+             head, "|" + "---|" * (2 + 2 * len(kinds))]
+    for sid in sorted(table, key=lambda x: int(x[1:])):
+        paper = rows[kinds[0]]["scenarios"][sid].get("paper_rmse_m")
+        cells = [sid, " / ".join(f"{v:g}" for v in paper) if paper else ""]
+        for k in kinds:
+            e = table[sid].get(k)
+            if e is None:
+                cells += ["", ""]
+                continue
+            m, h = e["rmse_converged_mean_m"], e["rmse_converged_ci95_m"]
+            cells.append(" / ".join(f"{a:.2f}±{b:.2f}" for a, b in zip(m, h, strict=True)))
+            cells.append(" / ".join(f"{100 * c:.0f}%" for c in e["coverage_3sigma_mean"]))
+        lines.append("| " + " | ".join(cells) + " |")
+    (out / "likelihoods.md").write_text("\n".join(lines) + "\n")
+    print("\n".join(lines))
+
+
+def run_one(args, out: Path, likelihood: str | None) -> int:
+    """Every scenario (and the no-barometer runs) with ``likelihood`` (None: the files'), outputs into ``out``."""
     wt.device.quiet_warp()
-    overrides = {"particles": args.particles, "duration_s": args.duration_s, "paper_rates": args.paper_rates}
+    overrides = {"particles": args.particles, "duration_s": args.duration_s, "paper_rates": args.paper_rates,
+                 "likelihood": likelihood}
     try:
         wt.resolve_device(args.device)
         for sid in args.scenarios:
@@ -111,7 +164,12 @@ def main(argv=None) -> int:
     except (ValueError, FileNotFoundError) as err:
         print(f"reproduce_paper: error: {err}", file=sys.stderr)
         return 2
-    from tqdm import tqdm
+    try:
+        from tqdm import tqdm
+    except ModuleNotFoundError:  # a bare GPU machine
+
+        def tqdm(items, **_):
+            return items
 
     t0 = time.perf_counter()
     seeds = list(range(args.seeds))
@@ -131,7 +189,6 @@ def main(argv=None) -> int:
                 no_baro.setdefault(sid, []).append(r)
             else:
                 results.append(r)
-    out = Path(args.out)
     written = write_outputs(results, out, terrains, plots=not args.no_plots)
     if no_baro:
         write_outputs([r for runs in no_baro.values() for r in runs], out / "no_baro", terrains,
@@ -140,7 +197,8 @@ def main(argv=None) -> int:
     with open(out / "claims.json", "w") as f:
         json.dump(found, f, indent=1)
     lines = ["# The paper's claims, checked", "",
-             f"{args.seeds} seeds per scenario, device {args.device}; terrains: "
+             f"{args.seeds} seeds per scenario, device {args.device}, likelihood "
+             f"{likelihood or 'of the scenario files'}; terrains: "
              + ", ".join(sorted({Path(r.terrain).name for r in results})) + ".", ""]
     for c in found:
         verdict = {True: "holds", False: "does not hold", None: "not run"}[c["holds"]]

@@ -11,10 +11,11 @@ Python loop over particles or points:
 
 The likelihood is the paper's Gaussian on the scalar error, or a per-point Gaussian / Student-t over
 all valid residuals (:class:`Likelihood`, :mod:`warptan.kernels.likelihood` for the exact formulas).
-The per-point scale is calibrated unless given: ``σ_eff² = σ_sensor² + σ_map²`` with ``σ_map`` the RMS
+The per-point scale is calibrated unless given: ``σ_eff² = σ_sensor² + n_corr σ_map²`` with ``σ_map`` the RMS
 difference between the surface the model reads and the triangulated truth (bilinear vs triangles,
 :attr:`~warptan.terrain.Terrain.bilinear_mismatch_sigma_m`, 0 for ray casts, which read the triangles) plus
-any known map error (``map_sigma_m``). Every model also returns each particle's normalised squared residual
+any known map error (``map_sigma_m``), and ``n_corr`` the updates over which a moving scan sees the same map
+error (``map_correlation``). Every model also returns each particle's normalised squared residual
 (the filter's integrity statistic).
 
 Evaluation is two steps so that a filter step can be captured in a graph: :meth:`~MeasurementModel.stage`
@@ -55,6 +56,10 @@ class Likelihood:
             by the fraction of unpredictable points.
         sensor_sigma_m: Noise of one measured residual, m (range noise; the altimeter's noise).
         map_sigma_m: Known error of the map, m, added to the model's own surface mismatch (calibrated σ only).
+        map_correlation: Consecutive updates over which a point sees the same map error (≥ 1): a moving scan
+            reads the same DEM cells for about ``post spacing / (speed / measurement rate)`` updates, so the map
+            part of σ² is multiplied by it (the standard inflation of a white-noise model for a correlated
+            error; without it the filter counts one map error several times and its 3σ shrinks below the truth).
     """
 
     kind: str = "paper"
@@ -64,6 +69,7 @@ class Likelihood:
     outlier_sigmas: float = 4.0
     sensor_sigma_m: float = 0.5
     map_sigma_m: float = 0.0
+    map_correlation: float = 1.0
 
     def __post_init__(self):
         if self.kind not in LIKELIHOODS:
@@ -78,13 +84,16 @@ class Likelihood:
             value = getattr(self, name)
             if not (np.isfinite(value) and value >= 0):
                 raise ValueError(f"likelihood {name} must be a number ≥ 0, got {value!r}")
+        if not (np.isfinite(self.map_correlation) and self.map_correlation >= 1):
+            raise ValueError(f"likelihood map_correlation must be a number ≥ 1, got {self.map_correlation!r}")
 
     def sigma_eff(self, model_mismatch_m: float) -> float:
-        """The per-point σ in m: ``sigma_m`` when given, else ``sqrt(sensor² + map² + model_mismatch²)``
-        (at least 1 cm)."""
+        """The per-point σ in m: ``sigma_m`` when given, else
+        ``sqrt(sensor² + map_correlation · (map² + model_mismatch²))`` (at least 1 cm)."""
         if self.sigma_m is not None:
             return float(self.sigma_m)
-        return max(0.01, math.sqrt(self.sensor_sigma_m**2 + self.map_sigma_m**2 + model_mismatch_m**2))
+        map_var = self.map_correlation * (self.map_sigma_m**2 + model_mismatch_m**2)
+        return max(0.01, math.sqrt(self.sensor_sigma_m**2 + map_var))
 
 
 @dataclass

@@ -209,7 +209,7 @@ class MarginalizedParticleFilter:
     def __init__(self, model, nominal, grade: str | ImuGrade, rate_hz: float, p0_pos, p0_lin,
                  n_particles: int = 500, device=None, seed=0, resample_threshold: float = 0.5,
                  resampler: str = "systematic", pos_noise: float = 0.5, kalman_pos_noise: float = 0.5,
-                 regularize: float = 1.0, temper_ess: float = 0.5, max_stages: int = 8,
+                 regularize: float = 1.0, temper_ess: float = 0.1, max_stages: int = 8,
                  max_unpredictable: float = 0.5, integrity_window: int = 20, integrity_threshold: float = 9.0,
                  respread_scale: float = 1.0, graph: bool | None = None):
         if not (isinstance(n_particles, (int, np.integer)) and n_particles >= 1):
