@@ -113,8 +113,8 @@ def acc_add(acc: Acc, p: LikParams, res: float, axis_w: wp.vec3, jac: wp.vec3) -
     a.sum_abs = a.sum_abs + r
     a.sum_axes = a.sum_axes + r * axis_w
     a.last = res
-    a.ll_points = a.ll_points + point_loglik(p.lik, res, p.sigma, p.nu)
     a.sum_sq = a.sum_sq + wp.min(z * z, p.k_out * p.k_out)
+    a.ll_points = a.ll_points + point_loglik(p.lik, res, p.sigma, p.nu)
     inv_var = 1.0 / (p.sigma * p.sigma)
     a.lam = a.lam + wp.outer(jac, jac) * inv_var
     a.info = a.info + jac * (res * inv_var)

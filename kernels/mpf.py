@@ -625,9 +625,11 @@ def gather_kernel(
     lin_out: wp.array(dtype=vec12),
     logw_out: wp.array(dtype=wp.float32),
 ):
-    """Slot i takes its ancestor in a resampling filter, with uniform weights and the regularisation jitter
-    ``dp += h · chol(Σ̂) · z`` (Σ̂ the weighted covariance of dp before resampling; stream
-    ``stage · 2n + n + j``); the Kalman mean is the ancestor's (see :mod:`warptan.mpf`). Other filters copy."""
+    """Slot i takes its ancestor in a resampling filter, with uniform weights and the regularisation jitter with
+    kernel shrinkage (Liu & West 2001): ``dp = a dp_anc + (1 - a) m + h chol(Σ̂) z``, ``a = sqrt(1 - h²)``, Σ̂ and m
+    the weighted covariance and mean of dp before resampling (stream ``stage · 2n + n + j``): mean and covariance
+    of the cloud are kept, so that jitter cannot inflate a cloud the measurements do not contract (flat terrain).
+    The Kalman mean is the ancestor's (see :mod:`warptan.mpf`). Other filters copy."""
     i = wp.tid()
     b = i // n_per
     a = ancestors[i]
@@ -635,9 +637,13 @@ def gather_kernel(
     lw = logw_in[a]
     if stats[b, ST_RESAMPLE] != wp.float64(0.0):
         lw = -wp.log(float(n_per))
-        if params.bandwidth > 0.0:
+        h = params.bandwidth
+        if h > 0.0:
             state = wp.rand_init(seeds[b], stage * 2 * n_per + n_per + i % n_per)
-            d = d + params.bandwidth * (stats_chol(stats, b) * gaussian3(state))
+            shrink = wp.sqrt(wp.max(1.0 - h * h, 0.0))
+            mean = wp.vec3(wp.float32(stats[b, ST_MEAN_DP]), wp.float32(stats[b, ST_MEAN_DP + 1]),
+                           wp.float32(stats[b, ST_MEAN_DP + 2]))
+            d = shrink * d + (1.0 - shrink) * mean + h * (stats_chol(stats, b) * gaussian3(state))
     dp_out[i] = d
     lin_out[i] = lin_in[a]
     logw_out[i] = lw

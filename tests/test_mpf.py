@@ -366,8 +366,9 @@ def test_tempering_gives_the_one_update_posterior(device):
 
 
 def test_regularisation_jitter_matches_numpy(device):
-    """The weight statistics give the Cholesky factor of the weighted covariance of dp (NumPy float64), and the
-    regularisation jitter added at resampling has covariance h² Σ̂ (200 000 particles, 3 % on each entry)."""
+    """The weight statistics give the Cholesky factor of the weighted covariance of dp (NumPy float64); the
+    regularisation at resampling, ``a dp + (1 - a) m + h chol(Σ̂) z`` with ``a = sqrt(1 - h²)``, adds noise of
+    covariance h² Σ̂ around the shrunk particles (200 000 particles, 3 % on each entry)."""
     n = 200_000
     rng = np.random.default_rng(1)
     a = np.array([[3.0, 0.0, 0.0], [1.0, 2.0, 0.0], [0.5, -0.4, 0.7]])
@@ -399,7 +400,9 @@ def test_regularisation_jitter_matches_numpy(device):
               inputs=[n, 0, wp.array([5], dtype=wp.int32, device=device), params, stats,
                       wp.array(np.arange(n, dtype=np.int32), device=device), d_dp,
                       wp.zeros(n, dtype=kmpf.vec12, device=device), d_logw], outputs=out, device=device)
-    jitter = out[0].numpy().astype(np.float64) - dp
+    shrink = np.sqrt(1.0 - 0.16)
+    jitter = out[0].numpy().astype(np.float64) - (shrink * dp + (1.0 - shrink) * s[kmpf.ST_MEAN_DP:kmpf.ST_MEAN_DP + 3])
+    np.testing.assert_allclose(s[kmpf.ST_MEAN_DP:kmpf.ST_MEAN_DP + 3], mean, atol=1e-6)
     np.testing.assert_allclose(np.cov(jitter.T), 0.16 * cov, atol=0.03 * 0.16 * np.abs(cov).max())
     np.testing.assert_allclose(out[2].numpy(), -np.log(n), rtol=1e-6)
 

@@ -14,9 +14,11 @@ Per IMU sample (``predict``) the host only buffers the sample. Per measurement (
    the largest exponent ``γ`` of what remains that keeps ESS ≥ ``temper_ess · n`` (chosen on the device from
    20 geometric candidates by streaming log-sum-exp reductions), normalises per filter, and resamples when
    exponent remains or ESS < ``resample_threshold · n``; the next stage re-evaluates the model at the moved
-   particles. Every resampling is regularised (Musso, Oudjane & Le Gland 2001): ``dp_i += h · chol(Σ̂) z_i``,
-   Σ̂ the weighted covariance of dp before resampling, ``h`` Silverman's bandwidth for d = 3 times
-   ``regularize``. Then the integrity monitor and the update's record.
+   particles. Every resampling is regularised (Musso, Oudjane & Le Gland 2001) with kernel shrinkage (Liu & West
+   2001): ``dp_i = a dp_anc + (1 - a) m + h chol(Σ̂) z_i``, ``a = sqrt(1 - h²)``, Σ̂ and m the weighted
+   covariance and mean of dp before resampling, ``h`` Silverman's bandwidth for d = 3 times ``regularize``: the
+   cloud's mean and covariance are kept (without shrinkage every resampling inflated the covariance by 1 + h²,
+   and over flat terrain, where nothing contracts it, S12 drifted kilometres). Then the integrity monitor and the update's record.
 
 Step 2 is a fixed sequence of launches on persistent buffers (``max_stages`` stages; a filter that is done
 ignores the later ones), so it is captured once as a graph and replayed (CUDA, and the CPU where Warp replays
@@ -189,7 +191,8 @@ class MarginalizedParticleFilter:
             m/√s; the particles move with it too.
         regularize: Factor on the regularisation bandwidth, ``h = regularize · (4 / (n (d + 2)))^(1/(d + 4))``
             with d = 3 (Silverman's rule for a Gaussian kernel; 0.39 at n = 500): after every resampling
-            ``dp_i += h · chol(Σ̂) · z_i``, Σ̂ the weighted covariance of dp before resampling. 0 disables it.
+            ``dp_i = a dp_i + (1 - a) m + h · chol(Σ̂) · z_i`` (``a = sqrt(1 - h²)``; Σ̂, m the weighted covariance and
+            mean of dp before resampling). 0 disables it.
         temper_ess: Tempering: each stage of an update applies the largest exponent of the log-likelihood that
             keeps ESS ≥ temper_ess · n, then resamples and regularises, re-evaluates the model at the moved
             particles and goes on with the rest. 0 applies every update in one stage.

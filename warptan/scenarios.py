@@ -430,11 +430,14 @@ class ScenarioResult:
 
 
 def scenario_likelihood(config: dict, the_map: Terrain) -> Likelihood:
-    """The scenario's likelihood; ``sigma_m = "auto"`` calibrates σ from the sensor noise, the map noise and the
+    """The scenario's likelihood; ``sigma_m = "auto"`` calibrates σ from the sensor noise (range; altimeter ⊕
+    barometer for the altimeter with a barometer), the map noise and the
     model's surface mismatch, with the map part inflated by the updates over which the scan reads the same DEM
     cells: ``n_corr = max(1, sqrt(dn de) / (speed / measurement rate))`` (7.4 on the 90 m tile at 100 m/s, 10 Hz)."""
     lk, s = config["likelihood"], config["sensor"]
-    noise_m = s["altimeter_sigma_m"] if s["model"] == "altimeter" else s["range_sigma_m"]
+    noise_m = s["range_sigma_m"]
+    if s["model"] == "altimeter":  # the residual a - (h_baro - h(p)) carries both sensors' noise
+        noise_m = math.hypot(s["altimeter_sigma_m"], s["baro_sigma_m"] if s["use_baro"] else 0.0)
     step_m = config["flight"]["speed_mps"] / s["rate_hz"]
     n_corr = max(1.0, math.sqrt(the_map.dn * the_map.de) / step_m)
     return Likelihood(lk["kind"], r_err=lk["r_err_m2"], sigma_m=None if lk["sigma_m"] == "auto" else lk["sigma_m"],
