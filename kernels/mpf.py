@@ -90,6 +90,7 @@ class UpdateParams:
     resample_threshold: float  # resample when ESS < this · n
     temper_ess: float  # a tempering stage keeps ESS ≥ this · n (0: one stage with the whole likelihood)
     bandwidth: float  # regularisation kernel bandwidth h (0: none)
+    shrinkage: float  # fraction s of the kernel shrinkage: the cloud's covariance grows by 1 + (1 - s) h² per resampling
     max_unpredictable: float  # skip the update when more than this fraction of the predictions is impossible
     integrity_window: int  # informative updates in the window mean of the posterior NIS (≤ MAX_WINDOW)
     integrity_threshold: float  # the filter is lost when the window mean exceeds this
@@ -626,9 +627,9 @@ def gather_kernel(
     logw_out: wp.array(dtype=wp.float32),
 ):
     """Slot i takes its ancestor in a resampling filter, with uniform weights and the regularisation jitter with
-    kernel shrinkage (Liu & West 2001): ``dp = a dp_anc + (1 - a) m + h chol(Σ̂) z``, ``a = sqrt(1 - h²)``, Σ̂ and m
-    the weighted covariance and mean of dp before resampling (stream ``stage · 2n + n + j``): mean and covariance
-    of the cloud are kept, so that jitter cannot inflate a cloud the measurements do not contract (flat terrain).
+    (partial) kernel shrinkage (Liu & West 2001): ``dp = a dp_anc + (1 - a) m + h chol(Σ̂) z``,
+    ``a = sqrt(1 - s h²)``, Σ̂ and m the weighted covariance and mean of dp before resampling (stream
+    ``stage · 2n + n + j``): the mean is kept and the covariance grows by ``1 + (1 - s) h²``.
     The Kalman mean is the ancestor's (see :mod:`warptan.mpf`). Other filters copy."""
     i = wp.tid()
     b = i // n_per
@@ -640,7 +641,7 @@ def gather_kernel(
         h = params.bandwidth
         if h > 0.0:
             state = wp.rand_init(seeds[b], stage * 2 * n_per + n_per + i % n_per)
-            shrink = wp.sqrt(wp.max(1.0 - h * h, 0.0))
+            shrink = wp.sqrt(wp.max(1.0 - params.shrinkage * h * h, 0.0))
             mean = wp.vec3(wp.float32(stats[b, ST_MEAN_DP]), wp.float32(stats[b, ST_MEAN_DP + 1]),
                            wp.float32(stats[b, ST_MEAN_DP + 2]))
             d = shrink * d + (1.0 - shrink) * mean + h * (stats_chol(stats, b) * gaussian3(state))

@@ -381,6 +381,7 @@ def test_regularisation_jitter_matches_numpy(device):
     params = kmpf.UpdateParams()
     params.resample_threshold = 1.0
     params.bandwidth = 0.4
+    params.shrinkage = 1.0
     stats = wp.zeros((1, kmpf.N_STATS), dtype=wp.float64, device=device)
     stats.assign(np.eye(1, kmpf.N_STATS, kmpf.ST_ACTIVE))
     d_dp = wp.array(dp, dtype=wp.vec3, device=device)
