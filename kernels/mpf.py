@@ -210,6 +210,17 @@ def begin_update_kernel(stats: wp.array2d(dtype=wp.float64)):
     stats[b, ST_REMAIN] = wp.float64(1.0)
 
 
+@wp.kernel
+def more_stages_kernel(stats: wp.array2d(dtype=wp.float64), flag_out: wp.array(dtype=wp.int32)):
+    """One thread: ``flag_out[0] = 1`` when some filter still has exponent to apply (the condition of the next
+    tempering stage in a captured graph)."""
+    more = int(0)
+    for b in range(stats.shape[0]):
+        if stats[b, ST_REMAIN] > wp.float64(0.0):
+            more = 1
+    flag_out[0] = more
+
+
 @wp.func
 def stage_loglik(ll: float, floor: float) -> float:
     """A particle's log-likelihood, the filter's floor when it is not finite."""

@@ -327,6 +327,7 @@ class MarginalizedParticleFilter:
         self._temper_partials = wp.empty((b, kmpf.N_CHUNKS, kmpf.N_TEMPER, 3), dtype=wp.float64, device=d)
         self._unpred_partials = wp.empty((b, kmpf.N_CHUNKS), dtype=wp.float64, device=d)
         self._integrity = wp.zeros((b, kmpf.N_INTEGRITY), dtype=wp.float64, device=d)
+        self._more_stages = wp.zeros(1, dtype=wp.int32, device=d)
         self._cdf_sums = wp.empty((b, kmpf.N_CHUNKS), dtype=wp.float64, device=d)
         self._stats = wp.zeros((b, kmpf.N_STATS), dtype=wp.float64, device=d)
         self._moments_partial = wp.empty((b, kmpf.N_MOMENT_CHUNKS, kmpf.N_MOMENTS), dtype=wp.float64, device=d)
@@ -454,24 +455,37 @@ class MarginalizedParticleFilter:
 
     def _device_update(self, out, read_flags: bool = False) -> None:
         """The device part of an update: move, then up to ``max_stages`` tempering stages (each after the first
-        re-evaluates the model at the moved particles), the integrity monitor, the record. ``read_flags``: read
-        the per-filter flags on the host to skip work no filter needs (free on the CPU, which runs launches in
-        order); the result is the same as running every stage (inactive filters ignore a stage)."""
+        re-evaluates the model at the moved particles), the integrity monitor, the record. A stage after the
+        first runs only when some filter still has exponent left: decided on the host when ``read_flags`` (free
+        on the CPU, which runs launches in order), else by a device flag and a conditional node
+        (``wp.capture_if``: no host sync, and in a captured graph a converged update costs one stage). Filters
+        that are done ignore a stage that runs for the others, so both paths give the same result."""
         self._launch_time_update()
         self._launch_poses()
         self.model.launch(self._pos, self._quat)
         wp.launch(kmpf.begin_update_kernel, dim=self.n_filters, outputs=[self._stats], device=self.device)
-        for stage in range(self.max_stages):
-            if stage > 0:
-                if read_flags and not (self._stats.numpy()[:, kmpf.ST_REMAIN] > 0).any():
+        self._launch_stage(out, 0)
+        if not read_flags or self._stats.numpy()[:, kmpf.ST_RESAMPLE].any():
+            self._launch_resample(0)
+        for stage in range(1, self.max_stages):
+            if read_flags:
+                if not (self._stats.numpy()[:, kmpf.ST_REMAIN] > 0).any():
                     break
-                self._launch_poses()
-                self.model.launch(self._pos, self._quat)
-            self._launch_stage(out, stage)
-            if not read_flags or self._stats.numpy()[:, kmpf.ST_RESAMPLE].any():
-                self._launch_resample(stage)
+                self._extra_stage(out=out, stage=stage, read_flags=True)
+            else:
+                wp.launch(kmpf.more_stages_kernel, dim=1, inputs=[self._stats], outputs=[self._more_stages],
+                          device=self.device)
+                wp.capture_if(self._more_stages, on_true=self._extra_stage, out=out, stage=stage, read_flags=False)
         self._launch_integrity()
         self._launch_record()
+
+    def _extra_stage(self, out, stage: int, read_flags: bool) -> None:
+        """A tempering stage after the first: poses and model at the moved particles, weights, resampling."""
+        self._launch_poses()
+        self.model.launch(self._pos, self._quat)
+        self._launch_stage(out, stage)
+        if not read_flags or self._stats.numpy()[:, kmpf.ST_RESAMPLE].any():
+            self._launch_resample(stage)
 
     def update(self, measurement, sync: bool = True):
         """Weight the particles by ``measurement`` (a list of B for a batch; taken at the current nominal time)
