@@ -90,7 +90,7 @@ class UpdateParams:
     resample_threshold: float  # resample when ESS < this · n
     temper_ess: float  # a tempering stage keeps ESS ≥ this · n (0: one stage with the whole likelihood)
     bandwidth: float  # regularisation kernel bandwidth h (0: none)
-    shrinkage: float  # fraction s of the kernel shrinkage: the cloud's covariance grows by 1 + (1 - s) h² per resampling
+    shrinkage: float  # kernel shrinkage fraction s: the covariance grows by 1 + (1 - s) h² per resampling
     max_unpredictable: float  # skip the update when more than this fraction of the predictions is impossible
     integrity_window: int  # informative updates in the window mean of the posterior NIS (≤ MAX_WINDOW)
     integrity_threshold: float  # the filter is lost when the window mean exceeds this
@@ -619,7 +619,8 @@ def stats_chol(stats: wp.array2d(dtype=wp.float64), b: int) -> wp.mat33:
     z = wp.float32(0.0)
     return wp.mat33(wp.float32(stats[b, ST_CHOL]), z, z,
                     wp.float32(stats[b, ST_CHOL + 1]), wp.float32(stats[b, ST_CHOL + 2]), z,
-                    wp.float32(stats[b, ST_CHOL + 3]), wp.float32(stats[b, ST_CHOL + 4]), wp.float32(stats[b, ST_CHOL + 5]))
+                    wp.float32(stats[b, ST_CHOL + 3]), wp.float32(stats[b, ST_CHOL + 4]),
+                    wp.float32(stats[b, ST_CHOL + 5]))
 
 
 @wp.kernel
@@ -676,7 +677,8 @@ def integrity_kernel(params: UpdateParams, stats: wp.array2d(dtype=wp.float64),
                      integrity: wp.array2d(dtype=wp.float64)):
     """One thread per filter, after the last stage (MBARI TRN style): the mean over the last ``integrity_window``
     informative updates of the smallest NIS of any particle — large only when no hypothesis explains the scan,
-    whereas a wide but healthy cloud (acquisition, a flat likelihood) still holds particles that do; above ``integrity_threshold`` (after ``integrity_min_updates``
+    whereas a wide but healthy cloud (acquisition, a flat likelihood) still holds particles that do; above
+    ``integrity_threshold`` (after ``integrity_min_updates``
     informative updates, so that acquisition is not judged) the filter is lost: flag it for a re-spread and
     restart the window."""
     b = wp.tid()

@@ -20,8 +20,8 @@ from pathlib import Path
 import numpy as np
 
 import warptan as wt
-from warptan.report import ci95, write_outputs
 from warptan.measurement import LIKELIHOODS
+from warptan.report import ci95, write_outputs
 from warptan.scenarios import SCENARIO_IDS, prepare, run_scenario, run_scenario_batch
 
 
@@ -104,7 +104,8 @@ def main(argv=None) -> int:
     parser.add_argument("--batch", action="store_true", help="run the seeds of a scenario as one batched filter")
     parser.add_argument("--likelihoods", nargs="+", default=None, choices=sorted(LIKELIHOODS),
                         help="run every scenario with each of these likelihoods, into OUT/<likelihood>/, and write "
-                             "OUT/likelihoods.md/.json side by side (default: the scenario files' likelihood, into OUT)")
+                             "OUT/likelihoods.md/.json side by side (default: the scenario files' likelihood, into "
+                             "OUT)")
     args = parser.parse_args(argv)
     if args.likelihoods:
         rows = {}

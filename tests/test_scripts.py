@@ -30,3 +30,23 @@ def test_compare_kernel_timings_rejects_unknown_device():
     proc = subprocess.run([sys.executable, str(ROOT / "scripts" / "compare_kernel_timings.py"), "--quick",
                            "--device", "tpu"], capture_output=True, text=True, timeout=120)
     assert proc.returncode == 2 and "unknown or absent device 'tpu'" in proc.stderr
+
+
+def test_readme_results_come_from_the_artifacts():
+    """README.md's generated blocks (scenario table, claims, filter-step times) equal what
+    `scripts/readme_results.py` renders from the committed JSON: a README figure cannot drift from its artifact."""
+    proc = subprocess.run([sys.executable, str(ROOT / "scripts" / "readme_results.py"), "--check"],
+                          capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+
+
+def test_bench_filter_step_records_stages(tmp_path):
+    """`bench_filter_step.py` runs a tiny configuration and records the tempering stages with the timings."""
+    out = tmp_path / "s.json"
+    proc = subprocess.run([sys.executable, str(ROOT / "scripts" / "bench_filter_step.py"), "--n", "64", "--models",
+                           "sliding", "--likelihood", "gaussian", "--repeats", "2", "--warmup", "1",
+                           "--json", str(out)],
+                          capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    row = json.loads(out.read_text())["results"][0]
+    assert row["likelihood"] == "gaussian" and row["tempering_stages_mean"] >= 1 and row["step_ms"] > 0

@@ -21,7 +21,8 @@ Per IMU sample (``predict``) the host only buffers the sample. Per measurement (
    Measured (8 seeds, 120 s, per-point likelihood): s = 0 lets the covariance grow by 1 + h² per resampling and
    over flat terrain, where nothing contracts it, the altimeter run S12 drifted 2–3 km; s = 1 keeps the
    covariance exactly and the flat point-cloud run S11 became overconfident (3σ coverage 62/47 %, RMSE
-   4.0/6.4 m); s = 0.5 gave S11 2.1/2.0 m at 97/98 % and S12 20/18 m at 99/100 %. Then the integrity monitor and the update's record.
+   4.0/6.4 m); s = 0.5 gave S11 2.1/2.0 m at 97/98 % and S12 20/18 m at 99/100 %. Then the integrity monitor
+   and the update's record.
 
 Step 2 is a fixed sequence of launches on persistent buffers (``max_stages`` stages; a filter that is done
 ignores the later ones), so it is captured once as a graph and replayed (CUDA, and the CPU where Warp replays
@@ -366,8 +367,9 @@ class MarginalizedParticleFilter:
         nav, out, k = self._nav, self._interval, self._k
         phi, noise, scratch = self._scratch
         launch_rows(knav.nav_interval_kernel, self.n_filters,
-                    lambda a, b: ([a or 0, k, self.dt, self.q_pos, self.q_rough, self._q_lin, self._f, self._w, nav["pos"],
-                                   nav["vel"], nav["quat"], nav["ba"], nav["bg"], nav["cov"], phi, noise, scratch],
+                    lambda a, b: ([a or 0, k, self.dt, self.q_pos, self.q_rough, self._q_lin, self._f, self._w,
+                                   nav["pos"], nav["vel"], nav["quat"], nav["ba"], nav["bg"], nav["cov"], phi, noise,
+                                   scratch],
                                   [out["phi"], out["chol"], out["pose"]]),
                     self._cpu, row_cost=4000 * max(k, 1))
         self._k = 0

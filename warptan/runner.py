@@ -17,8 +17,8 @@ import warp as wp
 
 from warptan.frames import quat_exp, quat_mul
 from warptan.imu import ImuModel
-from warptan.kernels import mpf as kmpf
 from warptan.ins import Ins, NavState
+from warptan.kernels import mpf as kmpf
 from warptan.measurement import AltimeterModel
 from warptan.mpf import MarginalizedParticleFilter
 from warptan.sensors import AltimeterReading, Barometer, RadarAltimeter

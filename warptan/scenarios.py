@@ -487,7 +487,6 @@ def run_scenario_batch(name_or_path, seeds, device="cpu", progress=None, **overr
         raise ValueError(f"{config['id']}: map_noise_m = {config['terrain']['map_noise_m']} gives every seed its own "
                          "map; run the seeds one by one (without --batch)")
     the_map = map_terrain(truth_terrain, config, total_seeds[0])
-    lk = config["likelihood"]
     likelihood = scenario_likelihood(config, the_map)
     model_kwargs = {"use_baro": s["use_baro"], "baro_sigma_m": max(s["baro_sigma_m"], 0.1)} \
         if s["model"] == "altimeter" else {}

@@ -1,0 +1,53 @@
+#!/usr/bin/env python3
+"""Long-flight integrity check: S8 (Thuringia SRTM3), 600 s, 100 particles, seeds 0–3, with the per-point and the
+paper likelihood. Does each run stay inside its 3σ, or does its record flag the loss (integrity re-spread)?
+
+    python scripts/long_flight_check.py results/long_flight_check.json
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from warptan.scenarios import run_scenario_batch
+
+WHAT = ("S8, 600 s, 100 particles, seeds 0-3, CPU. Per run: converged RMSE (m), 3σ coverage, fraction of epochs after "
+        "30 s with the horizontal error outside the 3σ box, times of the integrity re-spreads, largest horizontal "
+        "error after 30 s, final horizontal error, largest window mean of the integrity statistic.")
+
+
+def summarise(result) -> dict:
+    run = result.run
+    late = run.t_s >= 30.0
+    outside = ~(np.abs(run.error[:, :2]) <= run.sigma3_pos[:, :2]).all(axis=1)
+    horiz = np.linalg.norm(run.error[:, :2], axis=1)
+    return {"rmse_converged_m": result.rmse_converged.round(3).tolist(),
+            "coverage_3sigma": run.coverage(30.0).round(3).tolist(),
+            "frac_outside_3sigma_after_30s": round(float(outside[late].mean()), 4),
+            "respreads_at_s": run.t_s[np.flatnonzero(run.respread)].round(1).tolist(),
+            "max_horizontal_error_after_30s_m": round(float(horiz[late].max()), 2),
+            "final_horizontal_error_m": round(float(horiz[-1]), 2),
+            "integrity_max": round(float(np.nanmax(run.nis_avg)), 2)}
+
+
+def main(argv=None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    out_path = Path(argv[0] if argv else "long_flight_check.json")
+    commit = subprocess.run(["git", "-C", str(Path(__file__).resolve().parents[1]), "rev-parse", "--short", "HEAD"],
+                            capture_output=True, text=True).stdout.strip()
+    out = {"what": WHAT, "command": "python scripts/long_flight_check.py OUT.json", "commit": commit, "runs": {}}
+    for kind in ("gaussian", "paper"):
+        for r in run_scenario_batch("S8", [0, 1, 2, 3], "cpu", duration_s=600.0, particles=100, likelihood=kind):
+            out["runs"][f"{kind}/seed{r.seed}"] = row = summarise(r)
+            print(kind, r.seed, row, flush=True)
+    out_path.write_text(json.dumps(out, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
