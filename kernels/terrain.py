@@ -62,8 +62,9 @@ def grid_bilinear(grid: HeightGrid, north: float, east: float) -> float:
 
 
 @wp.func
-def grid_surface(grid: HeightGrid, north: float, east: float) -> float:
-    """Height in m of the triangulated surface (the mesh) at ``(north, east)``; NaN where invalid."""
+def grid_cell(grid: HeightGrid, north: float, east: float):
+    """The cell under ``(north, east)``: (inside the grid, fractions ``fu`` north and ``fv`` east within the cell,
+    corner heights ``h00, h10, h01, h11``); off the grid (or a NaN coordinate) ``inside`` is False."""
     u = (north - grid.n0) / grid.dn
     v = (east - grid.e0) / grid.de
     rows = grid.heights.shape[0]
@@ -71,20 +72,22 @@ def grid_surface(grid: HeightGrid, north: float, east: float) -> float:
     if u >= 0.0 and u <= float(rows - 1) and v >= 0.0 and v <= float(cols - 1):
         i = wp.min(int(u), rows - 2)
         j = wp.min(int(v), cols - 2)
-        fu = u - float(i)
-        fv = v - float(j)
-        h00 = grid.heights[i, j]
-        h10 = grid.heights[i + 1, j]
-        h01 = grid.heights[i, j + 1]
-        h11 = grid.heights[i + 1, j + 1]
-        if wp.isnan(h00 + h10 + h01 + h11):
-            return wp.nan
-        if fu >= fv:
-            # triangle (i,j) (i+1,j) (i+1,j+1)
-            return h00 + fu * (h10 - h00) + fv * (h11 - h10)
-        # triangle (i,j) (i,j+1) (i+1,j+1)
-        return h00 + fv * (h01 - h00) + fu * (h11 - h01)
-    return wp.nan
+        return (True, u - float(i), v - float(j), grid.heights[i, j], grid.heights[i + 1, j], grid.heights[i, j + 1],
+                grid.heights[i + 1, j + 1])
+    return False, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
+
+
+@wp.func
+def grid_surface(grid: HeightGrid, north: float, east: float) -> float:
+    """Height in m of the triangulated surface (the mesh) at ``(north, east)``; NaN where invalid."""
+    inside, fu, fv, h00, h10, h01, h11 = grid_cell(grid, north, east)
+    if not inside or wp.isnan(h00 + h10 + h01 + h11):
+        return wp.nan
+    if fu >= fv:
+        # triangle (i,j) (i+1,j) (i+1,j+1)
+        return h00 + fu * (h10 - h00) + fv * (h11 - h10)
+    # triangle (i,j) (i,j+1) (i+1,j+1)
+    return h00 + fv * (h01 - h00) + fu * (h11 - h01)
 
 
 @wp.func
@@ -99,26 +102,15 @@ def grid_height(grid: HeightGrid, surface: int, north: float, east: float) -> fl
 def grid_gradient(grid: HeightGrid, surface: int, north: float, east: float) -> wp.vec2:
     """``(∂h/∂north, ∂h/∂east)`` of the bilinear (``surface == 0``) or triangulated surface at ``(north, east)``;
     NaN where the height is invalid."""
-    u = (north - grid.n0) / grid.dn
-    v = (east - grid.e0) / grid.de
-    rows = grid.heights.shape[0]
-    cols = grid.heights.shape[1]
-    if u >= 0.0 and u <= float(rows - 1) and v >= 0.0 and v <= float(cols - 1):
-        i = wp.min(int(u), rows - 2)
-        j = wp.min(int(v), cols - 2)
-        fu = u - float(i)
-        fv = v - float(j)
-        h00 = grid.heights[i, j]
-        h10 = grid.heights[i + 1, j]
-        h01 = grid.heights[i, j + 1]
-        h11 = grid.heights[i + 1, j + 1]
-        if surface == 0:
-            return wp.vec2(((1.0 - fv) * (h10 - h00) + fv * (h11 - h01)) / grid.dn,
-                           ((1.0 - fu) * (h01 - h00) + fu * (h11 - h10)) / grid.de)
-        if fu >= fv:
-            return wp.vec2((h10 - h00) / grid.dn, (h11 - h10) / grid.de)
-        return wp.vec2((h11 - h01) / grid.dn, (h01 - h00) / grid.de)
-    return wp.vec2(wp.nan, wp.nan)
+    inside, fu, fv, h00, h10, h01, h11 = grid_cell(grid, north, east)
+    if not inside:
+        return wp.vec2(wp.nan, wp.nan)
+    if surface == 0:
+        return wp.vec2(((1.0 - fv) * (h10 - h00) + fv * (h11 - h01)) / grid.dn,
+                       ((1.0 - fu) * (h01 - h00) + fu * (h11 - h10)) / grid.de)
+    if fu >= fv:
+        return wp.vec2((h10 - h00) / grid.dn, (h11 - h10) / grid.de)
+    return wp.vec2((h11 - h01) / grid.dn, (h01 - h00) / grid.de)
 
 
 @wp.kernel
