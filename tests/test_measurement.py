@@ -327,3 +327,15 @@ def test_attitude_marginal_matches_numpy(device):
         got = model.evaluate(*_poses(poses, quats, device), cloud).loglik.numpy()
         np.testing.assert_allclose(got, expected[label], rtol=2e-3, atol=0.05)
     assert np.abs(expected["prior"] - expected["zero"]).min() > 1.0  # the attitude term is not negligible here
+
+
+@pytest.mark.parametrize(("kwargs", "message"), [
+    ({"map_correlation": 0.5}, "map_correlation must be a number ≥ 1"),
+    ({"sensor_sigma_m": -1.0}, "sensor_sigma_m must be a number ≥ 0"),
+    ({"map_sigma_m": float("nan")}, "map_sigma_m must be a number ≥ 0"),
+    ({"sigma_m": 0.0}, "sigma_m must be a positive number"),
+])
+def test_bad_likelihood_parameters(kwargs, message):
+    """Likelihood parameters out of range are one clear error naming the parameter."""
+    with pytest.raises(ValueError, match=message):
+        wt.Likelihood("gaussian", **kwargs)

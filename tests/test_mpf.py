@@ -431,3 +431,21 @@ def test_flight_off_the_map_edge_does_not_drag_the_estimate(rugged):
     assert err[(run.t_s > 30.0) & (run.t_s < 55.0)].max() < 10.0
     assert err[-1] < 40.0 < ins[-1] and not run.respread.any()
     assert np.isfinite(run.est_pos).all()
+
+
+@pytest.mark.parametrize(("kwargs", "message"), [
+    ({"temper_ess": 1.5}, "temper_ess must be in"),
+    ({"shrinkage": -0.1}, "shrinkage must be in"),
+    ({"max_unpredictable": float("nan")}, "max_unpredictable must be in"),
+    ({"regularize": -1.0}, "regularize must be a number ≥ 0"),
+    ({"kalman_pos_noise": float("inf")}, "kalman_pos_noise must be a number ≥ 0"),
+    ({"max_stages": 0}, "max_stages must be an integer in"),
+    ({"integrity_window": 65}, "integrity_window must be an integer in"),
+    ({"integrity_threshold": 0.0}, "integrity_threshold must be a positive number"),
+])
+def test_bad_update_parameters(rugged, kwargs, message):
+    """Tempering, regularisation and integrity parameters out of range are one clear error naming the parameter."""
+    nominal = Trajectory.build([Straight(1.0)], 100.0, [0, 0, -1000.0]).state(0)
+    with pytest.raises(ValueError, match=message):
+        MarginalizedParticleFilter(wt.SlidingModel(rugged), nominal, "navigation", 100.0, [1, 1, 1],
+                                   np.eye(12) * 1e-4, n_particles=10, **kwargs)

@@ -136,3 +136,19 @@ def test_warptan_run_batch_equals_one_by_one(tmp_path):
         runs = json.loads((out / "results.json").read_text())["runs"]
         rmse[bool(flag)] = [r["rmse_m"] for r in runs]
     assert len(rmse[True]) == 3 and rmse[True] == rmse[False]
+
+
+def test_likelihood_sigma_auto_or_number():
+    """likelihood.sigma_m is "auto" or a positive number; anything else is named in the scenario error, and the
+    calibrated σ of S8 includes the map-error correlation over the updates a scan reads the same cells."""
+    with pytest.raises(ScenarioError, match="likelihood.sigma_m = 'automatic' must be 'auto'"):
+        load_config("S8", sigma_m="automatic")
+    with pytest.raises(ScenarioError, match="filter.shrinkage = 2.0 must be in"):
+        load_config("S8", shrinkage=2.0)
+    from warptan.scenarios import scenario_likelihood
+
+    config = load_config("S8")
+    flat = wt.Terrain.synthetic("flat", size_m=4000.0, spacing=30.0, seed=1)
+    lik = scenario_likelihood(config, flat)
+    assert lik.sigma_m is None and lik.map_correlation == pytest.approx(3.0)  # 30 m posts / (100 m/s / 10 Hz)
+    assert lik.sensor_sigma_m == config["sensor"]["range_sigma_m"]
