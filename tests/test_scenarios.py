@@ -141,9 +141,9 @@ def test_warptan_run_batch_equals_one_by_one(tmp_path):
 def test_likelihood_sigma_auto_or_number():
     """likelihood.sigma_m is "auto" or a positive number; anything else is named in the scenario error, and the
     calibrated σ of S8 includes the map-error correlation over the updates a scan reads the same cells."""
-    with pytest.raises(ScenarioError, match="likelihood.sigma_m = 'automatic' must be 'auto'"):
+    with pytest.raises(ScenarioError, match=re.escape("likelihood.sigma_m = 'automatic' must be 'auto'")):
         load_config("S8", sigma_m="automatic")
-    with pytest.raises(ScenarioError, match="filter.shrinkage = 2.0 must be in"):
+    with pytest.raises(ScenarioError, match=re.escape("filter.shrinkage = 2.0 must be in")):
         load_config("S8", shrinkage=2.0)
     from warptan.scenarios import scenario_likelihood
 
