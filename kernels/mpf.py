@@ -281,13 +281,29 @@ def temper_partials_kernel(
 
 
 @wp.kernel
+def temper_ess_kernel(partial_in: wp.array4d(dtype=wp.float64), ess_out: wp.array2d(dtype=wp.float64)):
+    """Filter b, candidate g: the ESS the candidate exponent would leave, from the chunks' streaming partials."""
+    b, g = wp.tid()
+    big = partial_in[b, 0, g, 0]
+    for c in range(N_CHUNKS):
+        big = wp.max(big, partial_in[b, c, g, 0])
+    s1 = wp.float64(0.0)
+    s2 = wp.float64(0.0)
+    for c in range(N_CHUNKS):
+        scale = wp.exp(partial_in[b, c, g, 0] - big)
+        s1 += partial_in[b, c, g, 1] * scale
+        s2 += partial_in[b, c, g, 2] * scale * scale
+    ess_out[b, g] = s1 * s1 / s2
+
+
+@wp.kernel
 def temper_select_kernel(
     n_per: int,
     stage: int,
     last_stage: int,
     params: UpdateParams,
     meta: wp.array2d(dtype=wp.float32),
-    partial_in: wp.array4d(dtype=wp.float64),
+    ess_in: wp.array2d(dtype=wp.float64),
     unpred_in: wp.array2d(dtype=wp.float64),
     stats: wp.array2d(dtype=wp.float64),
 ):
@@ -321,17 +337,8 @@ def temper_select_kernel(
         found = int(0)
         for g in range(N_TEMPER):
             if found == 0:
-                big = partial_in[b, 0, g, 0]
-                for c in range(N_CHUNKS):
-                    big = wp.max(big, partial_in[b, c, g, 0])
-                s1 = wp.float64(0.0)
-                s2 = wp.float64(0.0)
-                for c in range(N_CHUNKS):
-                    scale = wp.exp(partial_in[b, c, g, 0] - big)
-                    s1 += partial_in[b, c, g, 1] * scale
-                    s2 += partial_in[b, c, g, 2] * scale * scale
                 gamma = cand
-                if s1 * s1 >= target * s2:
+                if ess_in[b, g] >= target:
                     found = 1
                 cand = cand * wp.float64(TEMPER_RATIO)
     left = rem - gamma

@@ -327,6 +327,7 @@ class MarginalizedParticleFilter:
         self._chunk_sums = wp.empty((b, kmpf.N_CHUNKS, kmpf.N_CHUNK_SUMS), dtype=wp.float64, device=d)
         self._temper_partials = wp.empty((b, kmpf.N_CHUNKS, kmpf.N_TEMPER, 3), dtype=wp.float64, device=d)
         self._unpred_partials = wp.empty((b, kmpf.N_CHUNKS), dtype=wp.float64, device=d)
+        self._temper_ess = wp.empty((b, kmpf.N_TEMPER), dtype=wp.float64, device=d)
         self._integrity = wp.zeros((b, kmpf.N_INTEGRITY), dtype=wp.float64, device=d)
         self._more_stages = wp.zeros(1, dtype=wp.int32, device=d)
         self._cdf_sums = wp.empty((b, kmpf.N_CHUNKS), dtype=wp.float64, device=d)
@@ -411,8 +412,10 @@ class MarginalizedParticleFilter:
         wp.launch(kmpf.temper_partials_kernel, dim=(b, kmpf.N_CHUNKS),
                   inputs=[n, stage, out.loglik, out.n_valid, out.meta, st.logw, self._stats],
                   outputs=[self._temper_partials, self._unpred_partials], device=d)
+        wp.launch(kmpf.temper_ess_kernel, dim=(b, kmpf.N_TEMPER), inputs=[self._temper_partials],
+                  outputs=[self._temper_ess], device=d)
         wp.launch(kmpf.temper_select_kernel, dim=b,
-                  inputs=[n, stage, int(stage == self.max_stages - 1), self.params, out.meta, self._temper_partials,
+                  inputs=[n, stage, int(stage == self.max_stages - 1), self.params, out.meta, self._temper_ess,
                           self._unpred_partials], outputs=[self._stats], device=d)
         wp.launch(kmpf.add_loglik_partials_kernel, dim=(b, kmpf.N_CHUNKS),
                   inputs=[n, out.loglik, out.n_valid, out.meta, self._stats, out.nis],
