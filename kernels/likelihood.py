@@ -115,9 +115,10 @@ def acc_add(acc: Acc, p: LikParams, res: float, axis_w: wp.vec3, jac: wp.vec3) -
     a.last = res
     a.sum_sq = a.sum_sq + wp.min(z * z, p.k_out * p.k_out)
     a.ll_points = a.ll_points + point_loglik(p.lik, res, p.sigma, p.nu)
-    inv_var = 1.0 / (p.sigma * p.sigma)
-    a.lam = a.lam + wp.outer(jac, jac) * inv_var
-    a.info = a.info + jac * (res * inv_var)
+    if p.lik == LIK_GAUSS:  # only the per-point Gaussian is marginalised over the attitude
+        inv_var = 1.0 / (p.sigma * p.sigma)
+        a.lam = a.lam + wp.outer(jac, jac) * inv_var
+        a.info = a.info + jac * (res * inv_var)
     return a
 
 
