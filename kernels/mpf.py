@@ -54,7 +54,6 @@ ST_RESAMPLES = wp.constant(20)  # resamplings in this update
 ST_SKIP = wp.constant(21)  # the update carried no usable information (see temper_select_kernel)
 ST_NIS = wp.constant(22)  # posterior-weighted normalised squared residual
 ST_APPLIED = wp.constant(23)  # total exponent applied
-ST_UNPRED_FRAC = wp.constant(24)  # prior-weighted fraction of the received points the particles cannot predict
 ST_NIS_MIN = wp.constant(25)  # smallest NIS of any particle (the integrity monitor's input)
 
 # ---- persistent integrity state per filter (columns of ``integrity``)
@@ -92,7 +91,7 @@ class UpdateParams:
     bandwidth: float  # regularisation kernel bandwidth h (0: none)
     shrinkage: float  # kernel shrinkage fraction s: the covariance grows by 1 + (1 - s) h² per resampling
     max_unpredictable: float  # skip the update when more than this fraction of the predictions is impossible
-    integrity_window: int  # informative updates in the window mean of the posterior NIS (≤ MAX_WINDOW)
+    integrity_window: int  # informative updates in the window mean of the smallest NIS (≤ MAX_WINDOW)
     integrity_threshold: float  # the filter is lost when the window mean exceeds this
     integrity_min_updates: int  # informative updates (since the start / a re-spread) before it may be declared lost
     respread_chol: wp.mat33  # Cholesky factor of the re-spread covariance of dp, m
@@ -325,7 +324,6 @@ def temper_select_kernel(
         frac = wp.float64(0.0)
         for c in range(N_CHUNKS):
             frac += unpred_in[b, c]
-        stats[b, ST_UNPRED_FRAC] = frac
         if meta[b, 0] <= 0.0 or frac > wp.float64(params.max_unpredictable):
             stats[b, ST_SKIP] = wp.float64(1.0)
             stats[b, ST_REMAIN] = wp.float64(0.0)
@@ -382,11 +380,9 @@ def add_loglik_partials_kernel(
         z = nis[i]
         if wp.isfinite(z):
             least = wp.min(least, z)
-        ll = loglik[i]
-        if not wp.isfinite(ll):
-            ll = meta[b, 1]
+        if not wp.isfinite(loglik[i]):
             bad += 1
-        lw = logw[i] + gamma * ll
+        lw = logw[i] + gamma * stage_loglik(loglik[i], meta[b, 1])
         if not wp.isfinite(lw):
             lw = -1.0e30
         logw[i] = lw
@@ -420,6 +416,12 @@ def max_of_partials_kernel(max_in: wp.array2d(dtype=wp.float32), counts_in: wp.a
     stats[b, ST_MAX] = wp.float64(m)
 
 
+@wp.func
+def pair_products(d: wp.vec3d) -> wp.vec3d:
+    """(d0 d1, d0 d2, d1 d2): the off-diagonal products of a second moment."""
+    return wp.vec3d(d[0] * d[1], d[0] * d[2], d[1] * d[2])
+
+
 @wp.kernel
 def exp_partials_kernel(
     n_per: int,
@@ -450,7 +452,7 @@ def exp_partials_kernel(
         s2 += x * x
         m1 += x * d
         m2 += x * wp.cw_mul(d, d)
-        m3 += x * wp.vec3d(d[0] * d[1], d[0] * d[2], d[1] * d[2])
+        m3 += x * pair_products(d)
         z = nis[i]
         if wp.isfinite(z):
             sz += x * wp.float64(z)
@@ -748,7 +750,7 @@ def summary_partials_kernel(n_per: int, logw: wp.array(dtype=wp.float32), dp: wp
         s += w
         m1 += w * d
         m2 += w * wp.cw_mul(d, d)
-        m3 += w * wp.vec3d(d[0] * d[1], d[0] * d[2], d[1] * d[2])
+        m3 += w * pair_products(d)
     partial_out[b, c, 0] = s
     for a in range(3):
         partial_out[b, c, 1 + a] = m1[a]

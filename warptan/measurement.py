@@ -49,7 +49,7 @@ class Likelihood:
     Attributes:
         kind: "paper" (Gaussian on the scalar error), "gaussian" or "student_t" (per point).
         r_err: Variance of the paper's scalar error, m².
-        sigma_m: Per-point residual scale σ, m; None = calibrated, ``sqrt(sensor_sigma_m² + σ_map²)``.
+        sigma_m: Per-point residual scale σ, m; None = calibrated (:meth:`sigma_eff`).
         nu: Student-t degrees of freedom.
         outlier_sigmas: A point the particle cannot predict (off the map, nodata, no hit) scores as a
             residual of this many σ (per point); the paper form blends its score with ``-0.5 outlier_sigmas²``
@@ -107,8 +107,8 @@ class ModelOutput:
     n_valid: wp.array
     """(N,) int32 number of points the particle could predict."""
     nis: wp.array
-    """(N,) float32 normalised squared residual: mean over the received points of (residual/σ)², an
-    unpredictable point counting ``outlier_sigmas²``."""
+    """(N,) float32 normalised squared residual: mean over the received points of min((residual/σ)²,
+    outlier_sigmas²), an unpredictable point counting ``outlier_sigmas²``."""
     residual_m: wp.array
     """(N, M) float32 residuals in m (NaN = invalid)."""
     meta: wp.array
@@ -147,6 +147,7 @@ class MeasurementModel:
         self._key = None
         self._host: dict[str, np.ndarray] = {}
         self._att_cov: wp.array | None = None
+        self._zero_att: wp.array | None = None
         self.likelihood = likelihood or Likelihood()
 
     @property
@@ -171,7 +172,7 @@ class MeasurementModel:
         a = self._att_cov
         if a is not None and a.shape == (b,) and a.device == device:
             return a
-        if getattr(self, "_zero_att", None) is None or self._zero_att.shape != (b,) or self._zero_att.device != device:
+        if self._zero_att is None or self._zero_att.shape != (b,) or self._zero_att.device != device:
             self._zero_att = wp.zeros(b, dtype=wp.mat33, device=device)
         return self._zero_att
 

@@ -32,19 +32,24 @@ shares every launch.
 
 ``A^n`` and ``A^l`` are blocks of the INS error transition of :func:`warptan.ins.error_transition`
 (exact Jacobian: ``A^n = [dt I, 0.5 dt² (-R[a]x), 0.5 dt² (-R), 0]``; SPEC's ``[dt I, 0]`` plus the
-O(dt²) terms). ``Q^n`` (``kalman_pos_noise``) is the position noise the Kalman part models. Roughening
-(``pos_noise``) is added to the particles' dp outside the Kalman part: fed through ``L_k`` it was read as
-velocity (a filter with zero initial velocity error "learned" 1.6 m/s and drifted 31 m).
+O(dt²) terms). ``Q^n`` (``kalman_pos_noise``) is the position noise the Kalman part models (in N_k and L_k);
+roughening (``pos_noise``) is added to the particles' dp only, so L_k never reads it as velocity. Measured on
+S8 (paper likelihood, 6 seeds): roughening outside with a small Kalman noise (0.05 m/√s) was worse (5.3/4.2 m)
+than 0.5 m/√s in the Kalman part (2.5/1.7 m), which keeps the velocity uncertainty in P instead of collapsing
+it into the particles; both default to 0.5 m/√s.
 
 Jitter and the linear means: a jittered particle keeps its ancestor's Kalman mean ``l``. The kernel is a
 smoothing of the dp marginal whose width (``h`` ≈ 0.4 of the cloud's spread) is well inside the scale on
-which ``l | dp`` varies, i.e. ``l | dp`` is taken as locally constant over the kernel, as in the
-regularised MPF of Schön et al.; the shared ``P`` is untouched (the jitter does not inform ``l``).
+which ``l | dp`` varies, i.e. ``l | dp`` is taken as locally constant over the kernel (our choice: a
+regression of l on dp would add 36 cross-moments per filter for a shift of a fraction of a kernel width);
+the shared ``P`` is untouched (the jitter does not inform ``l``).
 
 Integrity (MBARI TRN style): every model returns each particle's normalised squared residual (NIS, mean of
-``(r/σ)²`` over the received points; ≈ 1 at the true pose); its posterior-weighted value per update is
-averaged over informative updates (weight ``1/integrity_window``). Above ``integrity_threshold`` the filter
-is lost: it re-spreads around its estimate with ``respread_scale`` × the prior σ, and the record says so.
+``min((r/σ)², k_out²)`` over the received points; ≈ 1 at the true pose); the smallest NIS of any particle — is
+there a hypothesis that explains the scan? — is averaged over the last ``integrity_window`` informative
+updates (a wide but healthy cloud still holds such particles; the posterior-weighted NIS, which read a wide
+cloud under a flat likelihood as lost, is only recorded). Above ``integrity_threshold`` the filter is lost: it
+re-spreads around its estimate with ``respread_scale`` × the prior σ, and the record says so.
 
 The INS runs open loop: the output is nominal ⊕ estimated error, with the mixture covariance (Kalman
 ``P`` plus the spread of the particles). Trouble is recovered and counted, never returned as NaN: a
@@ -205,8 +210,8 @@ class MarginalizedParticleFilter:
         max_stages: Cap on the stages of one update; exponent left at the cap is dropped (recorded).
         max_unpredictable: An update whose received points the particles cannot predict (off the map, nodata)
             in more than this weighted fraction is skipped (the map does not cover the scan: no information).
-        integrity_window: The integrity statistic is the mean of the posterior-weighted normalised squared
-            residual over the last ``integrity_window`` informative updates (≤ 64).
+        integrity_window: The integrity statistic is the mean of the smallest particle NIS over the last
+            ``integrity_window`` informative updates (≤ 64).
         integrity_threshold: Above it (and after 2 · ``integrity_window`` informative updates since the start or
             the last re-spread: acquisition is not judged) the filter is lost: it re-spreads around its estimate
             with ``respread_scale`` times the prior σ and counts it.
@@ -275,7 +280,8 @@ class MarginalizedParticleFilter:
         params.integrity_window = int(integrity_window)
         params.integrity_threshold = float(integrity_threshold)
         params.integrity_min_updates = 2 * int(integrity_window)
-        params.respread_chol = wp.mat33(*(respread_scale * np.linalg.cholesky(self.p0_pos + 1e-12 * np.eye(3))).ravel())
+        chol_p0 = np.linalg.cholesky(self.p0_pos + 1e-12 * np.eye(3))
+        params.respread_chol = wp.mat33(*(respread_scale * chol_p0).ravel())
         self.params = params
         self.graph = self.device.is_cuda if graph is None else bool(graph)
         self.n_imu_steps = 0
@@ -283,7 +289,7 @@ class MarginalizedParticleFilter:
         self.last_n_received = np.zeros(b, dtype=np.int64)
         """Valid received points per filter in the last update."""
         self._k = 0
-        self._chol_p0 = wp.mat33(*np.linalg.cholesky(self.p0_pos + 1e-12 * np.eye(3)).ravel())
+        self._chol_p0 = wp.mat33(*chol_p0.ravel())
         # ---- host (CPU, float64): nominal INS, P, the interval's Φ and chol(S)
         cpu = wp.get_device("cpu")
         pinned = self.device.is_cuda
@@ -469,9 +475,7 @@ class MarginalizedParticleFilter:
         self._launch_poses()
         self.model.launch(self._pos, self._quat)
         wp.launch(kmpf.begin_update_kernel, dim=self.n_filters, outputs=[self._stats], device=self.device)
-        self._launch_stage(out, 0)
-        if not read_flags or self._stats.numpy()[:, kmpf.ST_RESAMPLE].any():
-            self._launch_resample(0)
+        self._weigh_and_resample(out, 0, read_flags)
         for stage in range(1, self.max_stages):
             if read_flags:
                 if not (self._stats.numpy()[:, kmpf.ST_REMAIN] > 0).any():
@@ -488,6 +492,10 @@ class MarginalizedParticleFilter:
         """A tempering stage after the first: poses and model at the moved particles, weights, resampling."""
         self._launch_poses()
         self.model.launch(self._pos, self._quat)
+        self._weigh_and_resample(out, stage, read_flags)
+
+    def _weigh_and_resample(self, out, stage: int, read_flags: bool) -> None:
+        """Weights of one stage, then resampling (skipped when ``read_flags`` shows no filter needs it)."""
         self._launch_stage(out, stage)
         if not read_flags or self._stats.numpy()[:, kmpf.ST_RESAMPLE].any():
             self._launch_resample(stage)
@@ -550,7 +558,8 @@ class MarginalizedParticleFilter:
         """(updates, B, N_SUMMARY) record of every update so far (one host sync); columns
         :data:`warptan.kernels.mpf.H_ESS` … ``H_APPLIED``: ESS, resamplings, re-spread, bad log-likelihoods,
         unpredictable particles, Σw, mean dp (3, m) and its covariance (xx, yy, zz, xy, xz, yz, m²) after the
-        update, tempering stages, posterior NIS, its moving average (integrity), skipped, exponent applied."""
+        update, tempering stages, smallest particle NIS, its window mean (the integrity statistic), skipped,
+        exponent applied, posterior-weighted NIS."""
         return self._history.numpy()[: self.n_updates]
 
     @property

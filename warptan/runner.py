@@ -53,9 +53,9 @@ class FilterRun:
     stages: np.ndarray
     """Per epoch: tempering stages of the update."""
     nis: np.ndarray
-    """Per epoch: posterior-weighted normalised squared residual of the update."""
+    """Per epoch: smallest normalised squared residual of any particle (the integrity monitor's input)."""
     nis_avg: np.ndarray
-    """Per epoch: its moving average, the integrity statistic."""
+    """Per epoch: its window mean, the integrity statistic."""
     skipped: np.ndarray
     """Per epoch: the update carried no usable information (map gap, no valid point)."""
     update_time_s: np.ndarray
