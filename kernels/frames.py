@@ -46,6 +46,20 @@ def quat_exp_wxyz(phi: wp.vec3) -> wp.vec4:
     return wp.vec4(wp.cos(0.5 * angle), s * phi[0], s * phi[1], s * phi[2])
 
 
+@wp.func
+def quat_log_wxyz(q: wp.vec4) -> wp.vec3:
+    """``Log(q)``: the rotation vector (rad, the short way round) of a unit quaternion, scalar first."""
+    sgn = 1.0
+    if q[0] < 0.0:
+        sgn = -1.0
+    w = sgn * q[0]
+    v = sgn * wp.vec3(q[1], q[2], q[3])
+    vn = wp.length(v)
+    if vn < 1.0e-7:
+        return (2.0 / w) * v
+    return (2.0 * wp.atan2(vn, w) / vn) * v
+
+
 @wp.kernel
 def quat_to_mat_kernel(q_in: wp.array(dtype=wp.vec4), mat_out: wp.array(dtype=wp.mat33)):
     """One thread per quaternion: ``R(q)``."""

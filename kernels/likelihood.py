@@ -14,11 +14,19 @@ point j a flag that the *received* point is valid and a vector of axis weights. 
     ``ll = (n_ok/n_recv)(-0.5 err^2/r_err) + (1 - n_ok/n_recv)(-0.5 k_out^2)``, so that a particle over a hole
     or off the map is never rewarded for predicting fewer points;
   - ``LIK_GAUSS``: ``sum_j -0.5 (res_ij / sigma)^2`` over the received valid points, marginalised over the
-    particle's attitude uncertainty (its Kalman covariance ``A`` of dθ): with ``H_ij`` the residual's Jacobian
-    w.r.t. dθ, ``Λ = Σ Hᵀ H / σ²``, ``b = Σ Hᵀ r / σ²``, it adds ``0.5 bᵀ A (I + ΛA)⁻¹ b - 0.5 log det(I + AΛ)``
-    (the log of ``N(r; 0, H A Hᵀ + σ² I)`` up to a constant, SPEC §6b). Without it the attitude error the
-    filter cannot see biases the position: the position absorbs the residual pattern a tilt or yaw causes;
-  - ``LIK_STUDENT``: ``sum_j -(nu+1)/2 log(1 + res_ij^2 / (nu sigma^2))``.
+    particle's attitude uncertainty (its Kalman covariance ``A`` of dθ): with ``H_ij`` the Jacobian of the
+    prediction w.r.t. dθ (``res ≈ H δθ + e``), ``Λ = Σ Hᵀ H / σ²``, ``b = Σ Hᵀ r / σ²``, it adds
+    ``0.5 bᵀ A (I + ΛA)⁻¹ b - 0.5 log det(I + AΛ)`` (the log of ``N(r; 0, H A Hᵀ + σ² I)`` up to a constant,
+    SPEC §6b). Without it the attitude error the filter cannot see biases the position: the position absorbs
+    the residual pattern a tilt or yaw causes;
+  - ``LIK_STUDENT``: ``sum_j -(nu+1)/2 log(1 + res_ij^2 / (nu sigma^2))``, marginalised the same way with
+    each point's precision the Student-t's iteratively-reweighted one, ``(nu+1)/(nu + (res/σ)²) / σ²`` (a
+    Laplace approximation: an outlying point informs neither the weight nor the attitude).
+* the information a particle's residuals carry on its attitude error, ``Λ_i`` (3×3, rad⁻²) and ``b_i`` (3,
+  rad⁻¹) as above (per-point precision ``1/σ²``, the Student-t's reweighted one for ``LIK_STUDENT``): the
+  Kalman measurement update of the linear states (:mod:`warptan.kernels.mpf`) reads them. Zero for
+  ``LIK_PAPER``: its scalar error is not a model of the points, and the paper's filter has C = 0 (a Kalman
+  update from residuals whose weights do not follow them fed a lost filter's misfit into its attitude).
   In the per-point forms a received point whose prediction is invalid scores as a residual of
   ``k_out`` sigma, so that every particle sums the same number of terms (constants dropped).
 If no received point is valid at all, every particle gets 0 (no information) and the caller flags it.
@@ -83,7 +91,7 @@ class Acc:
     last: float  # the last residual, m
     ll_points: float  # Σ point log-densities
     sum_sq: float  # Σ min((r/σ)², k_out²)
-    lam: wp.mat33  # Λ = Σ Hᵀ H / σ² (H: the residual's Jacobian w.r.t. the attitude error dθ, m/rad)
+    lam: wp.mat33  # Λ = Σ Hᵀ H / σ² (H: the prediction's Jacobian w.r.t. the attitude error dθ, m/rad)
     info: wp.vec3  # b = Σ Hᵀ r / σ²
 
 
@@ -105,7 +113,8 @@ def acc_init() -> Acc:
 
 @wp.func
 def acc_add(acc: Acc, p: LikParams, res: float, axis_w: wp.vec3, jac: wp.vec3) -> Acc:
-    """Add one predictable residual ``res`` (m, finite) with its Jacobian ``jac`` w.r.t. dθ (m/rad)."""
+    """Add one predictable residual ``res`` (m, finite) with ``jac``, the prediction's Jacobian w.r.t. dθ
+    (m/rad)."""
     a = acc
     r = wp.abs(res)
     z = res / p.sigma
@@ -115,8 +124,10 @@ def acc_add(acc: Acc, p: LikParams, res: float, axis_w: wp.vec3, jac: wp.vec3) -
     a.last = res
     a.sum_sq = a.sum_sq + wp.min(z * z, p.k_out * p.k_out)
     a.ll_points = a.ll_points + point_loglik(p.lik, res, p.sigma, p.nu)
-    if p.lik == LIK_GAUSS:  # only the per-point Gaussian is marginalised over the attitude
+    if p.lik != LIK_PAPER:  # the paper's scalar error is not a per-point model: its filter keeps C = 0
         inv_var = 1.0 / (p.sigma * p.sigma)
+        if p.lik == LIK_STUDENT:
+            inv_var = inv_var * (p.nu + 1.0) / (p.nu + z * z)
         a.lam = a.lam + wp.outer(jac, jac) * inv_var
         a.info = a.info + jac * (res * inv_var)
     return a
@@ -143,7 +154,7 @@ def acc_finish(acc: Acc, p: LikParams, att_cov: wp.mat33):
     """(paper error in m — NaN without a valid point, log-likelihood, normalised squared residual) of a particle
     that could predict ``n_ok`` of the ``n_recv`` received valid points; each unpredictable one scores the floor
     (a ``k_out`` σ residual; see the module docstring for the paper form). The per-point Gaussian is marginalised
-    over the attitude uncertainty ``att_cov`` (the Kalman covariance of dθ)."""
+    over the attitude uncertainty ``att_cov`` (the Kalman covariance of dθ), the Student-t likewise."""
     n_recv = acc.n_recv
     n_ok = acc.n_ok
     err = float(wp.nan)
@@ -167,7 +178,7 @@ def acc_finish(acc: Acc, p: LikParams, att_cov: wp.mat33):
                 ll = frac * (-0.5 * err * err / p.r_err) + (1.0 - frac) * floor
         else:
             ll = acc.ll_points + n_bad * point_loglik(p.lik, p.k_out * p.sigma, p.sigma, p.nu)
-            if p.lik == LIK_GAUSS and n_ok > 0:
+            if n_ok > 0:
                 ll = ll + attitude_marginal(acc, att_cov)
         nis = (acc.sum_sq + n_bad * p.k_out * p.k_out) / float(n_recv)
     return err, ll, nis
@@ -192,10 +203,12 @@ def reduce_loglik_kernel(
     loglik_out: wp.array(dtype=wp.float32),
     nis_out: wp.array(dtype=wp.float32),
     n_valid_out: wp.array(dtype=wp.int32),
+    lam_out: wp.array(dtype=wp.mat33),
+    info_out: wp.array(dtype=wp.vec3),
 ):
     """One thread per particle (global index ``row0 + t``): paper error (m), log-likelihood, normalised squared
-    residual, usable points; ``jacobian[t, j]`` is the residual's derivative w.r.t. dθ, ``att_cov[b]`` the
-    filter's attitude covariance."""
+    residual, usable points, attitude information Λ and b; ``jacobian[t, j]`` is the predicted range's
+    derivative w.r.t. dθ, ``att_cov[b]`` the filter's attitude covariance."""
     t = wp.tid()
     b = (row0 + t) // n_per
     acc = acc_init()
@@ -211,3 +224,5 @@ def reduce_loglik_kernel(
     loglik_out[t] = ll
     nis_out[t] = nis
     n_valid_out[t] = acc.n_ok
+    lam_out[t] = acc.lam
+    info_out[t] = acc.info

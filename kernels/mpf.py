@@ -16,17 +16,20 @@ can be captured in a graph.
 
 import warp as wp
 
-from warptan.kernels.frames import quat_exp_wxyz, quat_mul_wxyz
+from warptan.kernels.frames import quat_exp_wxyz, quat_log_wxyz, quat_mul_wxyz
 
 wp.set_module_options({"enable_backward": False})
 
 vec12 = wp.types.vector(length=12, dtype=wp.float32)
-vec10d = wp.types.vector(length=10, dtype=wp.float64)
 
 N_CHUNKS = wp.constant(64)
 """Partial sums per filter in the weight reductions (threads of their first stage, per filter)."""
-N_CHUNK_SUMS = wp.constant(12)
-"""Values per chunk of the weight reductions: Σe, Σe², Σe dp (3), Σe dp∘dp (3), Σe (xy, xz, yz), Σe nis."""
+N_CHUNK_SUMS = wp.constant(18)
+"""Values per chunk of the weight reductions: Σe, Σe², Σe dp (3), Σe dp∘dp (3), Σe (xy, xz, yz), Σe nis,
+Σe Λ (6: 00 11 22 01 02 12)."""
+N_SUMMARY_SUMS = wp.constant(34)
+"""Values per chunk of the record's reduction: Σw, Σw dp (3), Σw dp∘dp (3), Σw (xy, xz, yz), Σw l (12),
+Σw l∘l (12)."""
 N_MOMENT_CHUNKS = wp.constant(16)
 """Partial sums per filter of the moments of the estimate."""
 N_MOMENTS = wp.constant(1 + 3 + 9 + 12 + 144)
@@ -55,6 +58,7 @@ ST_SKIP = wp.constant(21)  # the update carried no usable information (see tempe
 ST_NIS = wp.constant(22)  # posterior-weighted normalised squared residual
 ST_APPLIED = wp.constant(23)  # total exponent applied
 ST_NIS_MIN = wp.constant(25)  # smallest NIS of any particle (the integrity monitor's input)
+ST_LAM = wp.constant(26)  # 6 values: weighted mean of the particles' attitude information Λ (00 11 22 01 02 12)
 
 # ---- persistent integrity state per filter (columns of ``integrity``)
 MAX_WINDOW = wp.constant(64)
@@ -65,7 +69,7 @@ IN_RESPREADS = wp.constant(2)  # re-spreads so far
 IN_RING = wp.constant(3)  # MAX_WINDOW values: the last smallest-NIS values (ring, index since % window)
 
 # ---- per-filter record of an update (columns of ``history``)
-N_SUMMARY = wp.constant(21)
+N_SUMMARY = wp.constant(45)
 H_ESS = wp.constant(0)  # ESS of the last applied stage (before its resampling)
 H_RESAMPLES = wp.constant(1)  # resamplings in the update
 H_RESPREAD = wp.constant(2)  # 1: the integrity monitor declared the filter lost and re-spread it
@@ -80,6 +84,17 @@ H_NIS_AVG = wp.constant(17)  # its window mean (the integrity statistic)
 H_SKIPPED = wp.constant(18)  # 1: the update carried no usable information and changed nothing
 H_APPLIED = wp.constant(19)  # exponent of the likelihood applied (1 unless skipped or capped)
 H_NIS_POST = wp.constant(20)  # posterior-weighted normalised squared residual
+H_MEAN_L = wp.constant(21)  # 12 values: weighted mean of the Kalman means l after the update
+H_VAR_L = wp.constant(33)  # 12 values: weighted variance of the Kalman means (their spread; P is on the host)
+
+# ---- what the host reads back after an update (columns of ``feedback``): the Kalman covariance's
+# measurement update and the closed loop's injection
+N_FEEDBACK = wp.constant(23)
+FB_APPLIED = wp.constant(0)  # exponent of the likelihood applied (0: skipped, no measurement update of P)
+FB_LAM = wp.constant(1)  # 6 values: Λ̄, the weighted mean attitude information (00 11 22 01 02 12), rad⁻²
+FB_MEAN_DP = wp.constant(7)  # 3 values: weighted mean of dp after the update, m
+FB_MEAN_L = wp.constant(10)  # 12 values: weighted mean of l after the update
+FB_CONVERGED = wp.constant(22)  # 1: the integrity monitor has judged the filter and finds it consistent
 
 
 @wp.struct
@@ -428,11 +443,12 @@ def exp_partials_kernel(
     logw: wp.array(dtype=wp.float32),
     dp: wp.array(dtype=wp.vec3),
     nis: wp.array(dtype=wp.float32),
+    lam: wp.array(dtype=wp.mat33),
     stats: wp.array2d(dtype=wp.float64),
     sums_out: wp.array3d(dtype=wp.float64),
 ):
-    """Active filter b, chunk c, with ``e_i = exp(lw_i - max)``: partial ``Σe``, ``Σe²``, ``Σe dp``, ``Σe dp dpᵀ``
-    and ``Σe nis`` (``N_CHUNK_SUMS`` values)."""
+    """Active filter b, chunk c, with ``e_i = exp(lw_i - max)``: partial ``Σe``, ``Σe²``, ``Σe dp``, ``Σe dp dpᵀ``,
+    ``Σe nis`` and ``Σe Λ`` (``N_CHUNK_SUMS`` values)."""
     b, c = wp.tid()
     if stats[b, ST_ACTIVE] == wp.float64(0.0):
         return
@@ -444,10 +460,15 @@ def exp_partials_kernel(
     m1 = wp.vec3d()
     m2 = wp.vec3d()
     m3 = wp.vec3d()
+    ld = wp.vec3d()
+    lo_ = wp.vec3d()
     for k in range(lo, hi):
         i = b * n_per + k
         x = wp.float64(wp.exp(logw[i] - m))
         d = wp.vec3d(dp[i])
+        li = wp.mat33d(lam[i])
+        ld += x * wp.vec3d(li[0, 0], li[1, 1], li[2, 2])
+        lo_ += x * wp.vec3d(li[0, 1], li[0, 2], li[1, 2])
         s1 += x
         s2 += x * x
         m1 += x * d
@@ -462,6 +483,8 @@ def exp_partials_kernel(
         sums_out[b, c, 2 + a] = m1[a]
         sums_out[b, c, 5 + a] = m2[a]
         sums_out[b, c, 8 + a] = m3[a]
+        sums_out[b, c, 12 + a] = ld[a]
+        sums_out[b, c, 15 + a] = lo_[a]
     sums_out[b, c, 11] = sz
 
 
@@ -505,14 +528,14 @@ def weight_stats_kernel(
     stats: wp.array2d(dtype=wp.float64),
 ):
     """One thread per active filter: ESS = (Σw)²/Σw², log-normaliser, weighted mean and Cholesky factor of the
-    covariance of dp (the regularisation kernel's shape), posterior NIS, and the decision to resample: when
+    covariance of dp (the regularisation kernel's shape), posterior NIS, weighted mean Λ̄, and the decision to resample: when
     ESS < threshold · n, or when exponent remains (between tempering stages)."""
     b = wp.tid()
     if stats[b, ST_ACTIVE] == wp.float64(0.0):
         return
-    tot = wp.vector(length=12, dtype=wp.float64)
+    tot = wp.vector(length=18, dtype=wp.float64)
     for k in range(N_CHUNKS):
-        for a in range(12):
+        for a in range(18):
             tot[a] += sums_in[b, k, a]
     s1 = tot[0]
     ess = s1 * s1 / tot[1]
@@ -530,6 +553,8 @@ def weight_stats_kernel(
     stats[b, ST_CHOL + 4] = lo[2, 1]
     stats[b, ST_CHOL + 5] = lo[2, 2]
     stats[b, ST_NIS] = tot[11] / s1
+    for a in range(6):
+        stats[b, ST_LAM + a] = tot[12 + a] / s1
     if ess < wp.float64(params.resample_threshold) * wp.float64(n_per) or stats[b, ST_REMAIN] > wp.float64(0.0):
         stats[b, ST_RESAMPLE] = wp.float64(1.0)
         stats[b, ST_RESAMPLES] = stats[b, ST_RESAMPLES] + wp.float64(1.0)
@@ -542,6 +567,51 @@ def normalize_weights_kernel(n_per: int, stats: wp.array2d(dtype=wp.float64), lo
     b = i // n_per
     if stats[b, ST_ACTIVE] != wp.float64(0.0):
         logw[i] = wp.float32(wp.float64(logw[i]) - stats[b, ST_LOGNORM])
+
+
+@wp.func
+def sym_from(stats: wp.array2d(dtype=wp.float64), b: int, col: int) -> wp.mat33d:
+    """The symmetric 3×3 matrix stored as six columns (00 11 22 01 02 12) from ``col``."""
+    xy = stats[b, col + 3]
+    xz = stats[b, col + 4]
+    yz = stats[b, col + 5]
+    return wp.mat33d(stats[b, col], xy, xz, xy, stats[b, col + 1], yz, xz, yz, stats[b, col + 2])
+
+
+@wp.kernel
+def kalman_update_kernel(
+    n_per: int,
+    stats: wp.array2d(dtype=wp.float64),
+    p_col: wp.array2d(dtype=wp.mat33),
+    lam: wp.array(dtype=wp.mat33),
+    info: wp.array(dtype=wp.vec3),
+    lin: wp.array(dtype=vec12),
+):
+    """The Kalman measurement update of each particle's linear states (SPEC §6b), in the stage that applies the
+    last of the filter's exponent (not in a skipped update): with the shared prior ``P``, ``A = P_θθ`` and the
+    particle's own attitude information ``Λ_i``, ``b_i`` (its residuals at its own pose, scaled by the exponent
+    applied), ``l_i += P_:θ (I + Λ_i A)⁻¹ b_i`` — 3×3 work per particle whatever the number of points.
+    ``p_col[b, r]`` is the block ``P_rθ`` of filter b (r = dv, dθ, dba, dbg)."""
+    i = wp.tid()
+    b = i // n_per
+    if stats[b, ST_ACTIVE] == wp.float64(0.0) or stats[b, ST_REMAIN] > wp.float64(0.0):
+        return
+    if stats[b, ST_SKIP] != wp.float64(0.0):
+        return
+    scale = stats[b, ST_APPLIED]
+    a = wp.mat33d(p_col[b, 1])
+    m = wp.identity(n=3, dtype=wp.float64) + scale * wp.mat33d(lam[i]) * a
+    det = wp.determinant(m)
+    if not (det > wp.float64(0.0)):
+        return
+    x = wp.vec3(wp.inverse(m) * (scale * wp.vec3d(info[i])))
+    if not (wp.isfinite(x[0]) and wp.isfinite(x[1]) and wp.isfinite(x[2])):
+        return
+    d0 = p_col[b, 0] * x
+    d1 = p_col[b, 1] * x
+    d2 = p_col[b, 2] * x
+    d3 = p_col[b, 3] * x
+    lin[i] = lin[i] + vec12(d0[0], d0[1], d0[2], d1[0], d1[1], d1[2], d2[0], d2[1], d2[2], d3[0], d3[1], d3[2])
 
 
 @wp.kernel
@@ -735,14 +805,17 @@ def respread_kernel(
 
 @wp.kernel
 def summary_partials_kernel(n_per: int, logw: wp.array(dtype=wp.float32), dp: wp.array(dtype=wp.vec3),
-                            partial_out: wp.array3d(dtype=wp.float64)):
-    """Filter b, chunk c: Σw, Σw dp (3), Σw dp∘dp (3), Σw (xy, xz, yz) after the update."""
+                            lin: wp.array(dtype=vec12), partial_out: wp.array3d(dtype=wp.float64)):
+    """Filter b, chunk c, after the update (``N_SUMMARY_SUMS`` values): Σw, Σw dp (3), Σw dp∘dp (3),
+    Σw (xy, xz, yz), Σw l (12), Σw l∘l (12)."""
     b, c = wp.tid()
     lo, hi = chunk_range(c, n_per)
     s = wp.float64(0.0)
     m1 = wp.vec3d()
     m2 = wp.vec3d()
     m3 = wp.vec3d()
+    l1 = wp.vector(length=12, dtype=wp.float64)
+    l2 = wp.vector(length=12, dtype=wp.float64)
     for k in range(lo, hi):
         i = b * n_per + k
         w = wp.float64(wp.exp(logw[i]))
@@ -751,27 +824,49 @@ def summary_partials_kernel(n_per: int, logw: wp.array(dtype=wp.float32), dp: wp
         m1 += w * d
         m2 += w * wp.cw_mul(d, d)
         m3 += w * pair_products(d)
+        lm = lin[i]
+        for a in range(12):
+            x = wp.float64(lm[a])
+            l1[a] += w * x
+            l2[a] += w * x * x
     partial_out[b, c, 0] = s
     for a in range(3):
         partial_out[b, c, 1 + a] = m1[a]
         partial_out[b, c, 4 + a] = m2[a]
         partial_out[b, c, 7 + a] = m3[a]
+    for a in range(12):
+        partial_out[b, c, 10 + a] = l1[a]
+        partial_out[b, c, 22 + a] = l2[a]
 
 
 @wp.kernel
-def summary_kernel(partial_in: wp.array3d(dtype=wp.float64), stats: wp.array2d(dtype=wp.float64),
+def summary_kernel(params: UpdateParams, partial_in: wp.array3d(dtype=wp.float64), stats: wp.array2d(dtype=wp.float64),
                    integrity: wp.array2d(dtype=wp.float64), slot: wp.array(dtype=wp.int32),
-                   history: wp.array3d(dtype=wp.float64)):
-    """One thread per filter: the update's record in ``history[slot[0], b]`` (``H_*`` columns)."""
+                   history: wp.array3d(dtype=wp.float64), feedback: wp.array2d(dtype=wp.float64)):
+    """One thread per filter: the update's record in ``history[slot[0], b]`` (``H_*`` columns) and what the
+    host reads back in ``feedback[b]`` (``FB_*`` columns)."""
     b = wp.tid()
+    tot = wp.vector(length=34, dtype=wp.float64)
+    for c in range(N_CHUNKS):
+        for a in range(34):
+            tot[a] += partial_in[b, c, a]
+    s = tot[0]
+    applied = stats[b, ST_APPLIED]
+    if stats[b, ST_SKIP] != wp.float64(0.0):
+        applied = wp.float64(0.0)
+    feedback[b, FB_APPLIED] = applied
+    for a in range(6):
+        feedback[b, FB_LAM + a] = applied * stats[b, ST_LAM + a]
+    for a in range(3):
+        feedback[b, FB_MEAN_DP + a] = tot[1 + a] / s
+    for a in range(12):
+        feedback[b, FB_MEAN_L + a] = tot[10 + a] / s
+    judged = integrity[b, IN_SINCE] >= wp.float64(params.integrity_min_updates)
+    ok = integrity[b, IN_MEAN] <= wp.float64(params.integrity_threshold) and stats[b, ST_RESPREAD] == wp.float64(0.0)
+    feedback[b, FB_CONVERGED] = wp.where(judged and ok, wp.float64(1.0), wp.float64(0.0))
     t = slot[0]
     if t >= history.shape[0]:
         return
-    tot = vec10d()
-    for c in range(N_CHUNKS):
-        for a in range(10):
-            tot[a] += partial_in[b, c, a]
-    s = tot[0]
     cov = weighted_cov(s, wp.vec3d(tot[1], tot[2], tot[3]), wp.vec3d(tot[4], tot[5], tot[6]),
                        wp.vec3d(tot[7], tot[8], tot[9]))
     history[t, b, H_ESS] = stats[b, ST_ESS]
@@ -792,6 +887,42 @@ def summary_kernel(partial_in: wp.array3d(dtype=wp.float64), stats: wp.array2d(d
     history[t, b, H_NIS_AVG] = integrity[b, IN_MEAN]
     history[t, b, H_SKIPPED] = stats[b, ST_SKIP]
     history[t, b, H_APPLIED] = stats[b, ST_APPLIED]
+    for a in range(12):
+        mean = tot[10 + a] / s
+        history[t, b, H_MEAN_L + a] = mean
+        history[t, b, H_VAR_L + a] = wp.max(tot[22 + a] / s - mean * mean, wp.float64(0.0))
+
+
+@wp.kernel
+def reset_kernel(
+    n_per: int,
+    feedback: wp.array2d(dtype=wp.float64),
+    inject: wp.array(dtype=wp.int32),
+    dp: wp.array(dtype=wp.vec3),
+    lin: wp.array(dtype=vec12),
+):
+    """Closed loop: the host injected the filter's mean error ``[d̂p, d̂v, θ̂, d̂ba, d̂bg]`` (``feedback``) into
+    its nominal INS; every particle's error is taken relative to the new nominal, so that each particle's
+    total state is unchanged: additive parts minus the mean, the attitude ``dθ_i <- Log(Exp(θ̂)⁻¹ Exp(dθ_i))``
+    (right perturbations, SPEC §3). Filters with ``inject[b] == 0`` are left alone."""
+    i = wp.tid()
+    b = i // n_per
+    if inject[b] == 0:
+        return
+    m = vec12()
+    for a in range(12):
+        m[a] = wp.float32(feedback[b, FB_MEAN_L + a])
+    dp[i] = dp[i] - wp.vec3(wp.float32(feedback[b, FB_MEAN_DP]), wp.float32(feedback[b, FB_MEAN_DP + 1]),
+                            wp.float32(feedback[b, FB_MEAN_DP + 2]))
+    lm = lin[i]
+    th_hat = wp.vec3(m[3], m[4], m[5])
+    th = wp.vec3(lm[3], lm[4], lm[5])
+    rel = quat_log_wxyz(quat_mul_wxyz(quat_exp_wxyz(-th_hat), quat_exp_wxyz(th)))
+    out = lm - m
+    out[3] = rel[0]
+    out[4] = rel[1]
+    out[5] = rel[2]
+    lin[i] = out
 
 
 @wp.kernel

@@ -45,9 +45,12 @@ def sliding_loglik_kernel(
     loglik_out: wp.array(dtype=wp.float32),
     nis_out: wp.array(dtype=wp.float32),
     n_valid_out: wp.array(dtype=wp.int32),
+    lam_out: wp.array(dtype=wp.mat33),
+    info_out: wp.array(dtype=wp.vec3),
 ):
     """One thread per particle: residuals ``c_j,z - c^_ij,z`` (m) of the received points, error, log-likelihood
-    (marginalised over the filter's attitude covariance ``att_cov[b]`` for the per-point Gaussian), NIS."""
+    (marginalised over the filter's attitude covariance ``att_cov[b]`` for the per-point forms), NIS, and the
+    attitude information Λ, b of the residuals (:mod:`warptan.kernels.likelihood`)."""
     t = wp.tid()
     b = (row0 + t) // n_per
     mat = quat_to_mat_wxyz(quat_nb[t])
@@ -73,6 +76,8 @@ def sliding_loglik_kernel(
     loglik_out[t] = ll
     nis_out[t] = nis
     n_valid_out[t] = acc.n_ok
+    lam_out[t] = acc.lam
+    info_out[t] = acc.info
 
 
 @wp.kernel
@@ -89,6 +94,8 @@ def altimeter_loglik_kernel(
     loglik_out: wp.array(dtype=wp.float32),
     nis_out: wp.array(dtype=wp.float32),
     n_valid_out: wp.array(dtype=wp.int32),
+    lam_out: wp.array(dtype=wp.mat33),
+    info_out: wp.array(dtype=wp.vec3),
 ):
     """One thread per particle; ``reading[b] = [range a, h_baro, valid, 1/σ_baro²]``: residual
     ``a - (h_baro - h(p_i,x, p_i,y))`` in m (without a barometer, ``use_baro == 0``, the particle's own altitude
@@ -117,3 +124,5 @@ def altimeter_loglik_kernel(
     loglik_out[i] = ll
     nis_out[i] = nis
     n_valid_out[i] = acc.n_ok
+    lam_out[i] = wp.mat33()  # a nadir range does not see the attitude to first order
+    info_out[i] = wp.vec3()

@@ -366,7 +366,8 @@ def test_tempering_gives_the_one_update_posterior(device):
 
 
 def test_regularisation_jitter_matches_numpy(device):
-    """The weight statistics give the Cholesky factor of the weighted covariance of dp (NumPy float64); the
+    """The weight statistics give the Cholesky factor of the weighted covariance of dp and the weighted mean
+    attitude information Λ̄ (NumPy float64); the
     regularisation at resampling, ``a dp + (1 - a) m + h chol(Σ̂) z`` with ``a = sqrt(1 - h²)``, adds noise of
     covariance h² Σ̂ around the shrunk particles (200 000 particles, 3 % on each entry)."""
     n = 200_000
@@ -388,10 +389,16 @@ def test_regularisation_jitter_matches_numpy(device):
     d_logw = wp.array(logw, dtype=wp.float32, device=device)
     sums = wp.zeros((1, kmpf.N_CHUNKS, kmpf.N_CHUNK_SUMS), dtype=wp.float64, device=device)
     nis = wp.ones(n, dtype=wp.float32, device=device)
-    wp.launch(kmpf.exp_partials_kernel, dim=(1, kmpf.N_CHUNKS), inputs=[n, d_logw, d_dp, nis, stats], outputs=[sums],
+    g = rng.normal(size=(n, 3, 3))
+    lam = (g @ g.swapaxes(1, 2)).astype(np.float32)  # per-particle attitude information
+    wp.launch(kmpf.exp_partials_kernel, dim=(1, kmpf.N_CHUNKS),
+              inputs=[n, d_logw, d_dp, nis, wp.array(lam, dtype=wp.mat33, device=device), stats], outputs=[sums],
               device=device)
     wp.launch(kmpf.weight_stats_kernel, dim=1, inputs=[n, params, sums], outputs=[stats], device=device)
     s = stats.numpy()[0]
+    lam_bar = np.einsum("i,ijk->jk", w, lam.astype(np.float64))
+    np.testing.assert_allclose(s[kmpf.ST_LAM:kmpf.ST_LAM + 6], lam_bar[(0, 1, 2, 0, 0, 1), (0, 1, 2, 1, 2, 2)],
+                               rtol=1e-5)
     lo = np.zeros((3, 3))
     lo[np.tril_indices(3)] = s[kmpf.ST_CHOL:kmpf.ST_CHOL + 6]
     np.testing.assert_allclose(lo, np.linalg.cholesky(cov + 1e-6 * np.eye(3)), rtol=1e-6, atol=1e-6)

@@ -113,8 +113,14 @@ class ModelOutput:
     """(N, M) float32 residuals in m (NaN = invalid)."""
     meta: wp.array
     """(B, 2) float32 per filter: [valid received points, log-likelihood floor for a non-finite value]."""
+    lam: wp.array | None = None
+    """(N,) mat33 attitude information of each particle's residuals, ``Λ = Σ_j H_jᵀ H_j / σ_j²`` (rad⁻²), H_j the
+    prediction's Jacobian w.r.t. the particle's attitude error dθ (zero for the altimeter)."""
+    info: wp.array | None = None
+    """(N,) vec3 ``b = Σ_j H_jᵀ r_j / σ_j²`` (rad⁻¹): with Λ, the linearised measurement of dθ in information form
+    (the Kalman update of :mod:`warptan.kernels.mpf`)."""
     jacobian: wp.array | None = None
-    """(N, M) vec3 derivative of each residual w.r.t. the particle's attitude error dθ, m/rad (ray casts)."""
+    """(N, M) vec3 derivative of each predicted range w.r.t. the particle's attitude error dθ, m/rad (ray casts)."""
     n_received: np.ndarray = field(default_factory=lambda: np.zeros(1, dtype=np.int64))
     """(B,) valid received points per filter (host; known without a sync)."""
 
@@ -205,6 +211,8 @@ class MeasurementModel:
                 nis=wp.empty(n, dtype=wp.float32, device=device),
                 residual_m=wp.empty((n, m), dtype=wp.float32, device=device),
                 meta=wp.empty((b, 2), dtype=wp.float32, device=device),
+                lam=wp.zeros(n, dtype=wp.mat33, device=device),
+                info=wp.zeros(n, dtype=wp.vec3, device=device),
                 n_received=np.zeros(b, dtype=np.int64),
                 jacobian=wp.empty((n, m), dtype=wp.vec3, device=device) if self.name == "raycast" else None,
             )
@@ -304,7 +312,7 @@ class RaycastModel(_PointCloudModel):
         launch_rows(klik.reduce_loglik_kernel, res.shape[0],
                     lambda a, b: ([a or 0, n_per, rows_of(res, a, b), rows_of(jac, a, b), cloud, att, self._params],
                                   [rows_of(out.error_m, a, b), rows_of(out.loglik, a, b), rows_of(out.nis, a, b),
-                                   rows_of(out.n_valid, a, b)]),
+                                   rows_of(out.n_valid, a, b), rows_of(out.lam, a, b), rows_of(out.info, a, b)]),
                     device, row_cost=res.shape[1])
 
 
@@ -331,7 +339,8 @@ class SlidingModel(_PointCloudModel):
                     lambda a, b: ([a or 0, n_per, grid, surface, rows_of(pos_n, a, b), rows_of(quat_nb, a, b), cloud,
                                    att, self._params],
                                   [rows_of(out.residual_m, a, b), rows_of(out.error_m, a, b), rows_of(out.loglik, a, b),
-                                   rows_of(out.nis, a, b), rows_of(out.n_valid, a, b)]),
+                                   rows_of(out.nis, a, b), rows_of(out.n_valid, a, b), rows_of(out.lam, a, b),
+                                   rows_of(out.info, a, b)]),
                     device, row_cost=3 * cloud.shape[1])
 
 
@@ -385,7 +394,8 @@ class AltimeterModel(MeasurementModel):
         wp.launch(kslide.altimeter_loglik_kernel, dim=pos_n.shape[0],
                   inputs=[self.n_per, self.terrain.grid(device), int(self.surface), int(self.use_baro), pos_n,
                           self._staged, self._params],
-                  outputs=[out.residual_m, out.error_m, out.loglik, out.nis, out.n_valid], device=device)
+                  outputs=[out.residual_m, out.error_m, out.loglik, out.nis, out.n_valid, out.lam, out.info],
+                  device=device)
 
 
 MODELS = {"raycast": RaycastModel, "sliding": SlidingModel, "altimeter": AltimeterModel}

@@ -66,7 +66,7 @@ import numpy as np
 import warp as wp
 
 from warptan.device import resolve_device
-from warptan.frames import quat_exp, quat_mul
+from warptan.frames import quat_exp, quat_mul, skew
 from warptan.imu import ImuGrade, check_rate, imu_grade
 from warptan.ins import NavState, process_noise
 from warptan.kernels import mpf as kmpf
@@ -153,6 +153,12 @@ class Estimate:
         """(3,) 3σ bounds of the position estimate, m."""
         return 3.0 * np.sqrt(np.maximum(np.diag(self.cov_pos), 0.0))
 
+    @property
+    def sigma3_lin(self) -> np.ndarray:
+        """(12,) 3σ bounds of [dv (m/s), dθ (rad), dba (m/s²), dbg (rad/s)]: the attitude and bias estimates'
+        uncertainty."""
+        return 3.0 * np.sqrt(np.maximum(np.diag(self.cov_lin), 0.0))
+
 
 def _as_cov(value, n: int, name: str) -> np.ndarray:
     a = np.asarray(value, dtype=np.float64)
@@ -216,6 +222,12 @@ class MarginalizedParticleFilter:
             the last re-spread: acquisition is not judged) the filter is lost: it re-spreads around its estimate
             with ``respread_scale`` times the prior σ and counts it.
         respread_scale: Re-spread covariance = respread_scale² · p0_pos.
+        measurement_update: Kalman measurement update of the linear states from each particle's residuals
+            (C ≠ 0, SPEC §6b: the point cloud sees the attitude); False is the paper's filter (C = 0: P is never
+            updated by a measurement, attitude and biases are learnt only from the particles' paths).
+        closed_loop: Once the integrity monitor has judged the filter consistent, inject its mean error into the
+            nominal INS after every update and reset the particles' errors relative to it (Solà 2017 §6.3);
+            False keeps the paper's open loop.
         graph: Capture the device work of a measurement update (particle moves, poses, model, weights,
             resampling, record) once and replay it: True, False, or None = on CUDA only.
     """
@@ -225,7 +237,8 @@ class MarginalizedParticleFilter:
                  resampler: str = "systematic", pos_noise: float = 0.5, kalman_pos_noise: float = 0.5,
                  regularize: float = 1.0, shrinkage: float = 0.5, temper_ess: float = 0.1, max_stages: int = 8,
                  max_unpredictable: float = 0.5, integrity_window: int = 20, integrity_threshold: float = 9.0,
-                 respread_scale: float = 1.0, graph: bool | None = None):
+                 respread_scale: float = 1.0, measurement_update: bool = True, closed_loop: bool = False,
+                 graph: bool | None = None):
         if not (isinstance(n_particles, (int, np.integer)) and n_particles >= 1):
             raise ValueError(f"n_particles must be a positive integer, got {n_particles!r}")
         if resampler not in SCHEMES:
@@ -283,6 +296,13 @@ class MarginalizedParticleFilter:
         chol_p0 = np.linalg.cholesky(self.p0_pos + 1e-12 * np.eye(3))
         params.respread_chol = wp.mat33(*(respread_scale * chol_p0).ravel())
         self.params = params
+        self.measurement_update = bool(measurement_update)
+        self.closed_loop = bool(closed_loop)
+        self.n_injections = np.zeros(b, dtype=np.int64)
+        """Closed loop: injections into the nominal INS so far, per filter."""
+        self._pending = False
+        self._p_log: list[np.ndarray] = []
+        self._no_info: tuple[wp.array, wp.array] | None = None
         self.graph = self.device.is_cuda if graph is None else bool(graph)
         self.n_imu_steps = 0
         self.n_updates = 0
@@ -315,7 +335,8 @@ class MarginalizedParticleFilter:
         self._f_np, self._w_np = self._f.numpy(), self._w.numpy()
         self._interval = {"phi": host((b, 5, 5), wp.mat33, upload=True), "chol": host((b, 5, 5), wp.mat33, upload=True),
                           "pose": host((b, 7), wp.float64, upload=True), "seeds": host(b, wp.int32, upload=True),
-                          "resample_seeds": host(b, wp.int32, upload=True), "att_cov": host(b, wp.mat33, upload=True)}
+                          "resample_seeds": host(b, wp.int32, upload=True), "att_cov": host(b, wp.mat33, upload=True),
+                          "p_col": host((b, 4), wp.mat33, upload=True)}
         self._interval["pose"].numpy()[:] = np.array([np.r_[x.pos_n, x.quat_nb] for x in nominals])
         d = self.device
         self._dev = self._interval if d.is_cpu else {k: wp.empty_like(v, device=d) for k, v in self._interval.items()}
@@ -331,6 +352,7 @@ class MarginalizedParticleFilter:
         self._chunk_min_nis = wp.empty((b, kmpf.N_CHUNKS), dtype=wp.float32, device=d)
         self._chunk_counts = wp.empty((b, kmpf.N_CHUNKS, 2), dtype=wp.int32, device=d)
         self._chunk_sums = wp.empty((b, kmpf.N_CHUNKS, kmpf.N_CHUNK_SUMS), dtype=wp.float64, device=d)
+        self._summary_sums = wp.empty((b, kmpf.N_CHUNKS, kmpf.N_SUMMARY_SUMS), dtype=wp.float64, device=d)
         self._temper_partials = wp.empty((b, kmpf.N_CHUNKS, kmpf.N_TEMPER, 3), dtype=wp.float64, device=d)
         self._unpred_partials = wp.empty((b, kmpf.N_CHUNKS), dtype=wp.float64, device=d)
         self._temper_ess = wp.empty((b, kmpf.N_TEMPER), dtype=wp.float64, device=d)
@@ -344,6 +366,9 @@ class MarginalizedParticleFilter:
         self._ancestors = wp.empty(nt, dtype=wp.int32, device=d)
         self._slot = wp.zeros(1, dtype=wp.int32, device=d)
         self._history = wp.zeros((256, b, kmpf.N_SUMMARY), dtype=wp.float64, device=d)
+        self._feedback = wp.zeros((b, kmpf.N_FEEDBACK), dtype=wp.float64, device=d)
+        self._inject = wp.zeros(b, dtype=wp.int32, device=d)
+        self._nominal_log: list[np.ndarray] = []
         self._graph = None
         self._graph_key = None
         init_seeds = wp.array(step_seed(self.seeds, 0, _STREAM_INIT).astype(np.int32), dtype=wp.int32, device=d)
@@ -371,6 +396,7 @@ class MarginalizedParticleFilter:
     def _host_interval(self) -> None:
         """Run the buffered IMU samples through the nominal INS and the Riccati (host), compose the interval's
         Φ and chol(S), draw its seeds, and send them to the device."""
+        self._settle()
         nav, out, k = self._nav, self._interval, self._k
         phi, noise, scratch = self._scratch
         launch_rows(knav.nav_interval_kernel, self.n_filters,
@@ -380,7 +406,9 @@ class MarginalizedParticleFilter:
                                   [out["phi"], out["chol"], out["pose"]]),
                     self._cpu, row_cost=4000 * max(k, 1))
         self._k = 0
-        out["att_cov"].numpy()[:] = nav["cov"].numpy()[:, 1, 1]  # P_θθ: the attitude uncertainty of every particle
+        cov = nav["cov"].numpy()
+        out["att_cov"].numpy()[:] = cov[:, 1, 1]  # P_θθ: the attitude uncertainty of every particle
+        out["p_col"].numpy()[:] = cov[:, :, 1]  # P_:θ: the gain's column blocks
         out["seeds"].numpy()[:] = step_seed(self.seeds, self.n_imu_steps, _STREAM_MOVE)
         out["resample_seeds"].numpy()[:] = step_seed(self.seeds, self.n_updates + 1, _STREAM_RESAMPLE)
         if self.device.is_cuda:
@@ -393,8 +421,58 @@ class MarginalizedParticleFilter:
                     lambda a, b: ([a or 0, n, dv["seeds"], dv["phi"], dv["chol"]],
                                   [rows_of(st.dp, a, b), rows_of(st.lin, a, b)]), self.device, row_cost=30)
 
+    def _settle(self) -> None:
+        """After an update's device work: read its feedback (one small copy, a sync on CUDA), apply the Kalman
+        measurement update of the shared P, ``P⁺ = P - P_:θ Λ̄ (I + A Λ̄)⁻¹ P_θ:`` (A = P_θθ, Λ̄ the weighted mean
+        attitude information of the particles), and in closed loop inject the converged filters' mean error into
+        their nominal INS (reset on the device). O(B) host work."""
+        if not self._pending:
+            return
+        self._pending = False
+        fb = self._feedback.numpy()
+        cov = self._nav["cov"].numpy()
+        P = _from_blocks(cov)
+        if self.measurement_update:
+            lam = np.empty((self.n_filters, 3, 3))
+            for (r, c), k in zip(((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2)), range(6)):
+                lam[:, r, c] = lam[:, c, r] = fb[:, kmpf.FB_LAM + k]
+            A = P[:, 3:6, 3:6]
+            gain = lam @ np.linalg.inv(np.eye(3) + A @ lam)
+            P = P - P[:, :, 3:6] @ gain @ P[:, 3:6, :]
+            P = 0.5 * (P + P.swapaxes(1, 2))
+        self._p_log.append(np.diagonal(P, axis1=1, axis2=2).copy())
+        if self.closed_loop:
+            inject = fb[:, kmpf.FB_CONVERGED] > 0
+            if inject.any():
+                P = self._inject_errors(fb, inject, P)
+        cov[:] = _to_blocks(P, 4)
+
+    def _inject_errors(self, fb: np.ndarray, inject: np.ndarray, P: np.ndarray) -> np.ndarray:
+        """Closed loop: nominal ⊕ mean error for the filters in ``inject``, the particles reset relative to it
+        on the device (each particle's total state unchanged), ``P <- G P Gᵀ`` with
+        ``G = diag(I, I - [θ̂/2]×, I, I)`` (Solà 2017 §6.3). Returns the new P."""
+        nav = {k: v.numpy() for k, v in self._nav.items() if k != "cov"}
+        for b in np.flatnonzero(inject):
+            l_hat = fb[b, kmpf.FB_MEAN_L:kmpf.FB_MEAN_L + 12]
+            nav["pos"][b] += fb[b, kmpf.FB_MEAN_DP:kmpf.FB_MEAN_DP + 3]
+            nav["vel"][b] += l_hat[0:3]
+            q = quat_mul(nav["quat"][b], quat_exp(l_hat[3:6]))
+            nav["quat"][b] = q / np.linalg.norm(q)
+            nav["ba"][b] += l_hat[6:9]
+            nav["bg"][b] += l_hat[9:12]
+            g = np.eye(12)
+            g[3:6, 3:6] -= 0.5 * skew(l_hat[3:6])
+            P[b] = g @ P[b] @ g.T
+        self.n_injections += inject
+        self._inject.assign(inject.astype(np.int32))
+        wp.launch(kmpf.reset_kernel, dim=self.n_filters * self.n,
+                  inputs=[self.n, self._feedback, self._inject], outputs=[self.state.dp, self.state.lin],
+                  device=self.device)
+        return P
+
     def flush(self) -> None:
         """Move the particles through the buffered IMU samples now (before an estimate, or a full buffer)."""
+        self._settle()
         if self._k == 0:
             return
         self._host_interval()
@@ -428,11 +506,25 @@ class MarginalizedParticleFilter:
                   outputs=[st.logw, self._chunk_max, self._chunk_counts, self._chunk_min_nis], device=d)
         wp.launch(kmpf.max_of_partials_kernel, dim=b, inputs=[self._chunk_max, self._chunk_counts, self._chunk_min_nis],
                   outputs=[self._stats], device=d)
-        wp.launch(kmpf.exp_partials_kernel, dim=(b, kmpf.N_CHUNKS), inputs=[n, st.logw, st.dp, out.nis, self._stats],
-                  outputs=[self._chunk_sums], device=d)
+        lam, info = self._attitude_info(out)
+        wp.launch(kmpf.exp_partials_kernel, dim=(b, kmpf.N_CHUNKS),
+                  inputs=[n, st.logw, st.dp, out.nis, lam, self._stats], outputs=[self._chunk_sums], device=d)
         wp.launch(kmpf.weight_stats_kernel, dim=b, inputs=[n, self.params, self._chunk_sums],
                   outputs=[self._stats], device=d)
         wp.launch(kmpf.normalize_weights_kernel, dim=b * n, inputs=[n, self._stats], outputs=[st.logw], device=d)
+        if self.measurement_update:
+            wp.launch(kmpf.kalman_update_kernel, dim=b * n,
+                      inputs=[n, self._stats, self._dev["p_col"], lam, info], outputs=[st.lin], device=d)
+
+    def _attitude_info(self, out) -> tuple[wp.array, wp.array]:
+        """The model's per-particle attitude information (Λ_i, b_i); zeros for a model that gives none."""
+        if out.lam is not None and out.info is not None:
+            return out.lam, out.info
+        if self._no_info is None:
+            nt = self.n_filters * self.n
+            self._no_info = (wp.zeros(nt, dtype=wp.mat33, device=self.device),
+                             wp.zeros(nt, dtype=wp.vec3, device=self.device))
+        return self._no_info
 
     def _launch_resample(self, stage: int) -> None:
         """Resample and regularise the filters whose flags say so (device decisions; others are copied)."""
@@ -458,10 +550,11 @@ class MarginalizedParticleFilter:
 
     def _launch_record(self) -> None:
         d, b, st = self.device, self.n_filters, self.state
-        wp.launch(kmpf.summary_partials_kernel, dim=(b, kmpf.N_CHUNKS), inputs=[self.n, st.logw, st.dp],
-                  outputs=[self._chunk_sums], device=d)
-        wp.launch(kmpf.summary_kernel, dim=b, inputs=[self._chunk_sums, self._stats, self._integrity, self._slot],
-                  outputs=[self._history], device=d)
+        wp.launch(kmpf.summary_partials_kernel, dim=(b, kmpf.N_CHUNKS), inputs=[self.n, st.logw, st.dp, st.lin],
+                  outputs=[self._summary_sums], device=d)
+        wp.launch(kmpf.summary_kernel, dim=b,
+                  inputs=[self.params, self._summary_sums, self._stats, self._integrity, self._slot],
+                  outputs=[self._history, self._feedback], device=d)
         wp.launch(kmpf.advance_slot_kernel, dim=1, inputs=[self._slot], device=d)
 
     def _device_update(self, out, read_flags: bool = False) -> None:
@@ -515,8 +608,11 @@ class MarginalizedParticleFilter:
             self.model.bind_attitude_cov(self._dev["att_cov"])
         self._ensure_history()
         self._host_interval()
+        nav = self._nav
+        self._nominal_log.append(np.concatenate([nav[k].numpy() for k in ("pos", "vel", "quat", "ba", "bg")], axis=1))
         self.last_n_received = np.array(out.n_received)
         self.n_updates += 1
+        self._pending = True  # the device work below leaves feedback for the host (P, the closed loop)
         if not self.graph:
             self._device_update(out, read_flags=self.device.is_cpu)
             return self._info(out) if sync else None
@@ -559,8 +655,20 @@ class MarginalizedParticleFilter:
         :data:`warptan.kernels.mpf.H_ESS` … ``H_APPLIED``: ESS, resamplings, re-spread, bad log-likelihoods,
         unpredictable particles, Σw, mean dp (3, m) and its covariance (xx, yy, zz, xy, xz, yz, m²) after the
         update, tempering stages, smallest particle NIS, its window mean (the integrity statistic), skipped,
-        exponent applied, posterior-weighted NIS."""
+        exponent applied, posterior-weighted NIS, mean of the Kalman means l (12) and their spread's variance
+        (12)."""
+        self._settle()
         return self._history.numpy()[: self.n_updates]
+
+    def nominal_history(self) -> np.ndarray:
+        """(updates, B, 16) the nominal INS at each measurement update, before any closed-loop injection:
+        [p (3), v (3), q (4), b_a (3), b_g (3)] (host record, no device sync)."""
+        return np.array(self._nominal_log).reshape(-1, self.n_filters, 16)
+
+    def covariance_history(self) -> np.ndarray:
+        """(updates, B, 12) the diagonal of the Kalman covariance P after each update's measurement update."""
+        self._settle()
+        return np.array(self._p_log).reshape(-1, self.n_filters, 12)
 
     @property
     def n_respreads(self) -> int:

@@ -129,6 +129,8 @@ SCHEMA: dict[str, dict[str, tuple[type | tuple, object]]] = {
         "max_stages": (int, lambda v: None if 1 <= v <= 64 else "must be in [1, 64]"),
         "integrity_window": (int, lambda v: None if 1 <= v <= 64 else "must be in [1, 64]"),
         "integrity_threshold": (float, _pos),
+        "measurement_update": (bool, None),
+        "closed_loop": (bool, None),
         "converged_after_s": (float, _nonneg),
     },
     "initial_error": {
@@ -158,6 +160,8 @@ OVERRIDES = {
     "max_stages": ("filter", "max_stages"),
     "integrity_threshold": ("filter", "integrity_threshold"),
     "integrity_window": ("filter", "integrity_window"),
+    "measurement_update": ("filter", "measurement_update"),
+    "closed_loop": ("filter", "closed_loop"),
 }
 """run_scenario keyword -> (section, key). Also: terrain= (path, spec or Terrain), paper_rates=True."""
 
@@ -507,7 +511,8 @@ def run_scenario_batch(name_or_path, seeds, device="cpu", progress=None, **overr
         kalman_pos_noise=f["kalman_pos_noise_m_rthz"], regularize=f["regularize"], shrinkage=f["shrinkage"],
         temper_ess=f["temper_ess"],
         max_stages=f["max_stages"], integrity_window=f["integrity_window"],
-        integrity_threshold=f["integrity_threshold"],
+        integrity_threshold=f["integrity_threshold"], measurement_update=f["measurement_update"],
+        closed_loop=f["closed_loop"],
     )
     wall = time.perf_counter() - t0
     return [ScenarioResult(scenario=config["id"], seed=seed, device=run.device, terrain=truth_terrain.name,
