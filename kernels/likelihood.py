@@ -23,8 +23,9 @@ point j a flag that the *received* point is valid and a vector of axis weights. 
     each point's precision the Student-t's iteratively-reweighted one, ``(nu+1)/(nu + (res/σ)²) / σ²`` (a
     Laplace approximation: an outlying point informs neither the weight nor the attitude).
 * the information a particle's residuals carry on its attitude error, ``Λ_i`` (3×3, rad⁻²) and ``b_i`` (3,
-  rad⁻¹) as above (per-point precision ``1/σ²``, the Student-t's reweighted one for ``LIK_STUDENT``): the
-  Kalman measurement update of the linear states (:mod:`warptan.kernels.mpf`) reads them. Zero for
+  rad⁻¹) as above (per-point precision ``1/σ²``, the Student-t's reweighted one for ``LIK_STUDENT``), times
+  ``att_scale = (σ/σ_att)²`` (the map error persists over a scan's footprint: :class:`warptan.measurement.Likelihood`):
+  the Kalman measurement update of the linear states (:mod:`warptan.kernels.mpf`) reads them. Zero for
   ``LIK_PAPER``: its scalar error is not a model of the points, and the paper's filter has C = 0 (a Kalman
   update from residuals whose weights do not follow them fed a lost filter's misfit into its attitude).
   In the per-point forms a received point whose prediction is invalid scores as a residual of
@@ -69,6 +70,7 @@ class LikParams:
     sigma: float
     nu: float
     k_out: float
+    att_scale: float  # (σ / σ_att)² ≤ 1: the share of Λ, b the Kalman update of the attitude may use
 
 
 @wp.func
@@ -224,5 +226,5 @@ def reduce_loglik_kernel(
     loglik_out[t] = ll
     nis_out[t] = nis
     n_valid_out[t] = acc.n_ok
-    lam_out[t] = acc.lam
-    info_out[t] = acc.info
+    lam_out[t] = acc.lam * params.att_scale
+    info_out[t] = acc.info * params.att_scale

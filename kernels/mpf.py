@@ -528,8 +528,8 @@ def weight_stats_kernel(
     stats: wp.array2d(dtype=wp.float64),
 ):
     """One thread per active filter: ESS = (Σw)²/Σw², log-normaliser, weighted mean and Cholesky factor of the
-    covariance of dp (the regularisation kernel's shape), posterior NIS, weighted mean Λ̄, and the decision to resample: when
-    ESS < threshold · n, or when exponent remains (between tempering stages)."""
+    covariance of dp (the regularisation kernel's shape), posterior NIS, weighted mean Λ̄, and the decision to
+    resample: when ESS < threshold · n, or when exponent remains (between tempering stages)."""
     b = wp.tid()
     if stats[b, ST_ACTIVE] == wp.float64(0.0):
         return

@@ -76,8 +76,8 @@ def sliding_loglik_kernel(
     loglik_out[t] = ll
     nis_out[t] = nis
     n_valid_out[t] = acc.n_ok
-    lam_out[t] = acc.lam
-    info_out[t] = acc.info
+    lam_out[t] = acc.lam * params.att_scale
+    info_out[t] = acc.info * params.att_scale
 
 
 @wp.kernel

@@ -102,6 +102,10 @@ def main(argv=None) -> int:
     parser.add_argument("--no-baro-runs", action="store_true", help="skip the altitude-observability runs")
     parser.add_argument("--no-plots", action="store_true")
     parser.add_argument("--batch", action="store_true", help="run the seeds of a scenario as one batched filter")
+    parser.add_argument("--closed-loop", action="store_true",
+                        help="inject the converged estimate into the INS after every update (default: open loop)")
+    parser.add_argument("--no-measurement-update", action="store_true",
+                        help="the paper's C = 0: no Kalman update of velocity/attitude/biases from the residuals")
     parser.add_argument("--likelihoods", nargs="+", default=None, choices=sorted(LIKELIHOODS),
                         help="run every scenario with each of these likelihoods, into OUT/<likelihood>/, and write "
                              "OUT/likelihoods.md/.json side by side (default: the scenario files' likelihood, into "
@@ -157,7 +161,8 @@ def run_one(args, out: Path, likelihood: str | None) -> int:
     """Every scenario (and the no-barometer runs) with ``likelihood`` (None: the files'), outputs into ``out``."""
     wt.device.quiet_warp()
     overrides = {"particles": args.particles, "duration_s": args.duration_s, "paper_rates": args.paper_rates,
-                 "likelihood": likelihood}
+                 "likelihood": likelihood, "closed_loop": True if args.closed_loop else None,
+                 "measurement_update": False if args.no_measurement_update else None}
     try:
         wt.resolve_device(args.device)
         for sid in args.scenarios:

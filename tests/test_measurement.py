@@ -339,3 +339,59 @@ def test_bad_likelihood_parameters(kwargs, message):
     """Likelihood parameters out of range are one clear error naming the parameter."""
     with pytest.raises(ValueError, match=message):
         wt.Likelihood("gaussian", **kwargs)
+
+
+@pytest.mark.parametrize("model_name", ["sliding", "raycast"])
+def test_attitude_information_matches_finite_differences(thuringia, model_name):
+    """Each particle's attitude information on a real DEM (Thuringia 90 m): ``Λ = Σ HᵀH/σ²`` and
+    ``b = Σ Hᵀr/σ²`` from the kernels' analytic Jacobians (sliding: terrain gradient and lever arm; ray casts: the
+    range's derivative along the ray) equal the same sums with H from central finite differences of the model's
+    own residuals (``q ⊗ Exp(±ε e_k)``, ε = 2e-4 rad, float32 kernels: 3 % of the largest entry)."""
+    from warptan.frames import quat_exp, quat_mul
+
+    pos, q, cloud = _truth_setup(thuringia, seed=4)
+    rng = np.random.default_rng(5)
+    poses = pos + rng.normal(0, [8.0, 8.0, 2.0], (4, 3))
+    quats = np.array([quat_mul(q, quat_exp(rng.normal(0, 0.003, 3))) for _ in poses])
+    sigma = 0.8
+    model = wt.make_model(model_name, thuringia, wt.Likelihood("gaussian", sigma_m=sigma))
+    out = model.evaluate(*_poses(poses, quats, "cpu"), cloud)
+    lam, info, res = out.lam.numpy().copy(), out.info.numpy().copy(), out.residual_m.numpy().copy()
+    eps = 2e-4
+    cols = []
+    for e in eps * np.eye(3):
+        plus = model.evaluate(*_poses(poses, np.array([quat_mul(qq, quat_exp(e)) for qq in quats]), "cpu"), cloud)
+        r_plus = plus.residual_m.numpy().copy()
+        minus = model.evaluate(*_poses(poses, np.array([quat_mul(qq, quat_exp(-e)) for qq in quats]), "cpu"), cloud)
+        cols.append(-(r_plus - minus.residual_m.numpy()) / (2 * eps))  # prediction Jacobian = -d(residual)
+    h = np.stack(cols, axis=2).astype(np.float64)  # (N, M, 3)
+    ok = np.isfinite(res) & np.isfinite(h).all(axis=2)
+    assert ok.sum(axis=1).min() > 50
+    for i in range(len(poses)):
+        hi, ri = h[i][ok[i]], res[i][ok[i]].astype(np.float64)
+        lam_fd, b_fd = hi.T @ hi / sigma**2, hi.T @ ri / sigma**2
+        np.testing.assert_allclose(lam[i], lam_fd, atol=0.03 * np.abs(lam_fd).max())
+        np.testing.assert_allclose(info[i], b_fd, atol=0.03 * np.abs(b_fd).max() + 1.0)
+    assert np.abs(lam).max() > 1e4  # a 650 m lever: the scan sees the attitude strongly (rad⁻²)
+
+
+def test_attitude_information_follows_the_likelihood(device):
+    """The paper likelihood gives no attitude information (its filter keeps C = 0); the footprint correlation
+    scales the per-point Gaussian's Λ and b by ``(σ/σ_att)²``."""
+    terrain = wt.Terrain.synthetic("rugged", size_m=4000.0, spacing=30.0, seed=6)
+    pos, q, cloud = _truth_setup(terrain)
+    poses = pos + np.array([[3.0, -2.0, 1.0]])
+    got = {}
+    for label, lk in (("paper", wt.Likelihood("paper", r_err=16.0)),
+                      ("plain", wt.Likelihood("gaussian", sensor_sigma_m=0.5, map_sigma_m=0.3, map_correlation=4.0)),
+                      ("footprint", wt.Likelihood("gaussian", sensor_sigma_m=0.5, map_sigma_m=0.3, map_correlation=4.0,
+                                                  footprint_correlation=40.0))):
+        model = wt.SlidingModel(terrain, lk)
+        out = model.evaluate(*_poses(poses, q[None], device), cloud)
+        got[label] = (out.lam.numpy()[0].copy(), out.info.numpy()[0].copy(), model)
+    assert not got["paper"][0].any() and not got["paper"][1].any()
+    model = got["footprint"][2]
+    scale = (model.sigma_m / model.likelihood.sigma_att(model.surface_mismatch_m())) ** 2
+    assert 0.05 < scale < 0.5
+    np.testing.assert_allclose(got["footprint"][0], scale * got["plain"][0], rtol=1e-4, atol=1e-3)
+    np.testing.assert_allclose(got["footprint"][1], scale * got["plain"][1], rtol=1e-4, atol=1e-3)

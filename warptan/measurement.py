@@ -60,6 +60,15 @@ class Likelihood:
             reads the same DEM cells for about ``post spacing / (speed / measurement rate)`` updates, so the map
             part of σ² is multiplied by it (the standard inflation of a white-noise model for a correlated
             error; without it the filter counts one map error several times and its 3σ shrinks below the truth).
+        footprint_correlation: Consecutive updates over which a scan reads the same ground (its along-track
+            footprint over the distance flown per update; ≥ 1). The attitude information of a scan (the Kalman
+            update of the linear states) is a regression of the whole footprint's residuals, so the map part of
+            its error persists until the footprint is renewed, not only while a point stays in its cell: the
+            attitude information uses ``σ_att² = σ² + (max(footprint, map_correlation) - map_correlation) ·
+            (map² + mismatch²)`` (:meth:`sigma_att`). Measured (S1, 4 seeds, 120 s, map = world, bilinear model):
+            without it the attitude error is a terrain-fixed bias the same in every seed (roll +0.0025°, yaw
+            +0.008–0.012°) with a reported σ 3–5× smaller; the weights keep σ (position stays honest: its
+            process noise forgets faster than the footprint renews).
     """
 
     kind: str = "paper"
@@ -70,6 +79,7 @@ class Likelihood:
     sensor_sigma_m: float = 0.5
     map_sigma_m: float = 0.0
     map_correlation: float = 1.0
+    footprint_correlation: float = 1.0
 
     def __post_init__(self):
         if self.kind not in LIKELIHOODS:
@@ -84,8 +94,10 @@ class Likelihood:
             value = getattr(self, name)
             if not (np.isfinite(value) and value >= 0):
                 raise ValueError(f"likelihood {name} must be a number ≥ 0, got {value!r}")
-        if not (np.isfinite(self.map_correlation) and self.map_correlation >= 1):
-            raise ValueError(f"likelihood map_correlation must be a number ≥ 1, got {self.map_correlation!r}")
+        for name in ("map_correlation", "footprint_correlation"):
+            value = getattr(self, name)
+            if not (np.isfinite(value) and value >= 1):
+                raise ValueError(f"likelihood {name} must be a number ≥ 1, got {value!r}")
 
     def sigma_eff(self, model_mismatch_m: float) -> float:
         """The per-point σ in m: ``sigma_m`` when given, else
@@ -94,6 +106,11 @@ class Likelihood:
             return float(self.sigma_m)
         map_var = self.map_correlation * (self.map_sigma_m**2 + model_mismatch_m**2)
         return max(0.01, math.sqrt(self.sensor_sigma_m**2 + map_var))
+
+    def sigma_att(self, model_mismatch_m: float) -> float:
+        """The per-point σ of the attitude information in m (see ``footprint_correlation``)."""
+        extra = max(self.footprint_correlation - self.map_correlation, 0.0)
+        return math.sqrt(self.sigma_eff(model_mismatch_m) ** 2 + extra * (self.map_sigma_m**2 + model_mismatch_m**2))
 
 
 @dataclass
@@ -198,6 +215,7 @@ class MeasurementModel:
         p = klik.LikParams()
         p.err_kind, p.lik = int(self.err_kind), int(LIKELIHOODS[lk.kind])
         p.r_err, p.sigma, p.nu, p.k_out = float(lk.r_err), self.sigma_m, float(lk.nu), float(lk.outlier_sigmas)
+        p.att_scale = (self.sigma_m / lk.sigma_att(self.surface_mismatch_m())) ** 2
         return p
 
     def _buffers(self, device, n: int, b: int, m: int) -> ModelOutput:

@@ -434,7 +434,7 @@ class MarginalizedParticleFilter:
         P = _from_blocks(cov)
         if self.measurement_update:
             lam = np.empty((self.n_filters, 3, 3))
-            for (r, c), k in zip(((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2)), range(6)):
+            for k, (r, c) in enumerate(((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2))):
                 lam[:, r, c] = lam[:, c, r] = fb[:, kmpf.FB_LAM + k]
             A = P[:, 3:6, 3:6]
             gain = lam @ np.linalg.inv(np.eye(3) + A @ lam)

@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import warp as wp
 
-from warptan.frames import quat_exp, quat_mul
+from warptan.frames import quat_conj, quat_exp, quat_log, quat_mul
 from warptan.imu import ImuModel
 from warptan.ins import Ins, NavState
 from warptan.kernels import mpf as kmpf
@@ -58,6 +58,11 @@ class FilterRun:
     """Per epoch: its window mean, the integrity statistic."""
     skipped: np.ndarray
     """Per epoch: the update carried no usable information (map gap, no valid point)."""
+    lin_err: np.ndarray
+    """(T, 12) estimate minus truth of [velocity (m/s, NED), attitude (rad, body-frame rotation vector
+    ``Log(q_true⁻¹ q_est)``), accelerometer bias (m/s²), gyro bias (rad/s)]."""
+    sigma3_lin: np.ndarray
+    """(T, 12) their reported 3σ (Kalman P plus the spread of the particles' Kalman means)."""
     update_time_s: np.ndarray
     """Host wall time of each measurement update call, s (the whole update on the CPU; on CUDA the host part
     and the enqueue of the captured device work, which runs asynchronously)."""
@@ -85,6 +90,20 @@ class FilterRun:
         if not sel.any():
             return np.full(3, np.nan)
         return np.mean(np.abs(self.error[sel]) <= self.sigma3_pos[sel], axis=0)
+
+    def lin_rmse(self, after_s: float = 0.0) -> np.ndarray:
+        """(12,) RMSE of [velocity, attitude, accelerometer bias, gyro bias] over ``t ≥ after_s`` (SI units)."""
+        sel = self.t_s >= after_s
+        if not sel.any():
+            return np.full(12, np.nan)
+        return np.sqrt(np.mean(self.lin_err[sel] ** 2, axis=0))
+
+    def lin_coverage(self, after_s: float = 0.0) -> np.ndarray:
+        """(12,) fraction of epochs where the linear states' |error| ≤ 3σ."""
+        sel = self.t_s >= after_s
+        if not sel.any():
+            return np.full(12, np.nan)
+        return np.mean(np.abs(self.lin_err[sel]) <= self.sigma3_lin[sel], axis=0)
 
 
 def initial_nominal(truth0: NavState, errors: InitialErrors, rng: np.random.Generator) -> NavState:
@@ -152,7 +171,8 @@ def run_filter(truth: Trajectory, terrain_map, model, imu: ImuModel | Sequence[I
         raise ValueError("a point-cloud model needs a PointCloudSensor")
     rngs = [np.random.default_rng(np.random.SeedSequence([s, 0x7A4])) for s in seeds]
     nominal0 = [initial_nominal(truth.state(0), initial, rng) for rng in rngs]
-    corrupted = [m.corrupt(truth.f_b, truth.w_b)[:2] for m in imus]
+    corrupted = [m.corrupt(truth.f_b, truth.w_b) for m in imus]
+    true_bias = [np.hstack([c[2].accel_bias, c[2].gyro_bias]) for c in corrupted]  # (K, 6) per run
     f_meas = np.stack([c[0] for c in corrupted], axis=1)  # (K, B, 3)
     w_meas = np.stack([c[1] for c in corrupted], axis=1)
     ins_only = [Ins(nominal0[b], truth.rate_hz).run(f_meas[:, b], w_meas[:, b])["pos_n"] for b in range(len(seeds))]
@@ -188,10 +208,14 @@ def run_filter(truth: Trajectory, terrain_map, model, imu: ImuModel | Sequence[I
             progress(k, n_steps)
     wp.synchronize_device(mpf.device)
     hist = mpf.history()  # (T, B, N_SUMMARY): the one read-back of the run
+    nominal_hist, p_diag = mpf.nominal_history(), mpf.covariance_history()
     idx = np.array(epochs)
     runs = []
     for b in range(len(seeds)):
         h = hist[:, b]
+        lin_err, sig_lin = _linear_errors(truth, idx, true_bias[b], prior[b], nominal_hist[:, b],
+                                          h[:, kmpf.H_MEAN_L:kmpf.H_MEAN_L + 12],
+                                          p_diag[:, b] + h[:, kmpf.H_VAR_L:kmpf.H_VAR_L + 12])
         mean = h[:, kmpf.H_MEAN_DP:kmpf.H_MEAN_DP + 3]
         var = h[:, kmpf.H_COV_DP:kmpf.H_COV_DP + 3]
         est = np.vstack([prior[b].nav.pos_n, np.array(nominal_pos)[:, b] + mean])
@@ -205,10 +229,26 @@ def run_filter(truth: Trajectory, terrain_map, model, imu: ImuModel | Sequence[I
             all_points_invalid=np.r_[False, np.array(received)[:, b] == 0],
             stages=np.r_[0, h[:, kmpf.H_STAGES]].astype(int), nis=np.r_[np.nan, h[:, kmpf.H_NIS]],
             nis_avg=np.r_[np.nan, h[:, kmpf.H_NIS_AVG]], skipped=np.r_[False, h[:, kmpf.H_SKIPPED] > 0],
+            lin_err=lin_err, sigma3_lin=sig_lin,
             update_time_s=np.r_[0.0, update_time], predict_time_s=predict_time, n_particles=n_particles,
             device=mpf.device.alias,
             info={"respreads": int(respread.sum()), "skipped_updates": int((h[:, kmpf.H_SKIPPED] > 0).sum()),
                   "imu_steps": n_steps, "meas_rate_hz": meas_rate_hz, "batch": len(seeds),
-                  "sigma_m": float(model.sigma_m)},
+                  "sigma_m": float(model.sigma_m), "injections": int(mpf.n_injections[b])},
         ))
     return runs if batched else runs[0]
+
+
+def _linear_errors(truth: Trajectory, idx: np.ndarray, true_bias: np.ndarray, prior, nominal: np.ndarray,
+                   mean_l: np.ndarray, var_l: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(T, 12) estimate minus truth of [v, θ, b_a, b_g] at the epochs ``idx`` and their 3σ, from the prior and,
+    per update, the nominal INS before any injection, the mean Kalman mean and its total variance."""
+    k = np.minimum(idx, len(true_bias) - 1)
+    vel = np.vstack([prior.nav.vel_n, nominal[:, 3:6] + mean_l[:, 0:3]])
+    quat = np.vstack([prior.nav.quat_nb, quat_mul(nominal[:, 6:10], quat_exp(mean_l[:, 3:6]))])
+    bias = np.vstack([np.r_[prior.nav.accel_bias, prior.nav.gyro_bias],
+                      np.hstack([nominal[:, 10:13] + mean_l[:, 6:9], nominal[:, 13:16] + mean_l[:, 9:12]])])
+    att = quat_log(quat_mul(quat_conj(truth.quat_nb[idx]), quat / np.linalg.norm(quat, axis=1, keepdims=True)))
+    err = np.hstack([vel - truth.vel_n[idx], att, bias - true_bias[k]])
+    sig = 3.0 * np.sqrt(np.maximum(np.vstack([np.diag(prior.cov_lin), var_l]), 0.0))
+    return err, sig
