@@ -1,8 +1,8 @@
 """Marginalized particle filter kernels (SPEC §6; Schön, Gustafsson & Nordlund 2005; paper §IV).
 
 Particle i holds the position error ``dp_i`` (vec3, m) and the mean ``l_i`` (vec12) of its Kalman filter
-over ``[dv, dth, dba, dbg]``; the 12×12 covariance is shared and lives on the host. Weights are kept as
-log-weights.
+over ``[dv, dth, dba, dbg]``; the 12×12 covariance is shared and lives on the host (its measurement update reads
+the weighted mean attitude information back from ``feedback``). Weights are kept as log-weights.
 
 A batch of B independent filters of n particles each is one array of N = B·n particles, filter-major:
 particle i belongs to filter ``b = i // n``. Per-filter values (statistics, decisions) are (B, k) arrays.

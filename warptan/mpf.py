@@ -1,8 +1,35 @@
-"""The marginalized particle filter on the device, open-loop INS correction (SPEC §6; paper §IV).
+"""The marginalized particle filter on the device, open- or closed-loop INS correction (SPEC §6, §6b; paper §IV).
 
 Nonlinear state ``s^n = dp`` (3, N particles on the device); linear state ``s^l = [dv, dth, dba, dbg]``
 (12), one Kalman mean per particle on the device and one shared 12×12 covariance ``P`` on the host
-(float64): ``A^n``, ``A^l`` and ``Q`` do not depend on the particle, so neither does ``P``.
+(float64): ``A^n``, ``A^l`` and ``Q`` do not depend on the particle, so the time update of ``P`` does not.
+
+Measurement update of the linear states (C ≠ 0, SPEC §6b; ``measurement_update``): the point cloud sees the
+attitude. Every model returns, per particle, the information its residuals (at the particle's own pose, its dθ
+applied) carry on dθ: ``Λ_i = Σ_j H_jᵀ H_j / σ_att²``, ``b_i = Σ_j H_jᵀ r_j / σ_att²`` (H_j the prediction's Jacobian
+w.r.t. dθ; velocity and biases do not enter a prediction). In the tempering stage that applies the last of the
+update's exponent each particle takes its own gain against the shared prior, ``l_i += P_:θ (I + Λ_i A)⁻¹ b_i``
+(A = P_θθ; 3×3 work per particle whatever the number of points), before that stage's resampling (a resampled
+particle carries its ancestor's updated mean; without jitter the order is immaterial, with it the "l | dp
+locally constant" choice below applies); the weights are the marginal ``N(r_i; 0, H_i A H_iᵀ + R)`` (the
+likelihood kernels' attitude marginal). The shared P is then updated once, on the host, with the weighted mean
+information of the particles, ``P⁺ = P - P_:θ Λ̄ (I + A Λ̄)⁻¹ P_θ:`` (Λ̄ ≈ Λ at the weighted mean pose), read
+back with the rest of the update's feedback before the next interval (one (B, 23) copy: a host sync per update
+on CUDA). Our choice is one shared P, not one per particle: a per-particle P needs a 12×12 Riccati per particle
+and IMU sample on the device (its N_k and L_k would differ per particle), and the shared P already gives honest
+attitude bounds where the terrain informs the attitude (H100, 20 seeds, ``results/paper/gaussian``: attitude
+3σ coverage 74–100 % outside S3 and the flat-terrain yaw of S11, mean σ/RMSE 0.5–1.6; S2 converged position
+0.69/0.79 m against 5.96/7.92 m with C = 0). A per-particle P was not built or measured. Where the shared P's
+bound lies (S11 yaw over flat terrain: 36 % coverage, σ/RMSE 0.33; S3 ray casts) the cause is not known yet;
+our untested guess for S11 is a yaw that near-planar terrain confounds with cross-track position, which the
+jitter (l kept through it) does not carry into the particles' Kalman means.
+
+Closed loop (``closed_loop``): after each update of a filter its integrity monitor has judged consistent, the
+host injects the weighted mean error into the nominal INS (position, velocity, attitude ``q ⊗ Exp(θ̂)``, biases),
+every particle's error is reset relative to the new nominal on the device (its total state unchanged, the
+attitude composed exactly), and ``P <- G P Gᵀ``, ``G = diag(I, I - [θ̂/2]×, I, I)`` (Solà 2017 §6.3). Measured
+(H100, 20 seeds, all scenarios, ``results/closed_loop``): the same accuracy as open loop within the intervals in
+11 scenarios and one divergent seed in S12 (altimeter, flat terrain); the default is open loop.
 
 Per IMU sample (``predict``) the host only buffers the sample. Per measurement (``update``):
 
@@ -51,8 +78,8 @@ updates (a wide but healthy cloud still holds such particles; the posterior-weig
 cloud under a flat likelihood as lost, is only recorded). Above ``integrity_threshold`` the filter is lost: it
 re-spreads around its estimate with ``respread_scale`` × the prior σ, and the record says so.
 
-The INS runs open loop: the output is nominal ⊕ estimated error, with the mixture covariance (Kalman
-``P`` plus the spread of the particles). Trouble is recovered and counted, never returned as NaN: a
+The output is nominal ⊕ estimated error, with the mixture covariance (Kalman ``P`` plus the spread of the
+particles). Trouble is recovered and counted, never returned as NaN: a
 non-finite log-likelihood scores the floor; an update with no valid point, or whose points the particles
 mostly cannot predict (the map does not cover the scan: the aircraft, or the filter, is off the map), is
 skipped — no information, so it cannot drag the estimate towards the map — and recorded as skipped.
