@@ -159,10 +159,9 @@ def _kalman_reference(nominal0, f_meas, w_meas, rate, grade, p0, q_n, zs, decim,
     return out
 
 
-def _mpf_and_kalman(device, mpf_seeds, n=2000, **filter_kwargs):
-    """Final (dp, dv) of MPF runs with several seeds and of the Kalman filter, on one data set (no roughening:
-    the Kalman reference has no such noise)."""
-    rate, decim, sigma = 100.0, 10, 15.0
+def _linear_case(rate, decim, sigma):
+    """The data of the linear-Gaussian comparisons: a 45° turn, tactical IMU, drawn initial error, position
+    measurements with noise σ at every ``decim``-th sample."""
     truth = Trajectory.build([Straight(5), Turn(45, bank_deg=30), Straight(5)], 100.0, [0, 0, -1000.0])
     imu = ImuModel("tactical", rate, seed=1)
     f, w, _ = imu.corrupt(truth.f_b, truth.w_b)
@@ -171,6 +170,14 @@ def _mpf_and_kalman(device, mpf_seeds, n=2000, **filter_kwargs):
     nominal0 = initial_nominal(truth.state(0), initial, rng)
     epochs = np.arange(decim, len(f) + 1, decim)
     zs = truth.pos_n[epochs] + rng.normal(0, sigma, (len(epochs), 3))
+    return truth, imu, f, w, initial, rng, nominal0, epochs, zs
+
+
+def _mpf_and_kalman(device, mpf_seeds, n=2000, **filter_kwargs):
+    """Final (dp, dv) of MPF runs with several seeds and of the Kalman filter, on one data set (no roughening:
+    the Kalman reference has no such noise)."""
+    rate, decim, sigma = 100.0, 10, 15.0
+    _, imu, f, w, initial, _, nominal0, _, zs = _linear_case(rate, decim, sigma)
     p0_lin = prior_linear_cov(initial, imu)
     finals = []
     for seed in mpf_seeds:
@@ -215,14 +222,7 @@ def test_linear_gaussian_attitude_update_matches_kalman(device):
     dp are within 10 % and 35 % of the Kalman covariance. Without the update (C = 0) the attitude error keeps
     its prior-sized error (checked: the same runs are ≥ 5× worse in dθ)."""
     rate, decim, sigma, sigma_att = 100.0, 10, 15.0, np.radians(0.02)
-    truth = Trajectory.build([Straight(5), Turn(45, bank_deg=30), Straight(5)], 100.0, [0, 0, -1000.0])
-    imu = ImuModel("tactical", rate, seed=1)
-    f, w, _ = imu.corrupt(truth.f_b, truth.w_b)
-    initial = InitialErrors(pos_m=(30.0, 30.0, 10.0), vel_mps=1.0, att_deg=(0.5, 0.5, 1.0))
-    rng = np.random.default_rng(5)
-    nominal0 = initial_nominal(truth.state(0), initial, rng)
-    epochs = np.arange(decim, len(f) + 1, decim)
-    zs = truth.pos_n[epochs] + rng.normal(0, sigma, (len(epochs), 3))
+    truth, imu, f, w, initial, rng, nominal0, epochs, zs = _linear_case(rate, decim, sigma)
     qms = quat_mul(truth.quat_nb[epochs], quat_exp(rng.normal(0, sigma_att, (len(epochs), 3))))
     p0_lin = prior_linear_cov(initial, imu)
     finals = {True: [], False: []}
