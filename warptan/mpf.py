@@ -105,6 +105,8 @@ RESAMPLERS = tuple(SCHEMES)
 """Resampling schemes (ancestor indices from the cumulative weights): systematic (one uniform), stratified
 (one per slot), multinomial (independent draws)."""
 _STREAM_MOVE, _STREAM_RESAMPLE, _STREAM_INIT = 1, 2, 0
+_SYM6_INDEX = np.array([[0, 3, 4], [3, 1, 5], [4, 5, 2]])
+"""Entry of a symmetric 3×3 matrix stored as six columns (00 11 22 01 02 12, as the kernels write it)."""
 MAX_STEPS_PER_INTERVAL = 64
 """IMU samples buffered between measurements before the particles are moved anyway."""
 
@@ -460,9 +462,7 @@ class MarginalizedParticleFilter:
         cov = self._nav["cov"].numpy()
         P = _from_blocks(cov)
         if self.measurement_update:
-            lam = np.empty((self.n_filters, 3, 3))
-            for k, (r, c) in enumerate(((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2))):
-                lam[:, r, c] = lam[:, c, r] = fb[:, kmpf.FB_LAM + k]
+            lam = fb[:, kmpf.FB_LAM + _SYM6_INDEX]  # (B, 3, 3) from the six stored entries
             A = P[:, 3:6, 3:6]
             gain = lam @ np.linalg.inv(np.eye(3) + A @ lam)
             P = P - P[:, :, 3:6] @ gain @ P[:, 3:6, :]
@@ -684,7 +684,6 @@ class MarginalizedParticleFilter:
         update, tempering stages, smallest particle NIS, its window mean (the integrity statistic), skipped,
         exponent applied, posterior-weighted NIS, mean of the Kalman means l (12) and their spread's variance
         (12)."""
-        self._settle()
         return self._history.numpy()[: self.n_updates]
 
     def nominal_history(self) -> np.ndarray:
@@ -715,10 +714,6 @@ class MarginalizedParticleFilter:
         self.flush()
         nav = {k: v.numpy()[b] for k, v in self._nav.items() if k != "cov"}
         return NavState(nav["pos"], nav["vel"], nav["quat"], nav["ba"], nav["bg"])
-
-    def nominal_positions(self) -> np.ndarray:
-        """(B, 3) nominal positions at the last measurement update or flush (host, no device sync)."""
-        return self._interval["pose"].numpy()[:, 0:3].copy()
 
     def moments(self) -> np.ndarray:
         """Weighted moments of the particles of each filter (host float64, (B, 169)):

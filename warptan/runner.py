@@ -77,33 +77,34 @@ class FilterRun:
         """(T, 3) estimate minus truth, NED, m."""
         return self.est_pos - self.truth_pos
 
+    def _after(self, after_s: float) -> np.ndarray | None:
+        """Epochs with ``t ≥ after_s`` (None when the run ended before)."""
+        sel = self.t_s >= after_s
+        return sel if sel.any() else None
+
+    def _rms(self, err: np.ndarray, after_s: float) -> np.ndarray:
+        sel = self._after(after_s)
+        return np.full(err.shape[1], np.nan) if sel is None else np.sqrt(np.mean(err[sel] ** 2, axis=0))
+
+    def _covered(self, err: np.ndarray, sigma3: np.ndarray, after_s: float) -> np.ndarray:
+        sel = self._after(after_s)
+        return np.full(err.shape[1], np.nan) if sel is None else np.mean(np.abs(err[sel]) <= sigma3[sel], axis=0)
+
     def rmse(self, after_s: float = 0.0) -> np.ndarray:
         """(3,) RMSE north, east, down of the estimate over ``t ≥ after_s``, m."""
-        sel = self.t_s >= after_s
-        if not sel.any():
-            return np.full(3, np.nan)  # the run ended before after_s
-        return np.sqrt(np.mean(self.error[sel] ** 2, axis=0))
+        return self._rms(self.error, after_s)
 
     def coverage(self, after_s: float = 0.0) -> np.ndarray:
         """(3,) fraction of epochs where |error| ≤ 3σ, per axis."""
-        sel = self.t_s >= after_s
-        if not sel.any():
-            return np.full(3, np.nan)
-        return np.mean(np.abs(self.error[sel]) <= self.sigma3_pos[sel], axis=0)
+        return self._covered(self.error, self.sigma3_pos, after_s)
 
     def lin_rmse(self, after_s: float = 0.0) -> np.ndarray:
         """(12,) RMSE of [velocity, attitude, accelerometer bias, gyro bias] over ``t ≥ after_s`` (SI units)."""
-        sel = self.t_s >= after_s
-        if not sel.any():
-            return np.full(12, np.nan)
-        return np.sqrt(np.mean(self.lin_err[sel] ** 2, axis=0))
+        return self._rms(self.lin_err, after_s)
 
     def lin_coverage(self, after_s: float = 0.0) -> np.ndarray:
         """(12,) fraction of epochs where the linear states' |error| ≤ 3σ."""
-        sel = self.t_s >= after_s
-        if not sel.any():
-            return np.full(12, np.nan)
-        return np.mean(np.abs(self.lin_err[sel]) <= self.sigma3_lin[sel], axis=0)
+        return self._covered(self.lin_err, self.sigma3_lin, after_s)
 
 
 def initial_nominal(truth0: NavState, errors: InitialErrors, rng: np.random.Generator) -> NavState:
@@ -184,7 +185,7 @@ def run_filter(truth: Trajectory, terrain_map, model, imu: ImuModel | Sequence[I
     epochs = [0, *range(decim, n_steps + 1, decim)]
     prior = mpf.estimate()
     prior = prior if batched else [prior]
-    nominal_pos, received, update_time = [], [], []
+    received, update_time = [], []
     predict_time = 0.0
     k = 0
     for epoch in epochs[1:]:
@@ -202,7 +203,6 @@ def run_filter(truth: Trajectory, terrain_map, model, imu: ImuModel | Sequence[I
         t0 = time.perf_counter()
         mpf.update(meas if batched else meas[0], sync=False)
         update_time.append(time.perf_counter() - t0)
-        nominal_pos.append(mpf.nominal_positions())
         received.append(mpf.last_n_received)
         if progress is not None:
             progress(k, n_steps)
@@ -218,7 +218,7 @@ def run_filter(truth: Trajectory, terrain_map, model, imu: ImuModel | Sequence[I
                                           p_diag[:, b] + h[:, kmpf.H_VAR_L:kmpf.H_VAR_L + 12])
         mean = h[:, kmpf.H_MEAN_DP:kmpf.H_MEAN_DP + 3]
         var = h[:, kmpf.H_COV_DP:kmpf.H_COV_DP + 3]
-        est = np.vstack([prior[b].nav.pos_n, np.array(nominal_pos)[:, b] + mean])
+        est = np.vstack([prior[b].nav.pos_n, nominal_hist[:, b, 0:3] + mean])
         sig = np.vstack([prior[b].sigma3_pos, 3.0 * np.sqrt(np.maximum(var, 0.0))])
         respread = h[:, kmpf.H_RESPREAD] > 0
         runs.append(FilterRun(
