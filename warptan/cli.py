@@ -46,6 +46,15 @@ def _terrain_export(args) -> int:
     return 0
 
 
+def _map_words(config: dict) -> str:
+    t = config["terrain"]
+    parts = [f"map {t['map_path']}" if t["map_path"] else "",
+             f"map posts {t['map_spacing_m']:g} m" if t["map_spacing_m"] else "",
+             f"map noise {t['map_noise_m']:g} m" if t["map_noise_m"] else "",
+             f"map bias {t['map_bias_m']:+g} m" if t["map_bias_m"] else ""]
+    return "".join(", " + p for p in parts if p)
+
+
 def _run(args) -> int:
     from warptan.device import resolve_device
     from warptan.report import write_outputs
@@ -61,7 +70,8 @@ def _run(args) -> int:
     out_dir = args.out or ("warptan-demo" if demo else "warptan-results")
     overrides = {"particles": args.particles, "backend": args.backend, "likelihood": args.likelihood,
                  "duration_s": duration, "paper_rates": args.paper_rates,
-                 "use_baro": False if args.no_baro else None}
+                 "use_baro": False if args.no_baro else None, "map_path": args.map,
+                 "map_spacing_m": args.map_spacing_m, "map_noise_m": args.map_noise_m, "map_bias_m": args.map_bias_m}
     resolve_device(args.device)
     if seeds < 1:
         raise ValueError(f"--seeds must be ≥ 1, got {seeds}")
@@ -69,7 +79,7 @@ def _run(args) -> int:
     plans = {name: prepare(name, terrain=terrain, **overrides) for name in names}
     if args.check:
         for config, truth, flight in plans.values():
-            print(f"{config['id']}: ok ({truth.name}, altitude {-flight.pos_n[0, 2]:.0f} m, "
+            print(f"{config['id']}: ok ({truth.name}{_map_words(config)}, altitude {-flight.pos_n[0, 2]:.0f} m, "
                   f"{flight.duration_s:.0f} s, {config['sensor']['model']})")
         return 0
     if demo:
@@ -126,7 +136,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     terrain = sub.add_parser("terrain", help="inspect or export a DEM")
     tsub = terrain.add_subparsers(dest="terrain_command", required=True)
-    spec_help = "a DEM file (DTED, .hgt, GeoTIFF, .npz) or synthetic:rugged|flat[,size_m=..,spacing=..,seed=..]"
+    spec_help = ("rugged, rugged30, flat (real DEMs shipped with warptan), a DEM file (DTED, .hgt, GeoTIFF, .npz) "
+                 "or synthetic:rugged|flat[,size_m=..,spacing=..,seed=..]")
 
     info = tsub.add_parser("info", help="CRS, bounds, spacing, shape, height range, nodata fraction")
     info.add_argument("terrain", nargs="?", default=DEFAULT_TERRAIN, help=spec_help)
@@ -156,7 +167,13 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--particles", type=int, default=None, help="override the particle count")
     run.add_argument("--backend", default=None, help="ray-cast backend: dda, mesh, bisection")
     run.add_argument("--likelihood", default=None, help="paper, gaussian or student_t")
-    run.add_argument("--terrain", default=None, help="DEM path or synthetic:KIND spec for every scenario")
+    run.add_argument("--terrain", default=None,
+                     help="the world of every scenario: rugged, rugged30 (30 m San Gabriel tile), flat, a DEM path "
+                          "or synthetic:KIND (default: the scenario's)")
+    run.add_argument("--map", default=None, help="the filter's map from another DEM file of the same ground")
+    run.add_argument("--map-spacing-m", type=float, default=None, help="map error: coarser posts (block means)")
+    run.add_argument("--map-noise-m", type=float, default=None, help="map error: white noise σ per post, m")
+    run.add_argument("--map-bias-m", type=float, default=None, help="map error: vertical offset of the map, m")
     run.add_argument("--duration-s", type=float, default=None, help="override the flight duration")
     run.add_argument("--no-baro", action="store_true", help="altimeter scenarios without a barometer")
     run.add_argument("--no-plots", action="store_true", help="skip the PNG plots")

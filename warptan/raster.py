@@ -68,12 +68,17 @@ def tmerc_crs(lat_deg: float, lon_deg: float):
     )
 
 
-def read_raster(path: str | os.PathLike, spacing: float | None = None) -> RasterGrid:
+def read_raster(path: str | os.PathLike, spacing: float | None = None,
+                frame: tuple[str, tuple[float, float]] | None = None) -> RasterGrid:
     """Read band 1 of a DEM file into a :class:`RasterGrid`.
 
     Args:
         path: DTED (.dt0/.dt1/.dt2), SRTM (.hgt), GeoTIFF or any single-band raster GDAL reads.
         spacing: Output post spacing in m (both axes); None keeps the native spacing.
+        frame: ``(crs_wkt, origin_xy)`` of another terrain: the raster is resampled (bilinear) into that metric
+            CRS with that NED origin, so that two DEMs of the same ground share one frame (a map that is not the
+            world); None: a projected north-up raster keeps its own grid, anything else is reprojected to a
+            transverse Mercator centred on it.
 
     Raises:
         FileNotFoundError: ``path`` does not exist.
@@ -110,9 +115,9 @@ def read_raster(path: str | os.PathLike, spacing: float | None = None) -> Raster
 
     metric = crs.is_projected and math.isclose(crs.linear_units_factor[1], 1.0)
     north_up = transform.b == 0.0 and transform.d == 0.0 and transform.e < 0.0 and transform.a > 0.0
-    if metric and north_up and spacing is None:
+    if frame is None and metric and north_up and spacing is None:
         return _native_grid(data, crs, transform, path)
-    return _reprojected_grid(data, crs, transform, bounds, spacing, path)
+    return _reprojected_grid(data, crs, transform, bounds, spacing, path, frame)
 
 
 def _native_grid(data, crs, transform, path) -> RasterGrid:
@@ -134,7 +139,7 @@ def _native_grid(data, crs, transform, path) -> RasterGrid:
     )
 
 
-def _reprojected_grid(data, crs, transform, bounds, spacing, path) -> RasterGrid:
+def _reprojected_grid(data, crs, transform, bounds, spacing, path, frame=None) -> RasterGrid:
     from rasterio.enums import Resampling
     from rasterio.transform import from_origin
     from rasterio.warp import reproject, transform_bounds
@@ -145,7 +150,12 @@ def _reprojected_grid(data, crs, transform, bounds, spacing, path) -> RasterGrid
     cx = transform.c + transform.a * cols / 2.0 + transform.b * rows / 2.0
     cy = transform.f + transform.d * cols / 2.0 + transform.e * rows / 2.0
     lon_c, lat_c = (v[0] for v in warp_transform(crs, "EPSG:4326", [cx], [cy]))
-    dst_crs = tmerc_crs(lat_c, lon_c)
+    if frame is None:
+        dst_crs, origin = tmerc_crs(lat_c, lon_c), (0.0, 0.0)
+    else:
+        from rasterio.crs import CRS
+
+        dst_crs, origin = CRS.from_wkt(frame[0]), (float(frame[1][0]), float(frame[1][1]))
     if spacing is None:
         # Native spacing: the length in metres of one source pixel step along each axis at the centre.
         px = [cx, cx + transform.a, cx + transform.b]
@@ -205,17 +215,17 @@ def _reprojected_grid(data, crs, transform, bounds, spacing, path) -> RasterGrid
         raise TerrainError(f"{path}: no valid post after reprojection")
     x_first = left + 0.5 * de
     y_south = top - (out_rows - 0.5) * dn
+    target = (f"transverse Mercator at {lat_c:.4f}°N {lon_c:.4f}°E" if frame is None
+              else f"another terrain's frame ({_crs_name(dst_crs)})")
     return RasterGrid(
         heights_m=np.ascontiguousarray(out[::-1]),
-        n0=y_south,
-        e0=x_first,
+        n0=y_south - origin[1],
+        e0=x_first - origin[0],
         dn=dn,
         de=de,
         crs_wkt=dst_crs.to_wkt(),
-        origin_xy=(0.0, 0.0),
-        description=(
-            f"{_crs_name(crs)} reprojected to transverse Mercator at {lat_c:.4f}°N {lon_c:.4f}°E, {how}"
-        ),
+        origin_xy=origin,
+        description=f"{_crs_name(crs)} reprojected to {target}, {how}",
     )
 
 

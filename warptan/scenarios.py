@@ -6,8 +6,17 @@ values out of range, a terrain that does not load, a flight that leaves the DEM)
 
 Choices the paper leaves open (SPEC §7 fixes the rest):
 
-* ``rugged`` / ``flat`` terrains are the real SRTM3 tiles in ``../shared/data/dem`` when present, else the
-  seeded synthetic terrains (20 km, 30 m posts); the result says which was used.
+* ``rugged`` / ``flat`` / ``rugged30`` terrains are the real DEMs shipped with the package
+  (:data:`~warptan.terrain.NAMED_TERRAINS`, ``warptan/data/dem``; ``$WARPTAN_DEM_DIR`` may replace them); any
+  scenario flies another terrain with ``terrain=`` (a name, a DEM file, ``synthetic:rugged``): S1–S9 on the 30 m
+  tile are ``terrain="rugged30"``. The result names the terrain it flew (``ScenarioResult.terrain``) and the
+  map the filter read (``map``).
+* The world is the truth terrain; the filter's map is the world unless ``[terrain]`` says otherwise
+  (:func:`map_terrain`): another DEM file of the same ground (``map_path``, resampled into the world's frame), a
+  coarser grid (``map_spacing_m``, block means), white post noise (``map_noise_m``, realisation ``map_seed``) and a
+  vertical bias (``map_bias_m``), in that order. With ``likelihood.map_aware`` the per-point σ counts the map's
+  own interpolation error (:meth:`~warptan.terrain.Terrain.interpolation_sigma_m`) whenever the map's grid is not
+  the world's.
 * Flight patterns: ``straight`` (bank 0); ``s_turns`` (banked scenarios S1–S4: 10 s straight, then turns of
   ±150° alternating at the bank angle until the end); ``orbit`` (S5/S6: 5 s straight, then circling at
   the bank angle, placed so that the circle passes ``hill_offset_m`` beside the highest hill with the
@@ -35,7 +44,7 @@ from warptan.mpf import RESAMPLERS
 from warptan.raycast import BACKENDS
 from warptan.runner import FilterRun, InitialErrors, run_filter
 from warptan.sensors import Barometer, PointCloudSensor, RadarAltimeter, ScanPattern
-from warptan.terrain import Terrain
+from warptan.terrain import NAMED_TERRAINS, Terrain, TerrainError
 from warptan.trajectory import Orbit, Straight, Trajectory, Turn
 
 try:
@@ -44,8 +53,7 @@ except ModuleNotFoundError:  # Python 3.10
     import tomli as tomllib
 
 SCENARIO_IDS = tuple(f"S{i}" for i in range(1, 13))
-DEM_DIR_ENV = "WARPTAN_DEM_DIR"
-REAL_TERRAINS = {"rugged": "thuringia_hilly_srtm3_n50e010.tif", "flat": "ganges_plain_flat_srtm3_n28e078.tif"}
+TERRAIN_KINDS = (*NAMED_TERRAINS, "path")
 
 
 class ScenarioError(ValueError):
@@ -81,10 +89,13 @@ def _vec(n, check=None):
 SCHEMA: dict[str, dict[str, tuple[type | tuple, object]]] = {
     "": {"id": (str, None), "description": (str, None), "paper_rmse_m": (list, _vec(3, _nonneg))},
     "terrain": {
-        "kind": (str, _one_of(("rugged", "flat", "path"))),
+        "kind": (str, _one_of(TERRAIN_KINDS)),
         "path": (str, None),
+        "map_path": (str, None),
         "map_noise_m": (float, _nonneg),
         "map_spacing_m": (float, _nonneg),
+        "map_bias_m": (float, None),
+        "map_seed": (int, lambda v: None if v >= -1 else "must be ≥ 0, or -1 (each run's own seed)"),
     },
     "flight": {
         "speed_mps": (float, _pos),
@@ -116,6 +127,7 @@ SCHEMA: dict[str, dict[str, tuple[type | tuple, object]]] = {
         "sigma_m": ((float, str), lambda v: None if v == "auto" or (not isinstance(v, str) and v > 0)
                     else "must be 'auto' (σ_sensor ⊕ σ_map) or a positive number of metres"),
         "nu": (float, _pos),
+        "map_aware": (bool, None),
     },
     "filter": {
         "particles": (int, _pos),
@@ -165,6 +177,12 @@ OVERRIDES = {
     "integrity_window": ("filter", "integrity_window"),
     "measurement_update": ("filter", "measurement_update"),
     "closed_loop": ("filter", "closed_loop"),
+    "map_path": ("terrain", "map_path"),
+    "map_spacing_m": ("terrain", "map_spacing_m"),
+    "map_noise_m": ("terrain", "map_noise_m"),
+    "map_bias_m": ("terrain", "map_bias_m"),
+    "map_seed": ("terrain", "map_seed"),
+    "map_aware": ("likelihood", "map_aware"),
 }
 """run_scenario keyword -> (section, key). Also: terrain= (path, spec or Terrain), paper_rates=True."""
 
@@ -269,22 +287,9 @@ def load_config(name_or_path, **overrides) -> dict:
 _TERRAIN_CACHE: dict[str, Terrain] = {}
 
 
-def dem_dir() -> Path:
-    """Where the shared real DEMs are: $WARPTAN_DEM_DIR, else ../shared/data/dem beside the working directory
-    or beside the package's source checkout. A DEM ``NAME.tif`` may also be there as ``NAME.npz``
-    (:meth:`~warptan.terrain.Terrain.save_npz` of the loaded tile), which needs no rasterio."""
-    env = os.environ.get(DEM_DIR_ENV)
-    if env:
-        return Path(env)
-    for base in (Path.cwd(), Path(__file__).resolve().parents[1]):
-        candidate = base.parent / "shared" / "data" / "dem"
-        if candidate.is_dir():
-            return candidate
-    return Path.cwd().parent / "shared" / "data" / "dem"
-
-
 def resolve_terrain(config: dict, terrain=None) -> Terrain:
-    """The truth terrain: an override (Terrain, path or spec), the real DEM of the kind, or the synthetic one."""
+    """The truth terrain: an override (Terrain, name, path or spec), else the scenario's ``terrain.kind`` (a named
+    real DEM) or ``terrain.path``."""
     if isinstance(terrain, Terrain):
         return terrain
     if terrain is not None:
@@ -292,30 +297,54 @@ def resolve_terrain(config: dict, terrain=None) -> Terrain:
     elif config["terrain"]["kind"] == "path":
         spec = config["terrain"]["path"]
     else:
-        kind = config["terrain"]["kind"]
-        real = dem_dir() / REAL_TERRAINS[kind]
-        processed = real.with_suffix(".npz")  # a copy saved by Terrain.save_npz, for machines without rasterio
-        spec = str(real) if real.exists() else str(processed) if processed.exists() else f"synthetic:{kind}"
-    if spec not in _TERRAIN_CACHE:
+        spec = config["terrain"]["kind"]
+    return _load_terrain(spec)
+
+
+def _load_terrain(spec: str, onto: Terrain | None = None) -> Terrain:
+    key = spec if onto is None else f"{spec} onto {onto.name} {onto.origin_xy} {onto.crs_wkt}"
+    if key not in _TERRAIN_CACHE:
         try:
-            _TERRAIN_CACHE[spec] = Terrain.load(spec)
+            _TERRAIN_CACHE[key] = Terrain.load(spec) if onto is None else Terrain.from_raster(spec, onto=onto)
         except (ValueError, FileNotFoundError) as err:
             raise ScenarioError(f"terrain {spec!r} does not load: {err}") from None
-    return _TERRAIN_CACHE[spec]
+    return _TERRAIN_CACHE[key]
+
+
+def map_grid_differs(config: dict, truth: Terrain) -> bool:
+    """True when the filter's map is not sampled on the world's posts (another file, or coarser posts)."""
+    t = config["terrain"]
+    return bool(t["map_path"]) or _coarsening(truth, t["map_spacing_m"]) != (1, 1)
+
+
+def _coarsening(truth: Terrain, spacing_m: float) -> tuple[int, int]:
+    if not spacing_m:
+        return 1, 1
+    return max(1, round(spacing_m / truth.dn)), max(1, round(spacing_m / truth.de))
 
 
 def map_terrain(truth: Terrain, config: dict, seed: int) -> Terrain:
-    """The filter's map: the truth, or with the scenario's map error (white noise, coarser grid)."""
-    noise, coarse = config["terrain"]["map_noise_m"], config["terrain"]["map_spacing_m"]
-    if noise == 0 and coarse == 0:
+    """The filter's map of the world ``truth``: the world itself, or (``[terrain]``, in this order) another DEM of
+    the same ground (``map_path``, resampled bilinearly into the world's frame at its own post spacing), coarser
+    posts (``map_spacing_m``: block means of ``round(spacing / d)`` posts per axis), white noise per post
+    (``map_noise_m``; realisation ``map_seed``, or the run's seed when -1) and a vertical bias (``map_bias_m``)."""
+    t = config["terrain"]
+    noise, bias = t["map_noise_m"], t["map_bias_m"]
+    the_map = _load_terrain(t["map_path"], onto=truth) if t["map_path"] else truth
+    try:
+        the_map = the_map.coarsened(*_coarsening(the_map, t["map_spacing_m"]))
+    except TerrainError as err:
+        raise ScenarioError(f"terrain.map_spacing_m = {t['map_spacing_m']}: {err}") from None
+    if the_map is truth and not noise and not bias:
         return truth
-    h = truth.heights_m
-    step = max(1, round(coarse / min(truth.dn, truth.de))) if coarse else 1
-    h = h[::step, ::step]
+    h = the_map.heights_m + bias
     if noise:
-        h = h + np.random.default_rng([seed, 0x3A9]).normal(0.0, noise, h.shape)
-    return Terrain(h, truth.n0, truth.e0, truth.dn * step, truth.de * step, crs_wkt=truth.crs_wkt,
-                   origin_xy=truth.origin_xy, name=truth.name + " (map with error)", description=truth.description)
+        noise_seed = seed if t["map_seed"] < 0 else t["map_seed"]
+        h = h + np.random.default_rng([noise_seed, 0x3A9]).normal(0.0, noise, h.shape)
+    parts = [p for p, on in ((f"noise {noise:g} m", noise), (f"bias {bias:+g} m", bias)) if on]
+    return Terrain(h, the_map.n0, the_map.e0, the_map.dn, the_map.de, crs_wkt=the_map.crs_wkt,
+                   origin_xy=the_map.origin_xy, name=the_map.name + (f" ({', '.join(parts)})" if parts else ""),
+                   description=the_map.description)
 
 
 # ---------------------------------------------------------------------- flight
@@ -411,6 +440,10 @@ class ScenarioResult:
     run: FilterRun
     wall_s: float
     truth_terrain: Terrain = field(repr=False)
+    map: str = ""
+    """The terrain the filter read (its name; equal to ``terrain`` when the map is the world)."""
+    map_sigma_m: float = 0.0
+    """The map σ of the likelihood, m (stated noise, with the map's interpolation error when map-aware)."""
     rmse: np.ndarray = field(init=False)
     """(3,) RMSE north, east, down over the whole run, m."""
     rmse_converged: np.ndarray = field(init=False)
@@ -425,6 +458,7 @@ class ScenarioResult:
         r = self.run
         return {
             "scenario": self.scenario, "seed": self.seed, "device": self.device, "terrain": self.terrain,
+            "map": self.map or self.terrain, "map_sigma_m": self.map_sigma_m,
             "rmse_m": self.rmse.tolist(), "rmse_converged_m": self.rmse_converged.tolist(),
             "ins_only_final_error_m": (r.ins_pos[-1] - r.truth_pos[-1]).tolist(),
             "coverage_3sigma": r.coverage(self.config["filter"]["converged_after_s"]).tolist(),
@@ -458,13 +492,20 @@ class ScenarioResult:
             }
 
 
-def scenario_likelihood(config: dict, the_map: Terrain) -> Likelihood:
+def scenario_likelihood(config: dict, the_map: Terrain, truth: Terrain | None = None) -> Likelihood:
     """The scenario's likelihood; ``sigma_m = "auto"`` calibrates σ from the sensor noise (range; altimeter ⊕
     barometer for the altimeter with a barometer), the map noise and the
     model's surface mismatch, with the map part inflated by the updates over which the scan reads the same DEM
     cells: ``n_corr = max(1, sqrt(dn de) / (speed / measurement rate))`` (7.4 on the 90 m tile at 100 m/s, 10 Hz);
     the attitude information's footprint correlation is the scan's along-track footprint at the flight's clearance
-    over the same step (``2 · 600 m · tan 30° / 10 m`` = 69 for the high flights)."""
+    over the same step (``2 · 600 m · tan 30° / 10 m`` = 69 for the high flights).
+
+    The map σ is the stated post noise ``map_noise_m``; with ``likelihood.map_aware`` and a map whose grid is not
+    the world's (``truth`` given; another file or coarser posts) it is ``hypot(map_noise_m,
+    the_map.interpolation_sigma_m(map_noise_m))``: the map's own bilinear error at its post spacing, estimated
+    from its roughness (:meth:`~warptan.terrain.Terrain.interpolation_sigma_m`; 30 m tile at 60/90/180 m posts:
+    2.8/5.1/12.1 m estimated, 2.3/4.8/12.9 m measured against the 30 m triangles). A map on the world's own
+    posts has no interpolation error beyond the bilinear-vs-triangles mismatch every sliding model counts."""
     lk, s = config["likelihood"], config["sensor"]
     noise_m = s["range_sigma_m"]
     if s["model"] == "altimeter":  # the residual a - (h_baro - h(p)) carries both sensors' noise
@@ -476,8 +517,11 @@ def scenario_likelihood(config: dict, the_map: Terrain) -> Likelihood:
         footprint_m = 2.0 * ABOVE_TERRAIN_M[config["flight"]["altitude_rule"]] * math.tan(
             math.radians(s["scan_half_angle_deg"]))
         n_fp = max(n_corr, footprint_m / step_m)
+    map_sigma = config["terrain"]["map_noise_m"]
+    if lk["map_aware"] and truth is not None and map_grid_differs(config, truth):
+        map_sigma = math.hypot(map_sigma, the_map.interpolation_sigma_m(map_sigma))
     return Likelihood(lk["kind"], r_err=lk["r_err_m2"], sigma_m=None if lk["sigma_m"] == "auto" else lk["sigma_m"],
-                      nu=lk["nu"], sensor_sigma_m=noise_m, map_sigma_m=config["terrain"]["map_noise_m"],
+                      nu=lk["nu"], sensor_sigma_m=noise_m, map_sigma_m=map_sigma,
                       map_correlation=n_corr, footprint_correlation=n_fp)
 
 
@@ -517,11 +561,11 @@ def run_scenario_batch(name_or_path, seeds, device="cpu", progress=None, **overr
     config, truth_terrain, flight = prepare(name_or_path, seeds[0], terrain, **overrides)
     s = config["sensor"]
     total_seeds = [int(config["run"]["seed"]) + seed for seed in seeds]
-    if len(seeds) > 1 and config["terrain"]["map_noise_m"]:
-        raise ValueError(f"{config['id']}: map_noise_m = {config['terrain']['map_noise_m']} gives every seed its own "
-                         "map; run the seeds one by one (without --batch)")
+    if len(seeds) > 1 and config["terrain"]["map_noise_m"] and config["terrain"]["map_seed"] < 0:
+        raise ValueError(f"{config['id']}: map_noise_m = {config['terrain']['map_noise_m']} with map_seed = -1 gives "
+                         "every seed its own map; run the seeds one by one (without --batch), or fix map_seed")
     the_map = map_terrain(truth_terrain, config, total_seeds[0])
-    likelihood = scenario_likelihood(config, the_map)
+    likelihood = scenario_likelihood(config, the_map, truth_terrain)
     model_kwargs = {"use_baro": s["use_baro"], "baro_sigma_m": max(s["baro_sigma_m"], 0.1)} \
         if s["model"] == "altimeter" else {}
     model = make_model(s["model"], the_map, likelihood, backend=s["backend"], **model_kwargs)
@@ -546,5 +590,6 @@ def run_scenario_batch(name_or_path, seeds, device="cpu", progress=None, **overr
     )
     wall = time.perf_counter() - t0
     return [ScenarioResult(scenario=config["id"], seed=seed, device=run.device, terrain=truth_terrain.name,
-                           config=config, run=run, wall_s=wall, truth_terrain=truth_terrain)
+                           config=config, run=run, wall_s=wall, truth_terrain=truth_terrain, map=the_map.name,
+                           map_sigma_m=likelihood.map_sigma_m)
             for seed, run in zip(seeds, runs, strict=True)]

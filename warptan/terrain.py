@@ -15,6 +15,8 @@ import functools
 import math
 import os
 from dataclasses import dataclass, field
+from importlib import resources
+from pathlib import Path
 
 import numpy as np
 import warp as wp
@@ -24,6 +26,38 @@ from warptan.kernels import terrain as kterrain
 from warptan.raster import TerrainError, check_spacing, latlon_to_projected, projected_to_latlon, read_raster
 
 SYNTHETIC_KINDS = ("rugged", "flat")
+NAMED_TERRAINS = {
+    "rugged": "thuringia_hilly_srtm3_crop44km.tif",
+    "rugged30": "san_gabriel_rugged_srtm1_30m_utm11.tif",
+    "flat": "ganges_plain_flat_srtm3_crop24km.tif",
+}
+"""Real terrains shipped with the package (``warptan/data/dem``, provenance in its README.md): ``rugged`` SRTM3
+Thuringia (±22 km, ≈ 93 × 59 m posts), ``rugged30`` SRTM1 San Gabriel Mountains (19 × 36 km, 30 m UTM), ``flat``
+SRTM3 Ganges plain (±12 km)."""
+DEM_DIR_ENV = "WARPTAN_DEM_DIR"
+"""A folder that, when set, replaces the package's copies of the named terrains (same file names, or the
+``.npz`` of :meth:`Terrain.save_npz` for machines without rasterio)."""
+
+
+def named_terrain_file(name: str) -> Path:
+    """The file of a named terrain: ``$WARPTAN_DEM_DIR/FILE`` (``.tif`` or ``.npz``) when that variable is set,
+    else the package's copy.
+
+    Raises:
+        TerrainError: an unknown name, or ``WARPTAN_DEM_DIR`` set to a folder without the file.
+    """
+    if name not in NAMED_TERRAINS:
+        raise TerrainError(f"unknown terrain name {name!r}; use one of {', '.join(NAMED_TERRAINS)}, "
+                           "'synthetic:rugged', 'synthetic:flat' or a DEM file")
+    file = NAMED_TERRAINS[name]
+    folder = os.environ.get(DEM_DIR_ENV)
+    if folder:
+        for candidate in (Path(folder) / file, (Path(folder) / file).with_suffix(".npz")):
+            if candidate.exists():
+                return candidate
+        raise TerrainError(f"{DEM_DIR_ENV}={folder} holds neither {file} nor its .npz (terrain {name!r}); "
+                           f"unset {DEM_DIR_ENV} to use the package's copy")
+    return Path(str(resources.files("warptan") / "data" / "dem" / file))
 
 
 @dataclass(eq=False)
@@ -79,14 +113,22 @@ class Terrain:
 
     # ------------------------------------------------------------------ constructors
     @classmethod
-    def from_raster(cls, path: str | os.PathLike, spacing: float | None = None) -> Terrain:
+    def from_raster(cls, path: str | os.PathLike, spacing: float | None = None, onto: Terrain | None = None) -> Terrain:
         """Load a DEM file (DTED, SRTM .hgt, GeoTIFF; see :mod:`warptan.raster` for the projection).
 
         Args:
             path: The raster file.
             spacing: Post spacing in m for both axes; None keeps the native spacing.
+            onto: Another (georeferenced) terrain whose NED frame this one shares: the raster is resampled into
+                that terrain's CRS and origin (a map of the same ground from another source).
         """
-        grid = read_raster(path, spacing)
+        frame = None
+        if onto is not None:
+            if not onto.crs_wkt:
+                raise TerrainError(f"{path}: cannot be placed onto {onto.name}, which has no geographic reference "
+                                   "(a generated or array terrain)")
+            frame = (onto.crs_wkt, onto.origin_xy)
+        grid = read_raster(path, spacing, frame)
         return cls(
             grid.heights_m, grid.n0, grid.e0, grid.dn, grid.de, crs_wkt=grid.crs_wkt, origin_xy=grid.origin_xy,
             name=os.fspath(path), description=grid.description,
@@ -138,9 +180,16 @@ class Terrain:
 
     @classmethod
     def load(cls, spec: str | os.PathLike, spacing: float | None = None) -> Terrain:
-        """Load from a file (raster or ``.npz`` saved by :meth:`save_npz`) or a ``synthetic:KIND[,key=value...]``
+        """Load from a name of :data:`NAMED_TERRAINS` (``rugged``, ``rugged30``, ``flat``: real DEMs shipped with the
+        package), a file (raster or ``.npz`` saved by :meth:`save_npz`) or a ``synthetic:KIND[,key=value...]``
         spec (keys ``size_m``, ``spacing``, ``seed``), e.g. ``synthetic:rugged,size_m=10000,seed=3``."""
         text = os.fspath(spec)
+        if text in NAMED_TERRAINS:
+            file = named_terrain_file(text)
+            terrain = cls.from_npz(file) if file.suffix == ".npz" else cls.from_raster(file, spacing=spacing)
+            terrain.name = f"{text}:{NAMED_TERRAINS[text]}"
+            terrain.description = f"{terrain.description} (read from {file})"
+            return terrain
         if text.startswith("synthetic:"):
             kind, *pairs = text[len("synthetic:"):].split(",")
             kwargs: dict = {}
@@ -254,6 +303,64 @@ class Terrain:
         h = self.heights_m
         twist = (h[:-1, :-1] - h[1:, :-1] - h[:-1, 1:] + h[1:, 1:])[self.valid_cells]
         return float(np.sqrt(np.mean(twist**2) / 90.0)) if twist.size else 0.0
+
+    def holdout_rms_m(self, k: int, noise_m: float = 0.0) -> float | None:
+        """RMS error (m) of predicting this grid's posts by bilinear interpolation of every ``k``-th post: the map
+        error of this terrain resampled to ``k`` times its spacing, measured on itself. The share of a known white
+        post noise ``noise_m`` (in the held-out post and in the four it is predicted from, ``1 + Σw²`` times its
+        variance) is removed. None when the grid has fewer than 2×2 posts at ``k`` times its spacing."""
+        h = self.heights_m
+        big_r, big_c = (h.shape[0] - 1) // k, (h.shape[1] - 1) // k  # coarse cells
+        if big_r < 1 or big_c < 1:
+            return None
+        coarse = h[: big_r * k + 1: k, : big_c * k + 1: k]
+        block = h[: big_r * k, : big_c * k].reshape(big_r, k, big_c, k)
+        fu = (np.arange(k) / k)[None, :, None, None]
+        fv = (np.arange(k) / k)[None, None, None, :]
+        pred = ((1 - fu) * (1 - fv) * coarse[:-1, None, :-1, None] + fu * (1 - fv) * coarse[1:, None, :-1, None]
+                + (1 - fu) * fv * coarse[:-1, None, 1:, None] + fu * fv * coarse[1:, None, 1:, None])
+        held_out = np.ones((1, k, 1, k), dtype=bool)
+        held_out[0, 0, 0, 0] = False  # the coarse post itself
+        err = np.broadcast_to(np.where(held_out, block - pred, np.nan), pred.shape)
+        sum_w2 = np.broadcast_to(((1 - fu) ** 2 + fu**2) * ((1 - fv) ** 2 + fv**2), pred.shape)
+        ok = np.isfinite(err)
+        if not ok.any():
+            return None
+        mean_sq = float(np.mean(err[ok] ** 2)) - noise_m**2 * float(np.mean(1.0 + sum_w2[ok]))
+        return math.sqrt(max(mean_sq, 0.0))
+
+    def interpolation_sigma_m(self, noise_m: float = 0.0) -> float:
+        """Estimated RMS error (m) of this grid's bilinear heights against the ground it samples, from the grid
+        alone (its post spacing and roughness): ``e(d) = e(2d) / 2^α``, where ``e(kd)`` is
+        :meth:`holdout_rms_m` (the grid predicting its own posts from every k-th one, the known post noise
+        removed) and ``α = log2(e(4d) / e(2d))`` clipped to [0.5, 2] extrapolates the scaling of the error with
+        the spacing one octave down (α = 2: smooth terrain, the error of a bilinear interpolant grows with the
+        curvature × d²; α ≈ 0.5: rough, Brownian-like relief). The held-out posts lie mid-cell, where the error is
+        largest, so the estimate errs high (on a quadratic surface by 20 %). This is the map error a model sees
+        when the world is finer than its map (the likelihood's map σ, :func:`warptan.scenarios.scenario_likelihood`).
+        """
+        e2, e4 = self.holdout_rms_m(2, noise_m), self.holdout_rms_m(4, noise_m)
+        if not e2:
+            return 0.0
+        alpha = 2.0 if not e4 else min(max(math.log2(e4 / e2), 0.5), 2.0)
+        return e2 / 2.0**alpha
+
+    def coarsened(self, factor_n: int, factor_e: int | None = None) -> Terrain:
+        """A coarser map of this terrain: the mean of each block of ``factor_n × factor_e`` posts (a DEM product
+        resampled by averaging), its post at the block's centre; a block with a nodata post is nodata."""
+        fn, fe = int(factor_n), int(factor_n if factor_e is None else factor_e)
+        if fn < 1 or fe < 1:
+            raise TerrainError(f"{self.name}: coarsening factors must be ≥ 1, got {fn}×{fe}")
+        if fn == fe == 1:
+            return self
+        rows, cols = self.shape[0] // fn, self.shape[1] // fe
+        if rows < 2 or cols < 2:
+            raise TerrainError(f"{self.name}: coarsening by {fn}×{fe} leaves fewer than 2×2 posts")
+        h = self.heights_m[: rows * fn, : cols * fe].reshape(rows, fn, cols, fe).mean(axis=(1, 3))
+        return Terrain(h, self.n0 + 0.5 * (fn - 1) * self.dn, self.e0 + 0.5 * (fe - 1) * self.de, self.dn * fn,
+                       self.de * fe, crs_wkt=self.crs_wkt, origin_xy=self.origin_xy,
+                       name=f"{self.name} (block mean {fn}×{fe})",
+                       description=f"{self.description}; block mean of {fn}×{fe} posts")
 
     # ------------------------------------------------------------------ geographic reference
     def _require_crs(self) -> str:
