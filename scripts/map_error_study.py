@@ -187,7 +187,8 @@ def main(argv=None) -> int:
         path.write_text(json.dumps(data, indent=1))
         print(f"[{k + 1}/{len(todo)}] {row['scenario']} posts {row['map_spacing_m']:g} m noise {row['map_noise_m']:g} "
               f"m aware {row['map_aware']}: {result['horizontal_rmse_mean_m']:.2f} ± "
-              f"{result['horizontal_rmse_ci95_m']:.2f} m, coverage {np.round(result['coverage_3sigma_mean'], 3)} ({result['wall_s']:.0f} s)", flush=True)
+              f"{result['horizontal_rmse_ci95_m']:.2f} m, coverage {np.round(result['coverage_3sigma_mean'], 3)} "
+              f"({result['wall_s']:.0f} s)", flush=True)
     path.write_text(json.dumps(data, indent=1))
     write_markdown(data, out)
     files = plot(data, out)
