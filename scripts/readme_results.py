@@ -35,16 +35,18 @@ def _triple(mean, half=None) -> str:
     return " / ".join(f"{m:.2f}±{h:.2f}" for m, h in zip(mean, half, strict=True))
 
 
-def paper_block() -> str:
-    side = _load(Path("results/paper/likelihoods.json"))
+def paper_block(folder: str = "results/paper") -> str:
+    side = _load(Path(f"{folder}/likelihoods.json"))
     kinds = side["likelihoods"]
-    results = {k: _load(Path(f"results/paper/{k}/results.json")) for k in kinds}
+    results = {k: _load(Path(f"{folder}/{k}/results.json")) for k in kinds}
+    terrains = sorted({r["terrain"] for k in kinds for r in results[k]["runs"]})
     default = kinds[0]
     lines = [f"{side['seeds']} seeds per scenario, device `{side['device']}`, 500 particles, 120 s; "
              "converged = after 30 s. RMSE north / east / down in metres, mean ± 95 % interval over seeds; "
              "3σ coverage pooled over "
              "seeds and epochs after convergence; re-spreads = integrity flags (filter declared lost) over all "
-             "seeds. Source: `results/paper/likelihoods.json`, `results/paper/{" + ",".join(kinds) + "}/`.", "",
+             "seeds. Terrain: " + ", ".join(f"`{t}`" for t in terrains) + ". Source: `" + folder
+             + "/likelihoods.json`, `" + folder + "/{" + ",".join(kinds) + "}/`.", "",
              "| id | model | paper's RMSE | "
              + " | ".join(f"{k}: RMSE | {k}: 3σ coverage | {k}: re-spreads" for k in kinds)
              + " |", "|" + "---|" * (3 + 3 * len(kinds))]
@@ -57,8 +59,8 @@ def paper_block() -> str:
             cells += [_triple(e["rmse_converged_mean_m"], e["rmse_converged_ci95_m"]),
                       " / ".join(f"{100 * c:.0f}%" for c in e["coverage_3sigma_mean"]), str(flags)]
         lines.append("| " + " | ".join(cells) + " |")
-    lines += ["", f"The paper's claims with the `{default}` likelihood (`results/paper/{default}/claims.json`):", ""]
-    for c in _load(Path(f"results/paper/{default}/claims.json")):
+    lines += ["", f"The paper's claims with the `{default}` likelihood (`{folder}/{default}/claims.json`):", ""]
+    for c in _load(Path(f"{folder}/{default}/claims.json")):
         verdict = {True: "holds", False: "does not hold", None: "not run"}[c["holds"]]
         lines.append(f"- **{verdict}** — {c['claim']}: {c['evidence']}")
     return "\n".join(lines)
@@ -83,7 +85,40 @@ def step_block() -> str:
             "N is filters × particles. Sources: " + ", ".join(sources) + ".\n\n" + "\n".join(lines))
 
 
-BLOCKS = {"paper": paper_block, "step": step_block}
+def map_error_block() -> str:
+    data = _load(Path("results/map_error/study.json"))
+    meta, rows = data["meta"], data["rows"]
+    lines = [f"World `{meta['terrain']}`; map = the world at coarser posts (block means) + white noise per post; "
+             f"{meta['seeds']} seeds per row, {meta['duration_s']:g} s. Converged horizontal RMSE (m, mean ± 95 % "
+             "interval) and the smaller of the N/E 3σ coverages, with the map-aware σ (left) and with the stated "
+             "noise only (right; on the world's own 30 m grid both are the same). Source: "
+             "`results/map_error/study.json` (full table: `results/map_error/study.md`).", "",
+             "| model | map noise (m) | " + " | ".join(f"{s:g} m posts" for s in meta["spacings"]) + " |",
+             "|---|---|" + "---|" * len(meta["spacings"])]
+
+    def cell(r):
+        cover = 100 * min(r["coverage_3sigma_mean"][:2])
+        return f"{r['horizontal_rmse_mean_m']:.1f}±{r['horizontal_rmse_ci95_m']:.1f} ({cover:.0f}%)"
+
+    for sid in meta["scenarios"]:
+        model = {"S7": "S7 ray casting", "S8": "S8 sliding", "S9": "S9 altimeter"}.get(sid, sid)
+        for noise in meta["noises"]:
+            cells = []
+            for spacing in meta["spacings"]:
+                found = {r["map_aware"]: r for r in rows if r["scenario"] == sid and r["map_spacing_m"] == spacing
+                         and r["map_noise_m"] == noise}
+                if not found:
+                    cells.append("")
+                elif False not in found:
+                    cells.append(cell(found[True]))
+                else:
+                    cells.append(f"{cell(found[True])} · {cell(found[False])}")
+            lines.append(f"| {model} | {noise:g} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+BLOCKS = {"paper": paper_block, "paper30": lambda: paper_block("results/paper30"), "map_error": map_error_block,
+          "step": step_block}
 
 
 def render(text: str) -> str:

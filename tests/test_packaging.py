@@ -30,8 +30,12 @@ def test_fresh_virtualenv_install(tmp_path):
     code = ("import importlib.util, warptan, warptan.kernels, warptan.kernels.terrain; "
             "assert 'site-packages' in warptan.kernels.__file__, warptan.kernels.__file__; "
             "spec = importlib.util.find_spec('kernels'); "
-            "assert spec is None or 'warptan' not in (spec.origin or ''), spec; print(warptan.kernels.__file__)")
-    env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
+            "assert spec is None or 'warptan' not in (spec.origin or ''), spec; "
+            # the scenarios' real terrains come with the package (issue 13): no ../shared, no environment variable
+            "from warptan.scenarios import prepare; cfg, truth, flight = prepare('S8'); "
+            "assert truth.name == 'rugged:thuringia_hilly_srtm3_crop44km.tif', truth.name; "
+            "assert 'site-packages' in truth.description, truth.description; print(warptan.kernels.__file__)")
+    env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "WARPTAN_DEM_DIR")}
     out = subprocess.run([py, "-c", code], check=True, cwd=tmp_path, capture_output=True, text=True, env=env)
     assert "warptan/kernels/__init__.py" in out.stdout
 

@@ -152,3 +152,70 @@ def test_likelihood_sigma_auto_or_number():
     lik = scenario_likelihood(config, flat)
     assert lik.sigma_m is None and lik.map_correlation == pytest.approx(3.0)  # 30 m posts / (100 m/s / 10 Hz)
     assert lik.sensor_sigma_m == config["sensor"]["range_sigma_m"]
+
+
+# ---------------------------------------------------------------------- world ≠ map (issue 13)
+def test_scenarios_fly_the_package_terrains(monkeypatch):
+    """Without ../shared or WARPTAN_DEM_DIR the scenarios fly the real tiles shipped with the package; the
+    30 m tile is one switch away for S1–S9."""
+    monkeypatch.delenv("WARPTAN_DEM_DIR", raising=False)
+    monkeypatch.chdir("/")
+    assert prepare("S8")[1].name == "rugged:thuringia_hilly_srtm3_crop44km.tif"
+    assert prepare("S11")[1].name == "flat:ganges_plain_flat_srtm3_crop24km.tif"
+    for sid in ("S1", "S5", "S8"):
+        assert prepare(sid, terrain="rugged30")[1].name.startswith("rugged30:")
+
+
+def test_map_errors_from_the_scenario_file():
+    """map_spacing_m (block means), map_noise_m (map_seed), map_bias_m build the filter's map from the world in
+    that order; the map-aware σ counts the map's interpolation error only when its grid is not the world's."""
+    from warptan.scenarios import map_terrain, scenario_likelihood
+
+    config, world, _ = prepare("S8", terrain="rugged30", map_spacing_m=90.0, map_bias_m=2.5, map_noise_m=1.0,
+                               map_seed=4)
+    the_map = map_terrain(world, config, seed=0)
+    assert the_map.dn == the_map.de == 90.0 and the_map is not world
+    expected = world.coarsened(3).heights_m + 2.5
+    resid = the_map.heights_m - expected
+    assert abs(resid.mean()) < 0.05 and resid.std() == pytest.approx(1.0, rel=0.05)
+    np.testing.assert_array_equal(map_terrain(world, config, seed=99).heights_m, the_map.heights_m)  # map_seed
+    aware = scenario_likelihood(config, the_map, world)
+    assert aware.map_sigma_m == pytest.approx(np.hypot(1.0, the_map.interpolation_sigma_m(1.0)))
+    assert aware.map_sigma_m > 4.0  # the 90 m map of the 30 m tile: ≈ 5 m
+    config["likelihood"]["map_aware"] = False
+    assert scenario_likelihood(config, the_map, world).map_sigma_m == 1.0
+    same_grid, world2, _ = prepare("S8", terrain="rugged30", map_noise_m=1.0)
+    assert scenario_likelihood(same_grid, map_terrain(world2, same_grid, 0), world2).map_sigma_m == 1.0
+    plain, world3, _ = prepare("S8", terrain="rugged30")
+    assert map_terrain(world3, plain, 0) is world3
+
+
+def test_map_file_and_bad_map_settings(tmp_path):
+    """map_path reads another DEM onto the world's frame; a bad map file or setting is a clear error before any
+    run; per-seed map noise cannot be batched unless map_seed fixes one realisation."""
+    from warptan.scenarios import map_terrain, run_scenario_batch
+    from warptan.terrain import named_terrain_file
+
+    config, world, _ = prepare("S8", terrain="rugged30", map_path=str(named_terrain_file("rugged30")))
+    the_map = map_terrain(world, config, 0)
+    assert the_map.origin_xy == world.origin_xy and the_map is not world
+    bad = tmp_path / "not_a_dem.tif"
+    bad.write_text("hello")
+    config["terrain"]["map_path"] = str(bad)
+    with pytest.raises(ScenarioError, match=r"not_a_dem\.tif"):
+        map_terrain(world, config, 0)
+    with pytest.raises(ScenarioError, match="map_seed"):
+        load_config("S8", map_seed=-2)
+    with pytest.raises(ValueError, match="map_seed"):
+        run_scenario_batch("S8", [0, 1], terrain="rugged30", map_noise_m=1.0, duration_s=2.0)
+    config2, world2, _ = prepare("S8", terrain="rugged30", map_spacing_m=1e6)
+    with pytest.raises(ScenarioError, match="map_spacing_m"):
+        map_terrain(world2, config2, 0)
+
+
+def test_world_not_map_run_reports_the_map():
+    """A short S8 over the 30 m world with a 90 m map runs, names both, and records the map σ it used."""
+    r = run_scenario("S8", terrain="rugged30", map_spacing_m=90.0, duration_s=3.0, particles=64)
+    s = r.summary()
+    assert s["terrain"].startswith("rugged30:") and "block mean 3×3" in s["map"] and s["map_sigma_m"] > 4.0
+    assert np.isfinite(r.run.est_pos).all()

@@ -361,3 +361,103 @@ def test_trimesh_export(tmp_path):
     assert (enu.face_normals[:, 2] > 0).all()  # faces point up
     with pytest.raises(ValueError, match="unsupported mesh format"):
         t.export(tmp_path / "t.xyz")
+
+
+# ---------------------------------------------------------------------- package terrains, maps (issue 13)
+@pytest.mark.parametrize("name, rows, cols, h_range", [
+    ("rugged", (470, 490), (740, 760), (200.0, 990.0)),
+    ("flat", (255, 270), (290, 305), (170.0, 225.0)),
+    ("rugged30", (643, 643), (1197, 1197), (310.0, 2300.0)),
+])
+def test_named_terrains_ship_with_the_package(monkeypatch, name, rows, cols, h_range):
+    """rugged / flat / rugged30 load from the package (no ../shared, no environment variable), keep their
+    georeference and name themselves the same on every machine."""
+    from warptan.terrain import NAMED_TERRAINS, named_terrain_file
+
+    monkeypatch.delenv("WARPTAN_DEM_DIR", raising=False)
+    path = named_terrain_file(name)
+    assert path.exists() and path.parent.name == "dem" and path.parent.parent.name == "data"
+    t = Terrain.load(name)
+    assert t.name == f"{name}:{NAMED_TERRAINS[name]}"
+    assert rows[0] <= t.shape[0] <= rows[1] and cols[0] <= t.shape[1] <= cols[1]
+    assert h_range[0] <= t.h_min and t.h_max <= h_range[1] and t.nodata_fraction < 0.01  # reprojected edges
+    assert t.crs_wkt
+
+
+def test_package_crops_are_the_source_posts():
+    """The package's Thuringia crop holds exactly the source tile's posts in its window (no resampling)."""
+    import rasterio
+
+    from warptan.terrain import named_terrain_file
+
+    with rasterio.open(dem_path(THURINGIA)) as src, rasterio.open(named_terrain_file("rugged")) as crop:
+        r0, c0 = (src.height - crop.height) // 2, (src.width - crop.width) // 2
+        window = src.read(1, window=rasterio.windows.Window(c0, r0, crop.width, crop.height))
+        np.testing.assert_array_equal(crop.read(1), window)
+        assert crop.transform.almost_equals(src.window_transform(rasterio.windows.Window(c0, r0, 1, 1)))
+
+
+def test_dem_dir_override_and_missing_file(monkeypatch, tmp_path):
+    """WARPTAN_DEM_DIR replaces the package copies (an .npz is enough); a folder without the file is a clear
+    error, never a silent fallback to a generated terrain."""
+    from warptan.terrain import NAMED_TERRAINS
+
+    monkeypatch.setenv("WARPTAN_DEM_DIR", str(tmp_path))
+    with pytest.raises(TerrainError, match="holds neither"):
+        Terrain.load("flat")
+    Terrain.synthetic("flat", size_m=3000.0, spacing=100.0).save_npz(
+        tmp_path / NAMED_TERRAINS["flat"].replace(".tif", ".npz"))
+    t = Terrain.load("flat")
+    assert t.name == f"flat:{NAMED_TERRAINS['flat']}" and t.shape == (31, 31)
+    with pytest.raises(TerrainError, match="unknown terrain name"):
+        from warptan.terrain import named_terrain_file
+        named_terrain_file("bumpy")
+
+
+def test_coarsened_is_block_means_at_block_centres():
+    h = np.arange(6 * 9, dtype=float).reshape(6, 9)
+    t = Terrain.from_grid(h, 10.0, origin=(100.0, -50.0))
+    c = t.coarsened(3)
+    assert c.shape == (2, 3) and c.dn == c.de == 30.0
+    assert c.heights_m[0, 0] == pytest.approx(h[:3, :3].mean()) and c.heights_m[1, 2] == pytest.approx(h[3:, 6:].mean())
+    assert (c.n0, c.e0) == (110.0, -40.0)
+    assert t.coarsened(1) is t
+
+
+def test_interpolation_sigma_against_the_truth():
+    """The map's interpolation error estimated from the map alone: a plane has none; on a quadratic surface it
+    errs high by ≤ 25 % (analytic RMS c d² / √30 over a cell); on the 30 m tile, coarsened 2/3/6×, it is within
+    30 % of the error measured against the 30 m triangles; known white post noise is removed from it."""
+    x = np.arange(201) * 10.0
+    plane = Terrain.from_grid(np.add.outer(0.3 * x, 0.1 * x), 10.0)
+    assert plane.interpolation_sigma_m() == pytest.approx(0.0, abs=1e-9)
+    c = 1e-3
+    quad = Terrain.from_grid(np.tile(c * x[:, None] ** 2, (1, 201)), 10.0)
+    truth = c * 10.0**2 / np.sqrt(30.0)
+    assert truth <= quad.interpolation_sigma_m() <= 1.25 * truth
+    world = Terrain.load("rugged30")
+    rng = np.random.default_rng(0)
+    n_min, n_max, e_min, e_max = world.bounds_ne
+    north, east = rng.uniform(n_min + 600, n_max - 600, 50_000), rng.uniform(e_min + 600, e_max - 600, 50_000)
+    for factor in (2, 3, 6):
+        the_map = world.coarsened(factor)
+        measured = np.sqrt(np.nanmean((the_map.height_at(north, east) - world.surface_height_at(north, east)) ** 2))
+        assert 0.7 * measured <= the_map.interpolation_sigma_m() <= 1.3 * measured, factor
+        noisy = Terrain(the_map.heights_m + rng.normal(0.0, 3.0, the_map.shape), the_map.n0, the_map.e0,
+                        the_map.dn, the_map.de)
+        assert noisy.interpolation_sigma_m(3.0) == pytest.approx(the_map.interpolation_sigma_m(), rel=0.1)
+
+
+def test_raster_onto_another_terrains_frame(tmp_path):
+    """A DEM read onto another terrain's frame lands where that terrain has the same ground: the same file
+    read onto itself gives the same heights at the same NED positions."""
+    world = Terrain.load("rugged30")
+    from warptan.terrain import named_terrain_file
+
+    again = Terrain.from_raster(named_terrain_file("rugged30"), onto=world)
+    assert again.origin_xy == world.origin_xy and again.dn == pytest.approx(30.0)
+    rng = np.random.default_rng(2)
+    n, e = rng.uniform(-8000, 8000, 2000), rng.uniform(-16000, 16000, 2000)
+    np.testing.assert_allclose(again.height_at(n, e), world.height_at(n, e), atol=0.01)
+    with pytest.raises(TerrainError, match="no geographic reference"):
+        Terrain.from_raster(named_terrain_file("rugged30"), onto=Terrain.synthetic("flat", size_m=2000.0))
