@@ -74,7 +74,8 @@ def write_markdown(data: dict, out: Path) -> None:
              "horizontal RMSE = hypot(north, east) RMSE after convergence per seed, mean ± 95 % interval; 3σ "
              "coverage pooled over seeds and epochs after convergence. σ_map: the likelihood's map σ (stated noise, "
              "⊕ the map's interpolation error when map-aware).", "",
-             f"Command: `{meta['command']}`", ""]
+             "Commands (in order; later ones resumed): " + "; ".join(f"`{c}`" for c in meta.get(
+                 "commands", [meta.get("command", "")])), ""]
     for sid in meta["scenarios"]:
         lines += [f"## {sid} ({MODELS.get(sid, '')})", "",
                   "| map posts (m) | map noise (m) | map-aware σ | σ_map (m) | horizontal RMSE (m) "
@@ -173,11 +174,12 @@ def main(argv=None) -> int:
     data = {"rows": []}
     if (args.resume or args.report_only) and path.exists():
         data = json.loads(path.read_text())
+    commands = data.get("meta", {}).get("commands", [])
     data["meta"] = {"terrain": world.name, "world_spacing_m": args.world_spacing, "seeds": args.seeds,
                     "duration_s": args.duration_s, "device": args.device, "scenarios": args.scenarios,
                     "spacings": args.spacings, "noises": args.noises,
-                    "command": "python scripts/map_error_study.py "
-                    + " ".join(argv if argv is not None else sys.argv[1:])}
+                    "commands": [*commands, "python scripts/map_error_study.py "
+                                 + " ".join(argv if argv is not None else sys.argv[1:])]}
     done = {row_key(r) for r in data["rows"]}
     todo = [] if args.report_only else [r for r in plan(args) if row_key(r) not in done]
     for k, row in enumerate(todo):
