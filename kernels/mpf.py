@@ -30,6 +30,10 @@ N_CHUNK_SUMS = wp.constant(18)
 N_SUMMARY_SUMS = wp.constant(34)
 """Values per chunk of the record's reduction: Σw, Σw dp (3), Σw dp∘dp (3), Σw (xy, xz, yz), Σw l (12),
 Σw l∘l (12)."""
+chunk_vec = wp.types.vector(length=18, dtype=wp.float64)
+summary_vec = wp.types.vector(length=34, dtype=wp.float64)
+"""The chunk sums of one filter, reduced by a block (lanes over the chunks; one thread in order on the CPU). One
+thread per filter reading the 64 chunks took 34 µs per reduction on an H100 (latency of 1 152 serial loads)."""
 N_MOMENT_CHUNKS = wp.constant(16)
 """Partial sums per filter of the moments of the estimate."""
 N_MOMENTS = wp.constant(1 + 3 + 9 + 12 + 144)
@@ -255,43 +259,45 @@ def temper_partials_kernel(
     partial_out: wp.array4d(dtype=wp.float64),
     unpred_out: wp.array2d(dtype=wp.float64),
 ):
-    """Filter b, chunk c, for each candidate exponent ``γ_k``: streaming log-sum-exp partials ``[max, Σe, Σe²]`` of
-    ``logw_i + γ_k loglik_i`` (rescaled to the running maximum), and at stage 0 the weighted fraction of the
-    received points the particles cannot predict."""
-    b, c = wp.tid()
+    """Filter b, chunk c, candidate exponent ``γ_g``: streaming log-sum-exp partials ``[max, Σe, Σe²]`` of
+    ``logw_i + γ_g loglik_i`` (rescaled to the running maximum), and at stage 0 (``g == 0``) the weighted fraction of
+    the received points the particles cannot predict. One thread per (filter, chunk, candidate): one per (filter,
+    chunk) looping over the 20 candidates took 55 µs per stage on an H100 at N = 500 (64 threads per filter)."""
+    b, c, g = wp.tid()
     rem = stats[b, ST_REMAIN]
     if stage > 0 and rem <= wp.float64(0.0):
         return
     lo, hi = chunk_range(c, n_per)
     floor = meta[b, 1]
-    n_recv = wp.float64(meta[b, 0])
-    unpred = wp.float64(0.0)
-    if stage == 0 and n_recv > wp.float64(0.0):
-        for k in range(lo, hi):
-            i = b * n_per + k
-            unpred += wp.float64(wp.exp(logw[i])) * (wp.float64(1.0) - wp.float64(n_valid[i]) / n_recv)
-    unpred_out[b, c] = unpred
+    if g == 0:
+        n_recv = wp.float64(meta[b, 0])
+        unpred = wp.float64(0.0)
+        if stage == 0 and n_recv > wp.float64(0.0):
+            for k in range(lo, hi):
+                i = b * n_per + k
+                unpred += wp.float64(wp.exp(logw[i])) * (wp.float64(1.0) - wp.float64(n_valid[i]) / n_recv)
+        unpred_out[b, c] = unpred
     gamma = rem
-    for g in range(N_TEMPER):
-        m = wp.float64(-1.0e300)
-        s1 = wp.float64(0.0)
-        s2 = wp.float64(0.0)
-        for k in range(lo, hi):
-            i = b * n_per + k
-            x = wp.float64(logw[i]) + gamma * wp.float64(stage_loglik(loglik[i], floor))
-            if x > m:
-                scale = wp.exp(m - x)
-                s1 = s1 * scale + wp.float64(1.0)
-                s2 = s2 * scale * scale + wp.float64(1.0)
-                m = x
-            else:
-                e = wp.exp(x - m)
-                s1 += e
-                s2 += e * e
-        partial_out[b, c, g, 0] = m
-        partial_out[b, c, g, 1] = s1
-        partial_out[b, c, g, 2] = s2
+    for _ in range(g):
         gamma = gamma * wp.float64(TEMPER_RATIO)
+    m = wp.float64(-1.0e300)
+    s1 = wp.float64(0.0)
+    s2 = wp.float64(0.0)
+    for k in range(lo, hi):
+        i = b * n_per + k
+        x = wp.float64(logw[i]) + gamma * wp.float64(stage_loglik(loglik[i], floor))
+        if x > m:
+            scale = wp.exp(m - x)
+            s1 = s1 * scale + wp.float64(1.0)
+            s2 = s2 * scale * scale + wp.float64(1.0)
+            m = x
+        else:
+            e = wp.exp(x - m)
+            s1 += e
+            s2 += e * e
+    partial_out[b, c, g, 0] = m
+    partial_out[b, c, g, 1] = s1
+    partial_out[b, c, g, 2] = s2
 
 
 @wp.kernel
@@ -527,16 +533,20 @@ def weight_stats_kernel(
     sums_in: wp.array3d(dtype=wp.float64),
     stats: wp.array2d(dtype=wp.float64),
 ):
-    """One thread per active filter: ESS = (Σw)²/Σw², log-normaliser, weighted mean and Cholesky factor of the
-    covariance of dp (the regularisation kernel's shape), posterior NIS, weighted mean Λ̄, and the decision to
-    resample: when ESS < threshold · n, or when exponent remains (between tempering stages)."""
-    b = wp.tid()
+    """One block per active filter (``wp.launch_tiled``, lanes over the chunks): ESS = (Σw)²/Σw², log-normaliser,
+    weighted mean and Cholesky factor of the covariance of dp (the regularisation kernel's shape), posterior NIS,
+    weighted mean Λ̄, and the decision to resample: when ESS < threshold · n, or when exponent remains (between
+    tempering stages)."""
+    b, lane = wp.tid()
     if stats[b, ST_ACTIVE] == wp.float64(0.0):
         return
-    tot = wp.vector(length=18, dtype=wp.float64)
-    for k in range(N_CHUNKS):
+    part = chunk_vec()
+    for k in range(lane, N_CHUNKS, wp.block_dim()):
         for a in range(18):
-            tot[a] += sums_in[b, k, a]
+            part[a] += sums_in[b, k, a]
+    tot = wp.tile_sum(wp.tile(part, preserve_type=True))[0]
+    if lane != 0:
+        return
     s1 = tot[0]
     ess = s1 * s1 / tot[1]
     stats[b, ST_ESS] = ess
@@ -843,13 +853,17 @@ def summary_partials_kernel(n_per: int, logw: wp.array(dtype=wp.float32), dp: wp
 def summary_kernel(params: UpdateParams, partial_in: wp.array3d(dtype=wp.float64), stats: wp.array2d(dtype=wp.float64),
                    integrity: wp.array2d(dtype=wp.float64), slot: wp.array(dtype=wp.int32),
                    history: wp.array3d(dtype=wp.float64), feedback: wp.array2d(dtype=wp.float64)):
-    """One thread per filter: the update's record in ``history[slot[0], b]`` (``H_*`` columns) and what the
-    host reads back in ``feedback[b]`` (``FB_*`` columns)."""
-    b = wp.tid()
-    tot = wp.vector(length=34, dtype=wp.float64)
-    for c in range(N_CHUNKS):
+    """One block per filter (``wp.launch_tiled``, lanes over the chunks): the update's record in
+    ``history[slot[0], b]`` (``H_*`` columns) and ``feedback[b]`` (``FB_*`` columns: what the covariance update and
+    the closed loop read)."""
+    b, lane = wp.tid()
+    part = summary_vec()
+    for c in range(lane, N_CHUNKS, wp.block_dim()):
         for a in range(34):
-            tot[a] += partial_in[b, c, a]
+            part[a] += partial_in[b, c, a]
+    tot = wp.tile_sum(wp.tile(part, preserve_type=True))[0]
+    if lane != 0:
+        return
     s = tot[0]
     applied = stats[b, ST_APPLIED]
     if stats[b, ST_SKIP] != wp.float64(0.0):
@@ -893,21 +907,141 @@ def summary_kernel(params: UpdateParams, partial_in: wp.array3d(dtype=wp.float64
         history[t, b, H_VAR_L + a] = wp.max(tot[22 + a] / s - mean * mean, wp.float64(0.0))
 
 
+@wp.func
+def sym6_d(f: wp.array2d(dtype=wp.float64), b: int, col: int) -> wp.mat33d:
+    """A symmetric 3×3 matrix from six columns (00 11 22 01 02 12) of row b."""
+    return wp.mat33d(f[b, col], f[b, col + 3], f[b, col + 4],
+                     f[b, col + 3], f[b, col + 1], f[b, col + 5],
+                     f[b, col + 4], f[b, col + 5], f[b, col + 2])
+
+
+@wp.func
+def quat_mul_exp_d(q: wp.vec4d, th: wp.vec3d) -> wp.vec4d:
+    """``q ⊗ Exp(θ)`` normalised (float64, [w, x, y, z])."""
+    angle = wp.length(th)
+    half = wp.float64(0.5)
+    ew = wp.cos(half * angle)
+    sc = half
+    if angle < wp.float64(1.0e-8):
+        ew = wp.float64(1.0) - angle * angle / wp.float64(8.0)
+        sc = half - angle * angle / wp.float64(48.0)
+    else:
+        sc = wp.sin(half * angle) / angle
+    ex = sc * th
+    nq = wp.vec4d(q[0] * ew - q[1] * ex[0] - q[2] * ex[1] - q[3] * ex[2],
+                  q[0] * ex[0] + q[1] * ew + q[2] * ex[2] - q[3] * ex[1],
+                  q[0] * ex[1] - q[1] * ex[2] + q[2] * ew + q[3] * ex[0],
+                  q[0] * ex[2] + q[1] * ex[1] - q[2] * ex[0] + q[3] * ew)
+    return nq / wp.length(nq)
+
+
+@wp.func
+def pick4(k: int, m0: wp.mat33d, m1: wp.mat33d, m2: wp.mat33d, m3: wp.mat33d) -> wp.mat33d:
+    """The k-th of four blocks held in locals."""
+    if k == 1:
+        return m1
+    if k == 2:
+        return m2
+    if k == 3:
+        return m3
+    return m0
+
+
+@wp.kernel
+def covariance_update_kernel(
+    measurement_update: int,
+    closed_loop: int,
+    feedback: wp.array2d(dtype=wp.float64),
+    slot: wp.array(dtype=wp.int32),
+    cov: wp.array3d(dtype=wp.mat33d),
+    pos: wp.array(dtype=wp.vec3d),
+    vel: wp.array(dtype=wp.vec3d),
+    quat: wp.array(dtype=wp.vec4d),
+    accel_bias: wp.array(dtype=wp.vec3d),
+    gyro_bias: wp.array(dtype=wp.vec3d),
+    injections: wp.array(dtype=wp.int32),
+    nominal_hist: wp.array3d(dtype=wp.float64),
+    p_hist: wp.array3d(dtype=wp.float64),
+):
+    """One thread per filter, after the update's record (float64, on the filter's device):
+
+    1. the nominal INS at this update into ``nominal_hist[slot, b]`` (p, v, q, b_a, b_g: before any injection);
+    2. the Kalman measurement update of the shared P (``measurement_update``): ``P⁺ = P - P_:θ Λ̄ (I + A Λ̄)⁻¹ P_θ:``
+       (A = P_θθ, Λ̄ = ``feedback`` FB_LAM, the weighted mean attitude information times the exponent applied);
+       its diagonal into ``p_hist[slot, b]``;
+    3. closed loop (``closed_loop``, filters the integrity monitor judges consistent, FB_CONVERGED): nominal ⊕ the
+       mean error (position, velocity, attitude ``q ⊗ Exp(θ̂)``, biases), ``P <- G P Gᵀ``,
+       ``G = diag(I, I - [θ̂/2]×, I, I)`` (Solà 2017 §6.3), ``injections[b] += 1``; :func:`reset_kernel` then
+       re-expresses the particles."""
+    b = wp.tid()
+    t = slot[0]
+    record = t < nominal_hist.shape[0]
+    if record:
+        for a in range(3):
+            nominal_hist[t, b, a] = pos[b][a]
+            nominal_hist[t, b, 3 + a] = vel[b][a]
+            nominal_hist[t, b, 10 + a] = accel_bias[b][a]
+            nominal_hist[t, b, 13 + a] = gyro_bias[b][a]
+        for a in range(4):
+            nominal_hist[t, b, 6 + a] = quat[b][a]
+    if measurement_update != 0:
+        lam = sym6_d(feedback, b, FB_LAM)
+        gain = lam * wp.inverse(wp.identity(n=3, dtype=wp.float64) + cov[b, 1, 1] * lam)
+        c0 = cov[b, 0, 1]
+        c1 = cov[b, 1, 1]
+        c2 = cov[b, 2, 1]
+        c3 = cov[b, 3, 1]
+        for r in range(4):
+            lg = pick4(r, c0, c1, c2, c3) * gain
+            for c in range(4):
+                cov[b, r, c] = cov[b, r, c] - lg * wp.transpose(pick4(c, c0, c1, c2, c3))
+        half = wp.float64(0.5)
+        for r in range(4):
+            for c in range(r, 4):
+                m = half * (cov[b, r, c] + wp.transpose(cov[b, c, r]))
+                cov[b, r, c] = m
+                cov[b, c, r] = wp.transpose(m)
+    if record:
+        for r in range(4):
+            blk = cov[b, r, r]
+            for a in range(3):
+                p_hist[t, b, 3 * r + a] = blk[a, a]
+    if closed_loop == 0 or feedback[b, FB_CONVERGED] == wp.float64(0.0):
+        return
+    l_hat = wp.vector(length=12, dtype=wp.float64)
+    for a in range(12):
+        l_hat[a] = feedback[b, FB_MEAN_L + a]
+    th = wp.vec3d(l_hat[3], l_hat[4], l_hat[5])
+    pos[b] = pos[b] + wp.vec3d(feedback[b, FB_MEAN_DP], feedback[b, FB_MEAN_DP + 1], feedback[b, FB_MEAN_DP + 2])
+    vel[b] = vel[b] + wp.vec3d(l_hat[0], l_hat[1], l_hat[2])
+    quat[b] = quat_mul_exp_d(quat[b], th)
+    accel_bias[b] = accel_bias[b] + wp.vec3d(l_hat[6], l_hat[7], l_hat[8])
+    gyro_bias[b] = gyro_bias[b] + wp.vec3d(l_hat[9], l_hat[10], l_hat[11])
+    z = wp.float64(0.0)
+    g = wp.identity(n=3, dtype=wp.float64) - wp.float64(0.5) * wp.mat33d(z, -th[2], th[1], th[2], z, -th[0],
+                                                                            -th[1], th[0], z)
+    for c in range(4):
+        cov[b, 1, c] = g * cov[b, 1, c]
+    for r in range(4):
+        cov[b, r, 1] = cov[b, r, 1] * wp.transpose(g)
+    injections[b] = injections[b] + 1
+
+
 @wp.kernel
 def reset_kernel(
     n_per: int,
     feedback: wp.array2d(dtype=wp.float64),
-    inject: wp.array(dtype=wp.int32),
     dp: wp.array(dtype=wp.vec3),
     lin: wp.array(dtype=vec12),
 ):
-    """Closed loop: the host injected the filter's mean error ``[d̂p, d̂v, θ̂, d̂ba, d̂bg]`` (``feedback``) into
-    its nominal INS; every particle's error is taken relative to the new nominal, so that each particle's
-    total state is unchanged: additive parts minus the mean, the attitude ``dθ_i <- Log(Exp(θ̂)⁻¹ Exp(dθ_i))``
-    (right perturbations, SPEC §3). Filters with ``inject[b] == 0`` are left alone."""
+    """Closed loop: :func:`covariance_update_kernel` injected the filter's mean error ``[d̂p, d̂v, θ̂, d̂ba, d̂bg]``
+    (``feedback``) into its nominal INS; every particle's error is taken relative to the new nominal, so that each
+    particle's total state is unchanged: additive parts minus the mean, the attitude
+    ``dθ_i <- Log(Exp(θ̂)⁻¹ Exp(dθ_i))`` (right perturbations, SPEC §3). Filters not injected (FB_CONVERGED = 0)
+    are left alone."""
     i = wp.tid()
     b = i // n_per
-    if inject[b] == 0:
+    if feedback[b, FB_CONVERGED] == wp.float64(0.0):
         return
     m = vec12()
     for a in range(12):

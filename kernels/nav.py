@@ -93,13 +93,12 @@ def block_of(k: int, m0: wp.mat33d, m1: wp.mat33d, m2: wp.mat33d, m3: wp.mat33d,
 @wp.kernel
 def nav_interval_kernel(
     row0: int,
-    n_steps: int,
+    counts: wp.array2d(dtype=wp.int32),
     dt: wp.float64,
     q_pos: wp.float64,
     q_rough: wp.float64,
     q_lin: wp.vec4d,
-    f_b: wp.array2d(dtype=wp.vec3d),
-    w_b: wp.array2d(dtype=wp.vec3d),
+    imu: wp.array3d(dtype=wp.vec3d),
     pos: wp.array(dtype=wp.vec3d),
     vel: wp.array(dtype=wp.vec3d),
     quat: wp.array(dtype=wp.vec4d),
@@ -112,10 +111,13 @@ def nav_interval_kernel(
     phi_out: wp.array3d(dtype=wp.mat33),
     chol_out: wp.array3d(dtype=wp.mat33),
     pose_out: wp.array2d(dtype=wp.float64),
+    att_cov_out: wp.array(dtype=wp.mat33),
+    p_col_out: wp.array2d(dtype=wp.mat33),
 ):
-    """Thread b: K = ``n_steps`` IMU samples ``f_b[b, k], w_b[b, k]`` of filter ``b = row0 + t``: advances its nominal
-    state and ``cov`` (P, 4×4 blocks) in place; writes Φ and the lower Cholesky factor of S (5×5 blocks,
-    float32) and the nominal pose ``[p (3), q (4)]`` at the end of the interval.
+    """Thread b: K = ``counts[b, 0]`` IMU samples (specific force ``imu[b, k, 0]``, body rate ``imu[b, k, 1]``) of
+    filter ``b = row0 + t``: advances its nominal state and ``cov`` (P, 4×4 blocks) in place; writes Φ and the lower
+    Cholesky factor of S (5×5 blocks, float32), the nominal pose ``[p (3), q (4)]`` at the end of the interval, and
+    what the update's kernels read of P: ``P_θθ`` (``att_cov_out``) and the column blocks ``P_:θ`` (``p_col_out``).
     ``q_lin`` = diagonal of Q^l per block (dv, dth, dba, dbg); ``q_pos`` = diagonal of Q^n (the position noise
     the Kalman part models, in N_k and L_k); ``q_rough`` = per-step variance of the roughening, added to the
     particles' dp only (``S_dpdp += K q_rough I``: T_k leaves a dp-only noise on dp), so that L_k never reads it
@@ -135,9 +137,10 @@ def nav_interval_kernel(
     q = quat[b]
     ba = accel_bias[b]
     bg = gyro_bias[b]
+    n_steps = counts[b, 0]
     for k in range(n_steps):
-        f = f_b[b, k]
-        w = w_b[b, k]
+        f = imu[b, k, 0]
+        w = imu[b, k, 1]
         rot = rot_d(q)
         acc = f - ba
         wdt = (w - bg) * dt
@@ -275,3 +278,6 @@ def nav_interval_kernel(
         pose_out[b, i] = p[i]
     for i in range(4):
         pose_out[b, 3 + i] = q[i]
+    att_cov_out[b] = wp.mat33(cov[b, 1, 1])
+    for r in range(4):
+        p_col_out[b, r] = wp.mat33(cov[b, r, 1])

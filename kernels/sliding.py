@@ -6,15 +6,26 @@ point is ``c^_ij = R_i^T (w^_ij - p_i)`` and the residual is ``c_j,z - c^_ij,z``
 predicted range is ``a^_i = h_baro - h(p_i,x, p_i,y)`` and the residual ``a - a^_i`` (m).
 A point or particle off the map, on nodata, or with a NaN input gives a NaN residual (excluded later).
 
-The sliding kernel is fused: one thread per particle rotates once, loops over the M points and reduces them
-into the log-likelihood (:mod:`warptan.kernels.likelihood`) as it goes; the (N, M) residuals are stored too.
+The sliding kernel is fused: on CUDA one block per particle (``wp.launch_tiled``), each lane reads the map under
+every ``BLOCK_DIM``-th point and sums it into the log-likelihood, the lanes' sums reduced once; on the CPU one
+thread per particle loops over the points (:mod:`warptan.kernels.likelihood`). The (N, M) residuals are stored
+too.
 Particle i belongs to filter ``b = i // n_per`` of a batch and reads that filter's measurement.
 """
 
 import warp as wp
 
 from warptan.kernels.frames import quat_to_mat_wxyz
-from warptan.kernels.likelihood import LikParams, acc_add, acc_finish, acc_init, cloud_row
+from warptan.kernels.likelihood import (
+    LikParams,
+    acc_add,
+    acc_block_sum,
+    acc_finish,
+    acc_init,
+    acc_store,
+    cloud_row,
+    per_particle_kernels,
+)
 from warptan.kernels.terrain import HeightGrid, grid_gradient, grid_height
 
 wp.set_module_options({"enable_backward": False})
@@ -29,55 +40,65 @@ def sliding_jacobian(mat: wp.mat33, c: wp.vec3, c_hat: wp.vec3, grad: wp.vec2) -
     return wp.cross(wp.vec3(0.0, 0.0, 1.0), c_hat) - wp.cross(wp.transpose(mat) * u, c)
 
 
-@wp.kernel
-def sliding_loglik_kernel(
-    row0: int,
-    n_per: int,
-    grid: HeightGrid,
-    surface: int,
-    pos_n: wp.array(dtype=wp.vec3),
-    quat_nb: wp.array(dtype=wp.vec4),
-    cloud: wp.array2d(dtype=cloud_row),
-    att_cov: wp.array(dtype=wp.mat33),
-    params: LikParams,
-    residual_out: wp.array2d(dtype=wp.float32),
-    err_out: wp.array(dtype=wp.float32),
-    loglik_out: wp.array(dtype=wp.float32),
-    nis_out: wp.array(dtype=wp.float32),
-    n_valid_out: wp.array(dtype=wp.int32),
-    lam_out: wp.array(dtype=wp.mat33),
-    info_out: wp.array(dtype=wp.vec3),
-):
-    """One thread per particle: residuals ``c_j,z - c^_ij,z`` (m) of the received points, error, log-likelihood
-    (marginalised over the filter's attitude covariance ``att_cov[b]`` for the per-point forms), NIS, and the
-    attitude information Λ, b of the residuals (:mod:`warptan.kernels.likelihood`)."""
-    t = wp.tid()
-    b = (row0 + t) // n_per
-    mat = quat_to_mat_wxyz(quat_nb[t])
-    p = pos_n[t]
-    ones = wp.vec3(1.0, 1.0, 1.0)
-    acc = acc_init()
-    for j in range(cloud.shape[1]):
-        row = cloud[b, j]
-        res = float(wp.nan)
-        if row[7] != 0.0:
-            acc.n_recv = acc.n_recv + 1
-            c = wp.vec3(row[0], row[1], row[2])
-            w = p + mat * c
-            h = grid_height(grid, surface, w[0], w[1])
-            c_hat = wp.transpose(mat) * (wp.vec3(w[0], w[1], -h) - p)
-            res = c[2] - c_hat[2]
-            if not wp.isnan(res):
-                jac = sliding_jacobian(mat, c, c_hat, grid_gradient(grid, surface, w[0], w[1]))
-                acc = acc_add(acc, params, res, ones, jac)
-        residual_out[t, j] = res
-    err, ll, nis = acc_finish(acc, params, att_cov[b])
-    err_out[t] = err
-    loglik_out[t] = ll
-    nis_out[t] = nis
-    n_valid_out[t] = acc.n_ok
-    lam_out[t] = acc.lam * params.att_scale
-    info_out[t] = acc.info * params.att_scale
+def _sliding_loglik(tiled: bool):
+    @wp.kernel
+    def sliding_loglik_kernel(
+        row0: int,
+        n_per: int,
+        grid: HeightGrid,
+        surface: int,
+        pos_n: wp.array(dtype=wp.vec3),
+        quat_nb: wp.array(dtype=wp.vec4),
+        cloud: wp.array2d(dtype=cloud_row),
+        att_cov: wp.array(dtype=wp.mat33),
+        params: LikParams,
+        residual_out: wp.array2d(dtype=wp.float32),
+        err_out: wp.array(dtype=wp.float32),
+        loglik_out: wp.array(dtype=wp.float32),
+        nis_out: wp.array(dtype=wp.float32),
+        n_valid_out: wp.array(dtype=wp.int32),
+        lam_out: wp.array(dtype=wp.mat33),
+        info_out: wp.array(dtype=wp.vec3),
+    ):
+        """Particle ``t`` (one block, or one thread): residuals ``c_j,z - c^_ij,z`` (m) of the received points,
+        error, log-likelihood (marginalised over the filter's attitude covariance ``att_cov[b]`` for the per-point
+        forms), NIS, and the attitude information Λ, b of the residuals (:mod:`warptan.kernels.likelihood`)."""
+        if wp.static(tiled):
+            t, lane = wp.tid()
+            stride = wp.block_dim()
+        else:
+            t = wp.tid()
+            lane = 0
+            stride = 1
+        b = (row0 + t) // n_per
+        mat = quat_to_mat_wxyz(quat_nb[t])
+        p = pos_n[t]
+        ones = wp.vec3(1.0, 1.0, 1.0)
+        acc = acc_init()
+        for j in range(lane, cloud.shape[1], stride):
+            row = cloud[b, j]
+            res = float(wp.nan)
+            if row[7] != 0.0:
+                acc.n_recv = acc.n_recv + 1
+                c = wp.vec3(row[0], row[1], row[2])
+                w = p + mat * c
+                h = grid_height(grid, surface, w[0], w[1])
+                c_hat = wp.transpose(mat) * (wp.vec3(w[0], w[1], -h) - p)
+                res = c[2] - c_hat[2]
+                if not wp.isnan(res):
+                    jac = sliding_jacobian(mat, c, c_hat, grid_gradient(grid, surface, w[0], w[1]))
+                    acc = acc_add(acc, params, res, ones, jac)
+            residual_out[t, j] = res
+        if wp.static(tiled):
+            acc = acc_block_sum(acc)
+        if lane == 0:
+            acc_store(t, acc, params, att_cov[b], err_out, loglik_out, nis_out, n_valid_out, lam_out, info_out)
+
+    return sliding_loglik_kernel
+
+
+sliding_loglik_kernels = per_particle_kernels(_sliding_loglik)
+"""The fused sliding model: ``[True]`` tiled (``wp.launch_tiled``, CUDA), ``[False]`` one thread per particle."""
 
 
 @wp.kernel

@@ -6,8 +6,10 @@ device and launch mode (eager launches or a replayed graph).
 Reported per configuration (medians over ``--repeats`` intervals after ``--warmup`` intervals, synchronised
 before the clock stops): ``predict_ms`` (one ``predict`` call: the host buffers the sample), ``update_ms``
 (host INS + Riccati for the interval, particle moves, poses, model, weights, resampling, record),
-``step_ms`` (the whole interval), ``filter_steps_per_s`` (B / step time) and ``estimate_ms`` (moments → host,
-not part of a step). The measurement upload is part of the step (``stage``); simulating it is not.
+``step_ms`` (the whole interval, synchronised: the latency), ``filter_steps_per_s`` (B / step time),
+``throughput_step_ms`` (the same intervals run back to back with one synchronisation at the end: the host stages
+interval k + 1 while the device runs interval k) and ``estimate_ms`` (moments → host, not part of a step). The
+measurement upload is part of the step (``stage``); simulating it is not.
 
     python scripts/bench_filter_step.py --n 500 5000 --models sliding dda --json step.json
     python scripts/bench_filter_step.py --device cuda:0 --n 500 --batch 1 100 --m-side 20 --graph on off
@@ -47,7 +49,7 @@ def build(model_name: str, terrain, likelihood):
 def bench(terrain, model_name, n, m_side, device, repeats, warmup, imu_per_meas=10, seed=0, graph=None, batch=1,
           likelihood="paper"):
     intervals = repeats + warmup
-    truth = Trajectory.build([Straight(intervals * imu_per_meas / 100.0 + 0.5)], 100.0,
+    truth = Trajectory.build([Straight(2 * intervals * imu_per_meas / 100.0 + 0.5)], 100.0,
                              [0.0, 0.0, -(terrain.h_max + 600.0)])
     imu = ImuModel("navigation", 100.0, seed=seed)
     f, w, _ = imu.corrupt(truth.f_b, truth.w_b)
@@ -64,22 +66,25 @@ def bench(terrain, model_name, n, m_side, device, repeats, warmup, imu_per_meas=
     sensor = wt.PointCloudSensor(wt.ScanPattern.grid(m_side, m_side, 30.0))
     alt, baro = wt.RadarAltimeter(), wt.Barometer()
     t_pred, t_upd, t_step, t_est = [], [], [], []
-    k = 0
-    for it in range(intervals):
-        k_meas = k + imu_per_meas
+    measurements = []
+    for it in range(2 * intervals):
+        k_meas = (it + 1) * imu_per_meas
         if model_name == "altimeter":
             meas = [wt.AltimeterReading(alt.measure(terrain, truth.pos_n[k_meas], rng),
                                         baro.measure(truth.pos_n[k_meas], rng)) for _ in range(batch)]
         else:
             meas = sensor.measure_many(terrain, truth.pos_n[k_meas], truth.quat_nb[k_meas], [rng] * batch,
                                        device=device)
+        measurements.append(meas if batch > 1 else meas[0])
+    k = 0
+    for it in range(intervals):  # latency: each interval synchronised before the clock stops
         wp.synchronize_device(device)
         t0 = time.perf_counter()
         for _ in range(imu_per_meas):
             mpf.predict(f[k], w[k])
             k += 1
         t1 = time.perf_counter()
-        mpf.update(meas if batch > 1 else meas[0], sync=False)
+        mpf.update(measurements[it], sync=False)
         wp.synchronize_device(device)
         t2 = time.perf_counter()
         mpf.estimate()
@@ -89,6 +94,17 @@ def bench(terrain, model_name, n, m_side, device, repeats, warmup, imu_per_meas=
             t_upd.append(t2 - t1)
             t_step.append(t2 - t0)
             t_est.append(t3 - t2)
+    # throughput: the next intervals back to back, one synchronisation at the end (the host prepares interval
+    # k + 1 while the device runs interval k)
+    wp.synchronize_device(device)
+    t0 = time.perf_counter()
+    for it in range(intervals, 2 * intervals):
+        for _ in range(imu_per_meas):
+            mpf.predict(f[k], w[k])
+            k += 1
+        mpf.update(measurements[it], sync=False)
+    wp.synchronize_device(device)
+    throughput_ms = 1e3 * (time.perf_counter() - t0) / intervals
     med = statistics.median
     stages = mpf.history()[warmup:, :, kmpf.H_STAGES]
     return {"model": model_name, "likelihood": likelihood, "B": batch, "N": n, "graph": mpf.graph,
@@ -96,7 +112,7 @@ def bench(terrain, model_name, n, m_side, device, repeats, warmup, imu_per_meas=
             "filter_steps_per_s": batch / med(t_step), "M": 1 if model_name == "altimeter" else m_side * m_side,
             "device": wt.resolve_device(device).alias, "imu_per_meas": imu_per_meas,
             "predict_ms": 1e3 * med(t_pred), "update_ms": 1e3 * med(t_upd), "step_ms": 1e3 * med(t_step),
-            "estimate_ms": 1e3 * med(t_est), "repeats": repeats}
+            "estimate_ms": 1e3 * med(t_est), "throughput_step_ms": throughput_ms, "repeats": repeats}
 
 
 def main(argv=None) -> int:
@@ -117,7 +133,7 @@ def main(argv=None) -> int:
     terrain = script_inputs("bench_filter_step", args.device, args.terrain)
     rows = []
     print(f"{'device':7s} {'model':9s} {'lik':8s} {'graph':5s} {'B':>4s} {'N':>7s} {'M':>5s} {'predict ms':>11s} "
-          f"{'update ms':>10s} {'step ms':>9s} {'filter-steps/s':>15s} {'stages':>6s}")
+          f"{'update ms':>10s} {'step ms':>9s} {'pipelined':>9s} {'filter-steps/s':>15s} {'stages':>6s}")
     modes = {"auto": None, "on": True, "off": False}
     for device in args.device:
         for m_side in args.m_side:
@@ -131,7 +147,8 @@ def main(argv=None) -> int:
                                 rows.append(r)
                                 print(f"{r['device']:7s} {model:9s} {lik:8s} {r['graph']!s:5s} {b:>4d} {n:>7d} "
                                       f"{r['M']:>5d} {r['predict_ms']:11.3f} {r['update_ms']:10.3f} "
-                                      f"{r['step_ms']:9.3f} {r['filter_steps_per_s']:15.0f} "
+                                      f"{r['step_ms']:9.3f} {r['throughput_step_ms']:9.3f} "
+                                      f"{r['filter_steps_per_s']:15.0f} "
                                       f"{r['tempering_stages_mean']:6.2f}")
     if args.json_out:
         meta = {"warp_version": wp.config.version, "python": platform.python_version(),

@@ -521,7 +521,8 @@ def test_regularisation_jitter_matches_numpy(device):
     wp.launch(kmpf.exp_partials_kernel, dim=(1, kmpf.N_CHUNKS),
               inputs=[n, d_logw, d_dp, nis, wp.array(lam, dtype=wp.mat33, device=device), stats], outputs=[sums],
               device=device)
-    wp.launch(kmpf.weight_stats_kernel, dim=1, inputs=[n, params, sums], outputs=[stats], device=device)
+    wp.launch_tiled(kmpf.weight_stats_kernel, dim=[1], inputs=[n, params, sums], outputs=[stats],
+                    block_dim=kmpf.N_CHUNKS, device=device)
     s = stats.numpy()[0]
     lam_bar = np.einsum("i,ijk->jk", w, lam.astype(np.float64))
     np.testing.assert_allclose(s[kmpf.ST_LAM:kmpf.ST_LAM + 6], lam_bar[(0, 1, 2, 0, 0, 1), (0, 1, 2, 1, 2, 2)],
@@ -606,13 +607,20 @@ def test_closed_loop_injection_keeps_every_particle_total_state(rugged):
                                      prior_linear_cov(InitialErrors((20.0, 20.0, 5.0), 0.3, (0.2, 0.2, 0.5)),
                                                       ImuModel("tactical", 100.0)),
                                      n_particles=400, seed=2, integrity_window=2, closed_loop=True)
+    snapshots = []  # every particle's total state just before the update's feedback (eager CPU launches)
+    feedback = mpf._launch_feedback
+
+    def hooked():
+        snapshots.append((_particle_totals(mpf), mpf.n_injections[0]))
+        feedback()
+
+    mpf._launch_feedback = hooked
     checked = 0
     for k in range(len(truth.f_b)):
         mpf.predict(truth.f_b[k], truth.w_b[k])
         if (k + 1) % 10 == 0:
             mpf.update(sensor.measure(rugged, truth.pos_n[k + 1], truth.quat_nb[k + 1], np.random.default_rng(k)))
-            before, injected = _particle_totals(mpf), mpf.n_injections[0]
-            mpf.nominal()  # settles the update: P's measurement update, then the injection
+            before, injected = snapshots[-1]
             if mpf.n_injections[0] == injected:
                 continue
             after = _particle_totals(mpf)

@@ -38,7 +38,9 @@ def _blocks(a):
     return a.transpose(0, 1, 3, 2, 4).reshape(b, a.shape[1] * 3, a.shape[2] * 3)
 
 
-def test_nav_kernel_matches_python():
+def test_nav_kernel_matches_python(device):
+    """The interval kernel (nominal INS, Riccati, interval composition; float64 on the filter's device) against
+    the Python INS and a NumPy Riccati, on the CPU and on CUDA."""
     rate, k_steps = 100.0, 10
     dt = 1.0 / rate
     truth = Trajectory.build([Straight(0.05), Turn(20, bank_deg=30)], rate, [0, 0, -1000.0])
@@ -52,7 +54,7 @@ def test_nav_kernel_matches_python():
     P0 = prior_linear_cov(initial, imu)
     q_n = 0.25 * dt * np.eye(3)
     q_l = process_noise(imu.grade, dt)[3:15, 3:15]
-    d = "cpu"
+    d = device
     B = 2
     pos = wp.array([n.pos_n for n in nominals], dtype=wp.vec3d, device=d)
     vel = wp.array([n.vel_n for n in nominals], dtype=wp.vec3d, device=d)
@@ -67,12 +69,15 @@ def test_nav_kernel_matches_python():
     phi_out = wp.empty((B, 5, 5), dtype=wp.mat33, device=d)
     chol_out = wp.empty((B, 5, 5), dtype=wp.mat33, device=d)
     pose_out = wp.empty((B, 7), dtype=wp.float64, device=d)
+    att_cov = wp.empty(B, dtype=wp.mat33, device=d)
+    p_col = wp.empty((B, 4), dtype=wp.mat33, device=d)
     qd = np.diag(q_l)
+    counts = wp.array(np.full((B, 3), k_steps, dtype=np.int32), dtype=wp.int32, device=d)
     wp.launch(knav.nav_interval_kernel, dim=B,
-              inputs=[0, k_steps, dt, 0.25 * dt, 0.0, wp.vec4d(qd[0], qd[3], qd[6], qd[9]),
-                      wp.array(fb, dtype=wp.vec3d, device=d), wp.array(wb, dtype=wp.vec3d, device=d),
+              inputs=[0, counts, dt, 0.25 * dt, 0.0, wp.vec4d(qd[0], qd[3], qd[6], qd[9]),
+                      wp.array(np.stack([fb, wb], axis=2), dtype=wp.vec3d, device=d),
                       pos, vel, quat, ba, bg, cov, phi, noise, scratch],
-              outputs=[phi_out, chol_out, pose_out], device=d)
+              outputs=[phi_out, chol_out, pose_out, att_cov, p_col], device=d)
     covs = _blocks(cov.numpy())
     phis = _blocks(phi_out.numpy().astype(np.float64))
     chols = _blocks(chol_out.numpy().astype(np.float64))
@@ -88,3 +93,5 @@ def test_nav_kernel_matches_python():
         scale = np.sqrt(np.outer(np.diag(S_ref), np.diag(S_ref)))
         assert np.all(np.abs(S_got - S_ref) <= 2e-3 * scale + 1e-30), np.max(np.abs(S_got - S_ref) / (scale + 1e-30))
         assert np.allclose(np.triu(chols[b], 1), 0.0)
+        np.testing.assert_allclose(att_cov.numpy()[b], P[3:6, 3:6], rtol=1e-6, atol=1e-30)
+        np.testing.assert_allclose(np.concatenate(list(p_col.numpy()[b])), P[:, 3:6], rtol=1e-6, atol=1e-30)

@@ -303,6 +303,11 @@ class _PointCloudModel(MeasurementModel):
         return host[:, :, 7].sum(axis=1).astype(np.int64)
 
 
+def _block_dim(device) -> int | None:
+    """Threads per particle of the likelihood kernels: a block on CUDA, one thread on the CPU."""
+    return klik.BLOCK_DIM if device.is_cuda else None
+
+
 class RaycastModel(_PointCloudModel):
     """Predict each point by casting the pattern ray from the particle's pose (paper eq. 6, 15).
 
@@ -327,11 +332,12 @@ class RaycastModel(_PointCloudModel):
                     lambda a, b: ([*lead, a or 0, n_per, rows_of(pos_n, a, b), rows_of(quat_nb, a, b), cloud],
                                   [rows_of(res, a, b), rows_of(jac, a, b)]),
                     device, cols=res.shape[1], row_cost=20)
-        launch_rows(klik.reduce_loglik_kernel, res.shape[0],
+        kernel, block = klik.reduce_loglik_kernels[device.is_cuda], _block_dim(device)
+        launch_rows(kernel, res.shape[0],
                     lambda a, b: ([a or 0, n_per, rows_of(res, a, b), rows_of(jac, a, b), cloud, att, self._params],
                                   [rows_of(out.error_m, a, b), rows_of(out.loglik, a, b), rows_of(out.nis, a, b),
                                    rows_of(out.n_valid, a, b), rows_of(out.lam, a, b), rows_of(out.info, a, b)]),
-                    device, row_cost=res.shape[1])
+                    device, row_cost=res.shape[1], block_dim=block)
 
 
 class SlidingModel(_PointCloudModel):
@@ -353,13 +359,14 @@ class SlidingModel(_PointCloudModel):
     def _launch(self, pos_n, quat_nb, out, device):
         grid, surface, cloud, n_per = self.terrain.grid(device), int(self.surface), self._staged, self.n_per
         att = self._attitude_cov(device, self.n_filters)
-        launch_rows(kslide.sliding_loglik_kernel, pos_n.shape[0],
+        kernel, block = kslide.sliding_loglik_kernels[device.is_cuda], _block_dim(device)
+        launch_rows(kernel, pos_n.shape[0],
                     lambda a, b: ([a or 0, n_per, grid, surface, rows_of(pos_n, a, b), rows_of(quat_nb, a, b), cloud,
                                    att, self._params],
                                   [rows_of(out.residual_m, a, b), rows_of(out.error_m, a, b), rows_of(out.loglik, a, b),
                                    rows_of(out.nis, a, b), rows_of(out.n_valid, a, b), rows_of(out.lam, a, b),
                                    rows_of(out.info, a, b)]),
-                    device, row_cost=3 * cloud.shape[1])
+                    device, row_cost=3 * cloud.shape[1], block_dim=block)
 
 
 class AltimeterModel(MeasurementModel):

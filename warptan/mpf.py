@@ -93,7 +93,7 @@ import numpy as np
 import warp as wp
 
 from warptan.device import resolve_device
-from warptan.frames import quat_exp, quat_mul, skew
+from warptan.frames import quat_exp, quat_mul
 from warptan.imu import ImuGrade, check_rate, imu_grade
 from warptan.ins import NavState, process_noise
 from warptan.kernels import mpf as kmpf
@@ -327,10 +327,6 @@ class MarginalizedParticleFilter:
         self.params = params
         self.measurement_update = bool(measurement_update)
         self.closed_loop = bool(closed_loop)
-        self.n_injections = np.zeros(b, dtype=np.int64)
-        """Closed loop: injections into the nominal INS so far, per filter."""
-        self._pending = False
-        self._p_log: list[np.ndarray] = []
         self._no_info: tuple[wp.array, wp.array] | None = None
         self.graph = self.device.is_cuda if graph is None else bool(graph)
         self.n_imu_steps = 0
@@ -339,36 +335,41 @@ class MarginalizedParticleFilter:
         """Valid received points per filter in the last update."""
         self._k = 0
         self._chol_p0 = wp.mat33(*chol_p0.ravel())
-        # ---- host (CPU, float64): nominal INS, P, the interval's Φ and chol(S)
-        cpu = wp.get_device("cpu")
-        pinned = self.device.is_cuda
-        self._cpu = cpu
-
-        def host(shape, dtype, data=None, upload=False):
-            """A host array; pinned when it is copied to a CUDA device every update."""
-            if data is not None:
-                return wp.array(data, dtype=dtype, device=cpu, pinned=pinned and upload)
-            return wp.zeros(shape, dtype=dtype, device=cpu, pinned=pinned and upload)
-
-        self._nav = {
-            "pos": host(b, wp.vec3d, np.array([x.pos_n for x in nominals])),
-            "vel": host(b, wp.vec3d, np.array([x.vel_n for x in nominals])),
-            "quat": host(b, wp.vec4d, np.array([x.quat_nb for x in nominals])),
-            "ba": host(b, wp.vec3d, np.array([x.accel_bias for x in nominals])),
-            "bg": host(b, wp.vec3d, np.array([x.gyro_bias for x in nominals])),
-            "cov": host((b, 4, 4), wp.mat33d, _to_blocks(np.broadcast_to(p0, (b, 12, 12)), 4)),
-        }
-        self._scratch = [host((b, 5, 5), wp.mat33d), host((b, 5, 5), wp.mat33d), host((b, 15, 15), wp.float64)]
-        self._f = host((b, MAX_STEPS_PER_INTERVAL), wp.vec3d)
-        self._w = host((b, MAX_STEPS_PER_INTERVAL), wp.vec3d)
-        self._f_np, self._w_np = self._f.numpy(), self._w.numpy()
-        self._interval = {"phi": host((b, 5, 5), wp.mat33, upload=True), "chol": host((b, 5, 5), wp.mat33, upload=True),
-                          "pose": host((b, 7), wp.float64, upload=True), "seeds": host(b, wp.int32, upload=True),
-                          "resample_seeds": host(b, wp.int32, upload=True), "att_cov": host(b, wp.mat33, upload=True),
-                          "p_col": host((b, 4), wp.mat33, upload=True)}
-        self._interval["pose"].numpy()[:] = np.array([np.r_[x.pos_n, x.quat_nb] for x in nominals])
+        # ---- device, float64: nominal INS, P and the interval's Φ and chol(S) (kernels/nav.py)
         d = self.device
-        self._dev = self._interval if d.is_cpu else {k: wp.empty_like(v, device=d) for k, v in self._interval.items()}
+        cpu = wp.get_device("cpu")
+        self._nav = {
+            "pos": wp.array(np.array([x.pos_n for x in nominals]), dtype=wp.vec3d, device=d),
+            "vel": wp.array(np.array([x.vel_n for x in nominals]), dtype=wp.vec3d, device=d),
+            "quat": wp.array(np.array([x.quat_nb for x in nominals]), dtype=wp.vec4d, device=d),
+            "ba": wp.array(np.array([x.accel_bias for x in nominals]), dtype=wp.vec3d, device=d),
+            "bg": wp.array(np.array([x.gyro_bias for x in nominals]), dtype=wp.vec3d, device=d),
+            "cov": wp.array(_to_blocks(np.broadcast_to(p0, (b, 12, 12)), 4), dtype=wp.mat33d, device=d),
+        }
+        self._scratch = [wp.zeros((b, 5, 5), dtype=wp.mat33d, device=d), wp.zeros((b, 5, 5), dtype=wp.mat33d, device=d),
+                         wp.zeros((b, 15, 15), dtype=wp.float64, device=d)]
+        # ---- host staging of an interval: the IMU samples [f, w] and [K, move seed, resample seed] per filter. On
+        # CUDA two pinned sets, alternating: the update's graph copies one while the host fills the other (an event
+        # per set says when the graph that read it is done).
+        n_sets = 2 if d.is_cuda else 1
+        self._imu_host = [wp.zeros((b, MAX_STEPS_PER_INTERVAL, 2), dtype=wp.vec3d, device=cpu, pinned=d.is_cuda)
+                          for _ in range(n_sets)]
+        self._ints_host = [wp.zeros((b, 3), dtype=wp.int32, device=cpu, pinned=d.is_cuda) for _ in range(n_sets)]
+        self._imu_np = [x.numpy() for x in self._imu_host]
+        self._ints_np = [x.numpy() for x in self._ints_host]
+        self._events = [wp.Event(device=d) for _ in range(n_sets)] if d.is_cuda else []
+        self._set = 0
+        self._imu = wp.empty_like(self._imu_host[0], device=d) if d.is_cuda else self._imu_host[0]
+        self._ints = wp.zeros((b, 3), dtype=wp.int32, device=d) if d.is_cuda else self._ints_host[0]
+        self._interval_k = 0
+        self._dev = {"phi": wp.zeros((b, 5, 5), dtype=wp.mat33, device=d),
+                     "chol": wp.zeros((b, 5, 5), dtype=wp.mat33, device=d),
+                     "pose": wp.array(np.array([np.r_[x.pos_n, x.quat_nb] for x in nominals]), dtype=wp.float64,
+                                      device=d),
+                     "seeds": self._ints[:, 1], "resample_seeds": self._ints[:, 2],
+                     "att_cov": wp.zeros(b, dtype=wp.mat33, device=d),
+                     "p_col": wp.zeros((b, 4), dtype=wp.mat33, device=d)}
+        self._injections = wp.zeros(b, dtype=wp.int32, device=d)
         # ---- device: particles and work arrays
         nt = b * self.n
         self.state = ParticleState(wp.empty(nt, dtype=wp.vec3, device=d), wp.empty(nt, dtype=kmpf.vec12, device=d),
@@ -395,10 +396,10 @@ class MarginalizedParticleFilter:
         self._ancestors = wp.empty(nt, dtype=wp.int32, device=d)
         self._slot = wp.zeros(1, dtype=wp.int32, device=d)
         self._history = wp.zeros((256, b, kmpf.N_SUMMARY), dtype=wp.float64, device=d)
+        self._nominal_hist = wp.zeros((256, b, 16), dtype=wp.float64, device=d)
+        self._p_hist = wp.zeros((256, b, 12), dtype=wp.float64, device=d)
         self._feedback = wp.zeros((b, kmpf.N_FEEDBACK), dtype=wp.float64, device=d)
-        self._inject = wp.zeros(b, dtype=wp.int32, device=d)
-        self._nominal_log: list[np.ndarray] = []
-        self._graph = None
+        self._graphs: dict = {}
         self._graph_key = None
         init_seeds = wp.array(step_seed(self.seeds, 0, _STREAM_INIT).astype(np.int32), dtype=wp.int32, device=d)
         wp.launch(kmpf.init_particles_kernel, dim=nt, inputs=[self.n, init_seeds, self._chol_p0],
@@ -417,32 +418,45 @@ class MarginalizedParticleFilter:
             raise ValueError(f"non-finite IMU sample: specific force {f.tolist()}, body rate {w.tolist()}")
         if self._k == MAX_STEPS_PER_INTERVAL:
             self.flush()
-        self._f_np[:, self._k] = f.reshape(b, 3)
-        self._w_np[:, self._k] = w.reshape(b, 3)
+        imu = self._imu_np[self._set]
+        imu[:, self._k, 0] = f.reshape(b, 3)
+        imu[:, self._k, 1] = w.reshape(b, 3)
         self._k += 1
         self.n_imu_steps += 1
 
-    def _host_interval(self) -> None:
-        """Run the buffered IMU samples through the nominal INS and the Riccati (host), compose the interval's
-        Φ and chol(S), draw its seeds, and send them to the device."""
-        self._settle()
-        nav, out, k = self._nav, self._interval, self._k
+    def _stage_interval(self) -> None:
+        """Host part of an interval (O(B)): the sample count and the interval's seeds next to the buffered samples."""
+        ints = self._ints_np[self._set]
+        ints[:, 0] = self._k
+        ints[:, 1] = step_seed(self.seeds, self.n_imu_steps, _STREAM_MOVE)
+        ints[:, 2] = step_seed(self.seeds, self.n_updates + 1, _STREAM_RESAMPLE)
+        self._interval_k = self._k
+        self._k = 0
+
+    def _launch_interval(self) -> None:
+        """Device part of an interval: the staged samples and seeds to the device (CUDA: two copies from pinned
+        memory), then one kernel runs them through the nominal INS and the Riccati and composes the interval's Φ and
+        chol(S) (:mod:`warptan.kernels.nav`, float64)."""
+        if self.device.is_cuda:
+            wp.copy(self._imu, self._imu_host[self._set])
+            wp.copy(self._ints, self._ints_host[self._set])
+        nav, out = self._nav, self._dev
         phi, noise, scratch = self._scratch
         launch_rows(knav.nav_interval_kernel, self.n_filters,
-                    lambda a, b: ([a or 0, k, self.dt, self.q_pos, self.q_rough, self._q_lin, self._f, self._w,
+                    lambda a, b: ([a or 0, self._ints, self.dt, self.q_pos, self.q_rough, self._q_lin, self._imu,
                                    nav["pos"], nav["vel"], nav["quat"], nav["ba"], nav["bg"], nav["cov"], phi, noise,
                                    scratch],
-                                  [out["phi"], out["chol"], out["pose"]]),
-                    self._cpu, row_cost=4000 * max(k, 1))
-        self._k = 0
-        cov = nav["cov"].numpy()
-        out["att_cov"].numpy()[:] = cov[:, 1, 1]  # P_θθ: the attitude uncertainty of every particle
-        out["p_col"].numpy()[:] = cov[:, :, 1]  # P_:θ: the gain's column blocks
-        out["seeds"].numpy()[:] = step_seed(self.seeds, self.n_imu_steps, _STREAM_MOVE)
-        out["resample_seeds"].numpy()[:] = step_seed(self.seeds, self.n_updates + 1, _STREAM_RESAMPLE)
-        if self.device.is_cuda:
-            for key, src in out.items():
-                wp.copy(self._dev[key], src)
+                                  [out["phi"], out["chol"], out["pose"], out["att_cov"], out["p_col"]]),
+                    self.device, row_cost=4000 * max(self._interval_k, 1))
+
+    def _next_set(self) -> None:
+        """After the device work that reads the current staging set is queued: switch sets (CUDA), first waiting
+        until the work queued on the other set, two intervals ago, is done."""
+        if not self.device.is_cuda:
+            return
+        wp.get_stream(self.device).record_event(self._events[self._set])
+        self._set ^= 1
+        wp.synchronize_event(self._events[self._set])  # returns at once if never recorded
 
     def _launch_time_update(self) -> None:
         dv, n, st = self._dev, self.n, self.state
@@ -450,60 +464,14 @@ class MarginalizedParticleFilter:
                     lambda a, b: ([a or 0, n, dv["seeds"], dv["phi"], dv["chol"]],
                                   [rows_of(st.dp, a, b), rows_of(st.lin, a, b)]), self.device, row_cost=30)
 
-    def _settle(self) -> None:
-        """After an update's device work: read its feedback (one small copy, a sync on CUDA), apply the Kalman
-        measurement update of the shared P, ``P⁺ = P - P_:θ Λ̄ (I + A Λ̄)⁻¹ P_θ:`` (A = P_θθ, Λ̄ the weighted mean
-        attitude information of the particles), and in closed loop inject the converged filters' mean error into
-        their nominal INS (reset on the device). O(B) host work."""
-        if not self._pending:
-            return
-        self._pending = False
-        fb = self._feedback.numpy()
-        cov = self._nav["cov"].numpy()
-        P = _from_blocks(cov)
-        if self.measurement_update:
-            lam = fb[:, kmpf.FB_LAM + _SYM6_INDEX]  # (B, 3, 3) from the six stored entries
-            A = P[:, 3:6, 3:6]
-            gain = lam @ np.linalg.inv(np.eye(3) + A @ lam)
-            P = P - P[:, :, 3:6] @ gain @ P[:, 3:6, :]
-            P = 0.5 * (P + P.swapaxes(1, 2))
-        self._p_log.append(np.diagonal(P, axis1=1, axis2=2).copy())
-        if self.closed_loop:
-            inject = fb[:, kmpf.FB_CONVERGED] > 0
-            if inject.any():
-                P = self._inject_errors(fb, inject, P)
-        cov[:] = _to_blocks(P, 4)
-
-    def _inject_errors(self, fb: np.ndarray, inject: np.ndarray, P: np.ndarray) -> np.ndarray:
-        """Closed loop: nominal ⊕ mean error for the filters in ``inject``, the particles reset relative to it
-        on the device (each particle's total state unchanged), ``P <- G P Gᵀ`` with
-        ``G = diag(I, I - [θ̂/2]×, I, I)`` (Solà 2017 §6.3). Returns the new P."""
-        nav = {k: v.numpy() for k, v in self._nav.items() if k != "cov"}
-        for b in np.flatnonzero(inject):
-            l_hat = fb[b, kmpf.FB_MEAN_L:kmpf.FB_MEAN_L + 12]
-            nav["pos"][b] += fb[b, kmpf.FB_MEAN_DP:kmpf.FB_MEAN_DP + 3]
-            nav["vel"][b] += l_hat[0:3]
-            q = quat_mul(nav["quat"][b], quat_exp(l_hat[3:6]))
-            nav["quat"][b] = q / np.linalg.norm(q)
-            nav["ba"][b] += l_hat[6:9]
-            nav["bg"][b] += l_hat[9:12]
-            g = np.eye(12)
-            g[3:6, 3:6] -= 0.5 * skew(l_hat[3:6])
-            P[b] = g @ P[b] @ g.T
-        self.n_injections += inject
-        self._inject.assign(inject.astype(np.int32))
-        wp.launch(kmpf.reset_kernel, dim=self.n_filters * self.n,
-                  inputs=[self.n, self._feedback, self._inject], outputs=[self.state.dp, self.state.lin],
-                  device=self.device)
-        return P
-
     def flush(self) -> None:
         """Move the particles through the buffered IMU samples now (before an estimate, or a full buffer)."""
-        self._settle()
         if self._k == 0:
             return
-        self._host_interval()
+        self._stage_interval()
+        self._launch_interval()
         self._launch_time_update()
+        self._next_set()
 
     # ------------------------------------------------------------------ measurement update
     def particle_poses(self) -> tuple[wp.array, wp.array]:
@@ -520,7 +488,7 @@ class MarginalizedParticleFilter:
     def _launch_stage(self, out, stage: int) -> None:
         """One tempering stage: choose the exponent, weight, normalise and decide to resample (device)."""
         d, b, n, st = self.device, self.n_filters, self.n, self.state
-        wp.launch(kmpf.temper_partials_kernel, dim=(b, kmpf.N_CHUNKS),
+        wp.launch(kmpf.temper_partials_kernel, dim=(b, kmpf.N_CHUNKS, kmpf.N_TEMPER),
                   inputs=[n, stage, out.loglik, out.n_valid, out.meta, st.logw, self._stats],
                   outputs=[self._temper_partials, self._unpred_partials], device=d)
         wp.launch(kmpf.temper_ess_kernel, dim=(b, kmpf.N_TEMPER), inputs=[self._temper_partials],
@@ -536,8 +504,8 @@ class MarginalizedParticleFilter:
         lam, info = self._attitude_info(out)
         wp.launch(kmpf.exp_partials_kernel, dim=(b, kmpf.N_CHUNKS),
                   inputs=[n, st.logw, st.dp, out.nis, lam, self._stats], outputs=[self._chunk_sums], device=d)
-        wp.launch(kmpf.weight_stats_kernel, dim=b, inputs=[n, self.params, self._chunk_sums],
-                  outputs=[self._stats], device=d)
+        wp.launch_tiled(kmpf.weight_stats_kernel, dim=[b], inputs=[n, self.params, self._chunk_sums],
+                        outputs=[self._stats], block_dim=kmpf.N_CHUNKS, device=d)
         wp.launch(kmpf.normalize_weights_kernel, dim=b * n, inputs=[n, self._stats], outputs=[st.logw], device=d)
         if self.measurement_update:
             wp.launch(kmpf.kalman_update_kernel, dim=b * n,
@@ -579,10 +547,23 @@ class MarginalizedParticleFilter:
         d, b, st = self.device, self.n_filters, self.state
         wp.launch(kmpf.summary_partials_kernel, dim=(b, kmpf.N_CHUNKS), inputs=[self.n, st.logw, st.dp, st.lin],
                   outputs=[self._summary_sums], device=d)
-        wp.launch(kmpf.summary_kernel, dim=b,
-                  inputs=[self.params, self._summary_sums, self._stats, self._integrity, self._slot],
-                  outputs=[self._history, self._feedback], device=d)
+        wp.launch_tiled(kmpf.summary_kernel, dim=[b],
+                        inputs=[self.params, self._summary_sums, self._stats, self._integrity, self._slot],
+                        outputs=[self._history, self._feedback], block_dim=kmpf.N_CHUNKS, device=d)
+        self._launch_feedback()
         wp.launch(kmpf.advance_slot_kernel, dim=1, inputs=[self._slot], device=d)
+
+    def _launch_feedback(self) -> None:
+        """What the update feeds back, on the device: the nominal's record, the Kalman measurement update of P, and
+        in closed loop the injection into the nominal INS with the particles' reset."""
+        d, b, st, nav = self.device, self.n_filters, self.state, self._nav
+        wp.launch(kmpf.covariance_update_kernel, dim=b,
+                  inputs=[int(self.measurement_update), int(self.closed_loop), self._feedback, self._slot],
+                  outputs=[nav["cov"], nav["pos"], nav["vel"], nav["quat"], nav["ba"], nav["bg"], self._injections,
+                           self._nominal_hist, self._p_hist], device=d)
+        if self.closed_loop:
+            wp.launch(kmpf.reset_kernel, dim=b * self.n, inputs=[self.n, self._feedback],
+                      outputs=[st.dp, st.lin], device=d)
 
     def _device_update(self, out, read_flags: bool = False) -> None:
         """The device part of an update: move, then up to ``max_stages`` tempering stages (each after the first
@@ -591,6 +572,7 @@ class MarginalizedParticleFilter:
         on the CPU, which runs launches in order), else by a device flag and a conditional node
         (``wp.capture_if``: no host sync, and in a captured graph a converged update costs one stage). Filters
         that are done ignore a stage that runs for the others, so both paths give the same result."""
+        self._launch_interval()
         self._launch_time_update()
         self._launch_poses()
         self.model.launch(self._pos, self._quat)
@@ -634,14 +616,12 @@ class MarginalizedParticleFilter:
         if hasattr(self.model, "bind_attitude_cov"):
             self.model.bind_attitude_cov(self._dev["att_cov"])
         self._ensure_history()
-        self._host_interval()
-        nav = self._nav
-        self._nominal_log.append(np.concatenate([nav[k].numpy() for k in ("pos", "vel", "quat", "ba", "bg")], axis=1))
+        self._stage_interval()
         self.last_n_received = np.array(out.n_received)
         self.n_updates += 1
-        self._pending = True  # the device work below leaves feedback for the host (P, the closed loop)
         if not self.graph:
             self._device_update(out, read_flags=self.device.is_cpu)
+            self._next_set()
             return self._info(out) if sync else None
         key = (id(out), id(getattr(self.model, "_staged", None)), id(self._history),
                id(getattr(self.model, "_params", None)))
@@ -649,14 +629,18 @@ class MarginalizedParticleFilter:
             self._graph_key = ()
             self._device_update(out)
         else:
-            if key != self._graph_key:  # (re)capture when a buffer the graph holds was replaced
+            if key != self._graph_key:  # (re)capture when a buffer the graphs hold was replaced
+                self._graphs.clear()
+                self._graph_key = key
+            graph = self._graphs.get(self._set)  # one graph per staging set (its copies read that set)
+            if graph is None:
                 wp.capture_begin(device=self.device)
                 try:
                     self._device_update(out)
                 finally:
-                    self._graph = wp.capture_end(device=self.device)
-                self._graph_key = key
-            wp.capture_launch(self._graph)
+                    graph = self._graphs[self._set] = wp.capture_end(device=self.device)
+            wp.capture_launch(graph)
+        self._next_set()
         return self._info(out) if sync else None
 
     def _info(self, out):
@@ -673,9 +657,11 @@ class MarginalizedParticleFilter:
         cap = self._history.shape[0]
         if self.n_updates < cap:
             return
-        bigger = wp.zeros((2 * cap, self.n_filters, kmpf.N_SUMMARY), dtype=wp.float64, device=self.device)
-        wp.copy(bigger, self._history, count=self._history.size)
-        self._history = bigger
+        for name in ("_history", "_nominal_hist", "_p_hist"):
+            old = getattr(self, name)
+            bigger = wp.zeros((2 * cap, *old.shape[1:]), dtype=wp.float64, device=self.device)
+            wp.copy(bigger, old, count=old.size)
+            setattr(self, name, bigger)
 
     def history(self) -> np.ndarray:
         """(updates, B, N_SUMMARY) record of every update so far (one host sync); columns
@@ -688,13 +674,17 @@ class MarginalizedParticleFilter:
 
     def nominal_history(self) -> np.ndarray:
         """(updates, B, 16) the nominal INS at each measurement update, before any closed-loop injection:
-        [p (3), v (3), q (4), b_a (3), b_g (3)] (host record, no device sync)."""
-        return np.array(self._nominal_log).reshape(-1, self.n_filters, 16)
+        [p (3), v (3), q (4), b_a (3), b_g (3)] (one host sync)."""
+        return self._nominal_hist.numpy()[: self.n_updates]
 
     def covariance_history(self) -> np.ndarray:
         """(updates, B, 12) the diagonal of the Kalman covariance P after each update's measurement update."""
-        self._settle()
-        return np.array(self._p_log).reshape(-1, self.n_filters, 12)
+        return self._p_hist.numpy()[: self.n_updates]
+
+    @property
+    def n_injections(self) -> np.ndarray:
+        """Closed loop: injections into the nominal INS so far, per filter."""
+        return self._injections.numpy().astype(np.int64)
 
     @property
     def n_respreads(self) -> int:
@@ -731,6 +721,7 @@ class MarginalizedParticleFilter:
         """The corrected navigation solution, with the mixture covariance (a list of B for a batch)."""
         moments = self.moments()
         P = _from_blocks(self._nav["cov"].numpy())
+        nominal = {k: v.numpy() for k, v in self._nav.items() if k != "cov"}
         out = []
         for b, m in enumerate(moments):
             total = m[0]
@@ -740,7 +731,7 @@ class MarginalizedParticleFilter:
             cov_pos = m[4:13].reshape(3, 3) / total - np.outer(dp, dp)
             lin = m[13:25] / total
             spread = m[25:169].reshape(12, 12) / total - np.outer(lin, lin)
-            s = self.nominal(b)
+            s = NavState(*(nominal[k][b] for k in ("pos", "vel", "quat", "ba", "bg")))
             q = quat_mul(s.quat_nb, quat_exp(lin[3:6]))
             nav = NavState(s.pos_n + dp, s.vel_n + lin[0:3], q / np.linalg.norm(q), s.accel_bias + lin[6:9],
                            s.gyro_bias + lin[9:12])

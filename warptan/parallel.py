@@ -51,8 +51,15 @@ def rows_of(array, a: int | None, b: int | None):
     return array if a is None else array[a:b]
 
 
+def _launch(kernel, rows: int, cols: int | None, block_dim: int | None, inputs, outputs, device) -> None:
+    if block_dim is not None:
+        wp.launch_tiled(kernel, dim=[rows], inputs=inputs, outputs=outputs, block_dim=block_dim, device=device)
+    else:
+        wp.launch(kernel, dim=rows if cols is None else (rows, cols), inputs=inputs, outputs=outputs, device=device)
+
+
 def launch_rows(kernel, rows: int, args: Callable[[int, int], tuple[list, list]], device, cols: int | None = None,
-                threads: int | None = None, row_cost: int = 1) -> None:
+                threads: int | None = None, row_cost: int = 1, block_dim: int | None = None) -> None:
     """Launch ``kernel`` over ``rows`` (× ``cols``) threads, split by rows across CPU threads.
 
     Args:
@@ -64,6 +71,8 @@ def launch_rows(kernel, rows: int, args: Callable[[int, int], tuple[list, list]]
         cols: Second launch dimension, if the kernel is 2-D.
         threads: Override of :func:`cpu_threads`.
         row_cost: Work of one (row, col) item relative to a simple one (e.g. the number of steps it loops).
+        block_dim: A tiled kernel (one block of ``block_dim`` threads per row, ``wp.launch_tiled``; a block is one
+            thread on the CPU).
     """
     if rows == 0:
         return
@@ -74,7 +83,7 @@ def launch_rows(kernel, rows: int, args: Callable[[int, int], tuple[list, list]]
         chunks = min(n_threads, rows // MIN_ROWS_PER_CHUNK, work // MIN_WORK_PER_CHUNK)
     if chunks <= 1:
         inputs, outputs = args(None, None)
-        wp.launch(kernel, dim=rows if cols is None else (rows, cols), inputs=inputs, outputs=outputs, device=device)
+        _launch(kernel, rows, cols, block_dim, inputs, outputs, device)
         return
     key = (kernel.module.name, device.alias)
     if key not in _LOADED:
@@ -85,7 +94,7 @@ def launch_rows(kernel, rows: int, args: Callable[[int, int], tuple[list, list]]
     def run(k: int) -> None:
         a, b = bounds[k], bounds[k + 1]
         inputs, outputs = args(a, b)
-        wp.launch(kernel, dim=b - a if cols is None else (b - a, cols), inputs=inputs, outputs=outputs, device=device)
+        _launch(kernel, b - a, cols, block_dim, inputs, outputs, device)
 
     futures = [_pool(n_threads).submit(run, k) for k in range(1, chunks)]
     run(0)
