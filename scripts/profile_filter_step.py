@@ -27,6 +27,7 @@ def main(argv=None) -> int:
     parser.add_argument("--model", default="dda", choices=MODELS)
     parser.add_argument("--likelihood", nargs="+", default=["gaussian"], choices=["paper", "gaussian", "student_t"])
     parser.add_argument("--n", type=int, default=500)
+    parser.add_argument("--batch", type=int, default=1, help="filters per batch B")
     parser.add_argument("--m-side", type=int, default=20)
     parser.add_argument("--repeats", type=int, default=30)
     parser.add_argument("--warmup", type=int, default=300)
@@ -39,11 +40,12 @@ def main(argv=None) -> int:
     terrain = wt.Terrain.synthetic("rugged")
     rows = []
     for lik in args.likelihood:
-        bench(terrain, args.model, args.n, args.m_side, args.device, 3, args.warmup, graph=False, likelihood=lik)
+        bench(terrain, args.model, args.n, args.m_side, args.device, 3, args.warmup, graph=False, likelihood=lik,
+              batch=args.batch)
         with wp.ScopedTimer("step", cuda_filter=wp.TIMING_KERNEL, print=False, synchronize=True) as timer:
             r = bench(terrain, args.model, args.n, args.m_side, args.device, args.repeats, args.warmup, graph=False,
-                      likelihood=lik)
-        steps = args.repeats + args.warmup
+                      likelihood=lik, batch=args.batch)
+        steps = 2 * (args.repeats + args.warmup)  # bench runs every interval twice: latency, then throughput
         total, calls = collections.defaultdict(float), collections.Counter()
         for res in timer.timing_results:  # elapsed in ms
             name = res.name.replace("forward kernel ", "").rsplit("_", 1)[0]
@@ -57,7 +59,7 @@ def main(argv=None) -> int:
         for k in kernels[: args.top]:
             print(f"  {k['kernel']:32s} {k['us_per_step']:9.1f} µs/step  {k['calls_per_step']:4.1f} calls")
     if args.json_out:
-        meta = {"device": wt.resolve_device(args.device).name, "model": args.model, "N": args.n,
+        meta = {"device": wt.resolve_device(args.device).name, "model": args.model, "B": args.batch, "N": args.n,
                 "M": args.m_side**2, "warp_version": wp.config.version,
                 "what": "device time per kernel per step (all steps incl. warm-up; estimate() kernels included)"}
         Path(args.json_out).write_text(json.dumps({"meta": meta, "results": rows}, indent=1))
