@@ -26,7 +26,7 @@ from warptan.kernels.likelihood import (
     cloud_row,
     per_particle_kernels,
 )
-from warptan.kernels.terrain import HeightGrid, grid_gradient, grid_height
+from warptan.kernels.terrain import HeightGrid, grid_height, grid_height_gradient
 
 wp.set_module_options({"enable_backward": False})
 
@@ -82,12 +82,11 @@ def _sliding_loglik(tiled: bool):
                 acc.n_recv = acc.n_recv + 1
                 c = wp.vec3(row[0], row[1], row[2])
                 w = p + mat * c
-                h = grid_height(grid, surface, w[0], w[1])
+                h, grad = grid_height_gradient(grid, surface, w[0], w[1])
                 c_hat = wp.transpose(mat) * (wp.vec3(w[0], w[1], -h) - p)
                 res = c[2] - c_hat[2]
                 if not wp.isnan(res):
-                    jac = sliding_jacobian(mat, c, c_hat, grid_gradient(grid, surface, w[0], w[1]))
-                    acc = acc_add(acc, params, res, ones, jac)
+                    acc = acc_add(acc, params, res, ones, sliding_jacobian(mat, c, c_hat, grad))
             residual_out[t, j] = res
         if wp.static(tiled):
             acc = acc_block_sum(acc)

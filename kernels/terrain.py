@@ -113,6 +113,24 @@ def grid_gradient(grid: HeightGrid, surface: int, north: float, east: float) -> 
     return wp.vec2((h11 - h01) / grid.dn, (h01 - h00) / grid.de)
 
 
+@wp.func
+def grid_height_gradient(grid: HeightGrid, surface: int, north: float, east: float):
+    """(:func:`grid_height`, :func:`grid_gradient`) from one read of the cell's four posts (the same expressions;
+    NaN height and gradient where invalid)."""
+    inside, fu, fv, h00, h10, h01, h11 = grid_cell(grid, north, east)
+    if not inside:
+        return float(wp.nan), wp.vec2(wp.nan, wp.nan)
+    if surface == 0:
+        h = (1.0 - fu) * ((1.0 - fv) * h00 + fv * h01) + fu * ((1.0 - fv) * h10 + fv * h11)
+        return h, wp.vec2(((1.0 - fv) * (h10 - h00) + fv * (h11 - h01)) / grid.dn,
+                          ((1.0 - fu) * (h01 - h00) + fu * (h11 - h10)) / grid.de)
+    if wp.isnan(h00 + h10 + h01 + h11):
+        return float(wp.nan), wp.vec2(wp.nan, wp.nan)
+    if fu >= fv:
+        return h00 + fu * (h10 - h00) + fv * (h11 - h10), wp.vec2((h10 - h00) / grid.dn, (h11 - h10) / grid.de)
+    return h00 + fv * (h01 - h00) + fu * (h11 - h01), wp.vec2((h11 - h01) / grid.dn, (h01 - h00) / grid.de)
+
+
 @wp.kernel
 def sample_heights_kernel(
     grid: HeightGrid,

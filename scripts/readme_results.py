@@ -6,7 +6,7 @@ Blocks are delimited in README.md by ``<!-- generated:NAME -->`` … ``<!-- /gen
 * ``paper`` — ``results/paper/likelihoods.json`` (+ each likelihood's ``results.json`` and ``claims.json``):
   converged RMSE and 3σ coverage of every scenario with the per-point and the paper likelihood, the
   integrity re-spreads, and the claim verdicts of the default likelihood;
-* ``step`` — ``benchmarks/filter_step_tempered_{cpu,h100}.json``: whole filter-step times.
+* ``step`` — ``benchmarks/filter_step_device_{cpu,h100,batch_h100}.json``: whole filter-step times.
 
     python scripts/readme_results.py            # print the blocks
     python scripts/readme_results.py --write    # replace them in README.md
@@ -67,11 +67,10 @@ def paper_block(folder: str = "results/paper") -> str:
 
 
 def step_block() -> str:
-    lines = ["| device | model | likelihood | graph | N | M | step ms | stages per update |",
-             "|---|---|---|---|---|---|---|---|"]
+    lines = ["| device | model | likelihood | graph | N | M | step ms | pipelined ms | stages per update |",
+             "|---|---|---|---|---|---|---|---|---|"]
     sources = []
-    for name in ("filter_step_tempered_cpu.json", "filter_step_tempered_h100.json",
-                 "filter_step_tempered_batch_h100.json"):
+    for name in ("filter_step_device_cpu.json", "filter_step_device_h100.json", "filter_step_device_batch_h100.json"):
         path = Path("benchmarks") / name
         if not (ROOT / path).exists():
             continue
@@ -79,10 +78,14 @@ def step_block() -> str:
         data = _load(path)
         device = ", ".join(data["meta"]["devices"].values())
         for r in data["results"]:
+            pipelined = f"{r['throughput_step_ms']:.2f}" if "throughput_step_ms" in r else "—"
             lines.append(f"| {device} | {r['model']} | {r['likelihood']} | {'on' if r['graph'] else 'off'} | "
-                         f"{r['B']} × {r['N']} | {r['M']} | {r['step_ms']:.2f} | {r['tempering_stages_mean']:.2f} |")
-    return ("Median whole step (10 IMU samples + one update) in the converged regime (after 300 warm-up steps); "
-            "N is filters × particles. Sources: " + ", ".join(sources) + ".\n\n" + "\n".join(lines))
+                         f"{r['B']} × {r['N']} | {r['M']} | {r['step_ms']:.2f} | {pipelined} | "
+                         f"{r['tempering_stages_mean']:.2f} |")
+    return ("Median whole step (10 IMU samples + one update, synchronised) and the pipelined step (the next intervals "
+            "back to back, one synchronisation at the end), `scripts/bench_filter_step.py` with `--likelihood gaussian "
+            "--m-side 10 20` (CPU) or `--m-side 20` (H100); N is filters × particles. Sources: "
+            + ", ".join(sources) + ".\n\n" + "\n".join(lines))
 
 
 def map_error_block() -> str:

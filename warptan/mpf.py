@@ -1,42 +1,45 @@
 """The marginalized particle filter on the device, open- or closed-loop INS correction (SPEC §6, §6b; paper §IV).
 
 Nonlinear state ``s^n = dp`` (3, N particles on the device); linear state ``s^l = [dv, dth, dba, dbg]``
-(12), one Kalman mean per particle on the device and one shared 12×12 covariance ``P`` on the host
-(float64): ``A^n``, ``A^l`` and ``Q`` do not depend on the particle, so the time update of ``P`` does not.
+(12), one Kalman mean per particle and one shared 12×12 covariance ``P`` per filter (float64), all on the device:
+``A^n``, ``A^l`` and ``Q`` do not depend on the particle, so the time update of ``P`` does not.
 
 Measurement update of the linear states (C ≠ 0, SPEC §6b; ``measurement_update``): the point cloud sees the
 attitude. Every model returns, per particle, the information its residuals (at the particle's own pose, its dθ
-applied) carry on dθ: ``Λ_i = Σ_j H_jᵀ H_j / σ_att²``, ``b_i = Σ_j H_jᵀ r_j / σ_att²`` (H_j the prediction's Jacobian
-w.r.t. dθ; velocity and biases do not enter a prediction). In the tempering stage that applies the last of the
-update's exponent each particle takes its own gain against the shared prior, ``l_i += P_:θ (I + Λ_i A)⁻¹ b_i``
+applied) carry on dθ: ``Λ_i = Σ_j H_jᵀ H_j / σ_att²``, ``b_i = Σ_j H_jᵀ r_j / σ_att²`` (H_j the prediction's
+Jacobian w.r.t. dθ; velocity and biases do not enter a prediction). In the tempering stage that applies the last of
+the update's exponent each particle takes its own gain against the shared prior, ``l_i += P_:θ (I + Λ_i A)⁻¹ b_i``
 (A = P_θθ; 3×3 work per particle whatever the number of points), before that stage's resampling (a resampled
-particle carries its ancestor's updated mean; without jitter the order is immaterial, with it the "l | dp
-locally constant" choice below applies); the weights are the marginal ``N(r_i; 0, H_i A H_iᵀ + R)`` (the
-likelihood kernels' attitude marginal). The shared P is then updated once, on the host, with the weighted mean
-information of the particles, ``P⁺ = P - P_:θ Λ̄ (I + A Λ̄)⁻¹ P_θ:`` (Λ̄ ≈ Λ at the weighted mean pose), read
-back with the rest of the update's feedback before the next interval (one (B, 23) copy: a host sync per update
-on CUDA). Our choice is one shared P, not one per particle: a per-particle P needs a 12×12 Riccati per particle
-and IMU sample on the device (its N_k and L_k would differ per particle), and the shared P already gives honest
-attitude bounds where the terrain informs the attitude (H100, 20 seeds, ``results/paper/gaussian``: attitude
-3σ coverage 74–100 % outside S3 and the flat-terrain yaw of S11, mean σ/RMSE 0.5–1.6; S2 converged position
-0.69/0.79 m against 5.96/7.92 m with C = 0). A per-particle P was not built or measured. Where the shared P's
-bound lies (S11 yaw over flat terrain: 36 % coverage, σ/RMSE 0.33; S3 ray casts) the cause is not known yet;
-our untested guess for S11 is a yaw that near-planar terrain confounds with cross-track position, which the
-jitter (l kept through it) does not carry into the particles' Kalman means.
+particle carries its ancestor's updated mean; without jitter the order is immaterial, with it the "l | dp locally
+constant" choice below applies); the weights are the marginal ``N(r_i; 0, H_i A H_iᵀ + R)`` (the likelihood kernels'
+attitude marginal). The shared P is then updated once, on the device at the end of the update
+(``covariance_update_kernel``), with the weighted mean information of the particles, ``P⁺ = P - P_:θ Λ̄ (I + A Λ̄)⁻¹
+P_θ:`` (Λ̄ ≈ Λ at the weighted mean pose). Our choice is one shared P, not one per particle: a per-particle P needs
+a 12×12 Riccati per particle and IMU sample on the device (its N_k and L_k would differ per particle), and the
+shared P already gives honest attitude bounds where the terrain informs the attitude (H100, 20 seeds,
+``results/paper/gaussian``: attitude 3σ coverage 74–100 % outside S3 and the flat-terrain yaw of S11, mean σ/RMSE
+0.5–1.6; S2 converged position 0.69/0.79 m against 5.96/7.92 m with C = 0). A per-particle P was not built or
+measured. Where the shared P's bound lies (S11 yaw over flat terrain: 36 % coverage, σ/RMSE 0.33; S3 ray casts) the
+cause is not known yet; our untested guess for S11 is a yaw that near-planar terrain confounds with cross-track
+position, which the jitter (l kept through it) does not carry into the particles' Kalman means.
 
-Closed loop (``closed_loop``): after each update of a filter its integrity monitor has judged consistent, the
-host injects the weighted mean error into the nominal INS (position, velocity, attitude ``q ⊗ Exp(θ̂)``, biases),
-every particle's error is reset relative to the new nominal on the device (its total state unchanged, the
-attitude composed exactly), and ``P <- G P Gᵀ``, ``G = diag(I, I - [θ̂/2]×, I, I)`` (Solà 2017 §6.3). Measured
-(H100, 20 seeds, all scenarios, ``results/closed_loop``): the same accuracy as open loop within the intervals in
-11 scenarios and one divergent seed in S12 (altimeter, flat terrain); the default is open loop.
+Closed loop (``closed_loop``): after each update of a filter its integrity monitor has judged consistent, a kernel
+at the end of the update injects the weighted mean error into the nominal INS (position, velocity, attitude ``q ⊗
+Exp(θ̂)``, biases), every particle's error is reset relative to the new nominal on the device (its total state
+unchanged, the attitude composed exactly), and ``P <- G P Gᵀ``, ``G = diag(I, I - [θ̂/2]×, I, I)`` (Solà 2017 §6.3).
+Measured (H100, 20 seeds, all scenarios, ``results/closed_loop``): the same accuracy as open loop within the
+intervals in 11 scenarios and one divergent seed in S12 (altimeter, flat terrain); the default is open loop.
 
-Per IMU sample (``predict``) the host only buffers the sample. Per measurement (``update``):
+Per IMU sample (``predict``) the host only buffers the sample (into one of two pinned staging sets on CUDA,
+alternating per interval, so that the host fills one while the device's graph copies the other; an event per set
+says when it is free again). Per measurement (``update``), all on the device, no host decision, captured as one
+graph on CUDA:
 
-1. host, one CPU kernel (:mod:`warptan.kernels.nav`): the buffered samples run through the nominal INS and
-   the Riccati recursion (``N_k``, ``L_k``, ``P``), and the K steps a particle would take are composed into
-   one affine map with Gaussian noise (``Φ``, ``chol S``) — the same distribution as K separate moves;
-2. device, no host decision: every particle moves, the model scores its pose, and the log-likelihood is
+1. one kernel (:mod:`warptan.kernels.nav`, float64, one thread per filter): the buffered samples run through the
+   nominal INS and the Riccati recursion (``N_k``, ``L_k``, ``P``), and the K steps a particle would take are
+   composed into one affine map with Gaussian noise (``Φ``, ``chol S``) — the same distribution as K separate
+   moves;
+2. every particle moves, the model scores its pose, and the log-likelihood is
    applied in tempering stages (progressive correction, Oudjane & Musso 2000; SPEC §6b): each stage applies
    the largest exponent ``γ`` of what remains that keeps ESS ≥ ``temper_ess · n`` (chosen on the device from
    20 geometric candidates by streaming log-sum-exp reductions), normalises per filter, and resamples when
@@ -48,14 +51,16 @@ Per IMU sample (``predict``) the host only buffers the sample. Per measurement (
    Measured (8 seeds, 120 s, per-point likelihood): s = 0 lets the covariance grow by 1 + h² per resampling and
    over flat terrain, where nothing contracts it, the altimeter run S12 drifted 2–3 km; s = 1 keeps the
    covariance exactly and the flat point-cloud run S11 became overconfident (3σ coverage 62/47 %, RMSE
-   4.0/6.4 m); s = 0.5 gave S11 2.1/2.0 m at 97/98 % and S12 20/18 m at 99/100 %. Then the integrity monitor
-   and the update's record.
+   4.0/6.4 m); s = 0.5 gave S11 2.1/2.0 m at 97/98 % and S12 20/18 m at 99/100 %. Then the integrity monitor,
+   the update's record, P's measurement update and (closed loop) the injection.
 
-Step 2 is a fixed sequence of launches on persistent buffers (``max_stages`` stages; a filter that is done
-ignores the later ones), so it is captured once as a graph and replayed (CUDA, and the CPU where Warp replays
-graphs in C++); eagerly on the CPU, stages no filter needs are not launched, with the same result. Host work
-per step does not depend on the number of particles; a batch of B filters (independent seeds, same model)
-shares every launch.
+Steps 1–2 are a fixed sequence of copies and launches on persistent buffers (``max_stages`` stages; a filter that is
+done ignores the later ones), so it is captured as a graph (one per staging set) and replayed (CUDA, and the CPU
+where Warp replays graphs in C++); eagerly on the CPU, stages no filter needs are not launched, with the same
+result. Host work per step does not depend on the number of particles; a batch of B filters (independent seeds, same
+model) shares every launch. Measured on an H100 (N = 500, M = 400, gaussian,
+``benchmarks/filter_step_device_h100.json``): sliding 0.77 ms, dda 0.95 ms per synchronised step, 0.52 / 0.70 ms
+pipelined; with the nav interval on the host and P's update read back per update it was 2.16 / 1.67 ms.
 
 ``A^n`` and ``A^l`` are blocks of the INS error transition of :func:`warptan.ins.error_transition`
 (exact Jacobian: ``A^n = [dt I, 0.5 dt² (-R[a]x), 0.5 dt² (-R), 0]``; SPEC's ``[dt I, 0]`` plus the
