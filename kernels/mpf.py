@@ -17,6 +17,7 @@ can be captured in a graph.
 import warp as wp
 
 from warptan.kernels.frames import quat_exp_wxyz, quat_log_wxyz, quat_mul_wxyz
+from warptan.kernels.nav import block_of, quat_mul_exp_d, skew_d
 
 wp.set_module_options({"enable_backward": False})
 
@@ -907,46 +908,6 @@ def summary_kernel(params: UpdateParams, partial_in: wp.array3d(dtype=wp.float64
         history[t, b, H_VAR_L + a] = wp.max(tot[22 + a] / s - mean * mean, wp.float64(0.0))
 
 
-@wp.func
-def sym6_d(f: wp.array2d(dtype=wp.float64), b: int, col: int) -> wp.mat33d:
-    """A symmetric 3×3 matrix from six columns (00 11 22 01 02 12) of row b."""
-    return wp.mat33d(f[b, col], f[b, col + 3], f[b, col + 4],
-                     f[b, col + 3], f[b, col + 1], f[b, col + 5],
-                     f[b, col + 4], f[b, col + 5], f[b, col + 2])
-
-
-@wp.func
-def quat_mul_exp_d(q: wp.vec4d, th: wp.vec3d) -> wp.vec4d:
-    """``q ⊗ Exp(θ)`` normalised (float64, [w, x, y, z])."""
-    angle = wp.length(th)
-    half = wp.float64(0.5)
-    ew = wp.cos(half * angle)
-    sc = half
-    if angle < wp.float64(1.0e-8):
-        ew = wp.float64(1.0) - angle * angle / wp.float64(8.0)
-        sc = half - angle * angle / wp.float64(48.0)
-    else:
-        sc = wp.sin(half * angle) / angle
-    ex = sc * th
-    nq = wp.vec4d(q[0] * ew - q[1] * ex[0] - q[2] * ex[1] - q[3] * ex[2],
-                  q[0] * ex[0] + q[1] * ew + q[2] * ex[2] - q[3] * ex[1],
-                  q[0] * ex[1] - q[1] * ex[2] + q[2] * ew + q[3] * ex[0],
-                  q[0] * ex[2] + q[1] * ex[1] - q[2] * ex[0] + q[3] * ew)
-    return nq / wp.length(nq)
-
-
-@wp.func
-def pick4(k: int, m0: wp.mat33d, m1: wp.mat33d, m2: wp.mat33d, m3: wp.mat33d) -> wp.mat33d:
-    """The k-th of four blocks held in locals."""
-    if k == 1:
-        return m1
-    if k == 2:
-        return m2
-    if k == 3:
-        return m3
-    return m0
-
-
 @wp.kernel
 def covariance_update_kernel(
     measurement_update: int,
@@ -985,16 +946,16 @@ def covariance_update_kernel(
         for a in range(4):
             nominal_hist[t, b, 6 + a] = quat[b][a]
     if measurement_update != 0:
-        lam = sym6_d(feedback, b, FB_LAM)
+        lam = sym_from(feedback, b, FB_LAM)
         gain = lam * wp.inverse(wp.identity(n=3, dtype=wp.float64) + cov[b, 1, 1] * lam)
         c0 = cov[b, 0, 1]
         c1 = cov[b, 1, 1]
         c2 = cov[b, 2, 1]
         c3 = cov[b, 3, 1]
         for r in range(4):
-            lg = pick4(r, c0, c1, c2, c3) * gain
+            lg = block_of(r, c0, c1, c2, c3, c3) * gain  # P_:θ's blocks, read before any is overwritten
             for c in range(4):
-                cov[b, r, c] = cov[b, r, c] - lg * wp.transpose(pick4(c, c0, c1, c2, c3))
+                cov[b, r, c] = cov[b, r, c] - lg * wp.transpose(block_of(c, c0, c1, c2, c3, c3))
         half = wp.float64(0.5)
         for r in range(4):
             for c in range(r, 4):
@@ -1017,9 +978,7 @@ def covariance_update_kernel(
     quat[b] = quat_mul_exp_d(quat[b], th)
     accel_bias[b] = accel_bias[b] + wp.vec3d(l_hat[6], l_hat[7], l_hat[8])
     gyro_bias[b] = gyro_bias[b] + wp.vec3d(l_hat[9], l_hat[10], l_hat[11])
-    z = wp.float64(0.0)
-    g = wp.identity(n=3, dtype=wp.float64) - wp.float64(0.5) * wp.mat33d(z, -th[2], th[1], th[2], z, -th[0],
-                                                                            -th[1], th[0], z)
+    g = wp.identity(n=3, dtype=wp.float64) - wp.float64(0.5) * skew_d(th)
     for c in range(4):
         cov[b, 1, c] = g * cov[b, 1, c]
     for r in range(4):

@@ -77,6 +77,29 @@ def apply_l(x1: wp.mat33d, x2: wp.mat33d, x3: wp.mat33d, x4: wp.mat33d, a: wp.ma
 
 
 @wp.func
+def quat_mul_exp_d(q: wp.vec4d, th: wp.vec3d) -> wp.vec4d:
+    """``q ⊗ Exp(θ)`` normalised (float64, [w, x, y, z]; series below 1e-8 rad)."""
+    half = wp.float64(0.5)
+    angle = wp.length(th)
+    ha = half * angle
+    ew = wp.cos(ha)
+    sc = half
+    if angle < wp.float64(1.0e-8):
+        ew = wp.float64(1.0) - angle * angle / wp.float64(8.0)
+        sc = half - angle * angle / wp.float64(48.0)
+    else:
+        sc = wp.sin(ha) / angle
+    ex = sc * th
+    nq = wp.vec4d(
+        q[0] * ew - q[1] * ex[0] - q[2] * ex[1] - q[3] * ex[2],
+        q[0] * ex[0] + q[1] * ew + q[2] * ex[2] - q[3] * ex[1],
+        q[0] * ex[1] - q[1] * ex[2] + q[2] * ew + q[3] * ex[0],
+        q[0] * ex[2] + q[1] * ex[1] - q[2] * ex[0] + q[3] * ew,
+    )
+    return nq / wp.length(nq)
+
+
+@wp.func
 def block_of(k: int, m0: wp.mat33d, m1: wp.mat33d, m2: wp.mat33d, m3: wp.mat33d, m4: wp.mat33d) -> wp.mat33d:
     """The k-th of five blocks (a block column held in locals)."""
     if k == 1:
@@ -220,22 +243,7 @@ def nav_interval_kernel(
         an = rot * acc + wp.vec3d(wp.float64(0.0), wp.float64(0.0), wp.float64(GRAVITY_D))
         p = p + v * dt + half * dt * dt * an
         v = v + an * dt
-        ha = half * angle
-        ew = wp.cos(ha)
-        sc = half
-        if angle < wp.float64(1.0e-8):
-            ew = wp.float64(1.0) - angle * angle / wp.float64(8.0)
-            sc = half - angle * angle / wp.float64(48.0)
-        else:
-            sc = wp.sin(ha) / angle
-        ex = sc * wdt
-        nq = wp.vec4d(
-            q[0] * ew - q[1] * ex[0] - q[2] * ex[1] - q[3] * ex[2],
-            q[0] * ex[0] + q[1] * ew + q[2] * ex[2] - q[3] * ex[1],
-            q[0] * ex[1] - q[1] * ex[2] + q[2] * ew + q[3] * ex[0],
-            q[0] * ex[2] + q[1] * ex[1] - q[2] * ex[0] + q[3] * ew,
-        )
-        q = nq / wp.length(nq)
+        q = quat_mul_exp_d(q, wdt)
     pos[b] = p
     vel[b] = v
     quat[b] = q
