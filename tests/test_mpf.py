@@ -607,6 +607,7 @@ def test_closed_loop_injection_keeps_every_particle_total_state(rugged):
                                      prior_linear_cov(InitialErrors((20.0, 20.0, 5.0), 0.3, (0.2, 0.2, 0.5)),
                                                       ImuModel("tactical", 100.0)),
                                      n_particles=400, seed=2, integrity_window=2, closed_loop=True)
+    mpf._recorder = None  # launch every kernel anew, so that the hook below runs in every update
     snapshots = []  # every particle's total state just before the update's feedback (eager CPU launches)
     feedback = mpf._launch_feedback
 

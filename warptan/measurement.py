@@ -35,7 +35,7 @@ import warp as wp
 from warptan.kernels import likelihood as klik
 from warptan.kernels import raycast as kray
 from warptan.kernels import sliding as kslide
-from warptan.parallel import launch_rows, rows_of
+from warptan.parallel import launch, launch_rows, rows_of
 from warptan.raycast import RayCaster, check_same_device
 from warptan.sensors import AltimeterReading, PointCloud
 
@@ -162,6 +162,8 @@ class MeasurementModel:
 
     name = "base"
     err_kind = klik.ERR_MEAN_ABS
+    recordable = True
+    """Launches only through :mod:`warptan.parallel` (its launches can be recorded and replayed on the CPU)."""
     reading_type: type = PointCloud
 
     def __init__(self, terrain, likelihood: Likelihood | None = None):
@@ -416,7 +418,7 @@ class AltimeterModel(MeasurementModel):
         return valid.astype(np.int64)
 
     def _launch(self, pos_n, quat_nb, out, device):
-        wp.launch(kslide.altimeter_loglik_kernel, dim=pos_n.shape[0],
+        launch(kslide.altimeter_loglik_kernel, dim=pos_n.shape[0],
                   inputs=[self.n_per, self.terrain.grid(device), int(self.surface), int(self.use_baro), pos_n,
                           self._staged, self._params],
                   outputs=[out.residual_m, out.error_m, out.loglik, out.nis, out.n_valid, out.lam, out.info],

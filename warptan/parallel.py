@@ -5,6 +5,12 @@ pool run in parallel. Every chunk computes disjoint rows with the same code, so 
 to a single launch. On CUDA, or for small work, it is one ordinary launch.
 
 ``WARPTAN_CPU_THREADS`` sets the number of threads (default: the number of cores; 1 disables splitting).
+
+Replayed launches (:class:`Recorder`): ``wp.launch`` packs every argument into C structs on every call (tens of
+microseconds per launch on the CPU, the larger part of a small filter step). A fixed sequence of launches through
+:func:`launch` and :func:`launch_rows` is recorded once as ``warp.Launch`` commands (arguments packed once) and then
+replayed, the row splits kept (chunks replayed on the thread pool), so unlike a captured CPU graph, which runs on
+one thread, a large step keeps its cores. The same kernels on the same arguments: the results are bit-identical.
 """
 
 from __future__ import annotations
@@ -22,6 +28,8 @@ _POOL: ThreadPoolExecutor | None = None
 _POOL_SIZE = 0
 _LOADED: set = set()
 _CORES = max(1, os.cpu_count() or 1)
+_RECORDING: list | None = None
+"""The sequence being recorded by a :class:`Recorder`, else None."""
 
 
 def cpu_threads() -> int:
@@ -51,11 +59,26 @@ def rows_of(array, a: int | None, b: int | None):
     return array if a is None else array[a:b]
 
 
-def _launch(kernel, rows: int, cols: int | None, block_dim: int | None, inputs, outputs, device) -> None:
+def _launch(kernel, rows: int, cols: int | None, block_dim: int | None, inputs, outputs, device, record: bool):
+    dim = rows if cols is None else (rows, cols)
     if block_dim is not None:
-        wp.launch_tiled(kernel, dim=[rows], inputs=inputs, outputs=outputs, block_dim=block_dim, device=device)
+        return wp.launch_tiled(kernel, dim=[rows], inputs=inputs, outputs=outputs, block_dim=block_dim, device=device,
+                               record_cmd=record)
+    return wp.launch(kernel, dim=dim, inputs=inputs, outputs=outputs, device=device, record_cmd=record)
+
+
+def launch(kernel, dim, inputs=(), outputs=(), device=None, block_dim: int | None = None) -> None:
+    """``wp.launch`` (``wp.launch_tiled`` over ``dim`` with ``block_dim``), recorded while a :class:`Recorder`
+    records."""
+    record = _RECORDING is not None
+    if block_dim is not None:
+        cmd = wp.launch_tiled(kernel, dim=list(dim), inputs=list(inputs), outputs=list(outputs), block_dim=block_dim,
+                              device=device, record_cmd=record)
     else:
-        wp.launch(kernel, dim=rows if cols is None else (rows, cols), inputs=inputs, outputs=outputs, device=device)
+        cmd = wp.launch(kernel, dim=dim, inputs=list(inputs), outputs=list(outputs), device=device, record_cmd=record)
+    if record:
+        cmd.launch()
+        _RECORDING.append(cmd)
 
 
 def launch_rows(kernel, rows: int, args: Callable[[int, int], tuple[list, list]], device, cols: int | None = None,
@@ -81,9 +104,13 @@ def launch_rows(kernel, rows: int, args: Callable[[int, int], tuple[list, list]]
     chunks = 1
     if device.is_cpu and not device.is_capturing:  # a captured graph replays on one thread, in order
         chunks = min(n_threads, rows // MIN_ROWS_PER_CHUNK, work // MIN_WORK_PER_CHUNK)
+    record = _RECORDING is not None
     if chunks <= 1:
         inputs, outputs = args(None, None)
-        _launch(kernel, rows, cols, block_dim, inputs, outputs, device)
+        cmd = _launch(kernel, rows, cols, block_dim, inputs, outputs, device, record)
+        if record:
+            cmd.launch()
+            _RECORDING.append(cmd)
         return
     key = (kernel.module.name, device.alias)
     if key not in _LOADED:
@@ -91,12 +118,60 @@ def launch_rows(kernel, rows: int, args: Callable[[int, int], tuple[list, list]]
         _LOADED.add(key)
     bounds = [rows * k // chunks for k in range(chunks + 1)]
 
-    def run(k: int) -> None:
+    def run(k: int):
         a, b = bounds[k], bounds[k + 1]
         inputs, outputs = args(a, b)
-        _launch(kernel, b - a, cols, block_dim, inputs, outputs, device)
+        cmd = _launch(kernel, b - a, cols, block_dim, inputs, outputs, device, record)
+        if record:
+            cmd.launch()
+        return cmd
 
     futures = [_pool(n_threads).submit(run, k) for k in range(1, chunks)]
-    run(0)
+    cmds = [run(0)] + [f.result() for f in futures]
+    if record:
+        _RECORDING.append(tuple(cmds))
+
+
+def _replay_chunks(cmds: tuple) -> None:
+    pool = _POOL if _POOL is not None and _POOL_SIZE >= len(cmds) else _pool(len(cmds))
+    futures = [pool.submit(c.launch) for c in cmds[1:]]
+    cmds[0].launch()
     for f in futures:
         f.result()
+
+
+class Recorder:
+    """Sequences of launches recorded once and replayed (see the module docstring), keyed by the caller.
+
+    ``run(key, fn)`` calls ``fn()`` the first time (recording every launch it makes through :func:`launch` and
+    :func:`launch_rows`) and replays the recording afterwards. ``fn`` must make the same launches on the same
+    arrays every time (no host decision inside it, no launch around these helpers); :meth:`clear` drops the
+    recordings, e.g. when an array they hold was replaced."""
+
+    def __init__(self):
+        self._seqs: dict = {}
+
+    def clear(self) -> None:
+        self._seqs.clear()
+
+    def __len__(self) -> int:
+        return len(self._seqs)
+
+    def run(self, key, fn) -> None:
+        global _RECORDING
+        seq = self._seqs.get(key)
+        if seq is not None:
+            for cmd in seq:
+                if isinstance(cmd, tuple):
+                    _replay_chunks(cmd)
+                else:
+                    cmd.launch()
+            return
+        if _RECORDING is not None:
+            raise RuntimeError("Recorder.run: already recording (nested recordings are not supported)")
+        _RECORDING = []
+        try:
+            fn()
+            self._seqs[key] = _RECORDING
+        finally:
+            _RECORDING = None
