@@ -102,6 +102,8 @@ def main(argv=None) -> int:
     parser.add_argument("--no-baro-runs", action="store_true", help="skip the altitude-observability runs")
     parser.add_argument("--no-plots", action="store_true")
     parser.add_argument("--batch", action="store_true", help="run the seeds of a scenario as one batched filter")
+    parser.add_argument("--surface", choices=("triangles", "bilinear"), default=None,
+                        help="what the sliding and altimeter models read (default: the scenario files')")
     parser.add_argument("--closed-loop", action="store_true",
                         help="inject the converged estimate into the INS after every update (default: open loop)")
     parser.add_argument("--no-measurement-update", action="store_true",
@@ -161,7 +163,7 @@ def run_one(args, out: Path, likelihood: str | None) -> int:
     """Every scenario (and the no-barometer runs) with ``likelihood`` (None: the files'), outputs into ``out``."""
     wt.device.quiet_warp()
     overrides = {"particles": args.particles, "duration_s": args.duration_s, "paper_rates": args.paper_rates,
-                 "likelihood": likelihood, "closed_loop": True if args.closed_loop else None,
+                 "likelihood": likelihood, "surface": args.surface, "closed_loop": True if args.closed_loop else None,
                  "measurement_update": False if args.no_measurement_update else None}
     try:
         wt.resolve_device(args.device)

@@ -68,7 +68,8 @@ def _run(args) -> int:
     duration = args.duration_s or (60.0 if demo else None)
     seeds = args.seeds or 1
     out_dir = args.out or ("warptan-demo" if demo else "warptan-results")
-    overrides = {"particles": args.particles, "backend": args.backend, "likelihood": args.likelihood,
+    overrides = {"particles": args.particles, "backend": args.backend, "surface": args.surface,
+                 "likelihood": args.likelihood,
                  "duration_s": duration, "paper_rates": args.paper_rates,
                  "use_baro": False if args.no_baro else None, "map_path": args.map,
                  "map_spacing_m": args.map_spacing_m, "map_noise_m": args.map_noise_m, "map_bias_m": args.map_bias_m}
@@ -167,6 +168,9 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--particles", type=int, default=None, help="override the particle count")
     run.add_argument("--backend", default=None, help="ray-cast backend: dda, mesh, bisection")
     run.add_argument("--likelihood", default=None, help="paper, gaussian or student_t")
+    run.add_argument("--surface", default=None,
+                     help="what the sliding and altimeter models read: triangles (the map's triangulated surface) or "
+                          "bilinear")
     run.add_argument("--terrain", default=None,
                      help="the world of every scenario: rugged, rugged30 (30 m San Gabriel tile), flat, a DEM path "
                           "or synthetic:KIND (default: the scenario's)")

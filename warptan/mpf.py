@@ -55,14 +55,14 @@ graph on CUDA:
    the update's record, P's measurement update and (closed loop) the injection.
 
 Steps 1–2 are a fixed sequence of copies and launches on persistent buffers (``max_stages`` stages; a filter that is
-done ignores the later ones), so it is captured as a graph (one per staging set) and replayed (CUDA; ``graph=True`` on the
-CPU, where Warp replays it on one thread). The CPU default is eager: stages no filter needs are not launched (the
+done ignores the later ones), so it is captured as a graph (one per staging set) and replayed (CUDA; ``graph=True`` on
+the CPU, where Warp replays it on one thread). The CPU default is eager: stages no filter needs are not launched (the
 host reads the flags, free on the CPU), with the same result, and the fixed pieces between those decisions replay
 launches recorded once with their arguments packed (:class:`warptan.parallel.Recorder`: packing cost ~40 µs per
 launch, a third of a small step; the row splits over cores are kept, which a CPU graph loses). Measured A/B on this
 2-core VM (N = 500, M = 100, gaussian, 4 × 40 steps interleaved): sliding 2.29 vs 3.50 ms, dda 6.05 vs 7.41 ms per
-step; N = 5000 sliding 14.1 vs 14.4 ms. Host work per step does not depend on the number of particles; a batch of B filters (independent seeds, same
-model) shares every launch. Measured on an H100 (N = 500, M = 400, gaussian,
+step; N = 5000 sliding 14.1 vs 14.4 ms. Host work per step does not depend on the number of particles; a batch of B
+filters (independent seeds, same model) shares every launch. Measured on an H100 (N = 500, M = 400, gaussian,
 ``benchmarks/filter_step_device_h100.json``): sliding 0.77 ms, dda 0.95 ms per synchronised step, 0.52 / 0.70 ms
 pipelined; with the nav interval on the host and P's update read back per update it was 2.16 / 1.67 ms.
 

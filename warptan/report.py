@@ -42,7 +42,7 @@ def aggregate(results) -> dict[str, dict]:
         cfg = runs[0].config
         out[sid] = {
             "seeds": [r.seed for r in runs], "terrain": runs[0].terrain, "device": runs[0].device,
-            "model": cfg["sensor"]["model"], "backend": cfg["sensor"]["backend"],
+            "model": cfg["sensor"]["model"], "backend": cfg["sensor"]["backend"], "surface": cfg["sensor"]["surface"],
             "likelihood": cfg["likelihood"]["kind"], "imu": cfg["imu"]["grade"], "bank_deg": cfg["flight"]["bank_deg"],
             "altitude_rule": cfg["flight"]["altitude_rule"], "particles": cfg["filter"]["particles"],
             "meas_rate_hz": cfg["sensor"]["rate_hz"], "use_baro": cfg["sensor"]["use_baro"],

@@ -54,6 +54,9 @@ except ModuleNotFoundError:  # Python 3.10
 
 SCENARIO_IDS = tuple(f"S{i}" for i in range(1, 13))
 TERRAIN_KINDS = (*NAMED_TERRAINS, "path")
+SURFACES = ("triangles", "bilinear")
+"""What the sliding and altimeter models read from the map: its triangulated surface (the surface ray casts
+see, and the simulated world when the map is the world) or the bilinear interpolant of its posts."""
 
 
 class ScenarioError(ValueError):
@@ -112,6 +115,7 @@ SCHEMA: dict[str, dict[str, tuple[type | tuple, object]]] = {
     "sensor": {
         "model": (str, _one_of(tuple(MODELS))),
         "backend": (str, _one_of(tuple(BACKENDS))),
+        "surface": (str, _one_of(SURFACES)),
         "rate_hz": (float, _pos),
         "scan_nx": (int, _pos),
         "scan_ny": (int, _pos),
@@ -160,6 +164,7 @@ OVERRIDES = {
     "particles": ("filter", "particles"),
     "duration_s": ("flight", "duration_s"),
     "backend": ("sensor", "backend"),
+    "surface": ("sensor", "surface"),
     "likelihood": ("likelihood", "kind"),
     "model": ("sensor", "model"),
     "meas_rate_hz": ("sensor", "rate_hz"),
@@ -568,6 +573,8 @@ def run_scenario_batch(name_or_path, seeds, device="cpu", progress=None, **overr
     likelihood = scenario_likelihood(config, the_map, truth_terrain)
     model_kwargs = {"use_baro": s["use_baro"], "baro_sigma_m": max(s["baro_sigma_m"], 0.1)} \
         if s["model"] == "altimeter" else {}
+    if s["model"] != "raycast":
+        model_kwargs["surface"] = s["surface"] == "triangles"
     model = make_model(s["model"], the_map, likelihood, backend=s["backend"], **model_kwargs)
     if s["model"] == "altimeter":
         sensor = RadarAltimeter(s["altimeter_sigma_m"])
