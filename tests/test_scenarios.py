@@ -219,3 +219,14 @@ def test_world_not_map_run_reports_the_map():
     s = r.summary()
     assert s["terrain"].startswith("rugged30:") and "block mean 3×3" in s["map"] and s["map_sigma_m"] > 4.0
     assert np.isfinite(r.run.est_pos).all()
+
+
+def test_surface_key_reaches_the_model():
+    """``sensor.surface`` picks what the sliding model reads: on triangles (the world's own surface here) its
+    calibrated σ has no bilinear-vs-triangles mismatch; a bad value is an error naming the key."""
+    terrain = "synthetic:rugged,size_m=12000,spacing=40,seed=2"
+    sig = {s: wt.scenarios.run_scenario("S8", seed=1, terrain=terrain, particles=200, duration_s=1.0,
+                                        surface=s).run.info["sigma_m"] for s in ("triangles", "bilinear")}
+    assert sig["triangles"] < sig["bilinear"], sig
+    with pytest.raises(wt.scenarios.ScenarioError, match=re.escape("sensor.surface")):
+        wt.scenarios.load_config("S8", surface="cubic")
