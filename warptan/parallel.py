@@ -59,25 +59,25 @@ def rows_of(array, a: int | None, b: int | None):
     return array if a is None else array[a:b]
 
 
-def _launch(kernel, rows: int, cols: int | None, block_dim: int | None, inputs, outputs, device, record: bool):
-    dim = rows if cols is None else (rows, cols)
+def _issue(kernel, dim, block_dim: int | None, inputs, outputs, device, record: bool):
+    """One launch (``wp.launch_tiled`` with ``block_dim``); with ``record`` it is made as a ``warp.Launch``, run now
+    and returned."""
     if block_dim is not None:
-        return wp.launch_tiled(kernel, dim=[rows], inputs=inputs, outputs=outputs, block_dim=block_dim, device=device,
-                               record_cmd=record)
-    return wp.launch(kernel, dim=dim, inputs=inputs, outputs=outputs, device=device, record_cmd=record)
-
-
-def launch(kernel, dim, inputs=(), outputs=(), device=None, block_dim: int | None = None) -> None:
-    """``wp.launch`` (``wp.launch_tiled`` over ``dim`` with ``block_dim``), recorded while a :class:`Recorder`
-    records."""
-    record = _RECORDING is not None
-    if block_dim is not None:
-        cmd = wp.launch_tiled(kernel, dim=list(dim), inputs=list(inputs), outputs=list(outputs), block_dim=block_dim,
+        dims = list(dim) if isinstance(dim, (list, tuple)) else [dim]
+        cmd = wp.launch_tiled(kernel, dim=dims, inputs=list(inputs), outputs=list(outputs), block_dim=block_dim,
                               device=device, record_cmd=record)
     else:
         cmd = wp.launch(kernel, dim=dim, inputs=list(inputs), outputs=list(outputs), device=device, record_cmd=record)
     if record:
         cmd.launch()
+    return cmd
+
+
+def launch(kernel, dim, inputs=(), outputs=(), device=None, block_dim: int | None = None) -> None:
+    """``wp.launch`` (``wp.launch_tiled`` over ``dim`` with ``block_dim``), recorded while a :class:`Recorder`
+    records."""
+    cmd = _issue(kernel, dim, block_dim, inputs, outputs, device, _RECORDING is not None)
+    if _RECORDING is not None:
         _RECORDING.append(cmd)
 
 
@@ -104,14 +104,11 @@ def launch_rows(kernel, rows: int, args: Callable[[int, int], tuple[list, list]]
     chunks = 1
     if device.is_cpu and not device.is_capturing:  # a captured graph replays on one thread, in order
         chunks = min(n_threads, rows // MIN_ROWS_PER_CHUNK, work // MIN_WORK_PER_CHUNK)
-    record = _RECORDING is not None
     if chunks <= 1:
         inputs, outputs = args(None, None)
-        cmd = _launch(kernel, rows, cols, block_dim, inputs, outputs, device, record)
-        if record:
-            cmd.launch()
-            _RECORDING.append(cmd)
+        launch(kernel, rows if cols is None else (rows, cols), inputs, outputs, device, block_dim)
         return
+    record = _RECORDING is not None
     key = (kernel.module.name, device.alias)
     if key not in _LOADED:
         wp.load_module(kernel.module, device=device)  # compile once, before the threads
@@ -121,10 +118,7 @@ def launch_rows(kernel, rows: int, args: Callable[[int, int], tuple[list, list]]
     def run(k: int):
         a, b = bounds[k], bounds[k + 1]
         inputs, outputs = args(a, b)
-        cmd = _launch(kernel, b - a, cols, block_dim, inputs, outputs, device, record)
-        if record:
-            cmd.launch()
-        return cmd
+        return _issue(kernel, b - a if cols is None else (b - a, cols), block_dim, inputs, outputs, device, record)
 
     futures = [_pool(n_threads).submit(run, k) for k in range(1, chunks)]
     cmds = [run(0)] + [f.result() for f in futures]
