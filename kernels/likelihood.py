@@ -77,6 +77,9 @@ class LikParams:
     nu: float
     k_out: float
     att_scale: float  # (σ / σ_att)² ≤ 1: the share of Λ, b the Kalman update of the attitude may use
+    pos_precision: float  # prior precision of the position (m⁻²) in the Schur complement; < 0: no projection
+    sigma_range: float  # the sensor's range σ, m (the sliding model's per-point σ)
+    sigma_map: float  # the vertical map part of σ, m (σ² = sigma_range² + sigma_map² for a nadir point)
 
 
 @wp.func
@@ -101,6 +104,9 @@ class Acc:
     sum_sq: float  # Σ min((r/σ)², k_out²)
     lam: wp.mat33  # Λ = Σ Hᵀ H / σ² (H: the prediction's Jacobian w.r.t. the attitude error dθ, m/rad)
     info: wp.vec3  # b = Σ Hᵀ r / σ²
+    lam_pp: wp.mat33  # Σ G Gᵀ / σ² (G: the prediction's Jacobian w.r.t. the position, 1)
+    lam_tp: wp.mat33  # Σ H Gᵀ / σ², m/rad
+    info_p: wp.vec3  # Σ Gᵀ r / σ², 1/m
 
 
 @wp.func
@@ -116,34 +122,44 @@ def acc_init() -> Acc:
     a.sum_sq = 0.0
     a.lam = wp.mat33()
     a.info = wp.vec3()
+    a.lam_pp = wp.mat33()
+    a.lam_tp = wp.mat33()
+    a.info_p = wp.vec3()
     return a
 
 
 @wp.func
-def acc_add(acc: Acc, p: LikParams, res: float, axis_w: wp.vec3, jac: wp.vec3) -> Acc:
-    """Add one predictable residual ``res`` (m, finite) with ``jac``, the prediction's Jacobian w.r.t. dθ
-    (m/rad)."""
+def acc_add(acc: Acc, p: LikParams, res: float, sigma: float, axis_w: wp.vec3, jac: wp.vec3, jac_pos: wp.vec3) -> Acc:
+    """Add one predictable residual ``res`` (m, finite) of standard deviation ``sigma`` (m; ``p.sigma`` unless the
+    model propagates the sensor's noise per point, which adds ``-log(sigma / p.sigma)``) with ``jac``, the
+    prediction's Jacobian w.r.t. dθ (m/rad), and ``jac_pos``, its Jacobian w.r.t. the position (dimensionless)."""
     a = acc
     r = wp.abs(res)
-    z = res / p.sigma
+    z = res / sigma
     a.n_ok = a.n_ok + 1
     a.sum_abs = a.sum_abs + r
     a.sum_axes = a.sum_axes + r * axis_w
     a.last = res
     a.sum_sq = a.sum_sq + wp.min(z * z, p.k_out * p.k_out)
-    a.ll_points = a.ll_points + point_loglik(p.lik, res, p.sigma, p.nu)
+    a.ll_points = a.ll_points + point_loglik(p.lik, res, sigma, p.nu)
+    if sigma != p.sigma:
+        a.ll_points = a.ll_points - wp.log(sigma / p.sigma)
     if p.lik != LIK_PAPER:  # the paper's scalar error is not a per-point model: its filter keeps C = 0
-        inv_var = 1.0 / (p.sigma * p.sigma)
+        inv_var = 1.0 / (sigma * sigma)
         if p.lik == LIK_STUDENT:
             inv_var = inv_var * (p.nu + 1.0) / (p.nu + z * z)
         a.lam = a.lam + wp.outer(jac, jac) * inv_var
         a.info = a.info + jac * (res * inv_var)
+        a.lam_pp = a.lam_pp + wp.outer(jac_pos, jac_pos) * inv_var
+        a.lam_tp = a.lam_tp + wp.outer(jac, jac_pos) * inv_var
+        a.info_p = a.info_p + jac_pos * (res * inv_var)
     return a
 
 
-acc_vec = wp.types.vector(length=18, dtype=wp.float32)
+acc_vec = wp.types.vector(length=36, dtype=wp.float32)
 """An :class:`Acc` as one vector (n_recv, n_ok, Σ|r|, Σ|r||d| (3), last, Σ log-density, Σ min(z², k²), Λ (6: 00 11
-22 01 02 12), b (3)) for the block reduction. Counts are exact in float32 up to 2^24 points; ``last`` is the sum of
+22 01 02 12), b (3), Σ GGᵀ (6), Σ HGᵀ (9, row-major), Σ G r (3)) for the block reduction. Counts are exact in
+float32 up to 2^24 points; ``last`` is the sum of
 the lanes' last residuals, the residual itself for the one-point measurement that uses it."""
 
 BLOCK_DIM = 64
@@ -172,6 +188,18 @@ def acc_pack(a: Acc) -> acc_vec:
     v[15] = a.info[0]
     v[16] = a.info[1]
     v[17] = a.info[2]
+    v[18] = a.lam_pp[0, 0]
+    v[19] = a.lam_pp[1, 1]
+    v[20] = a.lam_pp[2, 2]
+    v[21] = a.lam_pp[0, 1]
+    v[22] = a.lam_pp[0, 2]
+    v[23] = a.lam_pp[1, 2]
+    for r in range(3):
+        for c in range(3):
+            v[24 + 3 * r + c] = a.lam_tp[r, c]
+    v[33] = a.info_p[0]
+    v[34] = a.info_p[1]
+    v[35] = a.info_p[2]
     return v
 
 
@@ -188,6 +216,9 @@ def acc_unpack(v: acc_vec) -> Acc:
     a.sum_sq = v[8]
     a.lam = wp.mat33(v[9], v[12], v[13], v[12], v[10], v[14], v[13], v[14], v[11])
     a.info = wp.vec3(v[15], v[16], v[17])
+    a.lam_pp = wp.mat33(v[18], v[21], v[22], v[21], v[19], v[23], v[22], v[23], v[20])
+    a.lam_tp = wp.mat33(v[24], v[25], v[26], v[27], v[28], v[29], v[30], v[31], v[32])
+    a.info_p = wp.vec3(v[33], v[34], v[35])
     return a
 
 
@@ -256,6 +287,26 @@ def axis_weights(row: cloud_row) -> wp.vec3:
 
 
 @wp.func
+def attitude_information(acc: Acc, p: LikParams):
+    """(Λ, b) the Kalman update of the attitude reads, times ``att_scale``: with ``pos_precision ≥ 0`` the part of
+    the residuals' information on dθ that the position cannot explain, the Schur complement
+    ``Λ - Λ_θp (Λ_pp + π I)⁻¹ Λ_pθ``, ``b - Λ_θp (Λ_pp + π I)⁻¹ b_p`` (float64)."""
+    lam = wp.mat33d(acc.lam)
+    info = wp.vec3d(acc.info)
+    if p.pos_precision >= 0.0:
+        lpp = wp.mat33d(acc.lam_pp) + wp.identity(n=3, dtype=wp.float64) * wp.float64(p.pos_precision)
+        det = wp.determinant(lpp)
+        if det > wp.float64(0.0):
+            ltp = wp.mat33d(acc.lam_tp)
+            k = ltp * wp.inverse(lpp)
+            lam = lam - k * wp.transpose(ltp)
+            info = info - k * wp.vec3d(acc.info_p)
+            lam = wp.float64(0.5) * (lam + wp.transpose(lam))
+    s = wp.float64(p.att_scale)
+    return wp.mat33(lam * s), wp.vec3(info * s)
+
+
+@wp.func
 def acc_store(t: int, acc: Acc, params: LikParams, att_cov: wp.mat33, err_out: wp.array(dtype=wp.float32),
               loglik_out: wp.array(dtype=wp.float32), nis_out: wp.array(dtype=wp.float32),
               n_valid_out: wp.array(dtype=wp.int32), lam_out: wp.array(dtype=wp.mat33),
@@ -266,8 +317,9 @@ def acc_store(t: int, acc: Acc, params: LikParams, att_cov: wp.mat33, err_out: w
     loglik_out[t] = ll
     nis_out[t] = nis
     n_valid_out[t] = acc.n_ok
-    lam_out[t] = acc.lam * params.att_scale
-    info_out[t] = acc.info * params.att_scale
+    lam, info = attitude_information(acc, params)
+    lam_out[t] = lam
+    info_out[t] = info
 
 
 def per_particle_kernels(make):
@@ -284,6 +336,7 @@ def _reduce_loglik(tiled: bool):
         n_per: int,
         residual: wp.array2d(dtype=wp.float32),
         jacobian: wp.array2d(dtype=wp.vec3),
+        jacobian_pos: wp.array2d(dtype=wp.vec3),
         cloud: wp.array2d(dtype=cloud_row),
         att_cov: wp.array(dtype=wp.mat33),
         params: LikParams,
@@ -312,7 +365,7 @@ def _reduce_loglik(tiled: bool):
             if row[7] != 0.0:
                 acc.n_recv = acc.n_recv + 1
                 if not wp.isnan(res):
-                    acc = acc_add(acc, params, res, axis_weights(row), jacobian[t, j])
+                    acc = acc_add(acc, params, res, params.sigma, axis_weights(row), jacobian[t, j], jacobian_pos[t, j])
         if wp.static(tiled):
             acc = acc_block_sum(acc)
         if lane == 0:

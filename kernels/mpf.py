@@ -113,6 +113,7 @@ class UpdateParams:
     max_unpredictable: float  # skip the update when more than this fraction of the predictions is impossible
     integrity_window: int  # informative updates in the window mean of the smallest NIS (≤ MAX_WINDOW)
     integrity_threshold: float  # the filter is lost when the window mean exceeds this
+    gate_linear: int  # 1: the linear states' measurement update waits for the integrity monitor's consistent verdict
     integrity_min_updates: int  # informative updates (since the start / a re-spread) before it may be declared lost
     respread_chol: wp.mat33  # Cholesky factor of the re-spread covariance of dp, m
 
@@ -592,7 +593,9 @@ def sym_from(stats: wp.array2d(dtype=wp.float64), b: int, col: int) -> wp.mat33d
 @wp.kernel
 def kalman_update_kernel(
     n_per: int,
+    params: UpdateParams,
     stats: wp.array2d(dtype=wp.float64),
+    feedback: wp.array2d(dtype=wp.float64),
     p_col: wp.array2d(dtype=wp.mat33),
     lam: wp.array(dtype=wp.mat33),
     info: wp.array(dtype=wp.vec3),
@@ -602,10 +605,13 @@ def kalman_update_kernel(
     last of the filter's exponent (not in a skipped update): with the shared prior ``P``, ``A = P_θθ`` and the
     particle's own attitude information ``Λ_i``, ``b_i`` (its residuals at its own pose, scaled by the exponent
     applied), ``l_i += P_:θ (I + Λ_i A)⁻¹ b_i`` — 3×3 work per particle whatever the number of points.
-    ``p_col[b, r]`` is the block ``P_rθ`` of filter b (r = dv, dθ, dba, dbg)."""
+    ``p_col[b, r]`` is the block ``P_rθ`` of filter b (r = dv, dθ, dba, dbg). With ``params.gate_linear`` only in a
+    filter whose integrity monitor judged it consistent at the previous update (FB_CONVERGED)."""
     i = wp.tid()
     b = i // n_per
     if stats[b, ST_ACTIVE] == wp.float64(0.0) or stats[b, ST_REMAIN] > wp.float64(0.0):
+        return
+    if params.gate_linear != 0 and feedback[b, FB_CONVERGED] == wp.float64(0.0):
         return
     if stats[b, ST_SKIP] != wp.float64(0.0):
         return
@@ -870,8 +876,11 @@ def summary_kernel(params: UpdateParams, partial_in: wp.array3d(dtype=wp.float64
     if stats[b, ST_SKIP] != wp.float64(0.0):
         applied = wp.float64(0.0)
     feedback[b, FB_APPLIED] = applied
+    gate = wp.float64(1.0)  # the verdict the particles' Kalman update read (the previous update's), not yet renewed
+    if params.gate_linear != 0:
+        gate = feedback[b, FB_CONVERGED]
     for a in range(6):
-        feedback[b, FB_LAM + a] = applied * stats[b, ST_LAM + a]
+        feedback[b, FB_LAM + a] = gate * applied * stats[b, ST_LAM + a]
     for a in range(3):
         feedback[b, FB_MEAN_DP + a] = tot[1 + a] / s
     for a in range(12):

@@ -305,17 +305,20 @@ def raycast_residual_kernel(
     cloud: wp.array2d(dtype=cloud_row),
     residual_out: wp.array2d(dtype=wp.float32),
     jacobian_out: wp.array2d(dtype=wp.vec3),
+    jacobian_pos_out: wp.array2d(dtype=wp.vec3),
 ):
     """One thread per (particle i, point j): range residual ``r_j - t_ij`` (m); NaN where either is invalid.
     Particle ``row0 + i`` belongs to filter ``b = (row0 + i) // n_per`` and casts that filter's pattern.
 
     With ``c_j = r_j d_j`` and ``c^_ij = t_ij d_j`` the point residual is ``(r_j - t_ij) d_j`` (eq. 15).
     Also the range's derivative w.r.t. the attitude error (m/rad): with the surface ``F = z + h(n, e) = 0``,
-    ``∇F = (h_n, h_e, 1)`` at the hit and ``u = R d``, ``∂t/∂dθ = t ((Rᵀ∇F) × d) / (∇F · u)`` (SPEC §6b).
+    ``∇F = (h_n, h_e, 1)`` at the hit and ``u = R d``, ``∂t/∂dθ = t ((Rᵀ∇F) × d) / (∇F · u)`` (SPEC §6b), and w.r.t.
+    the position, ``∂t/∂p = -∇F / (∇F · u)``.
     """
     i, j = wp.tid()
     row = cloud[(row0 + i) // n_per, j]
     jacobian_out[i, j] = wp.vec3()
+    jacobian_pos_out[i, j] = wp.vec3()
     if row[7] == 0.0:
         residual_out[i, j] = wp.nan
         return
@@ -332,3 +335,4 @@ def raycast_residual_kernel(
         den = wp.dot(nrm, d)
         if wp.isfinite(den) and wp.abs(den) > 1.0e-3:
             jacobian_out[i, j] = (t / den) * wp.cross(wp.transpose(mat) * nrm, d_s)
+            jacobian_pos_out[i, j] = nrm * (-1.0 / den)

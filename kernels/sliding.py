@@ -40,6 +40,19 @@ def sliding_jacobian(mat: wp.mat33, c: wp.vec3, c_hat: wp.vec3, grad: wp.vec2) -
     return wp.cross(wp.vec3(0.0, 0.0, 1.0), c_hat) - wp.cross(wp.transpose(mat) * u, c)
 
 
+@wp.func
+def sliding_sigma(p: LikParams, g_z: float, slope_dot: float) -> float:
+    """σ of one sliding residual (m): range noise e along the ray ``u = R d`` moves the point by ``e u`` and the
+    map height under it, so the residual ``c_z - ĉ_z = g_z × (vertical gap)`` moves by ``g_z (∇F · u) e``
+    (``∇F = (h_n, h_e, 1)``, ``g_z = (R e₃)_z``); a vertical map error ``g_z`` times itself:
+    ``σ_j = |g_z| sqrt(σ_range² (∇F · u)² + σ_map²)``, with ``|g_z| ≥ 0.2`` and ``|∇F · u| ≥ 0.25`` (a ray
+    grazing the slope: the linear propagation no longer holds)."""
+    if p.sigma_range <= 0.0:
+        return p.sigma
+    geo = wp.max(wp.abs(slope_dot), 0.25)
+    return wp.max(wp.abs(g_z), 0.2) * wp.sqrt(p.sigma_range * p.sigma_range * geo * geo + p.sigma_map * p.sigma_map)
+
+
 def _sliding_loglik(tiled: bool):
     @wp.kernel
     def sliding_loglik_kernel(
@@ -86,7 +99,10 @@ def _sliding_loglik(tiled: bool):
                 c_hat = wp.transpose(mat) * (wp.vec3(w[0], w[1], -h) - p)
                 res = c[2] - c_hat[2]
                 if not wp.isnan(res):
-                    acc = acc_add(acc, params, res, ones, sliding_jacobian(mat, c, c_hat, grad))
+                    nabla = wp.vec3(grad[0], grad[1], 1.0)
+                    sigma = sliding_sigma(params, mat[2, 2], wp.dot(nabla, mat * wp.vec3(row[3], row[4], row[5])))
+                    acc = acc_add(acc, params, res, sigma, ones, sliding_jacobian(mat, c, c_hat, grad),
+                                  nabla * (-mat[2, 2]))  # ∂ĉ_z/∂p = -g_z ∇F
             residual_out[t, j] = res
         if wp.static(tiled):
             acc = acc_block_sum(acc)
@@ -134,7 +150,7 @@ def altimeter_loglik_kernel(
             alt = -p[2]
         res = r[0] - (alt - grid_height(grid, surface, p[0], p[1]))
         if not wp.isnan(res):
-            acc = acc_add(acc, params, res, wp.vec3(1.0, 1.0, 1.0), wp.vec3())
+            acc = acc_add(acc, params, res, params.sigma, wp.vec3(1.0, 1.0, 1.0), wp.vec3(), wp.vec3())
     residual_out[i, 0] = res
     err, ll, nis = acc_finish(acc, params, wp.mat33())
     if use_baro != 0 and r[2] != 0.0:

@@ -127,25 +127,47 @@ def _sliding_residual_reference(terrain, poses, quats, points):
     return out
 
 
-def _loglik_reference(res, lik):
-    """Per-particle log-likelihoods of a residual matrix (NaN = invalid prediction), written out in NumPy."""
+def _loglik_reference(res, lik, sigma=None):
+    """Per-particle log-likelihoods of a residual matrix (NaN = invalid prediction), written out in NumPy;
+    ``sigma`` (N, M) per-point σ (default ``lik.sigma_m``), each adding ``-log(σ_j / σ)``."""
     ok = np.isfinite(res)
+    sigma = np.where(ok, lik.sigma_m if sigma is None else sigma, lik.sigma_m)
     r = np.where(ok, res, lik.outlier_sigmas * lik.sigma_m)
-    z2 = (r / lik.sigma_m) ** 2
+    z2 = (r / sigma) ** 2
+    norm = np.log(sigma / lik.sigma_m)
     if lik.kind == "gaussian":
-        return (-0.5 * z2).sum(axis=1)
+        return (-0.5 * z2 - norm).sum(axis=1)
     if lik.kind == "student_t":
-        return (-0.5 * (lik.nu + 1) * np.log1p(z2 / lik.nu)).sum(axis=1)
+        return (-0.5 * (lik.nu + 1) * np.log1p(z2 / lik.nu) - norm).sum(axis=1)
     err = np.nanmean(np.abs(res), axis=1)
     frac = ok.mean(axis=1)
     floor = -0.5 * lik.outlier_sigmas**2
     return np.where(ok.any(axis=1), frac * (-0.5 * err**2 / lik.r_err) + (1 - frac) * floor, floor)
 
 
-def _nis_reference(res, lik):
-    """Mean over the received points of min((r/σ)², k²), an unpredictable point counting k² (k = outlier_sigmas)."""
+def _nis_reference(res, lik, sigma=None):
+    """Mean over the received points of min((r/σ_j)², k²), an unpredictable point counting k² (k = outlier_sigmas)."""
     k2 = lik.outlier_sigmas**2
-    return np.where(np.isfinite(res), np.minimum((res / lik.sigma_m) ** 2, k2), k2).mean(axis=1)
+    sigma = lik.sigma_m if sigma is None else sigma
+    return np.where(np.isfinite(res), np.minimum((res / sigma) ** 2, k2), k2).mean(axis=1)
+
+
+def _sliding_sigma_reference(terrain, poses, quats, points, sigma_range):
+    """Float64 per-point σ of the sliding residuals: range noise along the ray ``u`` moves ``c_z - ĉ_z`` by
+    ``g_z (∇F · u)`` times itself (∇F = (h_n, h_e, 1) of the bilinear map by central differences, g_z = R₂₂), with
+    the kernel's floors |g_z| ≥ 0.2, |∇F · u| ≥ 0.25."""
+    d = points / np.linalg.norm(points, axis=1, keepdims=True)
+    out = np.empty((len(poses), len(points)))
+    eps = 1e-3
+    for i, (p, q) in enumerate(zip(poses, quats, strict=True)):
+        mat = quat_to_mat(q)
+        w = p + points @ mat.T
+        h_n = (terrain.height_at(w[:, 0] + eps, w[:, 1]) - terrain.height_at(w[:, 0] - eps, w[:, 1])) / (2 * eps)
+        h_e = (terrain.height_at(w[:, 0], w[:, 1] + eps) - terrain.height_at(w[:, 0], w[:, 1] - eps)) / (2 * eps)
+        u = d @ mat.T
+        slope_dot = u[:, 2] + h_n * u[:, 0] + h_e * u[:, 1]
+        out[i] = max(abs(mat[2, 2]), 0.2) * sigma_range * np.maximum(np.abs(slope_dot), 0.25)
+    return out
 
 
 @pytest.mark.parametrize("kind", ["paper", "gaussian", "student_t"])
@@ -170,10 +192,27 @@ def test_sliding_loglik_matches_numpy(kind, device):
     ok = same & np.isfinite(ref_res)
     np.testing.assert_allclose(got_res[ok], ref_res[ok], atol=2e-3)
     ref_res[~same] = got_res[~same]
-    np.testing.assert_allclose(out.loglik.numpy(), _loglik_reference(ref_res, lik), rtol=1e-4, atol=1e-3)
-    np.testing.assert_allclose(out.nis.numpy(), _nis_reference(ref_res, lik), rtol=1e-4, atol=1e-4)
+    sigma = _sliding_sigma_reference(terrain, poses, quats, cloud.points_s, lik.sigma_m)
+    np.testing.assert_allclose(out.loglik.numpy(), _loglik_reference(ref_res, lik, sigma), rtol=1e-4, atol=1e-3)
+    np.testing.assert_allclose(out.nis.numpy(), _nis_reference(ref_res, lik, sigma), rtol=1e-4, atol=1e-4)
     np.testing.assert_array_equal(out.n_valid.numpy(), np.isfinite(ref_res).sum(axis=1))
     assert np.isfinite(out.loglik.numpy()).all()
+
+
+def test_sliding_sigma_is_the_range_noise_propagated(device, thuringia):
+    """At the true pose the sliding model's NIS is ≈ 1 when the range noise is the only error, also banked 60° at
+    low altitude: each point's σ is the range σ propagated to its residual (``|g_z (∇F · u)| σ_range``), not the
+    range σ itself (which made the NIS ≈ 0.1 in S6's geometry: bounds 3–4× too wide)."""
+    pos, _, _ = _truth_setup(thuringia, seed=2)
+    pos[2] = -(float(thuringia.height_at(pos[0], pos[1])) + 200.0)
+    sensor = wt.PointCloudSensor(wt.ScanPattern.grid(10, 10, 30.0), range_sigma_m=0.5)
+    rng = np.random.default_rng(7)
+    for bank in (0.0, 60.0):
+        q = euler_to_quat(np.radians(bank), 0.02, 0.7)
+        model = wt.SlidingModel(thuringia, wt.Likelihood("gaussian", sensor_sigma_m=0.5), surface=True)
+        nis = [model.evaluate(*_poses(pos[None], q[None], device), sensor.measure(thuringia, pos, q, rng=rng)).nis
+               .numpy()[0] for _ in range(30)]
+        assert 0.85 < np.mean(nis) < 1.15, (bank, np.mean(nis))
 
 
 def test_paper_likelihood_never_rewards_unpredictable_points(device):
@@ -289,9 +328,10 @@ def test_bad_model_arguments():
 
 def test_attitude_marginal_matches_numpy(device):
     """The per-point Gaussian marginalised over the attitude uncertainty A equals a float64 NumPy computation:
-    residuals r_j of the sliding model, their Jacobians H_j w.r.t. dθ by central finite differences of the same
-    model (q ⊗ Exp(dθ); the marginal is even in the sign of H), ``-0.5 Σ r²/σ² + 0.5 bᵀ A (I + ΛA)⁻¹ b
-    - 0.5 log det(I + AΛ)``; A = 0 (no attitude covariance bound) gives the plain sum."""
+    residuals r_j of the sliding model with their per-point σ_j (:func:`_sliding_sigma_reference`), Jacobians H_j
+    w.r.t. dθ by central finite differences of the same model (q ⊗ Exp(dθ); the marginal is even in the sign of
+    H), ``Σ (-0.5 r²/σ_j² - log(σ_j/σ)) + 0.5 bᵀ A (I + ΛA)⁻¹ b - 0.5 log det(I + AΛ)``; A = 0 (no attitude
+    covariance bound) gives the plain sum."""
     from warptan.frames import quat_exp, quat_mul
 
     terrain = wt.Terrain.synthetic("rugged", size_m=4000.0, spacing=30.0, seed=6)
@@ -315,11 +355,12 @@ def test_attitude_marginal_matches_numpy(device):
         ll = []
         for p, qq in zip(poses, quats, strict=True):
             r = residuals(p, qq)
+            sig = _sliding_sigma_reference(terrain, [p], [qq], points, sigma)[0]
             h = np.stack([(residuals(p, quat_mul(qq, quat_exp(e))) - residuals(p, quat_mul(qq, quat_exp(-e)))) / 2e-5
                           for e in 1e-5 * np.eye(3)], axis=1)
-            lam, b = h.T @ h / sigma**2, h.T @ r / sigma**2
+            lam, b = h.T @ (h / sig[:, None] ** 2), h.T @ (r / sig**2)
             m = np.eye(3) + lam @ a
-            ll.append(-0.5 * np.sum((r / sigma) ** 2) + 0.5 * b @ a @ np.linalg.solve(m, b)
+            ll.append(np.sum(-0.5 * (r / sig) ** 2 - np.log(sig / sigma)) + 0.5 * b @ a @ np.linalg.solve(m, b)
                       - 0.5 * np.log(np.linalg.det(m)))
         expected[label] = np.array(ll)
         cov = wp.array(a[None].astype(np.float32), dtype=wp.mat33, device=device)
@@ -341,38 +382,63 @@ def test_bad_likelihood_parameters(kwargs, message):
         wt.Likelihood("gaussian", **kwargs)
 
 
+def _fd_jacobians(model, poses, quats, cloud, eps_att=2e-4, eps_pos=0.05):
+    """(residuals (N, M), H (N, M, 3) w.r.t. dθ, G (N, M, 3) w.r.t. the position): the prediction's Jacobians by
+    central finite differences of the model's own residuals (``q ⊗ Exp(±ε e_k)``, ``p ± ε e_k``)."""
+    from warptan.frames import quat_exp, quat_mul
+
+    def res(p, q):
+        return model.evaluate(*_poses(p, q, "cpu"), cloud).residual_m.numpy().astype(np.float64)
+
+    r0 = res(poses, quats)
+    h = [-(res(poses, np.array([quat_mul(q, quat_exp(e)) for q in quats]))
+           - res(poses, np.array([quat_mul(q, quat_exp(-e)) for q in quats]))) / (2 * eps_att)
+         for e in eps_att * np.eye(3)]
+    g = [-(res(poses + e, quats) - res(poses - e, quats)) / (2 * eps_pos) for e in eps_pos * np.eye(3)]
+    return r0, np.stack(h, axis=2), np.stack(g, axis=2)
+
+
 @pytest.mark.parametrize("model_name", ["sliding", "raycast"])
 def test_attitude_information_matches_finite_differences(thuringia, model_name):
-    """Each particle's attitude information on a real DEM (Thuringia 90 m): ``Λ = Σ HᵀH/σ²`` and
-    ``b = Σ Hᵀr/σ²`` from the kernels' analytic Jacobians (sliding: terrain gradient and lever arm; ray casts: the
-    range's derivative along the ray) equal the same sums with H from central finite differences of the model's
-    own residuals (``q ⊗ Exp(±ε e_k)``, ε = 2e-4 rad, float32 kernels: 3 % of the largest entry)."""
+    """Each particle's attitude information on a real DEM (Thuringia 90 m) from the kernels' analytic Jacobians
+    (sliding: terrain gradient and lever arm; ray casts: the range's derivative along the ray) equals a float64
+    NumPy computation with H (w.r.t. dθ) and G (w.r.t. the position) from central finite differences of the
+    model's own residuals and the per-point σ_j (sliding: :func:`_sliding_sigma_reference`; ray casts: σ):
+    unprojected (``project_position=False``) ``Λ = Σ HᵀH/σ_j²``, ``b = Σ Hᵀr/σ_j²``; projected (the default) the
+    Schur complement ``Λ - Λ_θp (Λ_pp + πI)⁻¹ Λ_pθ``, ``b - Λ_θp (Λ_pp + πI)⁻¹ b_p`` (float32 kernels: 3 % of the
+    largest entry; 6 % for the projected Λ, a difference of large terms)."""
     from warptan.frames import quat_exp, quat_mul
+    from warptan.measurement import POSITION_PRIOR_PRECISION
 
     pos, q, cloud = _truth_setup(thuringia, seed=4)
     rng = np.random.default_rng(5)
     poses = pos + rng.normal(0, [8.0, 8.0, 2.0], (4, 3))
     quats = np.array([quat_mul(q, quat_exp(rng.normal(0, 0.003, 3))) for _ in poses])
     sigma = 0.8
-    model = wt.make_model(model_name, thuringia, wt.Likelihood("gaussian", sigma_m=sigma))
-    out = model.evaluate(*_poses(poses, quats, "cpu"), cloud)
-    lam, info, res = out.lam.numpy().copy(), out.info.numpy().copy(), out.residual_m.numpy().copy()
-    eps = 2e-4
-    cols = []
-    for e in eps * np.eye(3):
-        plus = model.evaluate(*_poses(poses, np.array([quat_mul(qq, quat_exp(e)) for qq in quats]), "cpu"), cloud)
-        r_plus = plus.residual_m.numpy().copy()
-        minus = model.evaluate(*_poses(poses, np.array([quat_mul(qq, quat_exp(-e)) for qq in quats]), "cpu"), cloud)
-        cols.append(-(r_plus - minus.residual_m.numpy()) / (2 * eps))  # prediction Jacobian = -d(residual)
-    h = np.stack(cols, axis=2).astype(np.float64)  # (N, M, 3)
-    ok = np.isfinite(res) & np.isfinite(h).all(axis=2)
+    got = {}
+    for project in (False, True):
+        model = wt.make_model(model_name, thuringia, wt.Likelihood("gaussian", sigma_m=sigma,
+                                                                   project_position=project))
+        out = model.evaluate(*_poses(poses, quats, "cpu"), cloud)
+        got[project] = (out.lam.numpy().astype(np.float64), out.info.numpy().astype(np.float64))
+    res, h, g = _fd_jacobians(model, poses, quats, cloud)
+    sig = (_sliding_sigma_reference(thuringia, poses, quats, cloud.points_s, sigma) if model_name == "sliding"
+           else np.full(res.shape, sigma))
+    ok = np.isfinite(res) & np.isfinite(h).all(axis=2) & np.isfinite(g).all(axis=2)
     assert ok.sum(axis=1).min() > 50
     for i in range(len(poses)):
-        hi, ri = h[i][ok[i]], res[i][ok[i]].astype(np.float64)
-        lam_fd, b_fd = hi.T @ hi / sigma**2, hi.T @ ri / sigma**2
-        np.testing.assert_allclose(lam[i], lam_fd, atol=0.03 * np.abs(lam_fd).max())
-        np.testing.assert_allclose(info[i], b_fd, atol=0.03 * np.abs(b_fd).max() + 1.0)
-    assert np.abs(lam).max() > 1e4  # a 650 m lever: the scan sees the attitude strongly (rad⁻²)
+        hi, gi, ri, wi = h[i][ok[i]], g[i][ok[i]], res[i][ok[i]], 1.0 / sig[i][ok[i]] ** 2
+        lam, b = hi.T @ (hi * wi[:, None]), hi.T @ (ri * wi)
+        lam_tp, lam_pp, b_p = hi.T @ (gi * wi[:, None]), gi.T @ (gi * wi[:, None]), gi.T @ (ri * wi)
+        k = lam_tp @ np.linalg.inv(lam_pp + POSITION_PRIOR_PRECISION * np.eye(3))
+        lam_s, b_s = lam - k @ lam_tp.T, b - k @ b_p
+        np.testing.assert_allclose(got[False][0][i], lam, atol=0.03 * np.abs(lam).max())
+        np.testing.assert_allclose(got[False][1][i], b, atol=0.03 * np.abs(b).max() + 1.0)
+        np.testing.assert_allclose(got[True][0][i], lam_s, atol=0.06 * np.abs(lam_s).max())
+        np.testing.assert_allclose(got[True][1][i], b_s, atol=0.06 * np.abs(b_s).max() + 1.0)
+        # what the projection removes is real: the position explains part of the attitude information
+        assert np.trace(lam_s) < 0.95 * np.trace(lam)
+    assert np.abs(got[False][0]).max() > 1e4  # a 650 m lever: the scan sees the attitude strongly (rad⁻²)
 
 
 def test_attitude_information_follows_the_likelihood(device):

@@ -29,6 +29,34 @@ def _position_loglik_kernel(pos: wp.array(dtype=wp.vec3), z: wp.array(dtype=wp.v
     n_valid_out[i] = 1
 
 
+def test_linear_update_waits_for_the_integrity_verdict(device):
+    """``gate_linear_update``: the Kalman measurement update of the linear states (the particles' means and P)
+    waits until the integrity monitor has judged the filter consistent (2 · ``integrity_window`` informative
+    updates), then applies; without the gate it applies from the first update."""
+    rate, decim, sigma, sigma_att = 100.0, 10, 15.0, np.radians(0.02)
+    truth, imu, f, w, initial, rng, nominal0, epochs, zs = _linear_case(rate, decim, sigma)
+    qms = quat_mul(truth.quat_nb[epochs], quat_exp(rng.normal(0, sigma_att, (len(epochs), 3))))
+    p0_lin = prior_linear_cov(initial, imu)
+    att_var = {}
+    for gate in (True, False):
+        mpf = MarginalizedParticleFilter(PoseModel(sigma, sigma_att), nominal0, imu.grade, rate,
+                                         np.asarray(initial.pos_m), p0_lin, n_particles=200, device=device, seed=1,
+                                         pos_noise=0.0, integrity_window=3, gate_linear_update=gate)
+        var = []
+        for k in range(decim * 10):
+            mpf.predict(f[k], w[k])
+            if (k + 1) % decim == 0:
+                j = (k + 1) // decim - 1
+                mpf.update((zs[j], qms[j]))
+                var.append(np.diag(mpf.P)[3:6].copy())
+        att_var[gate] = np.array(var)
+    prior = np.diag(p0_lin)[3:6]
+    # gated: the first 6 updates (2 × window) leave the attitude variance at its prior size (time update only)
+    assert np.all(att_var[True][:6] > 0.9 * prior)
+    assert np.all(att_var[True][-1] < 0.01 * prior)  # then the attitude sensor is read
+    assert np.all(att_var[False][0] < 0.01 * prior)  # ungated: from the first update
+
+
 class PositionModel:
     """A linear-Gaussian 'measurement model': z = true position + N(0, σ² I) (the model protocol: stage, launch)."""
 
@@ -220,7 +248,8 @@ def test_linear_gaussian_attitude_update_matches_kalman(device):
     updated with Λ̄) matches a 15-state Kalman filter on the full state: over 8 seeds the mean [dp, dv, dθ] is
     within 3 standard errors (+5 % σ) of the Kalman value, and the filter's P_θθ and the particle variance of
     dp are within 10 % and 35 % of the Kalman covariance. Without the update (C = 0) the attitude error keeps
-    its prior-sized error (checked: the same runs are ≥ 5× worse in dθ)."""
+    its prior-sized error (checked: the same runs are ≥ 5× worse in dθ). The gate on the integrity monitor's
+    verdict is off (a Kalman filter updates from the first measurement)."""
     rate, decim, sigma, sigma_att = 100.0, 10, 15.0, np.radians(0.02)
     truth, imu, f, w, initial, rng, nominal0, epochs, zs = _linear_case(rate, decim, sigma)
     qms = quat_mul(truth.quat_nb[epochs], quat_exp(rng.normal(0, sigma_att, (len(epochs), 3))))
@@ -230,7 +259,8 @@ def test_linear_gaussian_attitude_update_matches_kalman(device):
         for seed in range(8):
             mpf = MarginalizedParticleFilter(PoseModel(sigma, sigma_att), nominal0, imu.grade, rate,
                                              np.asarray(initial.pos_m), p0_lin, n_particles=2000, device=device,
-                                             seed=seed, pos_noise=0.0, regularize=0.0, measurement_update=update)
+                                             seed=seed, pos_noise=0.0, regularize=0.0, measurement_update=update,
+                                             gate_linear_update=False)
             for k in range(len(f)):
                 mpf.predict(f[k], w[k])
                 if (k + 1) % decim == 0:
