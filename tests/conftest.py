@@ -57,6 +57,14 @@ def thuringia():
 
 
 @pytest.fixture(scope="session")
+def thuringia_crop():
+    """The package's Thuringia crop (``Terrain.load("rugged")``: package data, present on every install)."""
+    from warptan import Terrain
+
+    return Terrain.load("rugged")
+
+
+@pytest.fixture(scope="session")
 def rugged_small():
     from warptan import Terrain
 

@@ -199,10 +199,11 @@ def test_sliding_loglik_matches_numpy(kind, device):
     assert np.isfinite(out.loglik.numpy()).all()
 
 
-def test_sliding_sigma_is_the_range_noise_propagated(device, thuringia):
+def test_sliding_sigma_is_the_range_noise_propagated(device, thuringia_crop):
     """At the true pose the sliding model's NIS is ≈ 1 when the range noise is the only error, also banked 60° at
     low altitude: each point's σ is the range σ propagated to its residual (``|g_z (∇F · u)| σ_range``), not the
     range σ itself (which made the NIS ≈ 0.1 in S6's geometry: bounds 3–4× too wide)."""
+    thuringia = thuringia_crop
     pos, _, _ = _truth_setup(thuringia, seed=2)
     pos[2] = -(float(thuringia.height_at(pos[0], pos[1])) + 200.0)
     sensor = wt.PointCloudSensor(wt.ScanPattern.grid(10, 10, 30.0), range_sigma_m=0.5)
@@ -399,17 +400,18 @@ def _fd_jacobians(model, poses, quats, cloud, eps_att=2e-4, eps_pos=0.05):
 
 
 @pytest.mark.parametrize("model_name", ["sliding", "raycast"])
-def test_attitude_information_matches_finite_differences(thuringia, model_name):
-    """Each particle's attitude information on a real DEM (Thuringia 90 m) from the kernels' analytic Jacobians
-    (sliding: terrain gradient and lever arm; ray casts: the range's derivative along the ray) equals a float64
-    NumPy computation with H (w.r.t. dθ) and G (w.r.t. the position) from central finite differences of the
-    model's own residuals and the per-point σ_j (sliding: :func:`_sliding_sigma_reference`; ray casts: σ):
+def test_attitude_information_matches_finite_differences(thuringia_crop, model_name):
+    """Each particle's attitude information on a real DEM (the package's Thuringia 90 m crop) from the kernels'
+    analytic Jacobians (sliding: terrain gradient and lever arm; ray casts: the range's derivative along the ray)
+    equals a float64 NumPy computation with H (w.r.t. dθ) and G (w.r.t. the position) from central finite
+    differences of the model's own residuals and the per-point σ_j (sliding: :func:`_sliding_sigma_reference`; ray casts: σ):
     unprojected (``project_position=False``) ``Λ = Σ HᵀH/σ_j²``, ``b = Σ Hᵀr/σ_j²``; projected (the default) the
     Schur complement ``Λ - Λ_θp (Λ_pp + πI)⁻¹ Λ_pθ``, ``b - Λ_θp (Λ_pp + πI)⁻¹ b_p`` (float32 kernels: 3 % of the
     largest entry; 6 % for the projected Λ, a difference of large terms)."""
     from warptan.frames import quat_exp, quat_mul
     from warptan.measurement import POSITION_PRIOR_PRECISION
 
+    thuringia = thuringia_crop
     pos, q, cloud = _truth_setup(thuringia, seed=4)
     rng = np.random.default_rng(5)
     poses = pos + rng.normal(0, [8.0, 8.0, 2.0], (4, 3))
