@@ -404,10 +404,10 @@ def test_attitude_information_matches_finite_differences(thuringia_crop, model_n
     """Each particle's attitude information on a real DEM (the package's Thuringia 90 m crop) from the kernels'
     analytic Jacobians (sliding: terrain gradient and lever arm; ray casts: the range's derivative along the ray)
     equals a float64 NumPy computation with H (w.r.t. dθ) and G (w.r.t. the position) from central finite
-    differences of the model's own residuals and the per-point σ_j (sliding: :func:`_sliding_sigma_reference`; ray casts: σ):
-    unprojected (``project_position=False``) ``Λ = Σ HᵀH/σ_j²``, ``b = Σ Hᵀr/σ_j²``; projected (the default) the
-    Schur complement ``Λ - Λ_θp (Λ_pp + πI)⁻¹ Λ_pθ``, ``b - Λ_θp (Λ_pp + πI)⁻¹ b_p`` (float32 kernels: 3 % of the
-    largest entry; 6 % for the projected Λ, a difference of large terms)."""
+    differences of the model's own residuals and the per-point σ_j (sliding: :func:`_sliding_sigma_reference`; ray
+    casts: σ): unprojected (``project_position=False``) ``Λ = Σ HᵀH/σ_j²``, ``b = Σ Hᵀr/σ_j²``; projected (the
+    default) the Schur complement ``Λ - Λ_θp (Λ_pp + πI)⁻¹ Λ_pθ``, ``b - Λ_θp (Λ_pp + πI)⁻¹ b_p`` (float32
+    kernels: 3 % of the largest entry; 6 % for the projected Λ, a difference of large terms)."""
     from warptan.frames import quat_exp, quat_mul
     from warptan.measurement import POSITION_PRIOR_PRECISION
 
