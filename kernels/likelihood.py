@@ -52,6 +52,8 @@ measured range, 1 = valid point).
 
 import warp as wp
 
+from warptan.kernels.frames import quat_to_mat_wxyz
+
 wp.set_module_options({"enable_backward": False})
 
 ERR_AXES = wp.constant(0)
@@ -322,6 +324,15 @@ def acc_store(t: int, acc: Acc, params: LikParams, att_cov: wp.mat33, err_out: w
     info_out[t] = info
 
 
+@wp.func
+def ray_jacobians(mat: wp.mat33, row: cloud_row, res: float, s: wp.vec3):
+    """The predicted range's Jacobians w.r.t. dθ (m/rad) and the position (dimensionless) from the scaled normal
+    ``s = ∇F / (∇F · u)`` at the hit (:func:`warptan.kernels.raycast.raycast_residual_kernel`): with the predicted
+    range ``t = r - res`` and the ray ``d`` (sensor frame), ``t (Rᵀs) × d`` and ``-s``."""
+    t = row[6] - res
+    return t * wp.cross(wp.transpose(mat) * s, wp.vec3(row[3], row[4], row[5])), -s
+
+
 def per_particle_kernels(make):
     """``{True: tiled kernel, False: one-thread kernel}`` from ``make(tiled)``: the block-reduced form for CUDA, the
     plain one for the CPU, whose launches :func:`warptan.parallel.launch_rows` splits across threads (Warp's CPU
@@ -335,8 +346,8 @@ def _reduce_loglik(tiled: bool):
         row0: int,
         n_per: int,
         residual: wp.array2d(dtype=wp.float32),
-        jacobian: wp.array2d(dtype=wp.vec3),
-        jacobian_pos: wp.array2d(dtype=wp.vec3),
+        quat_nb: wp.array(dtype=wp.vec4),
+        normal: wp.array2d(dtype=wp.vec3),
         cloud: wp.array2d(dtype=cloud_row),
         att_cov: wp.array(dtype=wp.mat33),
         params: LikParams,
@@ -348,8 +359,8 @@ def _reduce_loglik(tiled: bool):
         info_out: wp.array(dtype=wp.vec3),
     ):
         """Particle ``t`` (global index ``row0 + t``; one block, or one thread): paper error (m), log-likelihood,
-        normalised squared residual, usable points, attitude information Λ and b; ``jacobian[t, j]`` is the
-        predicted range's derivative w.r.t. dθ, ``att_cov[b]`` the filter's attitude covariance."""
+        normalised squared residual, usable points, attitude information Λ and b; ``normal[t, j]`` is the scaled
+        surface normal at the hit (:func:`ray_jacobians`), ``att_cov[b]`` the filter's attitude covariance."""
         if wp.static(tiled):
             t, lane = wp.tid()
             stride = wp.block_dim()
@@ -358,6 +369,7 @@ def _reduce_loglik(tiled: bool):
             lane = 0
             stride = 1
         b = (row0 + t) // n_per
+        mat = quat_to_mat_wxyz(quat_nb[t])
         acc = acc_init()
         for j in range(lane, residual.shape[1], stride):
             row = cloud[b, j]
@@ -365,7 +377,8 @@ def _reduce_loglik(tiled: bool):
             if row[7] != 0.0:
                 acc.n_recv = acc.n_recv + 1
                 if not wp.isnan(res):
-                    acc = acc_add(acc, params, res, params.sigma, axis_weights(row), jacobian[t, j], jacobian_pos[t, j])
+                    jac, jac_pos = ray_jacobians(mat, row, res, normal[t, j])
+                    acc = acc_add(acc, params, res, params.sigma, axis_weights(row), jac, jac_pos)
         if wp.static(tiled):
             acc = acc_block_sum(acc)
         if lane == 0:

@@ -304,21 +304,19 @@ def raycast_residual_kernel(
     quat_nb: wp.array(dtype=wp.vec4),
     cloud: wp.array2d(dtype=cloud_row),
     residual_out: wp.array2d(dtype=wp.float32),
-    jacobian_out: wp.array2d(dtype=wp.vec3),
-    jacobian_pos_out: wp.array2d(dtype=wp.vec3),
+    normal_out: wp.array2d(dtype=wp.vec3),
 ):
     """One thread per (particle i, point j): range residual ``r_j - t_ij`` (m); NaN where either is invalid.
     Particle ``row0 + i`` belongs to filter ``b = (row0 + i) // n_per`` and casts that filter's pattern.
 
     With ``c_j = r_j d_j`` and ``c^_ij = t_ij d_j`` the point residual is ``(r_j - t_ij) d_j`` (eq. 15).
-    Also the range's derivative w.r.t. the attitude error (m/rad): with the surface ``F = z + h(n, e) = 0``,
-    ``∇F = (h_n, h_e, 1)`` at the hit and ``u = R d``, ``∂t/∂dθ = t ((Rᵀ∇F) × d) / (∇F · u)`` (SPEC §6b), and w.r.t.
-    the position, ``∂t/∂p = -∇F / (∇F · u)``.
+    Also what the range's derivatives need: with the surface ``F = z + h(n, e) = 0``, ``∇F = (h_n, h_e, 1)`` at the
+    hit and ``u = R d``, the scaled normal ``s = ∇F / (∇F · u)`` (zero at a grazing hit), from which
+    :func:`warptan.kernels.likelihood.ray_jacobians` forms ``∂t/∂dθ = t (Rᵀs) × d`` (SPEC §6b) and ``∂t/∂p = -s``.
     """
     i, j = wp.tid()
     row = cloud[(row0 + i) // n_per, j]
-    jacobian_out[i, j] = wp.vec3()
-    jacobian_pos_out[i, j] = wp.vec3()
+    normal_out[i, j] = wp.vec3()
     if row[7] == 0.0:
         residual_out[i, j] = wp.nan
         return
@@ -334,5 +332,4 @@ def raycast_residual_kernel(
         nrm = wp.vec3(grad[0], grad[1], 1.0)
         den = wp.dot(nrm, d)
         if wp.isfinite(den) and wp.abs(den) > 1.0e-3:
-            jacobian_out[i, j] = (t / den) * wp.cross(wp.transpose(mat) * nrm, d_s)
-            jacobian_pos_out[i, j] = nrm * (-1.0 / den)
+            normal_out[i, j] = nrm / den

@@ -46,7 +46,8 @@ def sliding_sigma(p: LikParams, g_z: float, slope_dot: float) -> float:
     map height under it, so the residual ``c_z - ĉ_z = g_z × (vertical gap)`` moves by ``g_z (∇F · u) e``
     (``∇F = (h_n, h_e, 1)``, ``g_z = (R e₃)_z``); a vertical map error ``g_z`` times itself:
     ``σ_j = |g_z| sqrt(σ_range² (∇F · u)² + σ_map²)``, with ``|g_z| ≥ 0.2`` and ``|∇F · u| ≥ 0.25`` (a ray
-    grazing the slope: the linear propagation no longer holds)."""
+    grazing the slope: the linear propagation no longer holds). A noiseless sensor (σ_range = 0) keeps the
+    likelihood's own σ (its floor)."""
     if p.sigma_range <= 0.0:
         return p.sigma
     geo = wp.max(wp.abs(slope_dot), 0.25)

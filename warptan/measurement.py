@@ -153,10 +153,9 @@ class ModelOutput:
     info: wp.array | None = None
     """(N,) vec3 ``b = Σ_j H_jᵀ r_j / σ_j²`` (rad⁻¹): with Λ, the linearised measurement of dθ in information form
     (the Kalman update of :mod:`warptan.kernels.mpf`)."""
-    jacobian: wp.array | None = None
-    """(N, M) vec3 derivative of each predicted range w.r.t. the particle's attitude error dθ, m/rad (ray casts)."""
-    jacobian_pos: wp.array | None = None
-    """(N, M) vec3 derivative of each predicted range w.r.t. the particle's position, dimensionless (ray casts)."""
+    normal: wp.array | None = None
+    """(N, M) vec3 scaled surface normal ``∇F / (∇F · u)`` at each ray's hit, 1/1 (ray casts): the predicted range's
+    derivatives w.r.t. dθ and the position follow from it (:func:`warptan.kernels.likelihood.ray_jacobians`)."""
     n_received: np.ndarray = field(default_factory=lambda: np.zeros(1, dtype=np.int64))
     """(B,) valid received points per filter (host; known without a sync)."""
 
@@ -259,8 +258,7 @@ class MeasurementModel:
                 lam=wp.zeros(n, dtype=wp.mat33, device=device),
                 info=wp.zeros(n, dtype=wp.vec3, device=device),
                 n_received=np.zeros(b, dtype=np.int64),
-                jacobian=wp.empty((n, m), dtype=wp.vec3, device=device) if self.name == "raycast" else None,
-                jacobian_pos=wp.empty((n, m), dtype=wp.vec3, device=device) if self.name == "raycast" else None,
+                normal=wp.empty((n, m), dtype=wp.vec3, device=device) if self.name == "raycast" else None,
             )
             self._staged = self._staging_buffer(device, b, m)
         return self._out
@@ -354,16 +352,16 @@ class RaycastModel(_PointCloudModel):
 
     def _launch(self, pos_n, quat_nb, out, device):
         lead = self.caster.launch_args(self.terrain, device)
-        res, jac, jac_p, cloud, n_per = out.residual_m, out.jacobian, out.jacobian_pos, self._staged, self.n_per
+        res, nrm, cloud, n_per = out.residual_m, out.normal, self._staged, self.n_per
         att = self._attitude_cov(device, self.n_filters)
         launch_rows(kray.raycast_residual_kernel, res.shape[0],
                     lambda a, b: ([*lead, a or 0, n_per, rows_of(pos_n, a, b), rows_of(quat_nb, a, b), cloud],
-                                  [rows_of(res, a, b), rows_of(jac, a, b), rows_of(jac_p, a, b)]),
+                                  [rows_of(res, a, b), rows_of(nrm, a, b)]),
                     device, cols=res.shape[1], row_cost=20)
         kernel, block = klik.reduce_loglik_kernels[device.is_cuda], _block_dim(device)
         launch_rows(kernel, res.shape[0],
-                    lambda a, b: ([a or 0, n_per, rows_of(res, a, b), rows_of(jac, a, b), rows_of(jac_p, a, b), cloud,
-                                   att, self._params],
+                    lambda a, b: ([a or 0, n_per, rows_of(res, a, b), rows_of(quat_nb, a, b), rows_of(nrm, a, b),
+                                   cloud, att, self._params],
                                   [rows_of(out.error_m, a, b), rows_of(out.loglik, a, b), rows_of(out.nis, a, b),
                                    rows_of(out.n_valid, a, b), rows_of(out.lam, a, b), rows_of(out.info, a, b)]),
                     device, row_cost=res.shape[1], block_dim=block)
