@@ -65,7 +65,27 @@ LIK_STUDENT = wp.constant(2)
 
 
 cloud_row = wp.types.vector(length=8, dtype=wp.float32)
-"""One received point: [c_x, c_y, c_z (m), d_x, d_y, d_z, range (m), ok (1 or 0)]."""
+"""One received point: [c_x, c_y, c_z (m), d_x, d_y, d_z, range (m), ok (1 or 0)] (indices below)."""
+CR_POINT = wp.constant(0)  # 3 values: the point in the sensor frame, m (0 where invalid)
+CR_DIR = wp.constant(3)  # 3 values: the unit ray direction in the sensor frame
+CR_RANGE = wp.constant(6)  # the range along the ray, m (NaN where invalid)
+CR_VALID = wp.constant(7)  # 1: a valid sample, 0: not
+CLOUD_ROW_LEN = 8
+
+META_RECEIVED = wp.constant(0)
+"""Column of a model's per-filter ``meta`` (B, 2): the number of valid received points."""
+META_FLOOR = wp.constant(1)
+"""Column of ``meta``: the log-likelihood floor for a particle whose value is not finite."""
+
+
+@wp.func
+def row_point(row: cloud_row) -> wp.vec3:
+    return wp.vec3(row[CR_POINT], row[CR_POINT + 1], row[CR_POINT + 2])
+
+
+@wp.func
+def row_dir(row: cloud_row) -> wp.vec3:
+    return wp.vec3(row[CR_DIR], row[CR_DIR + 1], row[CR_DIR + 2])
 
 
 @wp.struct
@@ -285,7 +305,8 @@ def acc_finish(acc: Acc, p: LikParams, att_cov: wp.mat33):
 @wp.func
 def axis_weights(row: cloud_row) -> wp.vec3:
     """|d_j| per axis: the weights of the paper's per-axis error (eq. 15)."""
-    return wp.vec3(wp.abs(row[3]), wp.abs(row[4]), wp.abs(row[5]))
+    d = row_dir(row)
+    return wp.vec3(wp.abs(d[0]), wp.abs(d[1]), wp.abs(d[2]))
 
 
 @wp.func
@@ -329,8 +350,8 @@ def ray_jacobians(mat: wp.mat33, row: cloud_row, res: float, s: wp.vec3):
     """The predicted range's Jacobians w.r.t. dθ (m/rad) and the position (dimensionless) from the scaled normal
     ``s = ∇F / (∇F · u)`` at the hit (:func:`warptan.kernels.raycast.raycast_residual_kernel`): with the predicted
     range ``t = r - res`` and the ray ``d`` (sensor frame), ``t (Rᵀs) × d`` and ``-s``."""
-    t = row[6] - res
-    return t * wp.cross(wp.transpose(mat) * s, wp.vec3(row[3], row[4], row[5])), -s
+    t = row[CR_RANGE] - res
+    return t * wp.cross(wp.transpose(mat) * s, row_dir(row)), -s
 
 
 def per_particle_kernels(make):
@@ -374,7 +395,7 @@ def _reduce_loglik(tiled: bool):
         for j in range(lane, residual.shape[1], stride):
             row = cloud[b, j]
             res = residual[t, j]
-            if row[7] != 0.0:
+            if row[CR_VALID] != 0.0:
                 acc.n_recv = acc.n_recv + 1
                 if not wp.isnan(res):
                     jac, jac_pos = ray_jacobians(mat, row, res, normal[t, j])

@@ -17,6 +17,7 @@ can be captured in a graph.
 import warp as wp
 
 from warptan.kernels.frames import quat_exp_wxyz, quat_log_wxyz, quat_mul_wxyz
+from warptan.kernels.likelihood import META_FLOOR, META_RECEIVED
 from warptan.kernels.nav import block_of, quat_mul_exp_d, skew_d
 
 wp.set_module_options({"enable_backward": False})
@@ -38,7 +39,19 @@ thread per filter reading the 64 chunks took 34 µs per reduction on an H100 (la
 N_MOMENT_CHUNKS = wp.constant(16)
 """Partial sums per filter of the moments of the estimate."""
 N_MOMENTS = wp.constant(1 + 3 + 9 + 12 + 144)
-"""Moments reduced for the estimate: Σw, Σw dp, Σw dp dpᵀ, Σw l, Σw l lᵀ."""
+"""Moments reduced for the estimate: Σw, Σw dp, Σw dp dpᵀ, Σw l, Σw l lᵀ (offsets below)."""
+MOM_W = wp.constant(0)  # Σw
+MOM_DP = wp.constant(1)  # 3 values: Σw dp
+MOM_DPDP = wp.constant(4)  # 9 values: Σw dp dpᵀ, row-major
+MOM_L = wp.constant(13)  # 12 values: Σw l
+MOM_LL = wp.constant(25)  # 144 values: Σw l lᵀ, row-major
+NOM_POS = wp.constant(0)
+"""Columns of the nominal history (16 per filter and update): p (3), v (3), q (4), b_a (3), b_g (3)."""
+NOM_VEL = wp.constant(3)
+NOM_QUAT = wp.constant(6)
+NOM_BA = wp.constant(10)
+NOM_BG = wp.constant(13)
+N_NOMINAL = 16
 N_TEMPER = wp.constant(20)
 """Candidate exponents of a tempering stage: ``γ_k = remaining · TEMPER_RATIO^k``."""
 TEMPER_RATIO = wp.constant(0.57434918)  # 2^-0.8: the smallest candidate is 2^-15.2 ≈ 2.7e-5 of the remaining
@@ -270,9 +283,9 @@ def temper_partials_kernel(
     if stage > 0 and rem <= wp.float64(0.0):
         return
     lo, hi = chunk_range(c, n_per)
-    floor = meta[b, 1]
+    floor = meta[b, META_FLOOR]
     if g == 0:
-        n_recv = wp.float64(meta[b, 0])
+        n_recv = wp.float64(meta[b, META_RECEIVED])
         unpred = wp.float64(0.0)
         if stage == 0 and n_recv > wp.float64(0.0):
             for k in range(lo, hi):
@@ -347,7 +360,7 @@ def temper_select_kernel(
         frac = wp.float64(0.0)
         for c in range(N_CHUNKS):
             frac += unpred_in[b, c]
-        if meta[b, 0] <= 0.0 or frac > wp.float64(params.max_unpredictable):
+        if meta[b, META_RECEIVED] <= 0.0 or frac > wp.float64(params.max_unpredictable):
             stats[b, ST_SKIP] = wp.float64(1.0)
             stats[b, ST_REMAIN] = wp.float64(0.0)
             return
@@ -385,7 +398,7 @@ def add_loglik_partials_kernel(
     min_nis_out: wp.array2d(dtype=wp.float32),
 ):
     """Filter b (active in this stage), chunk c: ``logw_i += γ loglik_i`` (a non-finite loglik counts as bad
-    and scores the filter's floor ``meta[b, 1]``), partial maximum, the chunk's counts [bad logliks,
+    and scores the filter's floor ``meta[b, META_FLOOR]``), partial maximum, the chunk's counts [bad logliks,
     particles with no valid point] and its smallest NIS."""
     b, c = wp.tid()
     if stats[b, ST_ACTIVE] == wp.float64(0.0):
@@ -405,7 +418,7 @@ def add_loglik_partials_kernel(
             least = wp.min(least, z)
         if not wp.isfinite(loglik[i]):
             bad += 1
-        lw = logw[i] + gamma * stage_loglik(loglik[i], meta[b, 1])
+        lw = logw[i] + gamma * stage_loglik(loglik[i], meta[b, META_FLOOR])
         if not wp.isfinite(lw):
             lw = -1.0e30
         logw[i] = lw
@@ -948,12 +961,12 @@ def covariance_update_kernel(
     record = t < nominal_hist.shape[0]
     if record:
         for a in range(3):
-            nominal_hist[t, b, a] = pos[b][a]
-            nominal_hist[t, b, 3 + a] = vel[b][a]
-            nominal_hist[t, b, 10 + a] = accel_bias[b][a]
-            nominal_hist[t, b, 13 + a] = gyro_bias[b][a]
+            nominal_hist[t, b, NOM_POS + a] = pos[b][a]
+            nominal_hist[t, b, NOM_VEL + a] = vel[b][a]
+            nominal_hist[t, b, NOM_BA + a] = accel_bias[b][a]
+            nominal_hist[t, b, NOM_BG + a] = gyro_bias[b][a]
         for a in range(4):
-            nominal_hist[t, b, 6 + a] = quat[b][a]
+            nominal_hist[t, b, NOM_QUAT + a] = quat[b][a]
     if measurement_update != 0:
         lam = sym_from(feedback, b, FB_LAM)
         gain = lam * wp.inverse(wp.identity(n=3, dtype=wp.float64) + cov[b, 1, 1] * lam)
@@ -1052,15 +1065,15 @@ def moment_partials_kernel(
         w = wp.float64(wp.exp(logw[i]))
         d = dp[i]
         lm = lin[i]
-        partial_out[b, c, 0] += w
+        partial_out[b, c, MOM_W] += w
         for a in range(3):
-            partial_out[b, c, 1 + a] += w * wp.float64(d[a])
+            partial_out[b, c, MOM_DP + a] += w * wp.float64(d[a])
             for e in range(3):
-                partial_out[b, c, 4 + 3 * a + e] += w * wp.float64(d[a]) * wp.float64(d[e])
+                partial_out[b, c, MOM_DPDP + 3 * a + e] += w * wp.float64(d[a]) * wp.float64(d[e])
         for a in range(12):
-            partial_out[b, c, 13 + a] += w * wp.float64(lm[a])
+            partial_out[b, c, MOM_L + a] += w * wp.float64(lm[a])
             for e in range(12):
-                partial_out[b, c, 25 + 12 * a + e] += w * wp.float64(lm[a]) * wp.float64(lm[e])
+                partial_out[b, c, MOM_LL + 12 * a + e] += w * wp.float64(lm[a]) * wp.float64(lm[e])
 
 
 @wp.kernel

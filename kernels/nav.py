@@ -28,6 +28,12 @@ import warp as wp
 wp.set_module_options({"enable_backward": False, "max_unroll": 4})
 
 GRAVITY_D = wp.constant(9.80665)
+INT_STEPS = wp.constant(0)
+"""Columns of an interval's integers (B, N_INTS): the IMU samples buffered, the particle-move seed, the resampling
+seed."""
+INT_MOVE_SEED = wp.constant(1)
+INT_RESAMPLE_SEED = wp.constant(2)
+N_INTS = 3
 
 
 @wp.func
@@ -137,8 +143,8 @@ def nav_interval_kernel(
     att_cov_out: wp.array(dtype=wp.mat33),
     p_col_out: wp.array2d(dtype=wp.mat33),
 ):
-    """Thread b: K = ``counts[b, 0]`` IMU samples (specific force ``imu[b, k, 0]``, body rate ``imu[b, k, 1]``) of
-    filter ``b = row0 + t``: advances its nominal state and ``cov`` (P, 4×4 blocks) in place; writes Φ and the lower
+    """Thread b: K = ``counts[b, INT_STEPS]`` IMU samples (specific force ``imu[b, k, 0]``, body rate
+    ``imu[b, k, 1]``) of filter ``b = row0 + t``: advances its nominal state and ``cov`` (P, 4×4 blocks) in place; writes Φ and the lower
     Cholesky factor of S (5×5 blocks, float32), the nominal pose ``[p (3), q (4)]`` at the end of the interval, and
     what the update's kernels read of P: ``P_θθ`` (``att_cov_out``) and the column blocks ``P_:θ`` (``p_col_out``).
     ``q_lin`` = diagonal of Q^l per block (dv, dth, dba, dbg); ``q_pos`` = diagonal of Q^n (the position noise
@@ -160,7 +166,7 @@ def nav_interval_kernel(
     q = quat[b]
     ba = accel_bias[b]
     bg = gyro_bias[b]
-    n_steps = counts[b, 0]
+    n_steps = counts[b, INT_STEPS]
     for k in range(n_steps):
         f = imu[b, k, 0]
         w = imu[b, k, 1]

@@ -21,7 +21,7 @@ It finds the first surface unless a feature is thinner than a step.
 import warp as wp
 
 from warptan.kernels.frames import quat_to_mat_wxyz
-from warptan.kernels.likelihood import cloud_row
+from warptan.kernels.likelihood import CR_RANGE, CR_VALID, cloud_row, row_dir
 from warptan.kernels.terrain import HeightGrid, grid_gradient, grid_surface
 
 wp.set_module_options({"enable_backward": False})
@@ -317,15 +317,15 @@ def raycast_residual_kernel(
     i, j = wp.tid()
     row = cloud[(row0 + i) // n_per, j]
     normal_out[i, j] = wp.vec3()
-    if row[7] == 0.0:
+    if row[CR_VALID] == 0.0:
         residual_out[i, j] = wp.nan
         return
     mat = quat_to_mat_wxyz(quat_nb[i])
-    d_s = wp.vec3(row[3], row[4], row[5])
+    d_s = row_dir(row)
     d = mat * d_s
     p = pos_n[i]
     t = cast_ray(grid, mesh, backend, p, d, step_m, n_bisect)
-    residual_out[i, j] = row[6] - t
+    residual_out[i, j] = row[CR_RANGE] - t
     if not wp.isnan(t):
         hit = p + t * d
         grad = grid_gradient(grid, 1, hit[0], hit[1])

@@ -17,6 +17,7 @@ import warp as wp
 
 from warptan.kernels.frames import quat_to_mat_wxyz
 from warptan.kernels.likelihood import (
+    CR_VALID,
     LikParams,
     acc_add,
     acc_block_sum,
@@ -25,6 +26,8 @@ from warptan.kernels.likelihood import (
     acc_store,
     cloud_row,
     per_particle_kernels,
+    row_dir,
+    row_point,
 )
 from warptan.kernels.terrain import HeightGrid, grid_height, grid_height_gradient
 
@@ -92,16 +95,16 @@ def _sliding_loglik(tiled: bool):
         for j in range(lane, cloud.shape[1], stride):
             row = cloud[b, j]
             res = float(wp.nan)
-            if row[7] != 0.0:
+            if row[CR_VALID] != 0.0:
                 acc.n_recv = acc.n_recv + 1
-                c = wp.vec3(row[0], row[1], row[2])
+                c = row_point(row)
                 w = p + mat * c
                 h, grad = grid_height_gradient(grid, surface, w[0], w[1])
                 c_hat = wp.transpose(mat) * (wp.vec3(w[0], w[1], -h) - p)
                 res = c[2] - c_hat[2]
                 if not wp.isnan(res):
                     nabla = wp.vec3(grad[0], grad[1], 1.0)
-                    sigma = sliding_sigma(params, mat[2, 2], wp.dot(nabla, mat * wp.vec3(row[3], row[4], row[5])))
+                    sigma = sliding_sigma(params, mat[2, 2], wp.dot(nabla, mat * row_dir(row)))
                     acc = acc_add(acc, params, res, sigma, ones, sliding_jacobian(mat, c, c_hat, grad),
                                   nabla * (-mat[2, 2]))  # ∂ĉ_z/∂p = -g_z ∇F
             residual_out[t, j] = res

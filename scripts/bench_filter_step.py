@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import platform
 import statistics
 import sys
 import time
@@ -31,6 +30,7 @@ import warptan as wt
 from warptan.cli import script_inputs
 from warptan.imu import ImuModel
 from warptan.kernels import mpf as kmpf
+from warptan.meta import run_meta
 from warptan.mpf import MarginalizedParticleFilter
 from warptan.runner import InitialErrors, initial_nominal, prior_linear_cov
 from warptan.trajectory import Straight, Trajectory
@@ -151,11 +151,10 @@ def main(argv=None) -> int:
                                       f"{r['filter_steps_per_s']:15.0f} "
                                       f"{r['tempering_stages_mean']:6.2f}")
     if args.json_out:
-        meta = {"warp_version": wp.config.version, "python": platform.python_version(),
-                "devices": {d: wt.resolve_device(d).name for d in args.device}, "terrain": terrain.name,
-                "what": "median ms per IMU predict call, per measurement update, and per whole interval "
-                        "(imu_per_meas predicts + one update) of B filters x N particles; filter_steps_per_s = B / "
-                        "step time"}
+        meta = run_meta(args.device, terrain=terrain.name,
+                        what="median ms per IMU predict call, per measurement update, and per whole interval "
+                             "(imu_per_meas predicts + one update) of B filters x N particles; filter_steps_per_s = "
+                             "B / step time")
         with open(args.json_out, "w") as f:
             json.dump({"meta": meta, "results": rows}, f, indent=1)
         print(f"wrote {args.json_out}")

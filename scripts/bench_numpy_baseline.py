@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import platform
 import statistics
 import sys
 import time
@@ -22,6 +21,7 @@ import warptan as wt
 import warptan.parallel
 from warptan.cli import script_inputs
 from warptan.frames import euler_to_quat, quat_to_mat
+from warptan.meta import run_meta
 
 
 def numpy_sliding_error(terrain, pos, quat, points):
@@ -108,9 +108,8 @@ def main(argv=None) -> int:
                       f"{row['speedup']:8.1f}x {row['max_abs_error_difference_m']:13.4f}")
     if args.json_out:
         with open(args.json_out, "w") as f:
-            json.dump({"meta": {"warp_version": wp.config.version, "python": platform.python_version(),
-                                "numpy": np.__version__, "terrain": terrain.name, "machine": platform.machine(),
-                                "what": "median seconds per measurement-model evaluation on the same inputs, CPU"},
+            json.dump({"meta": run_meta("cpu", terrain=terrain.name,
+                                        what="median ms per measurement-model evaluation on the same inputs, CPU"),
                        "results": rows}, f, indent=1)
         print(f"wrote {args.json_out}")
     return 0

@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import platform
 import statistics
 import sys
 import time
@@ -27,6 +26,7 @@ import warp as wp
 import warptan as wt
 from warptan.cli import script_inputs
 from warptan.frames import euler_to_quat
+from warptan.meta import run_meta
 
 FULL_N = (100, 500, 2_000, 10_000, 100_000)
 FULL_M = (1, 25, 100, 400, 1_000)
@@ -183,11 +183,8 @@ def main(argv=None) -> int:
     print(format_table(results))
     print(f"total {time.perf_counter() - t0:.1f} s")
     if args.json_out:
-        meta = {"warp_version": wp.config.version, "python": platform.python_version(),
-                "machine": platform.machine(), "processor": platform.processor(),
-                "devices": {d: wt.resolve_device(d).name for d in args.device},
-                "terrain": terrain.info(), "N": ns, "M": ms, "repeats": repeats,
-                "what": "seconds per model.evaluate (residual kernel + per-particle reduction), median"}
+        meta = run_meta(args.device, terrain=terrain.info(), N=ns, M=ms, repeats=repeats,
+                        what="seconds per model.evaluate (residual kernel + per-particle reduction), median")
         with open(args.json_out, "w") as f:
             json.dump({"meta": meta, "results": results}, f, indent=1)
         print(f"wrote {args.json_out}")

@@ -10,12 +10,12 @@ from __future__ import annotations
 
 import argparse
 import json
-import subprocess
 import sys
 from pathlib import Path
 
 import numpy as np
 
+from warptan.meta import run_meta
 from warptan.scenarios import run_scenario_batch
 
 WHAT = ("S8, 600 s, 100 particles, seeds 0-3, CPU. Per run: converged RMSE (m), 3σ coverage, fraction of epochs after "
@@ -47,13 +47,11 @@ def main(argv=None) -> int:
                              "crop, e.g. ../shared/data/dem/thuringia_hilly_srtm3_n50e010.tif")
     args = parser.parse_args(argv)
     out_path = Path(args.out)
-    commit = subprocess.run(["git", "-C", str(Path(__file__).resolve().parents[1]), "rev-parse", "--short", "HEAD"],
-                            capture_output=True, text=True).stdout.strip()
     command = f"python scripts/long_flight_check.py {out_path} --seeds {args.seeds} --device {args.device}"
     if args.terrain:
         command += f" --terrain {args.terrain}"
-    out = {"what": WHAT.replace("seeds 0-3, CPU", f"seeds 0-{args.seeds - 1}, {args.device}"), "command": command,
-           "commit": commit, "runs": {}}
+    out = {"meta": run_meta(args.device, command=command),
+           "what": WHAT.replace("seeds 0-3, CPU", f"seeds 0-{args.seeds - 1}, {args.device}"), "runs": {}}
     for kind in ("gaussian", "paper"):
         for r in run_scenario_batch("S8", list(range(args.seeds)), args.device, duration_s=600.0, particles=100,
                                     likelihood=kind, terrain=args.terrain):

@@ -22,6 +22,7 @@ from pathlib import Path
 import numpy as np
 
 import warptan as wt
+from warptan.meta import run_meta
 from warptan.report import ci95
 from warptan.scenarios import run_scenario_batch
 
@@ -175,7 +176,8 @@ def main(argv=None) -> int:
     if (args.resume or args.report_only) and path.exists():
         data = json.loads(path.read_text())
     commands = data.get("meta", {}).get("commands", [])
-    data["meta"] = {"terrain": world.name, "world_spacing_m": args.world_spacing, "seeds": args.seeds,
+    data["meta"] = {**run_meta(args.device), "terrain": world.name, "world_spacing_m": args.world_spacing,
+                    "seeds": args.seeds,
                     "duration_s": args.duration_s, "device": args.device, "scenarios": args.scenarios,
                     "spacings": args.spacings, "noises": args.noises,
                     "commands": [*commands, "python scripts/map_error_study.py "

@@ -16,6 +16,7 @@ from pathlib import Path
 import warp as wp
 
 import warptan as wt
+from warptan.meta import run_meta
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_filter_step import MODELS, bench
@@ -59,9 +60,8 @@ def main(argv=None) -> int:
         for k in kernels[: args.top]:
             print(f"  {k['kernel']:32s} {k['us_per_step']:9.1f} µs/step  {k['calls_per_step']:4.1f} calls")
     if args.json_out:
-        meta = {"device": wt.resolve_device(args.device).name, "model": args.model, "B": args.batch, "N": args.n,
-                "M": args.m_side**2, "warp_version": wp.config.version,
-                "what": "device time per kernel per step (all steps incl. warm-up; estimate() kernels included)"}
+        meta = run_meta(args.device, model=args.model, B=args.batch, N=args.n, M=args.m_side**2,
+                        what="device time per kernel per step (all steps incl. warm-up; estimate() kernels included)")
         Path(args.json_out).write_text(json.dumps({"meta": meta, "results": rows}, indent=1))
     return 0
 

@@ -17,76 +17,12 @@ import sys
 import time
 from pathlib import Path
 
-import numpy as np
-
 import warptan as wt
+from warptan import claims
 from warptan.measurement import LIKELIHOODS
-from warptan.report import ci95, write_outputs
+from warptan.meta import run_meta
+from warptan.report import write_outputs
 from warptan.scenarios import SCENARIO_IDS, prepare, run_scenario, run_scenario_batch
-
-
-def horiz(agg, sid, key="rmse_mean_m"):
-    return float(np.hypot(*agg[sid][key][:2]))
-
-
-def horiz_ci(results, sid, attr="rmse"):
-    vals = [np.hypot(*getattr(r, attr)[:2]) for r in results if r.scenario == sid]
-    mean, half = ci95(np.array(vals)[:, None])
-    return float(mean[0]), float(half[0])
-
-
-def claims(agg, results, no_baro) -> list[dict]:
-    """Evaluate SPEC §7's claims; each entry: claim, holds (bool or None when not run), evidence."""
-    out = []
-
-    def have(*ids):
-        return all(i in agg for i in ids)
-
-    def fmt(sid):
-        m, h = horiz_ci(results, sid)
-        return f"{sid} {m:.1f}±{h:.1f} m"
-
-    def add(claim, ids, holds, evidence):
-        out.append({"claim": claim, "scenarios": ids, "holds": bool(holds) if have(*ids) else None,
-                    "evidence": evidence if have(*ids) else "not run"})
-
-    pairs = [("S7", "S9"), ("S8", "S9"), ("S10", "S12"), ("S11", "S12")]
-    ok = [have(a, b) and horiz(agg, a) < horiz(agg, b) for a, b in pairs]
-    add("point cloud beats the altimeter horizontally on rugged and flat terrain (horizontal RMSE)",
-        ["S7", "S8", "S9", "S10", "S11", "S12"], all(ok),
-        "; ".join(f"{fmt(a)} vs {fmt(b)}" for a, b in pairs if have(a, b)))
-    pairs = [("S7", "S10"), ("S8", "S11"), ("S9", "S12")]
-    ok = [have(a, b) and horiz(agg, a) < horiz(agg, b) for a, b in pairs]
-    add("flat terrain is worse than rugged (same model)", ["S7", "S8", "S9", "S10", "S11", "S12"], all(ok),
-        "; ".join(f"rugged {fmt(a)} vs flat {fmt(b)}" for a, b in pairs if have(a, b)))
-    add("the navigation IMU is better than the low-end tactical one (S1 vs S2)", ["S1", "S2"],
-        have("S1", "S2") and horiz(agg, "S1") < horiz(agg, "S2"), f"{fmt('S1')} vs {fmt('S2')}" if have("S1", "S2")
-        else "")
-    pairs = [("S3", "S4"), ("S7", "S8")]
-    ratios = [horiz(agg, a) / horiz(agg, b) for a, b in pairs if have(a, b)]
-    add("raycast and sliding are close at high altitude (horizontal RMSE within a factor 1.5)",
-        ["S3", "S4", "S7", "S8"], bool(ratios) and all(1 / 1.5 <= r <= 1.5 for r in ratios),
-        "; ".join(f"{fmt(a)} vs {fmt(b)} (ratio {horiz(agg, a) / horiz(agg, b):.2f})" for a, b in pairs if have(a, b)))
-    add("raycast is better than sliding at low altitude / 60° bank (S5 vs S6)", ["S5", "S6"],
-        have("S5", "S6") and horiz(agg, "S5") < horiz(agg, "S6"), f"{fmt('S5')} vs {fmt('S6')}" if have("S5", "S6")
-        else "")
-    if no_baro:
-        z = {sid: ci95([[r.rmse[2]] for r in runs]) for sid, runs in no_baro.items()}
-        zf = {sid: float(np.median([abs(r.run.error[-1, 2]) for r in runs])) for sid, runs in no_baro.items()}
-        ins = {sid: float(np.median([abs(r.run.ins_pos[-1, 2] - r.run.truth_pos[-1, 2]) for r in runs]))
-               for sid, runs in no_baro.items()}
-        holds = "S8" in z and "S9" in z and z["S8"][0][0] < 0.5 * z["S9"][0][0] and z["S8"][0][0] < 5.0
-        out.append({"claim": "altitude is observable from the point cloud without a barometer (S8 vs S9, no baro)",
-                    "scenarios": ["S8", "S9"], "holds": bool(holds),
-                    "evidence": "; ".join(f"{sid} no baro: vertical RMSE {z[sid][0][0]:.2f}±{z[sid][1][0]:.2f} m, "
-                                          f"median final |dz| {zf[sid]:.2f} m (INS alone {ins[sid]:.1f} m)"
-                                          for sid in sorted(z))})
-    if have("S7", "S8"):
-        ray, slide = agg["S7"]["update_ms_median"], agg["S8"]["update_ms_median"]
-        add("sliding is much cheaper than raycasting (median measurement update, S7 vs S8, this device)",
-            ["S7", "S8"], ray > 2 * slide, f"raycast (dda) {ray:.2f} ms vs sliding {slide:.2f} ms per update "
-            f"(whole update incl. weights and resampling; kernel-only ratios are in benchmarks/)")
-    return out
 
 
 def main(argv=None) -> int:
@@ -136,7 +72,8 @@ def write_side_by_side(rows: dict, out: Path, args) -> None:
             table.setdefault(sid, {})[kind] = {k: agg[k] for k in ("rmse_converged_mean_m", "rmse_converged_ci95_m",
                                                                   "coverage_3sigma_mean", "seeds")}
     with open(out / "likelihoods.json", "w") as f:
-        json.dump({"seeds": args.seeds, "device": args.device, "likelihoods": kinds, "scenarios": table}, f, indent=1)
+        json.dump({"meta": run_meta(args.device), "seeds": args.seeds, "device": args.device, "likelihoods": kinds,
+                   "scenarios": table}, f, indent=1)
     head = "| id | paper RMSE x / y / z (m) | " + " | ".join(
         f"{k}: RMSE after convergence | {k}: 3σ coverage N/E/D" for k in kinds) + " |"
     lines = ["# Paper likelihood vs per-point likelihood", "",
@@ -201,16 +138,13 @@ def run_one(args, out: Path, likelihood: str | None) -> int:
     if no_baro:
         write_outputs([r for runs in no_baro.values() for r in runs], out / "no_baro", terrains,
                       plots=not args.no_plots)
-    found = claims(written["aggregate"], results, no_baro)
+    found = claims.evaluate([r.summary() for r in results], [r.summary() for runs in no_baro.values() for r in runs])
     with open(out / "claims.json", "w") as f:
-        json.dump(found, f, indent=1)
+        json.dump({"meta": run_meta(args.device), "claims": found}, f, indent=1)
     lines = ["# The paper's claims, checked", "",
              f"{args.seeds} seeds per scenario, device {args.device}, likelihood "
              f"{likelihood or 'of the scenario files'}; terrains: "
-             + ", ".join(sorted({Path(r.terrain).name for r in results})) + ".", ""]
-    for c in found:
-        verdict = {True: "holds", False: "does not hold", None: "not run"}[c["holds"]]
-        lines.append(f"- **{verdict}** — {c['claim']}: {c['evidence']}")
+             + ", ".join(sorted({Path(r.terrain).name for r in results})) + ".", "", claims.markdown(found)]
     (out / "claims.md").write_text("\n".join(lines) + "\n")
     print(written["table"])
     print("\n".join(lines[4:]))

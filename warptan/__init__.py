@@ -29,7 +29,7 @@ from warptan.sensors import AltimeterReading, Barometer, PointCloud, PointCloudS
 from warptan.terrain import Terrain
 from warptan.trajectory import Climb, Orbit, Straight, Trajectory, Turn
 
-__version__ = "0.1.0"
+__version__ = "0.2.0"
 
 __all__ = [
     "IMU_GRADES",

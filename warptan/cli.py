@@ -132,7 +132,10 @@ def script_inputs(prog: str, devices: list[str], terrain_spec: str):
 
 
 def build_parser() -> argparse.ArgumentParser:
+    from warptan import __version__
+
     parser = argparse.ArgumentParser(prog="warptan", description="Terrain-aided navigation on NVIDIA Warp.")
+    parser.add_argument("--version", action="version", version=f"warptan {__version__}")
     sub = parser.add_subparsers(dest="command", required=True)
 
     terrain = sub.add_parser("terrain", help="inspect or export a DEM")

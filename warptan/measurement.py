@@ -191,6 +191,10 @@ class MeasurementModel:
         self._host: dict[str, np.ndarray] = {}
         self._att_cov: wp.array | None = None
         self._zero_att: wp.array | None = None
+        self.generation = 0
+        """Bumped whenever an array or struct that launches hold is replaced (buffers reallocated, the likelihood or
+        the bound attitude covariance reassigned): a recorded launch sequence or captured graph of an older
+        generation is stale and must be re-recorded (see :class:`warptan.mpf.MarginalizedParticleFilter`)."""
         self.likelihood = likelihood or Likelihood()
 
     @property
@@ -204,12 +208,15 @@ class MeasurementModel:
             raise ValueError(f"likelihood must be a Likelihood, got {type(value).__name__}")
         self._likelihood = value
         self._params = self.params()
+        self.generation += 1
 
     def bind_attitude_cov(self, att_cov: wp.array | None) -> None:
         """Use ``att_cov`` ((B,) mat33 on the particles' device, rad²: each filter's Kalman covariance of dθ,
         kept current by its owner) to marginalise the per-point Gaussian over the attitude uncertainty; None
         (the default) is a zero covariance (the pose's attitude taken as exact)."""
-        self._att_cov = att_cov
+        if att_cov is not self._att_cov:
+            self._att_cov = att_cov
+            self.generation += 1
 
     def _attitude_cov(self, device, b: int) -> wp.array:
         a = self._att_cov
@@ -217,6 +224,7 @@ class MeasurementModel:
             return a
         if self._zero_att is None or self._zero_att.shape != (b,) or self._zero_att.device != device:
             self._zero_att = wp.zeros(b, dtype=wp.mat33, device=device)
+            self.generation += 1
         return self._zero_att
 
     @property
@@ -261,6 +269,7 @@ class MeasurementModel:
                 normal=wp.empty((n, m), dtype=wp.vec3, device=device) if self.name == "raycast" else None,
             )
             self._staged = self._staging_buffer(device, b, m)
+            self.generation += 1
         return self._out
 
     def evaluate(self, pos_n: wp.array, quat_nb: wp.array, measurement) -> ModelOutput:
@@ -279,7 +288,10 @@ class MeasurementModel:
         n_received = self._fill(items)
         out.n_received[:] = n_received
         k = self.likelihood.outlier_sigmas
-        out.meta.assign(np.stack([n_received, -0.5 * k * k * np.maximum(1, n_received)], axis=1).astype(np.float32))
+        meta = np.empty((b, 2), dtype=np.float32)
+        meta[:, klik.META_RECEIVED] = n_received
+        meta[:, klik.META_FLOOR] = -0.5 * k * k * np.maximum(1, n_received)
+        out.meta.assign(meta)
         self.n_per = n // b
         self.n_filters = b
         return out
@@ -317,16 +329,17 @@ class _PointCloudModel(MeasurementModel):
     def _fill(self, items) -> np.ndarray:
         b, m = self._staged.shape
         host = self._host.get("cloud")
-        if host is None or host.shape != (b, m, 8):
-            host = self._host["cloud"] = np.empty((b, m, 8), dtype=np.float32)
+        if host is None or host.shape != (b, m, klik.CLOUD_ROW_LEN):
+            host = self._host["cloud"] = np.empty((b, m, klik.CLOUD_ROW_LEN), dtype=np.float32)
+        p, d = klik.CR_POINT, klik.CR_DIR
         for k, cloud in enumerate(items):
             ok = cloud.valid
-            host[k, :, 0:3] = np.where(ok[:, None], cloud.points_s, 0.0)
-            host[k, :, 3:6] = cloud.dirs_s
-            host[k, :, 6] = np.where(ok, cloud.ranges_m, np.nan)
-            host[k, :, 7] = ok
+            host[k, :, p:p + 3] = np.where(ok[:, None], cloud.points_s, 0.0)
+            host[k, :, d:d + 3] = cloud.dirs_s
+            host[k, :, klik.CR_RANGE] = np.where(ok, cloud.ranges_m, np.nan)
+            host[k, :, klik.CR_VALID] = ok
         self._staged.assign(host)
-        return host[:, :, 7].sum(axis=1).astype(np.int64)
+        return host[:, :, klik.CR_VALID].sum(axis=1).astype(np.int64)
 
 
 def _block_dim(device) -> int | None:

@@ -379,19 +379,21 @@ class MarginalizedParticleFilter:
         n_sets = 2 if d.is_cuda else 1
         self._imu_host = [wp.zeros((b, MAX_STEPS_PER_INTERVAL, 2), dtype=wp.vec3d, device=cpu, pinned=d.is_cuda)
                           for _ in range(n_sets)]
-        self._ints_host = [wp.zeros((b, 3), dtype=wp.int32, device=cpu, pinned=d.is_cuda) for _ in range(n_sets)]
+        self._ints_host = [wp.zeros((b, knav.N_INTS), dtype=wp.int32, device=cpu, pinned=d.is_cuda)
+                           for _ in range(n_sets)]
         self._imu_np = [x.numpy() for x in self._imu_host]
         self._ints_np = [x.numpy() for x in self._ints_host]
         self._events = [wp.Event(device=d) for _ in range(n_sets)] if d.is_cuda else []
         self._set = 0
         self._imu = wp.empty_like(self._imu_host[0], device=d) if d.is_cuda else self._imu_host[0]
-        self._ints = wp.zeros((b, 3), dtype=wp.int32, device=d) if d.is_cuda else self._ints_host[0]
+        self._ints = wp.zeros((b, knav.N_INTS), dtype=wp.int32, device=d) if d.is_cuda else self._ints_host[0]
         self._interval_k = 0
         self._dev = {"phi": wp.zeros((b, 5, 5), dtype=wp.mat33, device=d),
                      "chol": wp.zeros((b, 5, 5), dtype=wp.mat33, device=d),
                      "pose": wp.array(np.array([np.r_[x.pos_n, x.quat_nb] for x in nominals]), dtype=wp.float64,
                                       device=d),
-                     "seeds": self._ints[:, 1], "resample_seeds": self._ints[:, 2],
+                     "seeds": self._ints[:, knav.INT_MOVE_SEED],
+                     "resample_seeds": self._ints[:, knav.INT_RESAMPLE_SEED],
                      "att_cov": wp.zeros(b, dtype=wp.mat33, device=d),
                      "p_col": wp.zeros((b, 4), dtype=wp.mat33, device=d)}
         self._injections = wp.zeros(b, dtype=wp.int32, device=d)
@@ -421,11 +423,12 @@ class MarginalizedParticleFilter:
         self._ancestors = wp.empty(nt, dtype=wp.int32, device=d)
         self._slot = wp.zeros(1, dtype=wp.int32, device=d)
         self._history = wp.zeros((256, b, kmpf.N_SUMMARY), dtype=wp.float64, device=d)
-        self._nominal_hist = wp.zeros((256, b, 16), dtype=wp.float64, device=d)
+        self._nominal_hist = wp.zeros((256, b, kmpf.N_NOMINAL), dtype=wp.float64, device=d)
         self._p_hist = wp.zeros((256, b, 12), dtype=wp.float64, device=d)
         self._feedback = wp.zeros((b, kmpf.N_FEEDBACK), dtype=wp.float64, device=d)
         self._graphs: dict = {}
         self._graph_key = None
+        self._generation = 0  # bumped when the filter replaces an array its recorded launches hold (history growth)
         init_seeds = wp.array(step_seed(self.seeds, 0, _STREAM_INIT).astype(np.int32), dtype=wp.int32, device=d)
         launch(kmpf.init_particles_kernel, dim=nt, inputs=[self.n, init_seeds, self._chol_p0],
                   outputs=[self.state.dp, self.state.lin, self.state.logw], device=d)
@@ -452,9 +455,9 @@ class MarginalizedParticleFilter:
     def _stage_interval(self) -> None:
         """Host part of an interval (O(B)): the sample count and the interval's seeds next to the buffered samples."""
         ints = self._ints_np[self._set]
-        ints[:, 0] = self._k
-        ints[:, 1] = step_seed(self.seeds, self.n_imu_steps, _STREAM_MOVE)
-        ints[:, 2] = step_seed(self.seeds, self.n_updates + 1, _STREAM_RESAMPLE)
+        ints[:, knav.INT_STEPS] = self._k
+        ints[:, knav.INT_MOVE_SEED] = step_seed(self.seeds, self.n_imu_steps, _STREAM_MOVE)
+        ints[:, knav.INT_RESAMPLE_SEED] = step_seed(self.seeds, self.n_updates + 1, _STREAM_RESAMPLE)
         self._interval_k = self._k
         self._k = 0
 
@@ -706,10 +709,11 @@ class MarginalizedParticleFilter:
         return self._info(out) if sync else None
 
     def _record_key(self, out) -> tuple:
-        """What the recorded launches (graphs or CPU recordings) hold that an update can replace."""
-        m = self.model
-        return (id(out), id(getattr(m, "_staged", None)), id(self._history), id(getattr(m, "_params", None)),
-                id(getattr(m, "_att_cov", None)), self.measurement_update, self.closed_loop)
+        """The generation of everything the recorded launches (graphs or CPU recordings) hold: the filter's own
+        arrays (replaced when the history grows), the model's buffers, likelihood struct and attitude covariance
+        (``model.generation``, bumped by the model whenever it replaces one of them) and the update's switches. A
+        recording of another key is stale and is dropped (identities of freed arrays could be reused: no ``id()``)."""
+        return (self._generation, getattr(self.model, "generation", 0), self.measurement_update, self.closed_loop)
 
     def _info(self, out):
         stats = self._stats.numpy()
@@ -730,6 +734,7 @@ class MarginalizedParticleFilter:
             bigger = wp.zeros((2 * cap, *old.shape[1:]), dtype=wp.float64, device=self.device)
             wp.copy(bigger, old, count=old.size)
             setattr(self, name, bigger)
+        self._generation += 1
 
     def history(self) -> np.ndarray:
         """(updates, B, N_SUMMARY) record of every update so far (one host sync); columns
@@ -775,7 +780,8 @@ class MarginalizedParticleFilter:
 
     def moments(self) -> np.ndarray:
         """Weighted moments of the particles of each filter (host float64, (B, 169)):
-        [Σw, Σw dp (3), Σw dp dpᵀ (9), Σw l (12), Σw l lᵀ (144)]."""
+        [Σw, Σw dp (3), Σw dp dpᵀ (9), Σw l (12), Σw l lᵀ (144)] at offsets :data:`warptan.kernels.mpf.MOM_W` …
+        ``MOM_LL``."""
         self.flush()
         d, b = self.device, self.n_filters
         launch(kmpf.moment_partials_kernel, dim=(b, kmpf.N_MOMENT_CHUNKS),
@@ -792,13 +798,13 @@ class MarginalizedParticleFilter:
         nominal = {k: v.numpy() for k, v in self._nav.items() if k != "cov"}
         out = []
         for b, m in enumerate(moments):
-            total = m[0]
+            total = m[kmpf.MOM_W]
             if not (np.isfinite(m).all() and total > 0):
                 raise FloatingPointError(f"particle moments of filter {b} are not finite (Σw = {total}); this is a bug")
-            dp = m[1:4] / total
-            cov_pos = m[4:13].reshape(3, 3) / total - np.outer(dp, dp)
-            lin = m[13:25] / total
-            spread = m[25:169].reshape(12, 12) / total - np.outer(lin, lin)
+            dp = m[kmpf.MOM_DP:kmpf.MOM_DP + 3] / total
+            cov_pos = m[kmpf.MOM_DPDP:kmpf.MOM_DPDP + 9].reshape(3, 3) / total - np.outer(dp, dp)
+            lin = m[kmpf.MOM_L:kmpf.MOM_L + 12] / total
+            spread = m[kmpf.MOM_LL:kmpf.MOM_LL + 144].reshape(12, 12) / total - np.outer(lin, lin)
             s = NavState(*(nominal[k][b] for k in ("pos", "vel", "quat", "ba", "bg")))
             q = quat_mul(s.quat_nb, quat_exp(lin[3:6]))
             nav = NavState(s.pos_n + dp, s.vel_n + lin[0:3], q / np.linalg.norm(q), s.accel_bias + lin[6:9],

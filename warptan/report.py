@@ -1,8 +1,12 @@
 """Monte-Carlo summaries of scenario runs: results.json, a Markdown table next to the paper, and PNG plots.
 
 RMSE per axis is reported as mean ± 95 % interval over seeds (Student t, ``t_{0.975, n-1} s / √n``),
-over the whole run and after convergence (``filter.converged_after_s``). matplotlib is imported only by
-the plotting functions.
+over the whole run and after convergence (``filter.converged_after_s``). Comparisons between scenarios are
+decided by :func:`compare_less` (one-sided Welch t tests on per-seed values) and :func:`ratio_within`
+(a seeded bootstrap interval of the ratio of means): each verdict is ``holds``, ``does not hold`` or
+``inconclusive``, with the p-value or interval behind it. matplotlib is imported only by the plotting
+functions; no SciPy (the Student t distribution is computed here, checked in the tests against tabulated
+values).
 """
 
 from __future__ import annotations
@@ -14,9 +18,68 @@ from pathlib import Path
 
 import numpy as np
 
-_T975 = [12.706, 4.303, 3.182, 2.776, 2.571, 2.447, 2.365, 2.306, 2.262, 2.228, 2.201, 2.179, 2.160, 2.145,
-         2.131, 2.120, 2.110, 2.101, 2.093, 2.086, 2.080, 2.074, 2.069, 2.064, 2.060, 2.056, 2.052, 2.048,
-         2.045, 2.042]
+from warptan.meta import run_meta
+
+HOLDS, FAILS, INCONCLUSIVE = "holds", "does not hold", "inconclusive"
+"""Verdicts of a statistical claim."""
+ALPHA = 0.05
+"""Significance level of every verdict (one-sided tests; 95 % intervals)."""
+
+
+def _betacf(a: float, b: float, x: float) -> float:
+    """Continued fraction of the regularised incomplete beta function (modified Lentz)."""
+    tiny, qab, qap, qam = 1e-300, a + b, a + 1.0, a - 1.0
+    c, d = 1.0, 1.0 - qab * x / qap
+    d = 1.0 / (d if abs(d) > tiny else tiny)
+    h = d
+    for m in range(1, 400):
+        m2 = 2 * m
+        for num in (m * (b - m) * x / ((qam + m2) * (a + m2)), -(a + m) * (qab + m) * x / ((a + m2) * (qap + m2))):
+            d = 1.0 + num * d
+            d = 1.0 / (d if abs(d) > tiny else tiny)
+            c = 1.0 + num / c
+            c = c if abs(c) > tiny else tiny
+            h *= d * c
+        if abs(d * c - 1.0) < 1e-15:
+            break
+    return h
+
+
+def _betainc(a: float, b: float, x: float) -> float:
+    """Regularised incomplete beta function I_x(a, b), 0 ≤ x ≤ 1."""
+    if x <= 0.0:
+        return 0.0
+    if x >= 1.0:
+        return 1.0
+    front = math.exp(math.lgamma(a + b) - math.lgamma(a) - math.lgamma(b) + a * math.log(x) + b * math.log1p(-x))
+    if x < (a + 1.0) / (a + b + 2.0):
+        return front * _betacf(a, b, x) / a
+    return 1.0 - front * _betacf(b, a, 1.0 - x) / b
+
+
+def t_sf(t: float, dof: float) -> float:
+    """P(T > t) for Student's t with ``dof`` degrees of freedom (real dof > 0, as Welch's)."""
+    if not math.isfinite(t):
+        return 0.0 if t > 0 else 1.0
+    tail = 0.5 * _betainc(0.5 * dof, 0.5, dof / (dof + t * t))
+    return tail if t >= 0 else 1.0 - tail
+
+
+def t_ppf(q: float, dof: float) -> float:
+    """The q-quantile of Student's t (bisection on :func:`t_sf`, 1e-10 relative)."""
+    if not 0.0 < q < 1.0:
+        raise ValueError(f"quantile must be in (0, 1), got {q}")
+    if q < 0.5:
+        return -t_ppf(1.0 - q, dof)
+    lo, hi = 0.0, 1.0
+    while t_sf(hi, dof) > 1.0 - q:
+        hi *= 2.0
+    for _ in range(200):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if t_sf(mid, dof) > 1.0 - q else (lo, mid)
+        if hi - lo < 1e-10 * hi:
+            break
+    return 0.5 * (lo + hi)
 
 
 def ci95(values) -> tuple[np.ndarray, np.ndarray]:
@@ -26,8 +89,62 @@ def ci95(values) -> tuple[np.ndarray, np.ndarray]:
     n = len(v)
     if n < 2:
         return mean, np.full_like(mean, np.nan)
-    t = _T975[n - 2] if n - 2 < len(_T975) else 1.96
-    return mean, t * v.std(axis=0, ddof=1) / math.sqrt(n)
+    return mean, t_ppf(0.975, n - 1) * v.std(axis=0, ddof=1) / math.sqrt(n)
+
+
+def welch_less(a, b) -> float:
+    """One-sided Welch t test of mean(a) < mean(b) on independent samples: the p-value (small: a is smaller).
+    Needs ≥ 2 values in each; equal constant samples give 0.5."""
+    a, b = np.asarray(a, dtype=np.float64), np.asarray(b, dtype=np.float64)
+    if len(a) < 2 or len(b) < 2:
+        raise ValueError(f"Welch's t test needs at least 2 values per sample, got {len(a)} and {len(b)}")
+    va, vb = a.var(ddof=1) / len(a), b.var(ddof=1) / len(b)
+    diff = b.mean() - a.mean()
+    if va + vb == 0.0:
+        return 0.5 if diff == 0 else (0.0 if diff > 0 else 1.0)
+    dof = (va + vb) ** 2 / (va**2 / (len(a) - 1) + vb**2 / (len(b) - 1))
+    return float(t_sf(diff / math.sqrt(va + vb), dof))
+
+
+def compare_less(a, b, alpha: float = ALPHA) -> tuple[str, float]:
+    """Verdict on "mean(a) < mean(b)": holds when the one-sided Welch p-value is < alpha, does not hold when the
+    opposite one-sided test is, else inconclusive. Returns (verdict, p-value of a < b)."""
+    p = welch_less(a, b)
+    if p < alpha:
+        return HOLDS, p
+    if 1.0 - p < alpha:
+        return FAILS, p
+    return INCONCLUSIVE, p
+
+
+def bootstrap_ratio(a, b, resamples: int = 10_000, seed: int = 0) -> tuple[float, float, float]:
+    """mean(a) / mean(b) and its 95 % percentile-bootstrap interval (seeds resampled independently per sample,
+    seeded: the same inputs give the same interval)."""
+    a, b = np.asarray(a, dtype=np.float64), np.asarray(b, dtype=np.float64)
+    rng = np.random.default_rng(seed)
+    ra = a[rng.integers(0, len(a), (resamples, len(a)))].mean(axis=1)
+    rb = b[rng.integers(0, len(b), (resamples, len(b)))].mean(axis=1)
+    lo, hi = np.percentile(ra / rb, [2.5, 97.5])
+    return float(a.mean() / b.mean()), float(lo), float(hi)
+
+
+def ratio_within(a, b, factor: float) -> tuple[str, tuple[float, float, float]]:
+    """Verdict on "mean(a) and mean(b) are within ``factor`` of each other": holds when the bootstrap 95 % interval
+    of the ratio lies inside [1/factor, factor], does not hold when it lies wholly outside, else inconclusive."""
+    r, lo, hi = bootstrap_ratio(a, b)
+    if 1.0 / factor <= lo and hi <= factor:
+        return HOLDS, (r, lo, hi)
+    if hi < 1.0 / factor or lo > factor:
+        return FAILS, (r, lo, hi)
+    return INCONCLUSIVE, (r, lo, hi)
+
+
+def combine(verdicts) -> str:
+    """All parts hold → holds; any part fails → does not hold; else inconclusive."""
+    verdicts = list(verdicts)
+    if verdicts and all(v == HOLDS for v in verdicts):
+        return HOLDS
+    return FAILS if FAILS in verdicts else INCONCLUSIVE
 
 
 def aggregate(results) -> dict[str, dict]:
@@ -204,7 +321,8 @@ def write_outputs(results, out_dir: str | os.PathLike, terrains: dict, plots: bo
     agg = aggregate(results)
     table = markdown_table(agg)
     with open(out / "results.json", "w") as f:
-        json.dump({"scenarios": agg, "runs": [r.summary() for r in results]}, f, indent=1)
+        json.dump({"meta": run_meta(sorted({r.device for r in results}) or ["cpu"]), "scenarios": agg,
+                   "runs": [r.summary() for r in results]}, f, indent=1)
     (out / "results.md").write_text(
         "# warptan scenario results\n\nRMSE x / y / z = north / east / down in metres, mean ± 95 % interval over "
         "seeds; \"after convergence\" counts from `filter.converged_after_s`.\n\n" + table + "\n\n"

@@ -218,7 +218,7 @@ def run_filter(truth: Trajectory, terrain_map, model, imu: ImuModel | Sequence[I
                                           p_diag[:, b] + h[:, kmpf.H_VAR_L:kmpf.H_VAR_L + 12])
         mean = h[:, kmpf.H_MEAN_DP:kmpf.H_MEAN_DP + 3]
         var = h[:, kmpf.H_COV_DP:kmpf.H_COV_DP + 3]
-        est = np.vstack([prior[b].nav.pos_n, nominal_hist[:, b, 0:3] + mean])
+        est = np.vstack([prior[b].nav.pos_n, nominal_hist[:, b, kmpf.NOM_POS:kmpf.NOM_POS + 3] + mean])
         sig = np.vstack([prior[b].sigma3_pos, 3.0 * np.sqrt(np.maximum(var, 0.0))])
         respread = h[:, kmpf.H_RESPREAD] > 0
         runs.append(FilterRun(
@@ -244,10 +244,12 @@ def _linear_errors(truth: Trajectory, idx: np.ndarray, true_bias: np.ndarray, pr
     """(T, 12) estimate minus truth of [v, θ, b_a, b_g] at the epochs ``idx`` and their 3σ, from the prior and,
     per update, the nominal INS before any injection, the mean Kalman mean and its total variance."""
     k = np.minimum(idx, len(true_bias) - 1)
-    vel = np.vstack([prior.nav.vel_n, nominal[:, 3:6] + mean_l[:, 0:3]])
-    quat = np.vstack([prior.nav.quat_nb, quat_mul(nominal[:, 6:10], quat_exp(mean_l[:, 3:6]))])
+    nom = {k: nominal[:, o:o + n] for k, o, n in (("vel", kmpf.NOM_VEL, 3), ("quat", kmpf.NOM_QUAT, 4),
+                                                    ("ba", kmpf.NOM_BA, 3), ("bg", kmpf.NOM_BG, 3))}
+    vel = np.vstack([prior.nav.vel_n, nom["vel"] + mean_l[:, 0:3]])
+    quat = np.vstack([prior.nav.quat_nb, quat_mul(nom["quat"], quat_exp(mean_l[:, 3:6]))])
     bias = np.vstack([np.r_[prior.nav.accel_bias, prior.nav.gyro_bias],
-                      np.hstack([nominal[:, 10:13] + mean_l[:, 6:9], nominal[:, 13:16] + mean_l[:, 9:12]])])
+                      np.hstack([nom["ba"] + mean_l[:, 6:9], nom["bg"] + mean_l[:, 9:12]])])
     att = quat_log(quat_mul(quat_conj(truth.quat_nb[idx]), quat / np.linalg.norm(quat, axis=1, keepdims=True)))
     err = np.hstack([vel - truth.vel_n[idx], att, bias - true_bias[k]])
     sig = 3.0 * np.sqrt(np.maximum(np.vstack([np.diag(prior.cov_lin), var_l]), 0.0))

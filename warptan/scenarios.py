@@ -373,13 +373,20 @@ def _segments(flight: dict) -> list:
 
 
 def _max_height_near(terrain: Terrain, north, east, radius: float) -> float:
+    """The highest post within ``radius`` metres (horizontal distance) of any of the points (north, east)."""
     rows, cols = terrain.shape
     best = -np.inf
-    ri, rj = math.ceil(radius / terrain.dn), math.ceil(radius / terrain.de)
+    ri, rj = math.ceil(radius / terrain.dn) + 1, math.ceil(radius / terrain.de) + 1
     for n, e in zip(north, east, strict=True):
         i, j = round((n - terrain.n0) / terrain.dn), round((e - terrain.e0) / terrain.de)
-        window = terrain.heights_m[max(0, i - ri):min(rows, i + ri + 1), max(0, j - rj):min(cols, j + rj + 1)]
-        if window.size and np.isfinite(window).any():
+        i0, i1, j0, j1 = max(0, i - ri), min(rows, i + ri + 1), max(0, j - rj), min(cols, j + rj + 1)
+        if i0 >= i1 or j0 >= j1:
+            continue
+        dn = terrain.n0 + np.arange(i0, i1) * terrain.dn - n
+        de = terrain.e0 + np.arange(j0, j1) * terrain.de - e
+        inside = dn[:, None] ** 2 + de[None, :] ** 2 <= radius * radius
+        window = np.where(inside, terrain.heights_m[i0:i1, j0:j1], np.nan)
+        if np.isfinite(window).any():
             best = max(best, float(np.nanmax(window)))
     return best
 
