@@ -145,8 +145,9 @@ def nav_interval_kernel(
 ):
     """Thread b: K = ``counts[b, INT_STEPS]`` IMU samples (specific force ``imu[b, k, 0]``, body rate
     ``imu[b, k, 1]``) of filter ``b = row0 + t``: advances its nominal state and ``cov`` (P, 4×4 blocks) in place;
-    writes Φ and the lower Cholesky factor of S (5×5 blocks, float32), the nominal pose ``[p (3), q (4)]`` at the end of the interval, and
-    what the update's kernels read of P: ``P_θθ`` (``att_cov_out``) and the column blocks ``P_:θ`` (``p_col_out``).
+    writes Φ and the lower Cholesky factor of S (5×5 blocks, float32), the nominal pose ``[p (3), q (4)]`` at the end
+    of the interval, and what the update's kernels read of P: ``P_θθ`` (``att_cov_out``) and the column blocks ``P_:θ``
+    (``p_col_out``).
     ``q_lin`` = diagonal of Q^l per block (dv, dth, dba, dbg); ``q_pos`` = diagonal of Q^n (the position noise
     the Kalman part models, in N_k and L_k); ``q_rough`` = per-step variance of the roughening, added to the
     particles' dp only (``S_dpdp += K q_rough I``: T_k leaves a dp-only noise on dp), so that L_k never reads it
