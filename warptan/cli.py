@@ -86,7 +86,10 @@ def _run(args) -> int:
     if demo:
         print(f"warptan run: no scenario given, running the demonstration: S8 (sliding, navigation IMU) for "
               f"{duration:.0f} s on {terrain}, {seeds} seed(s), device {args.device}")
-    from tqdm import tqdm
+    try:
+        from tqdm import tqdm
+    except ModuleNotFoundError:  # a machine where only the core (numpy, warp) is installed: no progress bar
+        tqdm = _NoProgress
 
     total = 0
     for config, _, flight in plans.values():
@@ -113,6 +116,25 @@ def _run(args) -> int:
         print("plots skipped: matplotlib is not installed (pip install 'warptan[plot]')")
     print("wrote " + ", ".join(written["files"]))
     return 0
+
+
+class _NoProgress:
+    """Stands in for tqdm where it is not installed."""
+
+    def __init__(self, *_, **__):
+        pass
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *_):
+        return False
+
+    def update(self, *_):
+        pass
+
+    def set_description(self, *_):
+        pass
 
 
 def script_inputs(prog: str, devices: list[str], terrain_spec: str):
