@@ -28,7 +28,7 @@ NO_BARO_LIMIT_M = 5.0
 
 
 def _values(runs: list[dict], sid: str, key: str = "rmse_converged_m", axes=(0, 1)) -> np.ndarray:
-    vals = [np.asarray(r[key], dtype=np.float64) for r in runs if r["scenario"] == sid]
+    vals = [np.atleast_1d(np.asarray(r[key], dtype=np.float64)) for r in runs if r["scenario"] == sid]
     if not vals:
         return np.empty(0)
     v = np.array(vals)[:, list(axes)]
