@@ -139,6 +139,7 @@ def test_orbit_passes_beside_the_hill():
     assert -orbit.pos_n[0, 2] == pytest.approx(terrain.h_max + 150.0, abs=1.0)
 
 
+@pytest.mark.slow
 def test_warptan_run_demo(tmp_path):
     """`warptan run` with no arguments finishes and writes results.json, results.md and the plots."""
     proc = subprocess.run([sys.executable, "-m", "warptan.cli", "run", "--quiet"], cwd=tmp_path, capture_output=True,

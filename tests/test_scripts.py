@@ -5,9 +5,12 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 ROOT = Path(__file__).resolve().parents[1]
 
 
+@pytest.mark.slow
 def test_compare_kernel_timings_quick(tmp_path):
     """`compare_kernel_timings.py --quick` finishes and its JSON has every model, N, M and the timing fields."""
     out = tmp_path / "t.json"
@@ -32,14 +35,33 @@ def test_compare_kernel_timings_rejects_unknown_device():
     assert proc.returncode == 2 and "unknown or absent device 'tpu'" in proc.stderr
 
 
-def test_readme_results_come_from_the_artifacts():
-    """README.md's generated blocks (scenario table, claims, filter-step times) equal what
-    `scripts/readme_results.py` renders from the committed JSON: a README figure cannot drift from its artifact."""
-    proc = subprocess.run([sys.executable, str(ROOT / "scripts" / "readme_results.py"), "--check"],
-                          capture_output=True, text=True, timeout=120)
-    assert proc.returncode == 0, proc.stderr
+def test_readme_tables_come_from_the_artifacts(tmp_path):
+    """`scripts/readme_tables.py --check` passes on the committed README and fails when a number in a generated
+    block is edited by hand, or when a measured number is typed into the prose."""
+    script = str(ROOT / "scripts" / "readme_tables.py")
+
+    def check(path):
+        return subprocess.run([sys.executable, script, "--check", "--readme", str(path)], capture_output=True,
+                              text=True, timeout=300)
+
+    ok = check(ROOT / "README.md")
+    assert ok.returncode == 0, ok.stderr
+    text = (ROOT / "README.md").read_text()
+    block = text.index("<!-- generated:paper -->")
+    row = text.index("| S1 |", block)
+    cell = text.index("±", row)
+    start = cell - 4  # the digits before the first "±" of S1's row, e.g. "0.24"
+    edited = text[:start] + ("9.99" if text[start:cell] != "9.99" else "8.88") + text[cell:]
+    (tmp_path / "edited.md").write_text(edited)
+    bad = check(tmp_path / "edited.md")
+    assert bad.returncode == 1 and "differs from the artifacts" in bad.stderr
+    prose = text.replace("## Tests\n", "## Tests\n\nA step takes 0.42 ms here.\n", 1)
+    (tmp_path / "prose.md").write_text(prose)
+    bad = check(tmp_path / "prose.md")
+    assert bad.returncode == 1 and "'0.42 ms'" in bad.stderr
 
 
+@pytest.mark.slow
 def test_bench_filter_step_records_stages(tmp_path):
     """`bench_filter_step.py` runs a tiny configuration and records the tempering stages with the timings."""
     out = tmp_path / "s.json"

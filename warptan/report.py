@@ -181,12 +181,18 @@ def _linear_aggregate(summaries: list[dict]) -> dict:
     def col(key):
         return np.array([s[key] for s in summaries], dtype=np.float64)
 
+    def nanmean(values):  # an axis with no finite value (no error to divide by) stays NaN, without a warning
+        finite = np.isfinite(values)
+        total = np.where(finite, values, 0.0).sum(axis=0)
+        count = finite.sum(axis=0)
+        return np.where(count > 0, total / np.maximum(count, 1), np.nan)
+
     return {
         "attitude_rmse_deg": np.sqrt(np.mean(col("attitude_rmse_converged_deg") ** 2, axis=0)).tolist(),
         "coverage_3sigma_attitude_mean": np.mean(col("coverage_3sigma_attitude"), axis=0).tolist(),
         "gyro_bias_rmse_after_60s_dph": np.sqrt(np.mean(col("gyro_bias_rmse_after_60s_dph") ** 2, axis=0)).tolist(),
-        "sigma_over_rmse_pos_mean": np.nanmean(col("sigma_over_rmse_pos"), axis=0).tolist(),
-        "sigma_over_rmse_attitude_mean": np.nanmean(col("sigma_over_rmse_attitude"), axis=0).tolist(),
+        "sigma_over_rmse_pos_mean": nanmean(col("sigma_over_rmse_pos")).tolist(),
+        "sigma_over_rmse_attitude_mean": nanmean(col("sigma_over_rmse_attitude")).tolist(),
     }
 
 

@@ -1,0 +1,314 @@
+#!/usr/bin/env python3
+"""Render every measured table and figure reference of README.md from committed artifacts (never typed by hand).
+
+Blocks are delimited in README.md by ``<!-- generated:NAME -->`` … ``<!-- /generated:NAME -->``; each is
+rendered from JSON under ``results/`` or ``benchmarks/`` (the block names its sources and the commit and machine
+from the artifact's ``meta``). Outside the blocks the README carries no measured number: ``--check`` also fails
+on a timing, percentage, ratio or decimal length written in the prose (:func:`hand_numbers`).
+
+    python scripts/readme_tables.py            # print the blocks
+    python scripts/readme_tables.py --write    # replace them in README.md
+    python scripts/readme_tables.py --check    # exit 1 if README.md differs from the artifacts or has hand numbers
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import re
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))  # warptan.report / warptan.claims render like the run did (no Warp import needed)
+
+
+def _load(path: str | Path) -> dict:
+    with open(ROOT / path) as f:
+        return json.load(f)
+
+
+def _provenance(*paths: str) -> str:
+    """"Sources: `a` (commit abc1234, GPU/CPU), …" from the artifacts' meta."""
+    parts = []
+    for p in paths:
+        meta = _load(p).get("meta", {})
+        where = (", ".join(meta["gpu"]["names"]) if "gpu" in meta else
+                 f"{meta.get('cpu_model', '?')}, {meta.get('cpu_threads', '?')} threads")
+        parts.append(f"`{p}` (commit {str(meta.get('git_commit', '?'))[:7]}, {where})")
+    return "Sources: " + "; ".join(parts) + "."
+
+
+def _triple(mean, half=None, fmt="{:.2f}") -> str:
+    if half is None:
+        return " / ".join(fmt.format(v) for v in mean)
+    return " / ".join(f"{fmt.format(m)}±{fmt.format(h)}" for m, h in zip(mean, half, strict=True))
+
+
+def _pct(values) -> str:
+    return " / ".join(f"{100 * c:.0f}%" for c in values)
+
+
+def _sid_key(s: str) -> int:
+    return int(s[1:])
+
+
+def claims_lines(path: str) -> list[str]:
+    data = _load(path)
+    return [f"- **{c['verdict']}** — {c['claim']}: {c['evidence']}" for c in data["claims"]] + [
+        "", "Tests: " + "; ".join(sorted({c["test"] for c in data["claims"]})) + "."]
+
+
+def paper_block(folder: str = "results/paper") -> str:
+    side = _load(f"{folder}/likelihoods.json")
+    kinds = side["likelihoods"]
+    results = {k: _load(f"{folder}/{k}/results.json") for k in kinds}
+    terrains = sorted({r["terrain"] for k in kinds for r in results[k]["runs"]})
+    default = kinds[0]
+    lines = [f"{side['seeds']} seeds per scenario, device `{side['device']}`, 500 particles, 120 s; "
+             "converged = after 30 s. RMSE north / east / down in metres, mean ± 95 % interval over seeds; "
+             "3σ coverage pooled over seeds and epochs after convergence; re-spreads = integrity flags (filter "
+             "declared lost) over all seeds. Terrain: " + ", ".join(f"`{t}`" for t in terrains) + ". "
+             + _provenance(f"{folder}/likelihoods.json"), "",
+             "| id | model | paper's RMSE | "
+             + " | ".join(f"{k}: RMSE | {k}: 3σ coverage | {k}: re-spreads" for k in kinds)
+             + " |", "|" + "---|" * (3 + 3 * len(kinds))]
+    for sid in sorted(side["scenarios"], key=_sid_key):
+        agg = results[default]["scenarios"][sid]
+        cells = [sid, agg.get("model", ""), _triple(agg["paper_rmse_m"])]
+        for k in kinds:
+            e = side["scenarios"][sid][k]
+            flags = sum(r["respreads"] for r in results[k]["runs"] if r["scenario"] == sid)
+            cells += [_triple(e["rmse_converged_mean_m"], e["rmse_converged_ci95_m"]),
+                      _pct(e["coverage_3sigma_mean"]), str(flags)]
+        lines.append("| " + " | ".join(cells) + " |")
+    lines += ["", f"The paper's claims with the `{default}` likelihood (`{folder}/{default}/claims.json`):", ""]
+    lines += claims_lines(f"{folder}/{default}/claims.json")
+    return "\n".join(lines)
+
+
+def attitude_block(folder: str = "results/paper/gaussian") -> str:
+    from warptan.report import attitude_table
+
+    data = _load(f"{folder}/results.json")
+    return ("Attitude error = Log(q_true⁻¹ q_est) in body axes after convergence, RMS over seeds of the runs' RMSE; "
+            "gyro-bias RMSE after 60 s; mean reported σ over the RMSE (≈ 1: the 3σ neither lies nor balloons). "
+            + _provenance(f"{folder}/results.json") + "\n\n" + attitude_table(data["scenarios"]))
+
+
+def closed_loop_block() -> str:
+    open_, closed = _load("results/paper/gaussian/results.json"), _load("results/closed_loop/gaussian/results.json")
+    lines = ["Converged RMSE north / east / down (m, mean ± 95 % interval) and 3σ coverage, open loop (the default) "
+             "and closed loop (`--closed-loop`), same seeds. " + _provenance("results/paper/gaussian/results.json",
+                                                                            "results/closed_loop/gaussian/results.json"),
+             "", "| id | open loop RMSE | open loop 3σ | closed loop RMSE | closed loop 3σ |", "|---|---|---|---|---|"]
+    for sid in sorted(closed["scenarios"], key=_sid_key):
+        a, b = open_["scenarios"][sid], closed["scenarios"][sid]
+        cells = [sid] + [f"{_triple(x['rmse_converged_mean_m'], x['rmse_converged_ci95_m'])} | "
+                         f"{_pct(x['coverage_3sigma_mean'])}" for x in (a, b)]
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def map_error_block() -> str:
+    data = _load("results/map_error/study.json")
+    meta, rows = data["meta"], data["rows"]
+    lines = [f"World `{meta['terrain']}`; map = the world at coarser posts (block means) + white noise per post; "
+             f"{meta['seeds']} seeds per row, {meta['duration_s']:g} s. Converged horizontal RMSE (m, mean ± 95 % "
+             "interval) and the smaller of the N/E 3σ coverages, with the map-aware σ (left) and with the stated "
+             "noise only (right; on the world's own grid both are the same). Full table: `results/map_error/study.md`"
+             ". " + _provenance("results/map_error/study.json"), "",
+             "| model | map noise (m) | " + " | ".join(f"{s:g} m posts" for s in meta["spacings"]) + " |",
+             "|---|---|" + "---|" * len(meta["spacings"])]
+
+    def cell(r):
+        cover = 100 * min(r["coverage_3sigma_mean"][:2])
+        return f"{r['horizontal_rmse_mean_m']:.1f}±{r['horizontal_rmse_ci95_m']:.1f} ({cover:.0f}%)"
+
+    for sid in meta["scenarios"]:
+        model = {"S7": "S7 ray casting", "S8": "S8 sliding", "S9": "S9 altimeter"}.get(sid, sid)
+        for noise in meta["noises"]:
+            cells = []
+            for spacing in meta["spacings"]:
+                found = {r["map_aware"]: r for r in rows if r["scenario"] == sid and r["map_spacing_m"] == spacing
+                         and r["map_noise_m"] == noise}
+                if not found:
+                    cells.append("")
+                elif False not in found:
+                    cells.append(cell(found[True]))
+                else:
+                    cells.append(f"{cell(found[True])} · {cell(found[False])}")
+            lines.append(f"| {model} | {noise:g} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def long_flight_block() -> str:
+    data = _load("results/long_flight_check.json")
+    lines = [data["what"], f"Terrain `{data.get('terrain', '?')}`. " + _provenance("results/long_flight_check.json"),
+             "", "| likelihood | runs | epochs outside 3σ (mean) | runs > 5 % outside | runs re-spread | "
+             "outside > 5 % and never re-spread | largest horizontal error after 30 s (m) |",
+             "|---|---|---|---|---|---|---|"]
+    kinds = sorted({k.split("/")[0] for k in data["runs"]})
+    for kind in kinds:
+        runs = [v for k, v in data["runs"].items() if k.startswith(kind + "/")]
+        out = [r["frac_outside_3sigma_after_30s"] for r in runs]
+        flagged = [bool(r["respreads_at_s"]) for r in runs]
+        silent = sum(1 for o, f in zip(out, flagged, strict=True) if o > 0.05 and not f)
+        lines.append(f"| {kind} | {len(runs)} | {100 * sum(out) / len(out):.2f}% | {sum(o > 0.05 for o in out)} | "
+                     f"{sum(flagged)} | {silent} | {max(r['max_horizontal_error_after_30s_m'] for r in runs):.1f} |")
+    return "\n".join(lines)
+
+
+def step_block() -> str:
+    lines = ["| device | model | likelihood | graph | N | M | step ms | pipelined ms | stages per update |",
+             "|---|---|---|---|---|---|---|---|---|"]
+    sources = []
+    for name in ("filter_step_device_cpu.json", "filter_step_device_h100.json", "filter_step_device_batch_h100.json"):
+        path = f"benchmarks/{name}"
+        sources.append(path)
+        data = _load(path)
+        device = ", ".join(data["meta"]["devices"].values())
+        for r in data["results"]:
+            pipelined = f"{r['throughput_step_ms']:.2f}" if "throughput_step_ms" in r else "—"
+            lines.append(f"| {device} | {r['model']} | {r['likelihood']} | {'on' if r['graph'] else 'off'} | "
+                         f"{r['B']} × {r['N']} | {r['M']} | {r['step_ms']:.2f} | {pipelined} | "
+                         f"{r['tempering_stages_mean']:.2f} |")
+    commands = "; ".join(f"`{_load(p)['meta']['command']}`" for p in sources)
+    return ("Median whole step (10 IMU samples + one update, synchronised) and the pipelined step (the next intervals "
+            "back to back, one synchronisation at the end); N is filters × particles. " + _provenance(*sources)
+            + " Commands: " + commands + ".\n\n" + "\n".join(lines))
+
+
+def profile_block(top: int = 10) -> str:
+    data = _load("benchmarks/step_profile_h100.json")
+    lines = []
+    for r in data["results"]:
+        lines += [f"`{r['likelihood']}` likelihood, eager step {r['eager_step_ms']:.2f} ms with the profiler on, "
+                  f"{r['stages']:.2f} tempering stages per update; the {top} costliest kernels (device µs per step):",
+                  "", "| kernel | µs per step | calls per step |", "|---|---|---|"]
+        lines += [f"| `{k['kernel']}` | {k['us_per_step']:.1f} | {k['calls_per_step']:.1f} |"
+                  for k in r["kernels"][:top]]
+    m = data["meta"]
+    return (f"Device time per kernel (`{m['command']}`, model {m.get('model')}, N = {m.get('N')}, M = {m.get('M')}). "
+            + _provenance("benchmarks/step_profile_h100.json") + "\n\n" + "\n".join(lines))
+
+
+def kernels_block() -> str:
+    sources = ["benchmarks/kernel_timings_cpu.json", "benchmarks/kernel_timings_h100.json"]
+    rows = {}
+    for p in sources:
+        for r in _load(p)["results"]:
+            rows.setdefault((r["device"], r["N"], r["M"]), {})[r["model"]] = r["median_s"]
+    models = ["mesh", "dda", "bisection", "sliding"]
+    lines = ["| device | N × M | " + " | ".join(f"{m} ms" for m in models) + " | dda / sliding |",
+             "|---|---|" + "---|" * (len(models) + 1)]
+    for (dev, n, m), t in sorted(rows.items(), key=lambda kv: (kv[0][0], kv[0][1] * kv[0][2])):
+        if n * m < 50_000:
+            continue
+        ratio = f"{t['dda'] / t['sliding']:.1f}" if "dda" in t and "sliding" in t else "—"
+        lines.append(f"| {dev} | {n} × {m} | " + " | ".join(f"{1e3 * t[k]:.3f}" if k in t else "—" for k in models)
+                     + f" | {ratio} |")
+    return ("One `model.evaluate` (N × M residual kernel + per-particle reduction), median after warm-up, on the "
+            "generated rugged terrain; configurations from N·M = 50 000 up. " + _provenance(*sources) + "\n\n"
+            + "\n".join(lines))
+
+
+def threads_block() -> str:
+    one, two = _load("benchmarks/cpu_threads_1.json"), _load("benchmarks/kernel_timings_cpu.json")
+    t1 = {(r["model"], r["N"], r["M"]): r["median_s"] for r in one["results"]}
+    lines = [f"`model.evaluate` with {one['meta']['cpu_threads']} thread (`WARPTAN_CPU_THREADS=1`) against "
+             f"{two['meta']['cpu_threads']} threads, same machine. "
+             + _provenance("benchmarks/cpu_threads_1.json", "benchmarks/kernel_timings_cpu.json"), "",
+             "| model | N × M | 1 thread ms | all threads ms | speed-up |", "|---|---|---|---|---|"]
+    for r in two["results"]:
+        key = (r["model"], r["N"], r["M"])
+        if key in t1:
+            lines.append(f"| {r['model']} | {r['N']} × {r['M']} | {1e3 * t1[key]:.2f} | {1e3 * r['median_s']:.2f} | "
+                         f"{t1[key] / r['median_s']:.2f}× |")
+    return "\n".join(lines)
+
+
+def numpy_block() -> str:
+    data = _load("benchmarks/numpy_baseline_cpu.json")
+    lines = ["Same inputs, same CPU: warptan's model against vectorised NumPy (sliding) and trimesh's ray–triangle "
+             "intersector (ray casts); the largest difference of the two errors shows they compute the same thing. "
+             + _provenance("benchmarks/numpy_baseline_cpu.json"), "",
+             "| model | N × M | warptan ms | baseline ms | speed-up | max difference (m) |",
+             "|---|---|---|---|---|---|"]
+    for r in data["results"]:
+        lines.append(f"| {r['model']} ({r.get('numpy_impl', '')}) | {r['N']} × {r['M']} | {r['warptan_ms']:.2f} | "
+                     f"{r['numpy_ms']:.1f} | {r['speedup']:.1f}× | {r['max_abs_error_difference_m']:.1e} |")
+    return "\n".join(lines)
+
+
+def batch_block() -> str:
+    data = _load("results/s7_batch100/results.json")
+    s7 = data["scenarios"]["S7"]
+    m = _load("results/s7_batch100/results.json")["meta"]
+    return (f"`{m['command']}`: {len(s7['seeds'])} runs of S7 (120 s, 500 particles, 100 rays) as one batched filter "
+            f"took {s7['wall_s_mean']:.1f} s wall time including the simulation of truth, IMU errors and scans. "
+            f"Converged RMSE {_triple(s7['rmse_converged_mean_m'], s7['rmse_converged_ci95_m'])} m. "
+            + _provenance("results/s7_batch100/results.json"))
+
+
+BLOCKS = {"paper": paper_block, "attitude": attitude_block, "paper30": lambda: paper_block("results/paper30"),
+          "closed_loop": closed_loop_block, "map_error": map_error_block, "long_flight": long_flight_block,
+          "step": step_block, "profile": profile_block, "kernels": kernels_block, "threads": threads_block,
+          "numpy": numpy_block, "batch": batch_block}
+
+_BLOCK = re.compile(r"<!-- generated:(\w+) -->\n.*?<!-- /generated:\1 -->", re.S)
+_FENCE = re.compile(r"```.*?```", re.S)
+# A measured-looking number: a time, a percentage or ratio, or a decimal with a length / time / angle unit.
+_HAND = re.compile(r"(?<![\w.])(\d[\d,]*(?:\.\d+)?\s?(?:ms|µs|%|×)(?![\w/])|\d+\.\d+\s?(?:m|s|°|°/h)(?![\w/²]))")
+
+
+def hand_numbers(text: str) -> list[tuple[int, str]]:
+    """(line, text) of every measured-looking number outside the generated blocks and code fences."""
+    blanked = _BLOCK.sub(lambda m: "\n" * m.group(0).count("\n"), text)
+    blanked = _FENCE.sub(lambda m: "\n" * m.group(0).count("\n"), blanked)
+    found = []
+    for i, line in enumerate(blanked.splitlines(), start=1):
+        found += [(i, m.group(0)) for m in _HAND.finditer(line)]
+    return found
+
+
+def render(text: str) -> str:
+    for name, make in BLOCKS.items():
+        pattern = re.compile(rf"(<!-- generated:{name} -->\n)(?:.*?\n)?(<!-- /generated:{name} -->)", re.S)
+        if not pattern.search(text):
+            raise SystemExit(f"README.md has no <!-- generated:{name} --> block")
+        body = make()
+        text = pattern.sub(lambda m, body=body: m.group(1) + body + "\n" + m.group(2), text)
+    return text
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--write", action="store_true", help="replace the blocks in README.md")
+    parser.add_argument("--check", action="store_true",
+                        help="exit 1 when README.md differs from the artifacts or carries a hand-typed number")
+    parser.add_argument("--readme", default=str(ROOT / "README.md"), help="the README to check or write")
+    args = parser.parse_args(argv)
+    readme = Path(args.readme)
+    text = readme.read_text()
+    new = render(text)
+    if args.check:
+        status = 0
+        if new != text:
+            print(f"{readme}: a generated block differs from the artifacts: run scripts/readme_tables.py --write",
+                  file=sys.stderr)
+            status = 1
+        for line, number in hand_numbers(text):
+            print(f"{readme}:{line}: measured number outside a generated block: {number!r}", file=sys.stderr)
+            status = 1
+        return status
+    if args.write:
+        readme.write_text(new)
+        return 0
+    for name, make in BLOCKS.items():
+        print(f"## {name}\n{make()}\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
