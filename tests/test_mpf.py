@@ -426,6 +426,12 @@ def test_resamplers_follow_the_weights(name, device):
         assert np.all(np.abs(counts - n * w) < 1.0 + 1e-3)
     heavy = np.argsort(w)[-50:]
     assert abs(counts[heavy].sum() - n * w[heavy].sum()) < 4 * np.sqrt(n * w[heavy].sum())
+    # every particle, not only the heaviest: 20 bins of 100 particles by weight, Pearson χ² (19 dof) below its
+    # 0.999 quantile (43.8)
+    bins = np.argsort(w).reshape(20, -1)
+    expected = n * w[bins].sum(axis=1)
+    chi2 = float((((counts[bins].sum(axis=1) - expected) ** 2) / expected).sum())
+    assert chi2 < 43.8, chi2
 
 
 def test_bad_filter_arguments(rugged):
@@ -781,3 +787,64 @@ def test_device_cdf_matches_numpy_cumsum(device):
     got = cdf.numpy().reshape(b, n)
     np.testing.assert_allclose(got / ref[:, -1:], ref / ref[:, -1:], rtol=0, atol=2e-6)
     assert np.all(np.diff(got, axis=1) >= 0)
+
+
+def test_estimate_combines_nominal_and_particle_moments(device, rugged):
+    """estimate(): position = nominal + weighted mean dp, velocity / biases = nominal + weighted mean l, attitude =
+    q_nom ⊗ Exp(mean θ), cov_lin = P + the spread of the Kalman means, cov_pos = weighted covariance of dp (a
+    float64 NumPy reduction of the particle arrays is the oracle)."""
+    from warptan.frames import quat_exp, quat_mul
+
+    model = wt.SlidingModel(rugged, Likelihood("gaussian", sigma_m=1.0))
+    truth = Trajectory.build([Straight(5.0)], 100.0, [-3000.0, 0.0, -(rugged.h_max + 600.0)])
+    mpf = MarginalizedParticleFilter(model, truth.state(0), "navigation", 100.0, [20.0, 20.0, 5.0],
+                                     np.diag(np.r_[np.full(3, 0.25), np.full(3, 1e-4), np.full(6, 1e-6)]),
+                                     n_particles=300, device=device, seed=5)
+    sensor = wt.PointCloudSensor(wt.ScanPattern.grid(4, 4, 30.0), range_sigma_m=0.5)
+    rng = np.random.default_rng(1)
+    for k in range(3):
+        for j in range(10):
+            mpf.predict(truth.f_b[10 * k + j], truth.w_b[10 * k + j])
+        i = 10 * (k + 1)
+        mpf.update(sensor.measure(rugged, truth.pos_n[i], truth.quat_nb[i], rng=rng))
+    est = mpf.estimate()
+    w = np.exp(mpf.state.logw.numpy().astype(np.float64))
+    w /= w.sum()
+    dp, lin = mpf.state.dp.numpy().astype(np.float64), mpf.state.lin.numpy().astype(np.float64)
+    mean_dp, mean_l = w @ dp, w @ lin
+    nom = mpf.nominal()
+    np.testing.assert_allclose(est.nav.pos_n, nom.pos_n + mean_dp, atol=1e-4)
+    np.testing.assert_allclose(est.nav.vel_n, nom.vel_n + mean_l[0:3], atol=1e-6)
+    np.testing.assert_allclose(est.nav.accel_bias, nom.accel_bias + mean_l[6:9], atol=1e-8)
+    np.testing.assert_allclose(est.nav.gyro_bias, nom.gyro_bias + mean_l[9:12], atol=1e-10)
+    q = quat_mul(nom.quat_nb, quat_exp(mean_l[3:6]))
+    np.testing.assert_allclose(est.nav.quat_nb, q / np.linalg.norm(q), atol=1e-7)
+    np.testing.assert_allclose(est.cov_pos, (dp - mean_dp).T @ ((dp - mean_dp) * w[:, None]), rtol=1e-3, atol=1e-6)
+    spread = (lin - mean_l).T @ ((lin - mean_l) * w[:, None])
+    np.testing.assert_allclose(est.cov_lin, mpf.P + spread, rtol=1e-3, atol=1e-12)
+    assert np.any(np.abs(mean_l[3:6]) > 0)  # the attitude part is exercised (the update moved the Kalman means)
+
+
+@pytest.mark.gpu
+@pytest.mark.parametrize("model_name", ["sliding", "raycast"])
+def test_graph_recapture_over_history_growth_and_likelihood_changes(rugged, model_name):
+    """CUDA: 300 updates with captured graphs (the history grows past 256 rows, its arrays replaced; the likelihood
+    reassigned at update 100) give bit-identical estimates and records to eager launches: every replaced array or
+    struct triggers a re-capture (generation counter)."""
+    if not wp.get_cuda_device_count():
+        pytest.skip("no CUDA device visible to Warp")
+
+    def change(k, mpf):
+        if k == 100:
+            mpf.model.likelihood = Likelihood("gaussian", sigma_m=5.0)
+
+    runs = []
+    for graph in (True, False):
+        model = wt.make_model(model_name, rugged, Likelihood("gaussian", sigma_m=1.0))
+        truth = Trajectory.build([Straight(40.0)], 100.0, [-3000.0, 0.0, -(rugged.h_max + 600.0)])
+        mpf = MarginalizedParticleFilter(model, truth.state(0), "navigation", 100.0, [20.0, 20.0, 5.0],
+                                         np.diag(np.r_[np.full(3, 0.25), np.full(3, 1e-6), np.full(6, 1e-8)]),
+                                         n_particles=128, device="cuda:0", seed=3, graph=graph)
+        runs.append(_drive(truth, mpf, rugged, 300, change))
+    np.testing.assert_array_equal(runs[0][0], runs[1][0])
+    np.testing.assert_array_equal(runs[0][1], runs[1][1])
