@@ -20,7 +20,6 @@ import sys
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))  # warptan.report / warptan.claims render like the run did (no Warp import needed)
 
 
 def _load(path: str | Path) -> dict:
