@@ -26,7 +26,9 @@ def test_fresh_virtualenv_install(tmp_path):
     from inside a virtualenv too (the README's own install): the child environment sees the running
     interpreter's site-packages through a .pth file (its dependencies and setuptools), not the system's."""
     env_dir = tmp_path / "venv"
-    venv.EnvBuilder(system_site_packages=False, with_pip=True).create(env_dir)
+    # No pip of its own: ensurepip would also put its bundled setuptools (65 on Python 3.11, no bdist_wheel) in front
+    # of the parent's; pip, setuptools and the dependencies all come from the parent through the .pth below.
+    venv.EnvBuilder(system_site_packages=False, with_pip=False).create(env_dir)
     py = str(env_dir / "bin" / "python")
     child_site = subprocess.run([py, "-c", "import sysconfig; print(sysconfig.get_paths()['purelib'])"], check=True,
                                 capture_output=True, text=True).stdout.strip()
