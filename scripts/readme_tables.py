@@ -242,8 +242,7 @@ def numpy_block() -> str:
 
 def batch_block() -> str:
     data = _load("results/s7_batch100/results.json")
-    s7 = data["scenarios"]["S7"]
-    m = _load("results/s7_batch100/results.json")["meta"]
+    s7, m = data["scenarios"]["S7"], data["meta"]
     return (f"`{m['command']}`: {len(s7['seeds'])} runs of S7 (120 s, 500 particles, 100 rays) as one batched filter "
             f"took {s7['wall_s_mean']:.1f} s wall time including the simulation of truth, IMU errors and scans. "
             f"Converged RMSE {_triple(s7['rmse_converged_mean_m'], s7['rmse_converged_ci95_m'])} m. "

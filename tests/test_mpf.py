@@ -681,13 +681,14 @@ def test_closed_loop_injection_keeps_every_particle_total_state(rugged):
     assert checked >= 10, checked
 
 
-def _manual_filter(terrain, model, record: bool, n_particles=64, seed=3):
+def _manual_filter(terrain, model, record: bool = True, n_particles=64, seed=3, device="cpu", graph=False,
+                   att_var=1e-6, bias_var=1e-8):
     """A filter driven by hand over a straight flight (10 IMU samples per scan); ``record=False`` launches every
     piece anew (no recorded launches), the reference for recorded / re-recorded replays."""
     truth = Trajectory.build([Straight(40.0)], 100.0, [-3000.0, 0.0, -(terrain.h_max + 600.0)])
     mpf = MarginalizedParticleFilter(model, truth.state(0), "navigation", 100.0, [20.0, 20.0, 5.0],
-                                     np.diag(np.r_[np.full(3, 0.25), np.full(3, 1e-6), np.full(6, 1e-8)]),
-                                     n_particles=n_particles, device="cpu", seed=seed, graph=False)
+                                     np.diag(np.r_[np.full(3, 0.25), np.full(3, att_var), np.full(6, bias_var)]),
+                                     n_particles=n_particles, device=device, seed=seed, graph=graph)
     if not record:
         mpf._recorder = None
     return truth, mpf
@@ -796,17 +797,9 @@ def test_estimate_combines_nominal_and_particle_moments(device, rugged):
     from warptan.frames import quat_exp, quat_mul
 
     model = wt.SlidingModel(rugged, Likelihood("gaussian", sigma_m=1.0))
-    truth = Trajectory.build([Straight(5.0)], 100.0, [-3000.0, 0.0, -(rugged.h_max + 600.0)])
-    mpf = MarginalizedParticleFilter(model, truth.state(0), "navigation", 100.0, [20.0, 20.0, 5.0],
-                                     np.diag(np.r_[np.full(3, 0.25), np.full(3, 1e-4), np.full(6, 1e-6)]),
-                                     n_particles=300, device=device, seed=5)
-    sensor = wt.PointCloudSensor(wt.ScanPattern.grid(4, 4, 30.0), range_sigma_m=0.5)
-    rng = np.random.default_rng(1)
-    for k in range(3):
-        for j in range(10):
-            mpf.predict(truth.f_b[10 * k + j], truth.w_b[10 * k + j])
-        i = 10 * (k + 1)
-        mpf.update(sensor.measure(rugged, truth.pos_n[i], truth.quat_nb[i], rng=rng))
+    truth, mpf = _manual_filter(rugged, model, n_particles=300, seed=5, device=device, graph=None, att_var=1e-4,
+                                bias_var=1e-6)
+    _drive(truth, mpf, rugged, 3)
     est = mpf.estimate()
     w = np.exp(mpf.state.logw.numpy().astype(np.float64))
     w /= w.sum()
@@ -841,10 +834,7 @@ def test_graph_recapture_over_history_growth_and_likelihood_changes(rugged, mode
     runs = []
     for graph in (True, False):
         model = wt.make_model(model_name, rugged, Likelihood("gaussian", sigma_m=1.0))
-        truth = Trajectory.build([Straight(40.0)], 100.0, [-3000.0, 0.0, -(rugged.h_max + 600.0)])
-        mpf = MarginalizedParticleFilter(model, truth.state(0), "navigation", 100.0, [20.0, 20.0, 5.0],
-                                         np.diag(np.r_[np.full(3, 0.25), np.full(3, 1e-6), np.full(6, 1e-8)]),
-                                         n_particles=128, device="cuda:0", seed=3, graph=graph)
+        truth, mpf = _manual_filter(rugged, model, n_particles=128, device="cuda:0", graph=graph)
         runs.append(_drive(truth, mpf, rugged, 300, change))
     np.testing.assert_array_equal(runs[0][0], runs[1][0])
     np.testing.assert_array_equal(runs[0][1], runs[1][1])

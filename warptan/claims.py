@@ -40,16 +40,34 @@ def _fmt(v: np.ndarray) -> str:
     return f"{m[0]:.2f}±{h[0]:.2f} m" if np.isfinite(h[0]) else f"{m[0]:.2f} m"
 
 
-def _better(runs, pairs, label_a="", label_b="") -> tuple[str, str]:
+def _judge_pairs(runs, pairs, judge) -> tuple[str, str]:
+    """Every pair (a, b) of scenarios judged on their per-seed converged horizontal RMSE by ``judge(a, va, b, vb)
+    -> (verdict, evidence)``; the verdicts combined, the evidence joined; not run when a pair lacks 2 seeds."""
     verdicts, parts = [], []
     for a, b in pairs:
         va, vb = _values(runs, a), _values(runs, b)
         if len(va) < 2 or len(vb) < 2 or not (np.isfinite(va).all() and np.isfinite(vb).all()):
             return NOT_RUN, f"{a} or {b} has fewer than 2 seeds with a converged RMSE"
-        verdict, p = compare_less(va, vb)
+        verdict, text = judge(a, va, b, vb)
         verdicts.append(verdict)
-        parts.append(f"{label_a}{a} {_fmt(va)} vs {label_b}{b} {_fmt(vb)} (Welch p = {p:.2g}: {verdict})")
+        parts.append(text)
     return combine(verdicts), "; ".join(parts)
+
+
+def _better(runs, pairs, label_a="", label_b="") -> tuple[str, str]:
+    def judge(a, va, b, vb):
+        verdict, p = compare_less(va, vb)
+        return verdict, f"{label_a}{a} {_fmt(va)} vs {label_b}{b} {_fmt(vb)} (Welch p = {p:.2g}: {verdict})"
+
+    return _judge_pairs(runs, pairs, judge)
+
+
+def _close(runs, pairs) -> tuple[str, str]:
+    def judge(a, va, b, vb):
+        verdict, (r, lo, hi) = ratio_within(va, vb, CLOSE_FACTOR)
+        return verdict, f"{a} {_fmt(va)} vs {b} {_fmt(vb)}: ratio {r:.2f}, 95 % interval {lo:.2f}–{hi:.2f} ({verdict})"
+
+    return _judge_pairs(runs, pairs, judge)
 
 
 def evaluate(runs: list[dict], no_baro_runs: list[dict] | None = None) -> list[dict]:
@@ -70,17 +88,8 @@ def evaluate(runs: list[dict], no_baro_runs: list[dict] | None = None) -> list[d
         _better(runs, [("S7", "S10"), ("S8", "S11"), ("S9", "S12")], "rugged ", "flat "))
     add("the navigation IMU is better than the low-end tactical one (S1 vs S2)", ["S1", "S2"],
         _better(runs, [("S1", "S2")]))
-    verdicts, parts = [], []
-    for a, b in (("S3", "S4"), ("S7", "S8")):
-        va, vb = _values(runs, a), _values(runs, b)
-        if len(va) < 2 or len(vb) < 2 or not (np.isfinite(va).all() and np.isfinite(vb).all()):
-            verdicts, parts = None, [f"{a} or {b} has fewer than 2 seeds with a converged RMSE"]
-            break
-        verdict, (r, lo, hi) = ratio_within(va, vb, CLOSE_FACTOR)
-        verdicts.append(verdict)
-        parts.append(f"{a} {_fmt(va)} vs {b} {_fmt(vb)}: ratio {r:.2f}, 95 % interval {lo:.2f}–{hi:.2f} ({verdict})")
     add(f"raycast and sliding are close at high altitude (mean horizontal RMSE within a factor {CLOSE_FACTOR:g})",
-        ["S3", "S4", "S7", "S8"], (combine(verdicts) if verdicts is not None else NOT_RUN, "; ".join(parts)),
+        ["S3", "S4", "S7", "S8"], _close(runs, [("S3", "S4"), ("S7", "S8")]),
         f"95 % bootstrap interval (10 000 resamples) of the ratio of mean converged horizontal RMSE inside "
         f"[1/{CLOSE_FACTOR:g}, {CLOSE_FACTOR:g}]")
     add("raycast is better than sliding at low altitude / 60° bank (S5 vs S6)", ["S5", "S6"],

@@ -681,7 +681,7 @@ class MarginalizedParticleFilter:
         self.last_n_received = np.array(out.n_received)
         self.n_updates += 1
         if self._recorder is not None:
-            key = self._record_key(out)
+            key = self._record_key()
             if key != self._graph_key:  # re-record when an array the recorded launches hold was replaced
                 self._recorder.clear()
                 self._graph_key = key
@@ -689,7 +689,7 @@ class MarginalizedParticleFilter:
             self._device_update(out, read_flags=self.device.is_cpu)
             self._next_set()
             return self._info(out) if sync else None
-        key = self._record_key(out)
+        key = self._record_key()
         if self._graph_key is None:  # the first update runs eagerly: modules load, buffers settle
             self._graph_key = ()
             self._device_update(out)
@@ -708,7 +708,7 @@ class MarginalizedParticleFilter:
         self._next_set()
         return self._info(out) if sync else None
 
-    def _record_key(self, out) -> tuple:
+    def _record_key(self) -> tuple:
         """The generation of everything the recorded launches (graphs or CPU recordings) hold: the filter's own
         arrays (replaced when the history grows), the model's buffers, likelihood struct and attitude covariance
         (``model.generation``, bumped by the model whenever it replaces one of them) and the update's switches. A
