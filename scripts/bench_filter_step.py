@@ -18,7 +18,6 @@ measurement upload is part of the step (``stage``); simulating it is not.
 from __future__ import annotations
 
 import argparse
-import json
 import statistics
 import sys
 import time
@@ -32,6 +31,7 @@ from warptan.imu import ImuModel
 from warptan.kernels import mpf as kmpf
 from warptan.meta import run_meta
 from warptan.mpf import MarginalizedParticleFilter
+from warptan.outputs import write_json
 from warptan.runner import InitialErrors, initial_nominal, prior_linear_cov
 from warptan.trajectory import Straight, Trajectory
 
@@ -155,8 +155,7 @@ def main(argv=None) -> int:
                         what="median ms per IMU predict call, per measurement update, and per whole interval "
                              "(imu_per_meas predicts + one update) of B filters x N particles; filter_steps_per_s = "
                              "B / step time")
-        with open(args.json_out, "w") as f:
-            json.dump({"meta": meta, "results": rows}, f, indent=1)
+        write_json(args.json_out, {"meta": meta, "results": rows})
         print(f"wrote {args.json_out}")
     return 0
 

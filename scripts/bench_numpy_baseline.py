@@ -9,7 +9,6 @@ the same CPU, in one run. Checks that both compute the same errors, then reports
 from __future__ import annotations
 
 import argparse
-import json
 import statistics
 import sys
 import time
@@ -22,6 +21,7 @@ import warptan.parallel
 from warptan.cli import script_inputs
 from warptan.frames import euler_to_quat, quat_to_mat
 from warptan.meta import run_meta
+from warptan.outputs import write_json
 
 
 def numpy_sliding_error(terrain, pos, quat, points):
@@ -107,10 +107,10 @@ def main(argv=None) -> int:
                 print(f"{row['model']:8s} {n:>6d} {row['M']:>5d} {row['warptan_ms']:11.3f} {row['numpy_ms']:10.1f} "
                       f"{row['speedup']:8.1f}x {row['max_abs_error_difference_m']:13.4f}")
     if args.json_out:
-        with open(args.json_out, "w") as f:
-            json.dump({"meta": run_meta("cpu", terrain=terrain.name,
-                                        what="median ms per measurement-model evaluation on the same inputs, CPU"),
-                       "results": rows}, f, indent=1)
+        write_json(args.json_out, {"meta": run_meta("cpu", terrain=terrain.name,
+                                                    what="median ms per measurement-model evaluation on the same "
+                                                         "inputs, CPU"),
+                                   "results": rows})
         print(f"wrote {args.json_out}")
     return 0
 

@@ -15,7 +15,6 @@ clock stops. Prints a table with rays (or samples) per second and the ratio to s
 from __future__ import annotations
 
 import argparse
-import json
 import statistics
 import sys
 import time
@@ -27,6 +26,7 @@ import warptan as wt
 from warptan.cli import script_inputs
 from warptan.frames import euler_to_quat
 from warptan.meta import run_meta
+from warptan.outputs import write_json
 
 FULL_N = (100, 500, 2_000, 10_000, 100_000)
 FULL_M = (1, 25, 100, 400, 1_000)
@@ -185,8 +185,7 @@ def main(argv=None) -> int:
     if args.json_out:
         meta = run_meta(args.device, terrain=terrain.info(), N=ns, M=ms, repeats=repeats,
                         what="seconds per model.evaluate (residual kernel + per-particle reduction), median")
-        with open(args.json_out, "w") as f:
-            json.dump({"meta": meta, "results": results}, f, indent=1)
+        write_json(args.json_out, {"meta": meta, "results": results})
         print(f"wrote {args.json_out}")
     if args.plot:
         plot(results, args.plot)

@@ -9,13 +9,13 @@ re-spread)?
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 
 import numpy as np
 
 from warptan.meta import run_meta
+from warptan.outputs import write_json
 from warptan.scenarios import run_scenario_batch
 
 WHAT = ("S8, 600 s, 100 particles, seeds 0-3, CPU. Per run: converged RMSE (m), 3σ coverage, fraction of epochs after "
@@ -58,7 +58,7 @@ def main(argv=None) -> int:
             out["terrain"] = r.terrain
             out["runs"][f"{kind}/seed{r.seed}"] = row = summarise(r)
             print(kind, r.seed, row, flush=True)
-    out_path.write_text(json.dumps(out, indent=1))
+    write_json(out_path, out)
     return 0
 
 

@@ -23,6 +23,7 @@ import numpy as np
 
 import warptan as wt
 from warptan.meta import run_meta
+from warptan.outputs import write_json
 from warptan.report import ci95
 from warptan.scenarios import run_scenario_batch
 
@@ -188,12 +189,12 @@ def main(argv=None) -> int:
         seed_base = 7000 + 100 * int(row["map_spacing_m"]) + int(10 * row["map_noise_m"])
         result = run_row(row, args, seed_base)
         data["rows"].append(result)
-        path.write_text(json.dumps(data, indent=1))
+        write_json(path, data)
         print(f"[{k + 1}/{len(todo)}] {row['scenario']} posts {row['map_spacing_m']:g} m noise {row['map_noise_m']:g} "
               f"m aware {row['map_aware']}: {result['horizontal_rmse_mean_m']:.2f} ± "
               f"{result['horizontal_rmse_ci95_m']:.2f} m, coverage {np.round(result['coverage_3sigma_mean'], 3)} "
               f"({result['wall_s']:.0f} s)", flush=True)
-    path.write_text(json.dumps(data, indent=1))
+    write_json(path, data)
     write_markdown(data, out)
     files = plot(data, out)
     print(f"wrote {path}, {out / 'study.md'}" + "".join(f", {f}" for f in files))

@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import argparse
 import collections
-import json
 import sys
 from pathlib import Path
 
@@ -17,6 +16,7 @@ import warp as wp
 
 import warptan as wt
 from warptan.meta import run_meta
+from warptan.outputs import write_json
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_filter_step import MODELS, bench
@@ -62,7 +62,7 @@ def main(argv=None) -> int:
     if args.json_out:
         meta = run_meta(args.device, model=args.model, B=args.batch, N=args.n, M=args.m_side**2,
                         what="device time per kernel per step (all steps incl. warm-up; estimate() kernels included)")
-        Path(args.json_out).write_text(json.dumps({"meta": meta, "results": rows}, indent=1))
+        write_json(args.json_out, {"meta": meta, "results": rows})
     return 0
 
 

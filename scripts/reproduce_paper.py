@@ -21,6 +21,7 @@ import warptan as wt
 from warptan import claims
 from warptan.measurement import LIKELIHOODS
 from warptan.meta import run_meta
+from warptan.outputs import write_json
 from warptan.report import write_outputs
 from warptan.scenarios import SCENARIO_IDS, prepare, run_scenario, run_scenario_batch
 
@@ -71,9 +72,8 @@ def write_side_by_side(rows: dict, out: Path, args) -> None:
         for sid, agg in data["scenarios"].items():
             table.setdefault(sid, {})[kind] = {k: agg[k] for k in ("rmse_converged_mean_m", "rmse_converged_ci95_m",
                                                                   "coverage_3sigma_mean", "seeds")}
-    with open(out / "likelihoods.json", "w") as f:
-        json.dump({"meta": run_meta(args.device), "seeds": args.seeds, "device": args.device, "likelihoods": kinds,
-                   "scenarios": table}, f, indent=1)
+    write_json(out / "likelihoods.json", {"meta": run_meta(args.device), "seeds": args.seeds, "device": args.device,
+                                          "likelihoods": kinds, "scenarios": table})
     head = "| id | paper RMSE x / y / z (m) | " + " | ".join(
         f"{k}: RMSE after convergence | {k}: 3σ coverage N/E/D" for k in kinds) + " |"
     lines = ["# Paper likelihood vs per-point likelihood", "",
@@ -139,8 +139,7 @@ def run_one(args, out: Path, likelihood: str | None) -> int:
         write_outputs([r for runs in no_baro.values() for r in runs], out / "no_baro", terrains,
                       plots=not args.no_plots)
     found = claims.evaluate([r.summary() for r in results], [r.summary() for runs in no_baro.values() for r in runs])
-    with open(out / "claims.json", "w") as f:
-        json.dump({"meta": run_meta(args.device), "claims": found}, f, indent=1)
+    write_json(out / "claims.json", {"meta": run_meta(args.device), "claims": found})
     lines = ["# The paper's claims, checked", "",
              f"{args.seeds} seeds per scenario, device {args.device}, likelihood "
              f"{likelihood or 'of the scenario files'}; terrains: "

@@ -3,6 +3,10 @@
 from __future__ import annotations
 
 import math
+import numbers
+
+FLOAT32_MAX = 3.4028234663852886e38
+"""Largest finite float32."""
 
 
 def check_positive(value, name: str, error: type[Exception] = ValueError) -> float:
@@ -14,3 +18,25 @@ def check_positive(value, name: str, error: type[Exception] = ValueError) -> flo
     if not (math.isfinite(number) and number > 0):
         raise error(f"{name} must be a positive number, got {value!r}")
     return number
+
+
+def check_seed(value, name: str = "seed", error: type[Exception] = ValueError) -> int:
+    """``value`` as an int if it is a whole number ≥ 0 (a Python or NumPy integer, not a bool or a float, which
+    would be truncated silently), else ``error`` naming ``name`` and the value."""
+    if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < 0:
+        raise error(f"{name} must be a whole number ≥ 0, got {value!r}")
+    return int(value)
+
+
+def check_float32(values, name: str, error: type[Exception] = ValueError) -> None:
+    """Refuse values that are not finite, or finite in float64 but beyond float32 (the device's precision), where
+    they would silently become inf or NaN; the message names ``name`` and the first bad value."""
+    import numpy as np
+
+    a = np.asarray(values, dtype=np.float64)
+    with np.errstate(invalid="ignore"):
+        bad = ~(np.abs(a) <= FLOAT32_MAX)
+    if bad.any():
+        first = a[bad].ravel()[0]
+        why = "not finite" if not np.isfinite(first) else "beyond float32 range (±3.4e38)"
+        raise error(f"{name}: {int(bad.sum())} value(s) {why}, first {first!r}")

@@ -4,9 +4,41 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
+import os
 import sys
 
 DEFAULT_TERRAIN = "synthetic:rugged"
+
+
+def _count(text: str) -> int:
+    """argparse type: a whole number ≥ 1."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be a whole number ≥ 1, got {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be ≥ 1, got {value}")
+    return value
+
+
+def _number(minimum: float, strict: bool):
+    """argparse type: a finite number > minimum (strict) or ≥ minimum."""
+    def parse(text: str) -> float:
+        try:
+            value = float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"must be a number, got {text!r}") from None
+        if not math.isfinite(value) or value < minimum or (strict and value == minimum):
+            raise argparse.ArgumentTypeError(f"must be a finite number {'>' if strict else '≥'} {minimum:g}, "
+                                             f"got {text!r}")
+        return value
+    return parse
+
+
+def _finite(text: str) -> float:
+    """argparse type: any finite number."""
+    return _number(-math.inf, False)(text)
 
 
 def _terrain_info(args) -> int:
@@ -55,33 +87,59 @@ def _map_words(config: dict) -> str:
     return "".join(", " + p for p in parts if p)
 
 
+def _scenario_key(name: str) -> str:
+    """What makes two scenario arguments the same run: the id (S1…S12, any case) or the file's real path."""
+    from warptan.scenarios import SCENARIO_IDS
+
+    return name.upper() if name.upper() in SCENARIO_IDS else os.path.realpath(name)
+
+
 def _run(args) -> int:
     from warptan.device import resolve_device
+    from warptan.outputs import OutputFolder
     from warptan.report import write_outputs
-    from warptan.scenarios import SCENARIO_IDS, prepare, run_scenario, run_scenario_batch
+    from warptan.scenarios import SCENARIO_IDS, ScenarioError, prepare, run_scenario, run_scenario_batch
 
     demo = not args.scenarios
     names = ["S8"] if demo else list(args.scenarios)
     if [n.lower() for n in names] == ["all"]:
         names = list(SCENARIO_IDS)
+    elif any(n.lower() == "all" for n in names):
+        raise ScenarioError("'all' runs every scenario; give it alone, not with other scenarios")
+    keys = [_scenario_key(n) for n in names]
+    repeated = sorted({n for n, k in zip(names, keys, strict=True) if keys.count(k) > 1})
+    if repeated:
+        raise ScenarioError(f"scenario(s) {', '.join(repeated)} given more than once; use --seeds for more runs")
     terrain = args.terrain or ("synthetic:rugged" if demo else None)
-    duration = args.duration_s or (60.0 if demo else None)
-    seeds = args.seeds or 1
-    out_dir = args.out or ("warptan-demo" if demo else "warptan-results")
+    duration = args.duration_s if args.duration_s is not None else (60.0 if demo else None)
+    seeds = args.seeds if args.seeds is not None else 1
+    # Validate everything before any computation: the output folder, the device, every scenario (file,
+    # overrides, seeds, memory, terrain, flight, map). --check stops here.
+    out = OutputFolder(args.out or ("warptan-demo" if demo else "warptan-results"))
+    resolve_device(args.device)
     overrides = {"particles": args.particles, "backend": args.backend, "surface": args.surface,
                  "likelihood": args.likelihood,
                  "duration_s": duration, "paper_rates": args.paper_rates,
                  "use_baro": False if args.no_baro else None, "map_path": args.map,
                  "map_spacing_m": args.map_spacing_m, "map_noise_m": args.map_noise_m, "map_bias_m": args.map_bias_m}
-    resolve_device(args.device)
-    if seeds < 1:
-        raise ValueError(f"--seeds must be ≥ 1, got {seeds}")
-    # Validate every scenario (file, overrides, terrain, flight) before any computation starts.
-    plans = {name: prepare(name, terrain=terrain, **overrides) for name in names}
+    plans = {name: prepare(name, terrain=terrain, seeds=range(seeds), device=args.device, **overrides)
+             for name in names}
+    ids = [config["id"] for config, _, _ in plans.values()]
+    clash = sorted({i for i in ids if ids.count(i) > 1})
+    if clash:
+        raise ScenarioError(f"two scenarios have the id {', '.join(clash)} (results are kept by id); give one of "
+                            "the files another id")
+    if args.batch:
+        for config, _, _ in plans.values():
+            if seeds > 1 and config["terrain"]["map_noise_m"] and config["terrain"]["map_seed"] < 0:
+                raise ScenarioError(f"{config['id']}: --batch with map noise and map_seed = -1 gives every seed its "
+                                    "own "
+                                    "map; run without --batch, or fix terrain.map_seed")
     if args.check:
         for config, truth, flight in plans.values():
             print(f"{config['id']}: ok ({truth.name}{_map_words(config)}, altitude {-flight.pos_n[0, 2]:.0f} m, "
-                  f"{flight.duration_s:.0f} s, {config['sensor']['model']})")
+                  f"{flight.duration_s:.0f} s, {config['sensor']['model']}, {seeds} seed(s))")
+        print(f"output folder {out.path}: ok")
         return 0
     if demo:
         print(f"warptan run: no scenario given, running the demonstration: S8 (sliding, navigation IMU) for "
@@ -110,7 +168,7 @@ def _run(args) -> int:
                                               progress=lambda k, n: bar.update(1), terrain=terrain, **overrides))
             results.extend(batch)
             terrains[batch[0].scenario] = batch[0].truth_terrain
-    written = write_outputs(results, out_dir, terrains, plots=not args.no_plots)
+    written = write_outputs(results, out, terrains, plots=not args.no_plots)
     print(written["table"])
     if not written["plots"] and not args.no_plots:
         print("plots skipped: matplotlib is not installed (pip install 'warptan[plot]')")
@@ -167,14 +225,14 @@ def build_parser() -> argparse.ArgumentParser:
 
     info = tsub.add_parser("info", help="CRS, bounds, spacing, shape, height range, nodata fraction")
     info.add_argument("terrain", nargs="?", default=DEFAULT_TERRAIN, help=spec_help)
-    info.add_argument("--spacing", type=float, default=None, help="resample to this post spacing in m")
+    info.add_argument("--spacing", type=_number(0.0, True), default=None, help="resample to this post spacing in m")
     info.add_argument("--json", action="store_true", help="print JSON instead of a table")
     info.set_defaults(func=_terrain_info)
 
     export = tsub.add_parser("export", help="write the triangulated DEM as PLY/GLB/OBJ/STL for viewing")
     export.add_argument("terrain", help=spec_help)
     export.add_argument("out", help="output file (.ply, .glb, .obj, .stl)")
-    export.add_argument("--spacing", type=float, default=None, help="resample to this post spacing in m")
+    export.add_argument("--spacing", type=_number(0.0, True), default=None, help="resample to this post spacing in m")
     export.add_argument("--frame", choices=("enu", "ned"), default="enu", help="vertex frame (default enu, z up)")
     export.set_defaults(func=_terrain_export)
 
@@ -183,14 +241,14 @@ def build_parser() -> argparse.ArgumentParser:
                                      "and PNG plots. Without a scenario: a one-minute demonstration (S8, 60 s, "
                                      "generated rugged terrain).")
     run.add_argument("scenarios", nargs="*", help="S1 … S12, 'all', or scenario .toml files")
-    run.add_argument("--seeds", type=int, default=None, help="seeds per scenario (default 1)")
+    run.add_argument("--seeds", type=_count, default=None, help="seeds per scenario, ≥ 1 (default 1)")
     run.add_argument("--batch", action="store_true",
                      help="run the seeds of a scenario as one batched filter (one launch per kernel for all; "
                           "results as without it)")
     run.add_argument("--device", default="cpu", help="Warp device (cpu, cuda:0)")
     run.add_argument("--out", default=None, help="output folder (default warptan-results, demo: warptan-demo)")
     run.add_argument("--paper-rates", action="store_true", help="terrain measurements at the IMU rate, as the paper")
-    run.add_argument("--particles", type=int, default=None, help="override the particle count")
+    run.add_argument("--particles", type=_count, default=None, help="override the particle count")
     run.add_argument("--backend", default=None, help="ray-cast backend: dda, mesh, bisection")
     run.add_argument("--likelihood", default=None, help="paper, gaussian or student_t")
     run.add_argument("--surface", default=None,
@@ -200,13 +258,19 @@ def build_parser() -> argparse.ArgumentParser:
                      help="the world of every scenario: rugged, rugged30 (30 m San Gabriel tile), flat, a DEM path "
                           "or synthetic:KIND (default: the scenario's)")
     run.add_argument("--map", default=None, help="the filter's map from another DEM file of the same ground")
-    run.add_argument("--map-spacing-m", type=float, default=None, help="map error: coarser posts (block means)")
-    run.add_argument("--map-noise-m", type=float, default=None, help="map error: white noise σ per post, m")
-    run.add_argument("--map-bias-m", type=float, default=None, help="map error: vertical offset of the map, m")
-    run.add_argument("--duration-s", type=float, default=None, help="override the flight duration")
+    run.add_argument("--map-spacing-m", type=_number(0.0, True), default=None,
+                     help="map error: coarser posts (block means)")
+    run.add_argument("--map-noise-m", type=_number(0.0, False), default=None,
+                     help="map error: white noise σ per post, m")
+    run.add_argument("--map-bias-m", type=_finite, default=None,
+                     help="map error: vertical offset of the map, m")
+    run.add_argument("--duration-s", type=_number(0.0, True), default=None,
+                     help="override the flight duration, s (at least one measurement interval)")
     run.add_argument("--no-baro", action="store_true", help="altimeter scenarios without a barometer")
     run.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
-    run.add_argument("--check", action="store_true", help="validate the scenarios and stop")
+    run.add_argument("--check", action="store_true",
+                     help="validate everything a run would (scenarios, seeds, memory, terrain, flight, map, --out) "
+                          "and stop")
     run.add_argument("--quiet", action="store_true", help="no progress bar")
     run.set_defaults(func=_run)
     return parser
@@ -220,9 +284,23 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         return args.func(args)
-    except (ValueError, FileNotFoundError) as err:
-        print(f"warptan: error: {err}", file=sys.stderr)
+    except (ValueError, OSError) as err:  # every expected failure: one line, exit 2, no traceback
+        print(f"warptan: error: {_one_line(err)}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt:
+        print("warptan: interrupted; the output folder is as it was before this run", file=sys.stderr)
+        return 130
+
+
+def _one_line(err: BaseException) -> str:
+    """An error as one line (a multi-problem scenario error keeps its list, joined by '; ')."""
+    if isinstance(err, OSError) and err.filename and str(err.filename) not in str(err):
+        return f"{err.strerror or err}: {err.filename}"
+    parts = [part.strip() for part in str(err).splitlines() if part.strip()] or [type(err).__name__]
+    line = parts[0]
+    for part in parts[1:]:
+        line += (" " if line.endswith(":") else "; ") + part
+    return line
 
 
 if __name__ == "__main__":

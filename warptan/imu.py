@@ -16,7 +16,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from warptan.checks import check_positive
+from warptan.checks import check_positive, check_seed
 
 G0 = 9.80665
 """Standard gravity, m/s² (also the unit of mg and µg)."""
@@ -35,6 +35,9 @@ class ImuGrade:
         gyro_noise: Gyro white-noise density (angle random walk), rad/s/√Hz.
         accel_bias_walk: Accelerometer bias random-walk density, m/s³/√Hz.
         gyro_bias_walk: Gyro bias random-walk density, rad/s²/√Hz.
+        accel_range: Largest plausible specific force magnitude per axis, m/s² (default 50 g): a sample beyond it
+            is a fault, not a measurement (:meth:`warptan.mpf.MarginalizedParticleFilter.predict`).
+        gyro_range: Largest plausible body rate per axis, rad/s (default 20 rad/s, 1 150 °/s).
     """
 
     name: str
@@ -44,6 +47,8 @@ class ImuGrade:
     gyro_noise: float
     accel_bias_walk: float
     gyro_bias_walk: float
+    accel_range: float = 50.0 * G0
+    gyro_range: float = 20.0
 
     @classmethod
     def from_datasheet(cls, name: str, accel_bias_mg: float, gyro_bias_deg_h: float, accel_noise_ug_rthz: float,
@@ -117,7 +122,7 @@ class ImuModel:
                  bias_walk: bool = True):
         self.grade = imu_grade(grade)
         self.rate_hz = check_rate(rate_hz)
-        self.seed = int(seed)
+        self.seed = check_seed(seed)
         if not noise:
             self.grade = replace(self.grade, accel_noise=0.0, gyro_noise=0.0)
         if not bias_walk:

@@ -31,6 +31,10 @@ GRAVITY_N = np.array([0.0, 0.0, 9.80665])
 """Gravity in NED, m/s² (flat earth, SPEC §1)."""
 
 
+LOCAL_FRAME_M = 1e7
+"""Largest NED coordinate a navigation state may have, m (a local frame; float32 keeps 1 m there)."""
+
+
 @dataclass
 class NavState:
     """A navigation state, float64 on the host.
@@ -54,6 +58,9 @@ class NavState:
             value = np.array(getattr(self, name), dtype=np.float64).reshape(-1)
             if value.shape != (3,) or not np.isfinite(value).all():
                 raise ValueError(f"NavState.{name} must be 3 finite numbers, got {getattr(self, name)!r}")
+            if name == "pos_n" and np.abs(value).max() > LOCAL_FRAME_M:
+                raise ValueError(f"NavState.pos_n = {value.tolist()} is more than {LOCAL_FRAME_M:g} m from the NED "
+                                 "origin: not a position in a local frame (the particles' float32 poses lose it)")
             setattr(self, name, value)
         self.quat_nb = check_unit_quat(np.array(self.quat_nb, dtype=np.float64).reshape(-1), "NavState.quat_nb")
 

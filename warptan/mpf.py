@@ -107,6 +107,7 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 
+from warptan.checks import check_float32
 from warptan.device import resolve_device
 from warptan.frames import quat_exp, quat_mul
 from warptan.imu import ImuGrade, check_rate, imu_grade
@@ -122,6 +123,8 @@ RESAMPLERS = tuple(SCHEMES)
 _STREAM_MOVE, _STREAM_RESAMPLE, _STREAM_INIT = 1, 2, 0
 _SYM6_INDEX = np.array([[0, 3, 4], [3, 1, 5], [4, 5, 2]])
 """Entry of a symmetric 3×3 matrix stored as six columns (00 11 22 01 02 12, as the kernels write it)."""
+BAD_IMU_POLICIES = ("raise", "hold")
+"""What :meth:`MarginalizedParticleFilter.predict` does with an implausible IMU sample."""
 MAX_STEPS_PER_INTERVAL = 64
 """IMU samples buffered between measurements before the particles are moved anyway."""
 
@@ -212,6 +215,7 @@ def _as_cov(value, n: int, name: str) -> np.ndarray:
         raise ValueError(f"{name} must be {n} standard deviations or an {n}×{n} covariance, got shape {a.shape}")
     if np.any(np.linalg.eigvalsh(0.5 * (a + a.T)) < -1e-12):
         raise ValueError(f"{name} is not positive semi-definite")
+    check_float32(np.sqrt(np.abs(np.diag(a))), f"{name} (its σ: the particles are float32)")
     return a
 
 
@@ -280,6 +284,10 @@ class MarginalizedParticleFilter:
             the attitude marginal. False updates from the first scan (a Kalman filter's behaviour).
         graph: Capture the device work of a measurement update (particle moves, poses, model, weights,
             resampling, record) once and replay it: True, False, or None = on CUDA only.
+        bad_imu: What :meth:`predict` does with a sample that is not finite or beyond the grade's range
+            (``ImuGrade.accel_range`` per axis of the specific force, ``gyro_range`` of the body rate): "raise" (a
+            ValueError naming the sample) or "hold" (integrate the interval with the last good sample instead, as a
+            receiver's zero-order hold; counted in ``n_imu_held``; a first sample that is bad still raises).
     """
 
     def __init__(self, model, nominal, grade: str | ImuGrade, rate_hz: float, p0_pos, p0_lin,
@@ -288,9 +296,11 @@ class MarginalizedParticleFilter:
                  regularize: float = 1.0, shrinkage: float = 0.5, temper_ess: float = 0.1, max_stages: int = 8,
                  max_unpredictable: float = 0.5, integrity_window: int = 20, integrity_threshold: float = 9.0,
                  respread_scale: float = 1.0, measurement_update: bool = True, closed_loop: bool = False,
-                 gate_linear_update: bool = True, graph: bool | None = None):
+                 gate_linear_update: bool = True, graph: bool | None = None, bad_imu: str = "raise"):
         if not (isinstance(n_particles, (int, np.integer)) and n_particles >= 1):
             raise ValueError(f"n_particles must be a positive integer, got {n_particles!r}")
+        if bad_imu not in BAD_IMU_POLICIES:
+            raise ValueError(f"bad_imu must be one of {', '.join(BAD_IMU_POLICIES)}, got {bad_imu!r}")
         if resampler not in SCHEMES:
             raise ValueError(f"unknown resampler {resampler!r}; choose one of {', '.join(SCHEMES)}")
         for name, value in (("resample_threshold", resample_threshold), ("temper_ess", temper_ess),
@@ -312,7 +322,10 @@ class MarginalizedParticleFilter:
             raise ValueError("nominal must be a NavState or a non-empty list of NavStates")
         self.batched = isinstance(nominal, (list, tuple))
         self.n_filters = b = len(nominals)
-        seeds = np.atleast_1d(np.asarray(seed, dtype=np.int64))
+        raw = np.atleast_1d(np.asarray(seed))
+        if raw.dtype.kind not in "iu" or raw.ndim != 1 or (raw.size and (raw.min() < 0 or raw.max() > 2**63 - 1)):
+            raise ValueError(f"seed must be a whole number in [0, 2**63) or a list of them, got {seed!r}")
+        seeds = raw.astype(np.int64)
         if seeds.shape != (b,) and seeds.shape != (1,):
             raise ValueError(f"{b} filters need {b} seeds (or one), got {seeds.shape[0]}")
         self.seeds = np.broadcast_to(seeds, (b,)).copy()
@@ -354,6 +367,10 @@ class MarginalizedParticleFilter:
         self._recorder = Recorder() if self.device.is_cpu and not self.graph else None
         """Eager CPU updates replay their fixed pieces from recorded launches (:class:`warptan.parallel.Recorder`);
         None launches every kernel anew (CUDA eager, or set to None to compare)."""
+        self.bad_imu = bad_imu
+        self.n_imu_held = np.zeros(b, dtype=np.int64)
+        """Per filter: IMU samples replaced by the last good one (``bad_imu="hold"``)."""
+        self._last_imu = np.full((b, 2, 3), np.nan)
         self.n_imu_steps = 0
         self.n_updates = 0
         self.last_n_received = np.zeros(b, dtype=np.int64)
@@ -435,20 +452,43 @@ class MarginalizedParticleFilter:
 
     # ------------------------------------------------------------------ time update
     def predict(self, f_b, w_b) -> None:
-        """One IMU sample, (3,) or (B, 3) for a batch. Buffered on the host; the nominal INS, the Riccati
-        recursion and the particle moves of all samples since the last measurement run in one launch each."""
+        """One IMU sample, (3,) or (B, 3) for a batch: specific force (m/s²) and body rate (rad/s). Buffered on the
+        host; the nominal INS, the Riccati recursion and the particle moves of all samples since the last
+        measurement run in one launch each. A sample that is not finite or beyond the grade's range is refused or
+        held (``bad_imu``)."""
         b = self.n_filters
-        f = np.asarray(f_b, dtype=np.float64)
-        w = np.asarray(w_b, dtype=np.float64)
+        try:
+            f = np.asarray(f_b, dtype=np.float64)
+            w = np.asarray(w_b, dtype=np.float64)
+        except (TypeError, ValueError):
+            raise ValueError(f"IMU sample must be numbers, got {f_b!r} and {w_b!r}") from None
         if f.size != 3 * b or w.size != 3 * b:
             raise ValueError(f"IMU sample must be {'(3,)' if b == 1 else f'({b}, 3)'}, got {f.shape} and {w.shape}")
-        if not (np.isfinite(f).all() and np.isfinite(w).all()):
-            raise ValueError(f"non-finite IMU sample: specific force {f.tolist()}, body rate {w.tolist()}")
+        f, w = f.reshape(b, 3), w.reshape(b, 3)
+        with np.errstate(invalid="ignore"):
+            bad = ~((np.abs(f) <= self.grade.accel_range).all(axis=1)
+                    & (np.abs(w) <= self.grade.gyro_range).all(axis=1))
+        if bad.any():
+            k = int(np.argmax(bad))
+            held = self.bad_imu == "hold" and np.isfinite(self._last_imu[bad]).all()
+            if not held:
+                where = f" (filter {k})" if b > 1 else ""
+                what = "implausible" if np.isfinite(f[k]).all() and np.isfinite(w[k]).all() else "non-finite"
+                raise ValueError(
+                    f"{what} IMU sample {self.n_imu_steps}{where}: specific force {f[k].tolist()} m/s², body "
+                    f"rate {w[k].tolist()} rad/s (grade {self.grade.name}: |f| ≤ {self.grade.accel_range:g} m/s², "
+                    f"|ω| ≤ {self.grade.gyro_range:g} rad/s per axis, finite)"
+                    + ("" if self.bad_imu == "hold" else
+                       "; bad_imu='hold' integrates such samples as the last good one"))
+            f, w = f.copy(), w.copy()
+            f[bad], w[bad] = self._last_imu[bad, 0], self._last_imu[bad, 1]
+            self.n_imu_held += bad
+        self._last_imu[:, 0], self._last_imu[:, 1] = f, w
         if self._k == MAX_STEPS_PER_INTERVAL:
             self.flush()
         imu = self._imu_np[self._set]
-        imu[:, self._k, 0] = f.reshape(b, 3)
-        imu[:, self._k, 1] = w.reshape(b, 3)
+        imu[:, self._k, 0] = f
+        imu[:, self._k, 1] = w
         self._k += 1
         self.n_imu_steps += 1
 

@@ -13,13 +13,19 @@ Choices made here (SPEC leaves them open):
 * Heights are resampled bilinearly. Nodata stays a mask: an output post is nodata when any source post
   that contributes to it is nodata, or when it lies outside the source footprint.
 * A projected metric raster without ``spacing`` is used as it is (no resampling); its NED origin is the
-  centre of its posts.
+  centre of its posts. A south-up or east-to-west raster (positive y or negative x pixel size) is flipped to
+  north-up first; a degenerate geotransform (zero or non-finite pixel size) is refused.
+* Files are opened defensively: a path that reaches the network (``http://``, ``/vsicurl/``, ``/vsis3/`` ...),
+  and a GDAL VRT that reads raw bytes (``VRTRawRasterBand``, which turns any file into "heights") or whose sources
+  reach the network, are refused unless the caller allows them (``allow_network``, ``allow_raw_vrt``). A VRT mosaic
+  of local DEM files is read as usual.
 """
 
 from __future__ import annotations
 
 import math
 import os
+import xml.etree.ElementTree as ET
 from dataclasses import dataclass
 
 import numpy as np
@@ -28,10 +34,87 @@ from warptan.checks import check_positive
 
 MAX_POSTS = 60_000_000
 """Largest grid (posts) a load may produce; beyond it the requested spacing is almost surely a mistake."""
+MAX_SOURCE_POSTS = 4 * MAX_POSTS
+"""Largest raster (pixels) read into memory (float64: 1.9 GB); crop a larger file first."""
+
+
+NETWORK_PREFIXES = ("/vsicurl", "/vsis3", "/vsigs", "/vsiaz", "/vsiadls", "/vsioss", "/vsiswift", "/vsihdfs",
+                    "/vsiwebhdfs")
+"""GDAL virtual file systems that read over the network."""
 
 
 class TerrainError(ValueError):
     """A DEM or terrain argument that cannot be used; the message names the file or argument."""
+
+
+def _is_network(name: str) -> bool:
+    text = name.strip()
+    return "://" in text or any(text.startswith(p) or f"{p}/" in text or f"{p}_streaming/" in text
+                                for p in NETWORK_PREFIXES)
+
+
+def check_references(path: str, allow_network: bool = False, allow_raw_vrt: bool = False, _depth: int = 0) -> None:
+    """Refuse a DEM path that reaches the network, and a GDAL VRT (followed through nested VRTs) with a raw band
+    (``VRTRawRasterBand`` reads any file's bytes as heights) or a network source, unless allowed.
+
+    Raises:
+        TerrainError: naming the file and the element that is refused.
+    """
+    if _is_network(path):
+        if allow_network:
+            return
+        raise TerrainError(f"{path}: reading a DEM over the network is refused (pass allow_network=True to allow it)")
+    if _depth > 8:
+        raise TerrainError(f"{path}: VRT sources nested more than 8 deep")
+    try:
+        with open(path, "rb") as f:
+            head = f.read(1 << 20)
+    except OSError:
+        return  # not a plain file (e.g. /vsizip/...): GDAL decides
+    if not head.lstrip().startswith(b"<VRTDataset"):
+        return
+    try:
+        root = ET.fromstring(head)
+    except ET.ParseError as err:
+        raise TerrainError(f"{path}: a VRT that is not valid XML ({err})") from None
+    for band in root.iter("VRTRasterBand"):
+        sub = band.get("subClass", "")
+        if sub == "VRTRawRasterBand" and not allow_raw_vrt:
+            raise TerrainError(f"{path}: VRT band {band.get('band', '?')} is a VRTRawRasterBand (reads any file's raw "
+                               "bytes as heights); refused (pass allow_raw_vrt=True to allow it)")
+    for source in root.iter("SourceFilename"):
+        name = (source.text or "").strip()
+        if source.get("relativeToVRT", "0") == "1" and not name.startswith("/"):
+            name = os.path.join(os.path.dirname(os.path.abspath(path)), name)
+        if _is_network(name) and not allow_network:
+            raise TerrainError(f"{path}: VRT source {name} reads over the network; refused (pass allow_network=True "
+                               "to allow it)")
+        if os.path.isfile(name):
+            check_references(name, allow_network, allow_raw_vrt, _depth + 1)
+
+
+def _north_up(data: np.ndarray, transform, path: str):
+    """An axis-aligned raster flipped to north-up, west-to-east (positive x and negative y pixel size)."""
+    from rasterio.transform import Affine
+
+    a, b, c, d, e, f = (transform.a, transform.b, transform.c, transform.d, transform.e, transform.f)
+    det = a * e - b * d
+    if not all(math.isfinite(v) for v in (a, b, c, d, e, f)) or det == 0.0:
+        raise TerrainError(f"{path}: degenerate geotransform (pixel size {a:g} × {e:g}, rotation {b:g}, {d:g}); "
+                           "the file's georeferencing is broken")
+    if b != 0.0 or d != 0.0:
+        return data, transform  # rotated: the reprojection handles it
+    rows, cols = data.shape
+    if a < 0.0:
+        data, c, a = data[:, ::-1], c + a * cols, -a
+    if e > 0.0:
+        data, f, e = data[::-1], f + e * rows, -e
+    return np.ascontiguousarray(data), Affine(a, 0.0, c, 0.0, e, f)
+
+
+def _corner_bounds(transform, rows: int, cols: int) -> tuple[float, float, float, float]:
+    xs, ys = zip(*(transform * (i, j) for i in (0, cols) for j in (0, rows)), strict=True)
+    return min(xs), min(ys), max(xs), max(ys)
 
 
 @dataclass
@@ -69,7 +152,8 @@ def tmerc_crs(lat_deg: float, lon_deg: float):
 
 
 def read_raster(path: str | os.PathLike, spacing: float | None = None,
-                frame: tuple[str, tuple[float, float]] | None = None) -> RasterGrid:
+                frame: tuple[str, tuple[float, float]] | None = None, *, allow_network: bool = False,
+                allow_raw_vrt: bool = False) -> RasterGrid:
     """Read band 1 of a DEM file into a :class:`RasterGrid`.
 
     Args:
@@ -79,39 +163,81 @@ def read_raster(path: str | os.PathLike, spacing: float | None = None,
             CRS with that NED origin, so that two DEMs of the same ground share one frame (a map that is not the
             world); None: a projected north-up raster keeps its own grid, anything else is reprojected to a
             transverse Mercator centred on it.
+        allow_network: Allow a path, or VRT sources, that read over the network.
+        allow_raw_vrt: Allow a VRT with a ``VRTRawRasterBand`` (raw bytes of another file read as heights).
 
     Raises:
         FileNotFoundError: ``path`` does not exist.
-        TerrainError: not a raster, no CRS, all nodata, a bad spacing, or a grid too large.
+        TerrainError: not a raster, no CRS, all nodata, a degenerate geotransform, a refused reference, a bad
+            spacing, or a grid too large.
     """
     spacing = check_spacing(spacing)
     path = os.fspath(path)
+    check_references(path, allow_network, allow_raw_vrt)
+    if _is_network(path):
+        return _read(path, spacing, frame, allow_raw_vrt)
     if not os.path.exists(path):
         raise FileNotFoundError(f"DEM file not found: {path}")
     if os.path.isdir(path):
         raise TerrainError(f"{path}: is a directory, not a DEM file")
+    return _read(path, spacing, frame, allow_raw_vrt)
 
-    import rasterio
+
+def _gdal_errors() -> tuple[type[Exception], ...]:
     from rasterio.errors import RasterioError
 
     try:
-        src = rasterio.open(path)
-    except RasterioError as err:
+        from rasterio._err import CPLE_BaseError
+    except ImportError:  # a rasterio without the private module: its public errors only
+        return (RasterioError,)
+    return (RasterioError, CPLE_BaseError)
+
+
+def _read(path: str, spacing, frame, allow_raw_vrt: bool) -> RasterGrid:
+    import rasterio
+
+    errors = _gdal_errors()
+    env = {"GDAL_VRT_ENABLE_PYTHON": "NO"}
+    if not allow_raw_vrt:
+        env["GDAL_VRT_ENABLE_RAWRASTERBAND"] = "NO"
+    try:
+        with rasterio.Env(**env):
+            return _read_open(path, spacing, frame, rasterio.open, errors)
+    except errors as err:
+        raise TerrainError(f"{path}: GDAL cannot use this raster ({err})") from None
+
+
+def _read_open(path: str, spacing, frame, opener, errors) -> RasterGrid:
+    try:
+        src = opener(path)
+    except errors as err:
         raise TerrainError(f"{path}: not a raster that rasterio/GDAL can read ({err})") from None
     with src:
         if src.count < 1:
             raise TerrainError(f"{path}: raster has no bands")
         if src.crs is None:
             raise TerrainError(f"{path}: raster has no CRS (no georeferencing), cannot place it on a metric grid")
+        if src.width < 2 or src.height < 2:
+            raise TerrainError(f"{path}: raster is {src.height}×{src.width} pixels; a DEM needs at least 2×2 posts")
+        if src.width * src.height > MAX_SOURCE_POSTS:
+            raise TerrainError(f"{path}: raster is {src.height}×{src.width} pixels (limit {MAX_SOURCE_POSTS}); crop it "
+                               "first (gdal_translate -projwin)")
         try:
             band = src.read(1, masked=True)
-        except RasterioError as err:
+        except errors as err:
             raise TerrainError(f"{path}: cannot read band 1 ({err})") from None
         data = np.ma.filled(band.astype(np.float64), np.nan)
         data[~np.isfinite(data)] = np.nan
         if not np.isfinite(data).any():
             raise TerrainError(f"{path}: every post is nodata (nodata value {src.nodata})")
-        crs, transform, bounds = src.crs, src.transform, src.bounds
+        crs, transform = src.crs, src.transform
+    data, transform = _north_up(data, transform, path)
+    bounds = _corner_bounds(transform, *data.shape)
+    if crs.is_geographic:
+        west, south, east, north = bounds
+        if south < -90.0 or north > 90.0 or west < -540.0 or east > 540.0:
+            raise TerrainError(f"{path}: geographic raster spans latitude {south:g}…{north:g}°, longitude "
+                               f"{west:g}…{east:g}°: outside the Earth; its georeferencing is broken")
 
     metric = crs.is_projected and math.isclose(crs.linear_units_factor[1], 1.0)
     north_up = transform.b == 0.0 and transform.d == 0.0 and transform.e < 0.0 and transform.a > 0.0

@@ -14,6 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 
+from warptan.checks import FLOAT32_MAX
 from warptan.device import resolve_device
 from warptan.kernels import raycast as kray
 
@@ -77,9 +78,12 @@ def _check_rays(origins, dirs) -> None:
             raise ValueError(f"{name} must have shape (K, 3), got {a.shape}")
     if len(o) != len(d):
         raise ValueError(f"origins and dirs must have the same number of rays, got {len(o)} and {len(d)}")
-    bad = ~np.isfinite(o).all(axis=1)
+    with np.errstate(invalid="ignore"):
+        bad = ~(np.abs(o) <= FLOAT32_MAX).all(axis=1)
     if bad.any():
-        raise ValueError(f"{bad.sum()} ray origins are not finite (first at index {int(np.argmax(bad))})")
+        k = int(np.argmax(bad))
+        raise ValueError(f"{bad.sum()} ray origins are not finite in float32 (the device's precision; first at index "
+                         f"{k}: {o[k].tolist()})")
     norm = np.linalg.norm(d, axis=1)
     bad = ~np.isfinite(norm) | (norm < 1e-6)
     if bad.any():

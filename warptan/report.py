@@ -11,7 +11,6 @@ values).
 
 from __future__ import annotations
 
-import json
 import math
 import os
 from pathlib import Path
@@ -19,6 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from warptan.meta import run_meta
+from warptan.outputs import OutputFolder, write_json
 
 HOLDS, FAILS, INCONCLUSIVE = "holds", "does not hold", "inconclusive"
 """Verdicts of a statistical claim."""
@@ -207,7 +207,7 @@ def attitude_table(agg: dict[str, dict]) -> str:
         a = agg[sid]
         lines.append(
             f"| {sid} | {len(a['seeds'])} | {' / '.join(f'{v:.4f}' for v in a['attitude_rmse_deg'])} | "
-            f"{' / '.join(f'{100 * c:.0f}%' for c in a['coverage_3sigma_attitude_mean'])} | "
+            f"{_pct(a['coverage_3sigma_attitude_mean'])} | "
             f"{' / '.join(f'{v:.2f}' for v in a['gyro_bias_rmse_after_60s_dph'])} | "
             f"{' / '.join(f'{v:.2f}' for v in a['sigma_over_rmse_pos_mean'])} | "
             f"{' / '.join(f'{v:.2f}' for v in a['sigma_over_rmse_attitude_mean'])} |")
@@ -215,7 +215,14 @@ def attitude_table(agg: dict[str, dict]) -> str:
 
 
 def _fmt(mean, half) -> str:
-    return " / ".join(f"{m:.2f}" if not np.isfinite(h) else f"{m:.2f}±{h:.2f}" for m, h in zip(mean, half, strict=True))
+    """``m±h`` per axis; ``m`` alone without an interval, "–" for an undefined value (e.g. a run shorter than
+    ``converged_after_s``)."""
+    return " / ".join("–" if not np.isfinite(m) else f"{m:.2f}" if not np.isfinite(h) else f"{m:.2f}±{h:.2f}"
+                      for m, h in zip(mean, half, strict=True))
+
+
+def _pct(values) -> str:
+    return " / ".join("–" if not np.isfinite(c) else f"{100 * c:.0f}%" for c in values)
 
 
 def markdown_table(agg: dict[str, dict]) -> str:
@@ -235,7 +242,7 @@ def markdown_table(agg: dict[str, dict]) -> str:
             f"{len(a['seeds'])} | {_fmt(a['rmse_mean_m'], a['rmse_ci95_m'])} | "
             f"{_fmt(a['rmse_converged_mean_m'], a['rmse_converged_ci95_m'])} | "
             f"{' / '.join(f'{v:g}' for v in a['paper_rmse_m'])} | "
-            f"{' / '.join(f'{100 * c:.0f}%' for c in a['coverage_3sigma_mean'])} |")
+            f"{_pct(a['coverage_3sigma_mean'])} |")
     return "\n".join(lines)
 
 
@@ -320,31 +327,34 @@ def plot_run(result, terrain, out_prefix: str | os.PathLike) -> list[str]:
     return [track, errors]
 
 
-def write_outputs(results, out_dir: str | os.PathLike, terrains: dict, plots: bool = True) -> dict[str, object]:
-    """Write ``results.json``, ``results.md`` and (first seed of each scenario) the plots into ``out_dir``."""
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
+def write_outputs(results, out_dir, terrains: dict, plots: bool = True) -> dict[str, object]:
+    """Write ``results.json`` (strict JSON: an undefined number is null), ``results.md`` and (first seed of each
+    scenario) the plots as one whole into ``out_dir`` (a path or a checked :class:`~warptan.outputs.OutputFolder`):
+    written beside it and swapped into place when complete, so the folder never mixes two runs."""
+    folder = out_dir if isinstance(out_dir, OutputFolder) else OutputFolder(out_dir)
     agg = aggregate(results)
     table = markdown_table(agg)
-    with open(out / "results.json", "w") as f:
-        json.dump({"meta": run_meta(sorted({r.device for r in results}) or ["cpu"]), "scenarios": agg,
-                   "runs": [r.summary() for r in results]}, f, indent=1)
-    (out / "results.md").write_text(
-        "# warptan scenario results\n\nRMSE x / y / z = north / east / down in metres, mean ± 95 % interval over "
-        "seeds; \"after convergence\" counts from `filter.converged_after_s`.\n\n" + table + "\n\n"
-        "## Attitude, gyro bias and the honesty of the bounds (after convergence)\n\nAttitude error = "
-        "Log(q_true⁻¹ q_est) in body axes (roll / pitch / yaw); RMSE pooled over seeds as the RMS of the runs' "
-        "RMSE; σ / RMSE ≈ 1 means the reported 3σ neither lies nor balloons.\n\n" + attitude_table(agg) + "\n")
-    written: list[str] = [str(out / "results.json"), str(out / "results.md")]
     if plots:
         try:
             import matplotlib  # noqa: F401
         except ModuleNotFoundError:
             plots = False
-    if plots:
-        done = set()
-        for r in results:
-            if r.scenario not in done:
-                done.add(r.scenario)
-                written += plot_run(r, terrains[r.scenario], out / f"{r.scenario}_seed{r.seed}")
+    names = ["results.json", "results.md"]
+    with folder as out:
+        write_json(out / "results.json", {"meta": run_meta(sorted({r.device for r in results}) or ["cpu"]),
+                                          "scenarios": agg, "runs": [r.summary() for r in results]})
+        (out / "results.md").write_text(
+            "# warptan scenario results\n\nRMSE x / y / z = north / east / down in metres, mean ± 95 % interval "
+            "over seeds; \"after convergence\" counts from `filter.converged_after_s`.\n\n" + table + "\n\n"
+            "## Attitude, gyro bias and the honesty of the bounds (after convergence)\n\nAttitude error = "
+            "Log(q_true⁻¹ q_est) in body axes (roll / pitch / yaw); RMSE pooled over seeds as the RMS of the runs' "
+            "RMSE; σ / RMSE ≈ 1 means the reported 3σ neither lies nor balloons.\n\n" + attitude_table(agg) + "\n")
+        if plots:
+            done = set()
+            for r in results:
+                if r.scenario not in done:
+                    done.add(r.scenario)
+                    prefix = out / f"{r.scenario}_seed{r.seed}"
+                    names += [Path(p).name for p in plot_run(r, terrains[r.scenario], prefix)]
+    written = [str(folder.path / n) for n in names]
     return {"aggregate": agg, "table": table, "files": written, "plots": plots}

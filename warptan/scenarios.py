@@ -101,7 +101,8 @@ SCHEMA: dict[str, dict[str, tuple[type | tuple, object]]] = {
         "map_seed": (int, lambda v: None if v >= -1 else "must be ≥ 0, or -1 (each run's own seed)"),
     },
     "flight": {
-        "speed_mps": (float, _pos),
+        "speed_mps": (float, lambda v: None if 0 < v <= MAX_SPEED_MPS else
+                      f"must be in (0, {MAX_SPEED_MPS:g}] m/s (an aircraft's speed over ground)"),
         "duration_s": (float, _pos),
         "heading_deg": (float, None),
         "pattern": (str, _one_of(("straight", "s_turns", "orbit"))),
@@ -154,8 +155,15 @@ SCHEMA: dict[str, dict[str, tuple[type | tuple, object]]] = {
         "vel_mps": (float, _nonneg),
         "att_deg": (list, _vec(3, _nonneg)),
     },
-    "run": {"seed": (int, _nonneg)},
+    "run": {"seed": (int, lambda v: None if 0 <= v <= MAX_SEED else f"must be in [0, {MAX_SEED}]")},
 }
+
+MAX_SPEED_MPS = 1000.0
+"""Fastest flight a scenario may state (Mach 3); beyond it the flight is a typo, not an aircraft."""
+MAX_SEED = 2**32 - 1
+"""Largest seed (file ``run.seed`` + the run's seed): the IMU, sensor and filter streams are seeded from it."""
+MEMORY_FRACTION = 0.9
+"""A run whose estimated memory exceeds this fraction of the available host (or device) memory is refused."""
 
 ABOVE_TERRAIN_M = {"high": 600.0, "low": 150.0}
 """Clearance of the altitude rules over the highest terrain near the track, m."""
@@ -246,7 +254,92 @@ def validate(config: dict, source: str = "scenario") -> list[str]:
             problems.append("terrain.path must be set when terrain.kind = 'path'")
         if config["flight"]["pattern"] != "straight" and config["flight"]["bank_deg"] <= 0:
             problems.append(f"flight.pattern = {config['flight']['pattern']!r} needs flight.bank_deg > 0")
+        if config["flight"]["duration_s"] * meas_rate < 1.0 - 1e-9:
+            problems.append(f"flight.duration_s = {config['flight']['duration_s']:g} is shorter than one measurement "
+                            f"interval (1 / sensor.rate_hz = {1.0 / meas_rate:g} s)")
+        if config["filter"]["kalman_pos_noise_m_rthz"] == 0 and config["initial_error"]["vel_mps"] == 0:
+            problems.append("filter.kalman_pos_noise_m_rthz = 0 with initial_error.vel_mps = 0 makes the filter's N_k "
+                            "singular (no position uncertainty enters the Kalman part); make one of them > 0")
     return [f"{source}: {p}" for p in problems]
+
+
+def check_seeds(seeds, base: int = 0) -> list[int]:
+    """The run seeds as Python ints: each a whole number ≥ 0 with ``base + seed ≤`` :data:`MAX_SEED`, no repeats.
+
+    Raises:
+        ScenarioError: naming the first bad seed.
+    """
+    if isinstance(seeds, (str, bytes)) or not hasattr(seeds, "__iter__"):
+        seeds = [seeds]
+    out = []
+    for seed in seeds:
+        if isinstance(seed, (bool, np.bool_)) or not isinstance(seed, (int, np.integer)):
+            raise ScenarioError(f"seed {seed!r} must be a whole number ≥ 0 (got {type(seed).__name__})")
+        if not 0 <= int(seed) <= MAX_SEED - base:
+            raise ScenarioError(f"seed {seed} must be in [0, {MAX_SEED - base}] (run.seed {base} + seed ≤ {MAX_SEED})")
+        out.append(int(seed))
+    if not out:
+        raise ScenarioError("at least one seed is needed")
+    if len(set(out)) != len(out):
+        repeated = sorted({x for x in out if out.count(x) > 1})
+        raise ScenarioError(f"seed(s) {repeated} given more than once; each seed is one run")
+    return out
+
+
+def memory_estimate(config: dict, n_seeds: int) -> dict[str, float]:
+    """Bytes a run of ``n_seeds`` seeds needs, about: ``host`` (the flight, each seed's IMU samples and scans, the
+    histories) and ``device`` (particles, and the model's per-particle × per-point arrays)."""
+    s, f = config["sensor"], config["filter"]
+    samples = config["flight"]["duration_s"] * config["imu"]["rate_hz"]
+    epochs = config["flight"]["duration_s"] * s["rate_hz"]
+    points = 1.0 if s["model"] == "altimeter" else float(s["scan_nx"]) * float(s["scan_ny"])
+    particles = float(f["particles"]) * n_seeds
+    per_point = 4.0 + (12.0 if s["model"] == "raycast" else 0.0)  # residual (+ hit normal)
+    host = samples * (400.0 + 64.0 * n_seeds) + epochs * n_seeds * 2048.0 + points * (200.0 + 64.0 * n_seeds)
+    device = particles * (1024.0 + per_point * points) + points * n_seeds * 64.0
+    return {"host": host, "device": device}
+
+
+def available_memory(device) -> dict[str, float]:
+    """Bytes available now on the host (MemAvailable) and on ``device`` (free memory; the host's for the CPU)."""
+    import warp as wp
+
+    from warptan.device import resolve_device
+
+    host = float(os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES"))
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    host = float(line.split()[1]) * 1024.0
+    except OSError:
+        pass
+    d = resolve_device(device)
+    dev = host if d.is_cpu else float(getattr(d, "free_memory", 0) or wp.get_device(d).total_memory)
+    return {"host": host, "device": dev}
+
+
+def check_memory(config: dict, n_seeds: int, device="cpu") -> None:
+    """Refuse (ScenarioError) a run whose :func:`memory_estimate` exceeds :data:`MEMORY_FRACTION` of what is
+    available, before anything is allocated."""
+    need, have = memory_estimate(config, n_seeds), available_memory(device)
+    s = config["sensor"]
+    for where in ("host", "device"):
+        if need[where] > MEMORY_FRACTION * have[where]:
+            name = "host" if where == "host" else f"device {device}"
+            raise ScenarioError(
+                f"scenario {config['id']}: needs about {_bytes(need[where])} of {name} memory ({n_seeds} seed(s) × "
+                f"{config['filter']['particles']} particles, scan {s['scan_nx']}×{s['scan_ny']}, "
+                f"{config['flight']['duration_s']:g} s at {config['imu']['rate_hz']:g} Hz) but {_bytes(have[where])} "
+                "is available; use fewer particles, scan points, seeds or a shorter flight")
+
+
+def _bytes(n: float) -> str:
+    for unit in ("B", "kB", "MB", "GB", "TB", "PB"):
+        if n < 1000.0 or unit == "PB":
+            return f"{n:.3g} {unit}"
+        n /= 1000.0
+    return f"{n:.3g} PB"
 
 
 def scenario_path(name_or_path: str | os.PathLike) -> Path:
@@ -298,6 +391,9 @@ def resolve_terrain(config: dict, terrain=None) -> Terrain:
     if isinstance(terrain, Terrain):
         return terrain
     if terrain is not None:
+        if not isinstance(terrain, (str, os.PathLike)):
+            raise ScenarioError(f"terrain={terrain!r} ({type(terrain).__name__}) must be a Terrain, a name "
+                                f"({', '.join(NAMED_TERRAINS)}), a DEM path or a 'synthetic:KIND' spec")
         spec = os.fspath(terrain)
     elif config["terrain"]["kind"] == "path":
         spec = config["terrain"]["path"]
@@ -421,7 +517,10 @@ def build_flight(config: dict, terrain: Terrain) -> Trajectory:
     track = path + offset
     margin = flight["margin_m"]
     problems = []
-    if (track[:, 0].min() - margin < n_min or track[:, 0].max() + margin > n_max or
+    if not np.isfinite(track).all():
+        problems.append(f"the track is not finite (flight.speed_mps = {flight['speed_mps']:g}, duration_s = "
+                        f"{flight['duration_s']:g})")
+    elif (track[:, 0].min() - margin < n_min or track[:, 0].max() + margin > n_max or
             track[:, 1].min() - margin < e_min or track[:, 1].max() + margin > e_max):
         problems.append(
             f"the track (north {track[:, 0].min():.0f}…{track[:, 0].max():.0f} m, east {track[:, 1].min():.0f}…"
@@ -537,11 +636,17 @@ def scenario_likelihood(config: dict, the_map: Terrain, truth: Terrain | None = 
                       map_correlation=n_corr, footprint_correlation=n_fp)
 
 
-def prepare(name_or_path, seed: int = 0, terrain=None, **overrides):
-    """Validate and build everything a run needs (config, truth terrain, map, flight) without running it."""
+def prepare(name_or_path, seed: int = 0, terrain=None, *, seeds=None, device=None, **overrides):
+    """Validate and build everything a run needs (config, truth terrain, flight) without running it: the file and
+    overrides, the seeds (``seeds``, default ``[seed]``), the memory the run needs on ``device`` (when given), the
+    terrain, the flight inside the DEM, and the filter's map. ``warptan run --check`` is this."""
     config = load_config(name_or_path, **overrides)
+    seeds = check_seeds([seed] if seeds is None else seeds, config["run"]["seed"])
+    if device is not None:
+        check_memory(config, len(seeds), device)
     truth_terrain = resolve_terrain(config, terrain)
     flight = build_flight(config, truth_terrain)
+    map_terrain(truth_terrain, config, config["run"]["seed"] + seeds[0])
     return config, truth_terrain, flight
 
 
@@ -566,11 +671,9 @@ def run_scenario_batch(name_or_path, seeds, device="cpu", progress=None, **overr
     same device. A scenario whose map has per-seed error cannot be batched (its runs use different maps)."""
     import time
 
-    seeds = [int(s) for s in seeds]
-    if not seeds:
-        raise ValueError("run_scenario_batch needs at least one seed")
     terrain = overrides.pop("terrain", None)
-    config, truth_terrain, flight = prepare(name_or_path, seeds[0], terrain, **overrides)
+    config, truth_terrain, flight = prepare(name_or_path, terrain=terrain, seeds=seeds, device=device, **overrides)
+    seeds = check_seeds(seeds, config["run"]["seed"])
     s = config["sensor"]
     total_seeds = [int(config["run"]["seed"]) + seed for seed in seeds]
     if len(seeds) > 1 and config["terrain"]["map_noise_m"] and config["terrain"]["map_seed"] < 0:

@@ -88,13 +88,21 @@ class ScanPattern:
         return self._device_dirs[key]
 
 
+MAX_RANGE_M = 1e6
+"""Longest range a point cloud or an altimeter reading may hold, m; a longer one is a corrupt sample and counts as
+no return."""
+MAX_BARO_ALT_M = 1e5
+"""Largest barometric altitude magnitude a reading may hold, m."""
+
+
 @dataclass
 class PointCloud:
     """A received point cloud, sensor frame.
 
     Attributes:
         dirs_s: (M, 3) unit ray directions of the pattern.
-        ranges_m: (M,) measured ranges in m; NaN = invalid (no return, or a NaN sample).
+        ranges_m: (M,) measured ranges in m; NaN = invalid (no return, a NaN sample, or a range ≤ 0 or beyond
+            :data:`MAX_RANGE_M`, which no terrain sensor returns).
     """
 
     dirs_s: np.ndarray
@@ -110,7 +118,8 @@ class PointCloud:
         norm = np.linalg.norm(self.dirs_s, axis=1)
         if not np.all(np.abs(norm - 1.0) < 1e-6):
             raise ValueError("point cloud directions must be unit vectors")
-        r[~np.isfinite(r) | (r <= 0.0)] = np.nan
+        with np.errstate(invalid="ignore"):
+            r[~((r > 0.0) & (r <= MAX_RANGE_M))] = np.nan
         self.ranges_m = r
 
     @classmethod
@@ -187,6 +196,16 @@ class AltimeterReading:
 
     range_m: float
     baro_alt_m: float = float("nan")
+
+    def __post_init__(self):
+        try:
+            r, baro = float(self.range_m), float(self.baro_alt_m)
+        except (TypeError, ValueError):
+            raise ValueError(f"altimeter reading needs numbers, got {self.range_m!r}, {self.baro_alt_m!r}") from None
+        if abs(baro) > MAX_BARO_ALT_M:  # NaN (no barometer) passes
+            raise ValueError(f"baro_alt_m = {baro!r} is not an altitude (|h| ≤ {MAX_BARO_ALT_M:g} m; NaN = none)")
+        object.__setattr__(self, "range_m", r if 0.0 < r <= MAX_RANGE_M else float("nan"))
+        object.__setattr__(self, "baro_alt_m", baro)
 
     @property
     def valid(self) -> bool:

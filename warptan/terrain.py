@@ -14,6 +14,7 @@ from __future__ import annotations
 import functools
 import math
 import os
+import warnings
 from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
@@ -34,9 +35,17 @@ NAMED_TERRAINS = {
 """Real terrains shipped with the package (``warptan/data/dem``, provenance in its README.md): ``rugged`` SRTM3
 Thuringia (±22 km, ≈ 93 × 59 m posts), ``rugged30`` SRTM1 San Gabriel Mountains (19 × 36 km, 30 m UTM), ``flat``
 SRTM3 Ganges plain (±12 km)."""
+PLAUSIBLE_HEIGHTS_M = (-500.0, 9000.0)
+"""Heights a land DEM can hold (the Dead Sea shore is at −430 m, Everest at 8 849 m): posts outside are nodata
+(a fill value the file does not declare, a corrupt post), with a :class:`TerrainWarning`. Pass another
+``valid_range_m`` for bathymetry."""
 DEM_DIR_ENV = "WARPTAN_DEM_DIR"
 """A folder that, when set, replaces the package's copies of the named terrains (same file names, or the
 ``.npz`` of :meth:`Terrain.save_npz` for machines without rasterio)."""
+
+
+class TerrainWarning(UserWarning):
+    """A DEM was loaded but changed: posts outside the plausible height range were made nodata."""
 
 
 def named_terrain_file(name: str) -> Path:
@@ -86,18 +95,39 @@ class Terrain:
     """Where it came from (file path or ``synthetic:kind``)."""
     description: str = ""
     """One line on the source and the processing."""
+    valid_range_m: tuple[float, float] = PLAUSIBLE_HEIGHTS_M
+    """Heights outside ``[low, high]`` m are nodata (with a :class:`TerrainWarning`); :data:`PLAUSIBLE_HEIGHTS_M`."""
     _device_cache: dict = field(default_factory=dict, repr=False)
 
     def __post_init__(self):
-        h = np.asarray(self.heights_m, dtype=np.float64)
+        try:
+            h = np.asarray(self.heights_m, dtype=np.float64)
+        except (TypeError, ValueError):
+            raise TerrainError(f"{self.name}: heights must be a 2-D array of numbers, got "
+                               f"{type(self.heights_m).__name__}") from None
         if h.ndim != 2 or h.shape[0] < 2 or h.shape[1] < 2:
             raise TerrainError(f"{self.name}: heights must be a 2-D grid of at least 2×2 posts, got {h.shape}")
         for key in ("dn", "de"):
             check_spacing(getattr(self, key), f"{self.name}: {key}")
+        for key in ("n0", "e0"):
+            value = getattr(self, key)
+            if not (isinstance(value, (int, float, np.number)) and math.isfinite(value) and abs(value) < 1e7):
+                raise TerrainError(f"{self.name}: {key} = {value!r} must be a finite number of metres (|{key}| < 1e7)")
+        low, high = (float(v) for v in self.valid_range_m)
+        if not low < high:
+            raise TerrainError(f"{self.name}: valid_range_m = {self.valid_range_m!r} must be (low, high), low < high")
+        self.valid_range_m = (low, high)
         h = h.copy()
         h[~np.isfinite(h)] = np.nan
+        with np.errstate(invalid="ignore"):
+            implausible = (h < low) | (h > high)
+        if implausible.any():
+            bad = h[implausible]
+            warnings.warn(f"{self.name}: {bad.size} post(s) outside the plausible {low:g}…{high:g} m (from "
+                          f"{bad.min():.6g} to {bad.max():.6g} m) treated as nodata", TerrainWarning, stacklevel=3)
+            h[implausible] = np.nan
         if not np.isfinite(h).any():
-            raise TerrainError(f"{self.name}: every post is nodata")
+            raise TerrainError(f"{self.name}: every post is nodata (or outside {low:g}…{high:g} m)")
         self.heights_m = h
         self.n0, self.e0, self.dn, self.de = float(self.n0), float(self.e0), float(self.dn), float(self.de)
         self.valid_posts = np.isfinite(h)
@@ -113,14 +143,18 @@ class Terrain:
 
     # ------------------------------------------------------------------ constructors
     @classmethod
-    def from_raster(cls, path: str | os.PathLike, spacing: float | None = None, onto: Terrain | None = None) -> Terrain:
-        """Load a DEM file (DTED, SRTM .hgt, GeoTIFF; see :mod:`warptan.raster` for the projection).
+    def from_raster(cls, path: str | os.PathLike, spacing: float | None = None, onto: Terrain | None = None, *,
+                    valid_range_m: tuple[float, float] = PLAUSIBLE_HEIGHTS_M, allow_network: bool = False,
+                    allow_raw_vrt: bool = False) -> Terrain:
+        """Load a DEM file (DTED, SRTM .hgt, GeoTIFF, a VRT of them; see :mod:`warptan.raster` for the projection).
 
         Args:
             path: The raster file.
             spacing: Post spacing in m for both axes; None keeps the native spacing.
             onto: Another (georeferenced) terrain whose NED frame this one shares: the raster is resampled into
                 that terrain's CRS and origin (a map of the same ground from another source).
+            valid_range_m: Plausible heights; posts outside are nodata (with a warning).
+            allow_network, allow_raw_vrt: Allow a DEM (or VRT source) read over the network, a VRT raw band.
         """
         frame = None
         if onto is not None:
@@ -128,10 +162,10 @@ class Terrain:
                 raise TerrainError(f"{path}: cannot be placed onto {onto.name}, which has no geographic reference "
                                    "(a generated or array terrain)")
             frame = (onto.crs_wkt, onto.origin_xy)
-        grid = read_raster(path, spacing, frame)
+        grid = read_raster(path, spacing, frame, allow_network=allow_network, allow_raw_vrt=allow_raw_vrt)
         return cls(
             grid.heights_m, grid.n0, grid.e0, grid.dn, grid.de, crs_wkt=grid.crs_wkt, origin_xy=grid.origin_xy,
-            name=os.fspath(path), description=grid.description,
+            name=os.fspath(path), description=grid.description, valid_range_m=valid_range_m,
         )
 
     @classmethod
@@ -171,18 +205,22 @@ class Terrain:
     @classmethod
     def from_grid(
         cls, heights_m: np.ndarray, spacing: float | tuple[float, float], origin: tuple[float, float] = (0.0, 0.0),
-        name: str = "grid",
+        name: str = "grid", valid_range_m: tuple[float, float] = PLAUSIBLE_HEIGHTS_M,
     ) -> Terrain:
         """A terrain from a (rows, cols) height array (row 0 south) with post 0,0 at ``origin`` = (n0, e0)."""
         dn, de = (spacing, spacing) if np.isscalar(spacing) else spacing
-        return cls(np.asarray(heights_m, dtype=np.float64), origin[0], origin[1], dn, de, name=name,
-                   description=f"grid from an array, {name}")
+        return cls(heights_m, origin[0], origin[1], dn, de, name=name, description=f"grid from an array, {name}",
+                   valid_range_m=valid_range_m)
 
     @classmethod
-    def load(cls, spec: str | os.PathLike, spacing: float | None = None) -> Terrain:
+    def load(cls, spec: str | os.PathLike, spacing: float | None = None, **raster_options) -> Terrain:
         """Load from a name of :data:`NAMED_TERRAINS` (``rugged``, ``rugged30``, ``flat``: real DEMs shipped with the
         package), a file (raster or ``.npz`` saved by :meth:`save_npz`) or a ``synthetic:KIND[,key=value...]``
-        spec (keys ``size_m``, ``spacing``, ``seed``), e.g. ``synthetic:rugged,size_m=10000,seed=3``."""
+        spec (keys ``size_m``, ``spacing``, ``seed``), e.g. ``synthetic:rugged,size_m=10000,seed=3``.
+        ``raster_options`` (``valid_range_m``, ``allow_network``, ``allow_raw_vrt``) go to :meth:`from_raster`."""
+        if not isinstance(spec, (str, os.PathLike)):
+            raise TerrainError(f"a terrain is a name ({', '.join(NAMED_TERRAINS)}), a DEM path or a 'synthetic:KIND' "
+                               f"spec, got {type(spec).__name__} {spec!r}")
         text = os.fspath(spec)
         if text in NAMED_TERRAINS:
             file = named_terrain_file(text)
@@ -206,7 +244,7 @@ class Terrain:
             return cls.synthetic(kind, **kwargs)
         if text.endswith(".npz"):
             return cls.from_npz(text)
-        return cls.from_raster(text, spacing=spacing)
+        return cls.from_raster(text, spacing=spacing, **raster_options)
 
     # ------------------------------------------------------------------ persistence
     def save_npz(self, path: str | os.PathLike) -> None:
