@@ -115,7 +115,7 @@ def _run(args) -> int:
     seeds = args.seeds if args.seeds is not None else 1
     # Validate everything before any computation: the output folder, the device, every scenario (file,
     # overrides, seeds, memory, terrain, flight, map). --check stops here.
-    out = OutputFolder(args.out or ("warptan-demo" if demo else "warptan-results"))
+    out = OutputFolder(args.out if args.out is not None else ("warptan-demo" if demo else "warptan-results"))
     resolve_device(args.device)
     overrides = {"particles": args.particles, "backend": args.backend, "surface": args.surface,
                  "likelihood": args.likelihood,

@@ -184,7 +184,7 @@ class OutputFolder:
     def _commit(self, tmp: Path) -> None:
         written = sorted(str(p.relative_to(tmp)) for p in tmp.rglob("*") if p.is_file())
         (tmp / MANIFEST).write_text(json.dumps({"files": written}, indent=1) + "\n")
-        os.chmod(tmp, 0o777 & ~_umask())  # mkdtemp makes 0700; an output folder is an ordinary folder
+        os.chmod(tmp, 0o777 & ~current_umask())  # mkdtemp makes 0700; an output folder is an ordinary folder
         target = self.path
         if not target.exists():
             os.rename(tmp, target)
@@ -204,7 +204,8 @@ class OutputFolder:
         shutil.rmtree(old, ignore_errors=True)
 
 
-def _umask() -> int:
+def current_umask() -> int:
+    """The process's umask (read without changing it for longer than a call)."""
     mask = os.umask(0)
     os.umask(mask)
     return mask

@@ -11,9 +11,11 @@ triangulated grid, built with the SAH BVH constructor) are built lazily, once pe
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import math
 import os
+import tempfile
 import warnings
 from dataclasses import dataclass, field
 from importlib import resources
@@ -24,6 +26,7 @@ import warp as wp
 
 from warptan.device import resolve_device
 from warptan.kernels import terrain as kterrain
+from warptan.outputs import current_umask
 from warptan.raster import TerrainError, check_spacing, latlon_to_projected, projected_to_latlon, read_raster
 
 SYNTHETIC_KINDS = ("rugged", "flat")
@@ -502,10 +505,24 @@ class Terrain:
 
     def export(self, path: str | os.PathLike, frame: str = "enu") -> None:
         """Write the mesh for viewing (.ply, .glb, .obj, .stl; ENU with z up by default)."""
-        ext = os.path.splitext(os.fspath(path))[1].lower()
+        path = os.fspath(path)
+        ext = os.path.splitext(path)[1].lower()
         if ext not in (".ply", ".glb", ".obj", ".stl"):
             raise ValueError(f"{path}: unsupported mesh format {ext!r}; use .ply, .glb, .obj or .stl")
-        self.to_trimesh(frame).export(os.fspath(path))
+        if os.path.isdir(path):
+            raise ValueError(f"{path}: is a folder; give a file name")
+        mesh = self.to_trimesh(frame)
+        # Written beside the target and renamed over it: an existing file is replaced whole or not at all.
+        fd, tmp = tempfile.mkstemp(prefix=".warptan-export-", suffix=ext, dir=os.path.dirname(path) or ".")
+        try:
+            with os.fdopen(fd, "wb") as f:
+                mesh.export(f, file_type=ext[1:])
+            os.chmod(tmp, 0o666 & ~current_umask())
+            os.replace(tmp, path)
+        except BaseException:
+            with contextlib.suppress(OSError):
+                os.remove(tmp)
+            raise
 
     def info(self) -> dict:
         """A summary for people: source, CRS, bounds, spacing, shape, height range, nodata fraction."""
