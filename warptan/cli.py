@@ -7,6 +7,7 @@ import json
 import math
 import os
 import sys
+import warnings
 
 DEFAULT_TERRAIN = "synthetic:rugged"
 
@@ -282,6 +283,7 @@ def main(argv: list[str] | None = None) -> int:
 
     quiet_warp()
     args = build_parser().parse_args(argv)
+    warnings.formatwarning = _warning_line
     try:
         return args.func(args)
     except (ValueError, OSError) as err:  # every expected failure: one line, exit 2, no traceback
@@ -290,6 +292,11 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("warptan: interrupted; the output folder is as it was before this run", file=sys.stderr)
         return 130
+
+
+def _warning_line(message, category, *_, **__) -> str:
+    """A Python warning as the command line shows it: one line."""
+    return f"warptan: warning: {message}\n"
 
 
 def _one_line(err: BaseException) -> str:
