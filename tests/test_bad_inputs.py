@@ -16,14 +16,13 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import rasterio
+from rasterio.transform import Affine
 
 import warptan as wt
 from warptan import cli, outputs
 from warptan.scenarios import ScenarioError, prepare, run_scenario, scenario_path
 from warptan.terrain import Terrain, TerrainError, TerrainWarning
-
-rasterio = pytest.importorskip("rasterio")
-from rasterio.transform import Affine  # noqa: E402
 
 HEIGHTS = 200.0 + 50.0 * np.random.default_rng(0).random((40, 50))
 
