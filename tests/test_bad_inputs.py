@@ -195,6 +195,7 @@ def test_cli_check_runs_the_same_validation_as_a_run(capsys, tmp_path):
         (dict(kalman_pos_noise_m_rthz=0.0, vel_mps=0.0), "N_k singular"),
         (dict(speed_mps=1e308), "speed_mps = 1e+308 must be in (0, 1000]"),
         (dict(particles=100_000_000), "needs about"),
+        (dict(pos_m="[1e39, 100.0, 20.0]"), "initial_error.pos_m", "must be in [0, 100000] m"),  # float32 overflow
     )
     for changes, *fragments in cases:
         status, out, err = _run_cli(capsys, "run", _scenario_file(tmp_path, **changes), "--check")

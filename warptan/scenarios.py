@@ -72,6 +72,14 @@ def _nonneg(v):
     return None if v >= 0 else "must be ≥ 0"
 
 
+def _upto(high: float, unit: str):
+    """A number in [0, high]: beyond it the value is a typo or a corrupt file, not a setting (and large enough to
+    overflow the device's float32)."""
+    def check(v):
+        return None if 0 <= v <= high else f"must be in [0, {high:g}]{' ' + unit if unit else ''}"
+    return check
+
+
 def _one_of(options):
     def check(v):
         return None if v in options else f"must be one of {', '.join(map(str, options))}"
@@ -95,9 +103,9 @@ SCHEMA: dict[str, dict[str, tuple[type | tuple, object]]] = {
         "kind": (str, _one_of(TERRAIN_KINDS)),
         "path": (str, None),
         "map_path": (str, None),
-        "map_noise_m": (float, _nonneg),
-        "map_spacing_m": (float, _nonneg),
-        "map_bias_m": (float, None),
+        "map_noise_m": (float, _upto(1e4, "m")),
+        "map_spacing_m": (float, _upto(1e5, "m")),
+        "map_bias_m": (float, lambda v: None if abs(v) <= 1e4 else "must be within ±10000 m"),
         "map_seed": (int, lambda v: None if v >= -1 else "must be ≥ 0, or -1 (each run's own seed)"),
     },
     "flight": {
@@ -121,9 +129,9 @@ SCHEMA: dict[str, dict[str, tuple[type | tuple, object]]] = {
         "scan_nx": (int, _pos),
         "scan_ny": (int, _pos),
         "scan_half_angle_deg": (float, lambda v: None if 0 <= v < 90 else "must be in [0, 90) degrees"),
-        "range_sigma_m": (float, _nonneg),
-        "altimeter_sigma_m": (float, _nonneg),
-        "baro_sigma_m": (float, _nonneg),
+        "range_sigma_m": (float, _upto(1e4, "m")),
+        "altimeter_sigma_m": (float, _upto(1e4, "m")),
+        "baro_sigma_m": (float, _upto(1e4, "m")),
         "use_baro": (bool, None),
     },
     "likelihood": {
@@ -138,22 +146,22 @@ SCHEMA: dict[str, dict[str, tuple[type | tuple, object]]] = {
         "particles": (int, _pos),
         "resample_threshold": (float, lambda v: None if 0 <= v <= 1 else "must be in [0, 1]"),
         "resampler": (str, _one_of(tuple(RESAMPLERS))),
-        "pos_noise_m_rthz": (float, _nonneg),
-        "kalman_pos_noise_m_rthz": (float, _nonneg),
-        "regularize": (float, _nonneg),
+        "pos_noise_m_rthz": (float, _upto(1e3, "m/√s")),
+        "kalman_pos_noise_m_rthz": (float, _upto(1e3, "m/√s")),
+        "regularize": (float, _upto(100.0, "")),
         "shrinkage": (float, lambda v: None if 0 <= v <= 1 else "must be in [0, 1]"),
         "temper_ess": (float, lambda v: None if 0 <= v <= 1 else "must be in [0, 1]"),
         "max_stages": (int, lambda v: None if 1 <= v <= 64 else "must be in [1, 64]"),
         "integrity_window": (int, lambda v: None if 1 <= v <= 64 else "must be in [1, 64]"),
-        "integrity_threshold": (float, _pos),
+        "integrity_threshold": (float, lambda v: None if 0 < v <= 1e6 else "must be in (0, 1e6]"),
         "measurement_update": (bool, None),
         "closed_loop": (bool, None),
         "converged_after_s": (float, _nonneg),
     },
     "initial_error": {
-        "pos_m": (list, _vec(3, _nonneg)),
-        "vel_mps": (float, _nonneg),
-        "att_deg": (list, _vec(3, _nonneg)),
+        "pos_m": (list, _vec(3, _upto(1e5, "m"))),
+        "vel_mps": (float, _upto(1e3, "m/s")),
+        "att_deg": (list, _vec(3, _upto(180.0, "°"))),
     },
     "run": {"seed": (int, lambda v: None if 0 <= v <= MAX_SEED else f"must be in [0, {MAX_SEED}]")},
 }
@@ -443,9 +451,10 @@ def map_terrain(truth: Terrain, config: dict, seed: int) -> Terrain:
         noise_seed = seed if t["map_seed"] < 0 else t["map_seed"]
         h = h + np.random.default_rng([noise_seed, 0x3A9]).normal(0.0, noise, h.shape)
     parts = [p for p, on in ((f"noise {noise:g} m", noise), (f"bias {bias:+g} m", bias)) if on]
+    # Noise and bias are deliberate: the map keeps every post (its world passed the plausibility range already).
     return Terrain(h, the_map.n0, the_map.e0, the_map.dn, the_map.de, crs_wkt=the_map.crs_wkt,
-                   origin_xy=the_map.origin_xy, name=the_map.name + (f" ({', '.join(parts)})" if parts else ""),
-                   description=the_map.description)
+                   origin_xy=the_map.origin_xy, valid_range_m=(-math.inf, math.inf),
+                   name=the_map.name + (f" ({', '.join(parts)})" if parts else ""), description=the_map.description)
 
 
 # ---------------------------------------------------------------------- flight

@@ -399,7 +399,7 @@ class Terrain:
             raise TerrainError(f"{self.name}: coarsening by {fn}×{fe} leaves fewer than 2×2 posts")
         h = self.heights_m[: rows * fn, : cols * fe].reshape(rows, fn, cols, fe).mean(axis=(1, 3))
         return Terrain(h, self.n0 + 0.5 * (fn - 1) * self.dn, self.e0 + 0.5 * (fe - 1) * self.de, self.dn * fn,
-                       self.de * fe, crs_wkt=self.crs_wkt, origin_xy=self.origin_xy,
+                       self.de * fe, crs_wkt=self.crs_wkt, origin_xy=self.origin_xy, valid_range_m=self.valid_range_m,
                        name=f"{self.name} (block mean {fn}×{fe})",
                        description=f"{self.description}; block mean of {fn}×{fe} posts")
 
