@@ -126,6 +126,11 @@ def test_vrt_raw_bands_and_network_paths_are_refused_unless_allowed(tmp_path):
             Terrain.load(_vrt(tmp_path / "net.vrt", source))
         with pytest.raises(TerrainError, match=r"network.*allow_network"):
             Terrain.load(source)
+    wms = tmp_path / "tiles.xml"  # a WMS description is a "file" GDAL fetches over the network
+    wms.write_text("<GDAL_WMS><Service name=\"TMS\"><ServerUrl>https://example.com/${z}/${x}/${y}.png</ServerUrl>"
+                   "</Service><DataWindow><TileLevel>3</TileLevel></DataWindow></GDAL_WMS>")
+    with pytest.raises(TerrainError, match="web-service description"):
+        Terrain.load(str(wms))
     mosaic = Terrain.load(_vrt(tmp_path / "mosaic.vrt", good))
     assert np.allclose(mosaic.heights_m, Terrain.load(good).heights_m)
 
@@ -291,7 +296,10 @@ def test_sigint_mid_run_exits_130_and_keeps_the_old_outputs(tmp_path):
     seen = b""
     deadline = time.monotonic() + 120
     while b"update" not in seen and time.monotonic() < deadline:  # the progress bar: the run is under way
-        seen += os.read(proc.stderr.fileno(), 4096)
+        chunk = os.read(proc.stderr.fileno(), 4096)
+        if not chunk:  # the process ended before its run started
+            break
+        seen += chunk
     proc.send_signal(signal.SIGINT)
     _, err = proc.communicate(timeout=60)
     assert proc.returncode == 130, (seen + err).decode()[-2000:]

@@ -41,6 +41,10 @@ MAX_SOURCE_POSTS = 4 * MAX_POSTS
 NETWORK_PREFIXES = ("/vsicurl", "/vsis3", "/vsigs", "/vsiaz", "/vsiadls", "/vsioss", "/vsiswift", "/vsihdfs",
                     "/vsiwebhdfs")
 """GDAL virtual file systems that read over the network."""
+NETWORK_DRIVERS = frozenset({"WMS", "WMTS", "WCS", "HTTP", "EEDA", "EEDAI", "DAAS", "PLMOSAIC", "STACIT", "STACTA",
+                             "OGCAPI", "NGW"})
+"""GDAL drivers whose "files" are service descriptions fetched over the network (e.g. a ``<GDAL_WMS>`` XML)."""
+_SERVICE_TAGS = (b"<GDAL_WMS", b"<GDAL_WMTS", b"<GDAL_WCS", b"<WCS_GDAL", b"<WMS_Capabilities", b"<Capabilities")
 
 
 class TerrainError(ValueError):
@@ -71,7 +75,11 @@ def check_references(path: str, allow_network: bool = False, allow_raw_vrt: bool
             head = f.read(1 << 20)
     except OSError:
         return  # not a plain file (e.g. /vsizip/...): GDAL decides
-    if not head.lstrip().startswith(b"<VRTDataset"):
+    start = head.lstrip()
+    if start.startswith(_SERVICE_TAGS) and not allow_network:
+        raise TerrainError(f"{path}: a web-service description (WMS/WMTS/WCS): reading a DEM over the network is "
+                           "refused (pass allow_network=True to allow it)")
+    if not start.startswith(b"<VRTDataset"):
         return
     try:
         root = ET.fromstring(head)
@@ -175,12 +183,12 @@ def read_raster(path: str | os.PathLike, spacing: float | None = None,
     path = os.fspath(path)
     check_references(path, allow_network, allow_raw_vrt)
     if _is_network(path):
-        return _read(path, spacing, frame, allow_raw_vrt)
+        return _read(path, spacing, frame, allow_raw_vrt, allow_network)
     if not os.path.exists(path):
         raise FileNotFoundError(f"DEM file not found: {path}")
     if os.path.isdir(path):
         raise TerrainError(f"{path}: is a directory, not a DEM file")
-    return _read(path, spacing, frame, allow_raw_vrt)
+    return _read(path, spacing, frame, allow_raw_vrt, allow_network)
 
 
 def _gdal_errors() -> tuple[type[Exception], ...]:
@@ -193,16 +201,24 @@ def _gdal_errors() -> tuple[type[Exception], ...]:
     return (RasterioError, CPLE_BaseError)
 
 
-def _read(path: str, spacing, frame, allow_raw_vrt: bool) -> RasterGrid:
+def _read(path: str, spacing, frame, allow_raw_vrt: bool, allow_network: bool) -> RasterGrid:
     import rasterio
 
     errors = _gdal_errors()
     env = {"GDAL_VRT_ENABLE_PYTHON": "NO"}
     if not allow_raw_vrt:
         env["GDAL_VRT_ENABLE_RAWRASTERBAND"] = "NO"
+    def opener(name):  # without allow_network, a file GDAL reads through a web-service driver is refused
+        src = rasterio.open(name)
+        if not allow_network and src.driver.upper() in NETWORK_DRIVERS:
+            src.close()
+            raise TerrainError(f"{name}: GDAL reads it with the {src.driver} driver (a web service): reading a DEM "
+                               "over the network is refused (pass allow_network=True to allow it)")
+        return src
+
     try:
         with rasterio.Env(**env):
-            return _read_open(path, spacing, frame, rasterio.open, errors)
+            return _read_open(path, spacing, frame, opener, errors)
     except errors as err:
         raise TerrainError(f"{path}: GDAL cannot use this raster ({err})") from None
 
