@@ -401,3 +401,22 @@ def test_inputs_beyond_float32_are_refused_not_nan():
     assert not wt.AltimeterReading(1e39, 100.0).valid
     with pytest.raises(ValueError, match="not an altitude"):
         wt.AltimeterReading(500.0, 1e39)
+
+
+def test_each_layer_raises_its_own_error_type(tmp_path):
+    """FilterError (navigation layer), TerrainError, ScenarioError, OutputError: all ValueErrors (the CLI's exit 2),
+    each caught by its own type."""
+    terrain = Terrain.synthetic("flat", size_m=2000.0, spacing=100.0)
+    _, mpf = _filter(terrain)
+    with pytest.raises(wt.FilterError):
+        mpf.predict([0.0, 0.0, 1e20], [0.0, 0.0, 0.0])
+    with pytest.raises(wt.FilterError):
+        wt.ScanPattern.grid(0, 3)
+    with pytest.raises(wt.TerrainError):
+        Terrain.synthetic("mars")
+    with pytest.raises(wt.ScenarioError):
+        prepare("S8", seeds=[1.5])
+    (tmp_path / "f").write_text("")
+    with pytest.raises(wt.OutputError):
+        outputs.OutputFolder(tmp_path / "f")
+    assert all(issubclass(e, ValueError) for e in (wt.FilterError, wt.TerrainError, wt.ScenarioError, wt.OutputError))

@@ -16,11 +16,13 @@ Conventions (SPEC §1), used everywhere in the package:
 """
 
 from warptan import frames
+from warptan.checks import FilterError
 from warptan.device import resolve_device
 from warptan.imu import IMU_GRADES, ImuModel
 from warptan.ins import Ins, NavState
 from warptan.measurement import AltimeterModel, Likelihood, RaycastModel, SlidingModel, make_model
 from warptan.mpf import MarginalizedParticleFilter
+from warptan.outputs import OutputError
 from warptan.raster import TerrainError
 from warptan.raycast import RayCaster, raycast
 from warptan.runner import InitialErrors, run_filter
@@ -37,6 +39,7 @@ __all__ = [
     "AltimeterReading",
     "Barometer",
     "Climb",
+    "FilterError",
     "ImuModel",
     "InitialErrors",
     "Ins",
@@ -44,6 +47,7 @@ __all__ = [
     "MarginalizedParticleFilter",
     "NavState",
     "Orbit",
+    "OutputError",
     "PointCloud",
     "PointCloudSensor",
     "RadarAltimeter",

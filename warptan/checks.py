@@ -1,15 +1,28 @@
-"""Argument checks shared by the modules: one message format for bad numbers."""
+"""Argument checks shared by the modules: one message format for bad numbers, and the error of the navigation
+layer.
+
+Each layer has its error type, all ``ValueError`` subclasses with one-line messages naming the input:
+:class:`FilterError` (IMU samples, states, measurements, rays, filter and sensor arguments),
+:class:`~warptan.raster.TerrainError` (DEM files and terrain arguments), :class:`~warptan.scenarios.ScenarioError`
+(scenario files, overrides, seeds, memory, flights) and :class:`~warptan.outputs.OutputError` (output folders).
+The command line turns each into one line and exit status 2."""
 
 from __future__ import annotations
 
 import math
 import numbers
 
+
+class FilterError(ValueError):
+    """A bad input to the navigation layer (filter, INS, IMU, sensors, measurement models, ray casts, trajectories);
+    the message names the argument or sample and the value."""
+
+
 FLOAT32_MAX = 3.4028234663852886e38
 """Largest finite float32."""
 
 
-def check_positive(value, name: str, error: type[Exception] = ValueError) -> float:
+def check_positive(value, name: str, error: type[Exception] = FilterError) -> float:
     """``value`` as a float if it is a finite number > 0, else ``error`` naming ``name`` and the value."""
     try:
         number = float(value)
@@ -20,7 +33,7 @@ def check_positive(value, name: str, error: type[Exception] = ValueError) -> flo
     return number
 
 
-def check_seed(value, name: str = "seed", error: type[Exception] = ValueError) -> int:
+def check_seed(value, name: str = "seed", error: type[Exception] = FilterError) -> int:
     """``value`` as an int if it is a whole number ≥ 0 (a Python or NumPy integer, not a bool or a float, which
     would be truncated silently), else ``error`` naming ``name`` and the value."""
     if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < 0:
@@ -28,7 +41,7 @@ def check_seed(value, name: str = "seed", error: type[Exception] = ValueError) -
     return int(value)
 
 
-def check_float32(values, name: str, error: type[Exception] = ValueError) -> None:
+def check_float32(values, name: str, error: type[Exception] = FilterError) -> None:
     """Refuse values that are not finite, or finite in float64 but beyond float32 (the device's precision), where
     they would silently become inf or NaN; the message names ``name`` and the first bad value."""
     import numpy as np

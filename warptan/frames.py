@@ -10,6 +10,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from warptan.checks import FilterError
+
 UNIT_TOL = 1e-6
 """How far from 1 a quaternion's norm may be before :func:`check_unit_quat` rejects it."""
 
@@ -18,12 +20,12 @@ def check_unit_quat(q, name: str = "quaternion") -> np.ndarray:
     """Return ``q`` as float64 (..., 4) after checking it is finite and of unit norm."""
     q = np.asarray(q, dtype=np.float64)
     if q.shape[-1:] != (4,):
-        raise ValueError(f"{name} must have 4 components [w, x, y, z], got shape {q.shape}")
+        raise FilterError(f"{name} must have 4 components [w, x, y, z], got shape {q.shape}")
     if not np.isfinite(q).all():
-        raise ValueError(f"{name} has non-finite components: {q}")
+        raise FilterError(f"{name} has non-finite components: {q}")
     norm = np.linalg.norm(q, axis=-1)
     if np.any(np.abs(norm - 1.0) > UNIT_TOL):
-        raise ValueError(f"{name} is not a unit quaternion (norm {norm.min():.9g}…{norm.max():.9g})")
+        raise FilterError(f"{name} is not a unit quaternion (norm {norm.min():.9g}…{norm.max():.9g})")
     return q
 
 

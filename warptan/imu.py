@@ -16,7 +16,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from warptan.checks import check_positive, check_seed
+from warptan.checks import FilterError, check_positive, check_seed
 
 G0 = 9.80665
 """Standard gravity, m/s² (also the unit of mg and µg)."""
@@ -81,7 +81,7 @@ def imu_grade(name: str | ImuGrade) -> ImuGrade:
     if isinstance(name, ImuGrade):
         return name
     if name not in IMU_GRADES:
-        raise ValueError(f"unknown IMU grade {name!r}; choose one of {', '.join(IMU_GRADES)}")
+        raise FilterError(f"unknown IMU grade {name!r}; choose one of {', '.join(IMU_GRADES)}")
     return IMU_GRADES[name]
 
 
@@ -131,7 +131,7 @@ class ImuModel:
     def errors(self, n_samples: int) -> ImuErrors:
         """Draw the error series for ``n_samples`` samples (same seed, same series)."""
         if n_samples < 0:
-            raise ValueError(f"n_samples must be ≥ 0, got {n_samples}")
+            raise FilterError(f"n_samples must be ≥ 0, got {n_samples}")
         g, dt = self.grade, 1.0 / self.rate_hz
         rng = np.random.default_rng(np.random.SeedSequence([self.seed, 0x1AB]))
         b_a0 = rng.normal(0.0, g.accel_bias, 3)
@@ -159,8 +159,8 @@ class ImuModel:
         f = np.asarray(f_ideal, dtype=np.float64)
         w = np.asarray(w_ideal, dtype=np.float64)
         if f.shape != w.shape or f.ndim != 2 or f.shape[1] != 3:
-            raise ValueError(f"ideal samples must be two (K, 3) arrays, got {f.shape} and {w.shape}")
+            raise FilterError(f"ideal samples must be two (K, 3) arrays, got {f.shape} and {w.shape}")
         if not (np.isfinite(f).all() and np.isfinite(w).all()):
-            raise ValueError("ideal IMU samples contain NaN or inf")
+            raise FilterError("ideal IMU samples contain NaN or inf")
         e = self.errors(len(f))
         return f + e.accel_bias + e.accel_noise, w + e.gyro_bias + e.gyro_noise, e

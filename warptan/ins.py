@@ -24,6 +24,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from warptan.checks import FilterError
 from warptan.frames import check_unit_quat, quat_conj, quat_exp, quat_log, quat_mul
 from warptan.imu import ImuGrade, check_rate
 
@@ -57,9 +58,9 @@ class NavState:
         for name in ("pos_n", "vel_n", "accel_bias", "gyro_bias"):
             value = np.array(getattr(self, name), dtype=np.float64).reshape(-1)
             if value.shape != (3,) or not np.isfinite(value).all():
-                raise ValueError(f"NavState.{name} must be 3 finite numbers, got {getattr(self, name)!r}")
+                raise FilterError(f"NavState.{name} must be 3 finite numbers, got {getattr(self, name)!r}")
             if name == "pos_n" and np.abs(value).max() > LOCAL_FRAME_M:
-                raise ValueError(f"NavState.pos_n = {value.tolist()} is more than {LOCAL_FRAME_M:g} m from the NED "
+                raise FilterError(f"NavState.pos_n = {value.tolist()} is more than {LOCAL_FRAME_M:g} m from the NED "
                                  "origin: not a position in a local frame (the particles' float32 poses lose it)")
             setattr(self, name, value)
         self.quat_nb = check_unit_quat(np.array(self.quat_nb, dtype=np.float64).reshape(-1), "NavState.quat_nb")
@@ -74,7 +75,7 @@ def _check_sample(f, w) -> tuple[np.ndarray, np.ndarray]:
     f = np.asarray(f, dtype=np.float64).reshape(3)
     w = np.asarray(w, dtype=np.float64).reshape(3)
     if not (np.isfinite(f).all() and np.isfinite(w).all()):
-        raise ValueError(f"non-finite IMU sample: specific force {f}, body rate {w}")
+        raise FilterError(f"non-finite IMU sample: specific force {f}, body rate {w}")
     return f, w
 
 
@@ -153,10 +154,10 @@ class Ins:
         f_b = np.asarray(f_b, dtype=np.float64)
         w_b = np.asarray(w_b, dtype=np.float64)
         if f_b.shape != w_b.shape or f_b.ndim != 2 or f_b.shape[1] != 3:
-            raise ValueError(f"IMU samples must be two (K, 3) arrays, got {f_b.shape} and {w_b.shape}")
+            raise FilterError(f"IMU samples must be two (K, 3) arrays, got {f_b.shape} and {w_b.shape}")
         bad = ~(np.isfinite(f_b).all(axis=1) & np.isfinite(w_b).all(axis=1))
         if bad.any():
-            raise ValueError(f"{bad.sum()} IMU samples are not finite (first at index {int(np.argmax(bad))})")
+            raise FilterError(f"{bad.sum()} IMU samples are not finite (first at index {int(np.argmax(bad))})")
         k = len(f_b)
         pos, vel, quat = np.empty((k + 1, 3)), np.empty((k + 1, 3)), np.empty((k + 1, 4))
         s = self.state.copy()

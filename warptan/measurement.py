@@ -32,6 +32,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import warp as wp
 
+from warptan.checks import FilterError
 from warptan.kernels import likelihood as klik
 from warptan.kernels import raycast as kray
 from warptan.kernels import sliding as kslide
@@ -100,21 +101,21 @@ class Likelihood:
 
     def __post_init__(self):
         if self.kind not in LIKELIHOODS:
-            raise ValueError(f"unknown likelihood {self.kind!r}; choose one of {', '.join(LIKELIHOODS)}")
+            raise FilterError(f"unknown likelihood {self.kind!r}; choose one of {', '.join(LIKELIHOODS)}")
         for name in ("r_err", "sigma_m", "nu", "outlier_sigmas"):
             value = getattr(self, name)
             if name == "sigma_m" and value is None:
                 continue
             if not (np.isfinite(value) and value > 0):
-                raise ValueError(f"likelihood {name} must be a positive number, got {value!r}")
+                raise FilterError(f"likelihood {name} must be a positive number, got {value!r}")
         for name in ("sensor_sigma_m", "map_sigma_m"):
             value = getattr(self, name)
             if not (np.isfinite(value) and value >= 0):
-                raise ValueError(f"likelihood {name} must be a number ≥ 0, got {value!r}")
+                raise FilterError(f"likelihood {name} must be a number ≥ 0, got {value!r}")
         for name in ("map_correlation", "footprint_correlation"):
             value = getattr(self, name)
             if not (np.isfinite(value) and value >= 1):
-                raise ValueError(f"likelihood {name} must be a number ≥ 1, got {value!r}")
+                raise FilterError(f"likelihood {name} must be a number ≥ 1, got {value!r}")
 
     def sigma_eff(self, model_mismatch_m: float) -> float:
         """The per-point σ in m: ``sigma_m`` when given, else
@@ -168,10 +169,10 @@ class ModelOutput:
 def _as_batch(measurement, kind, model_name: str) -> list:
     items = list(measurement) if isinstance(measurement, (list, tuple)) else [measurement]
     if not items:
-        raise ValueError(f"{model_name} model got an empty list of measurements")
+        raise FilterError(f"{model_name} model got an empty list of measurements")
     for item in items:
         if not isinstance(item, kind):
-            raise ValueError(f"{model_name} model needs a {kind.__name__}, got {type(item).__name__}")
+            raise FilterError(f"{model_name} model needs a {kind.__name__}, got {type(item).__name__}")
     return items
 
 
@@ -205,7 +206,7 @@ class MeasurementModel:
     @likelihood.setter
     def likelihood(self, value: Likelihood) -> None:
         if not isinstance(value, Likelihood):
-            raise ValueError(f"likelihood must be a Likelihood, got {type(value).__name__}")
+            raise FilterError(f"likelihood must be a Likelihood, got {type(value).__name__}")
         self._likelihood = value
         self._params = self.params()
         self.generation += 1
@@ -283,7 +284,7 @@ class MeasurementModel:
         device = self._check_poses(pos_n, quat_nb)
         n, b = pos_n.shape[0], len(items)
         if n % b:
-            raise ValueError(f"{n} particles cannot be split evenly over {b} filters")
+            raise FilterError(f"{n} particles cannot be split evenly over {b} filters")
         out = self._buffers(device, n, b, self._m_of(items))
         n_received = self._fill(items)
         out.n_received[:] = n_received
@@ -307,9 +308,9 @@ class MeasurementModel:
     def _check_poses(pos_n: wp.array, quat_nb: wp.array):
         device = check_same_device(pos_n=pos_n, quat_nb=quat_nb)
         if pos_n.dtype != wp.vec3 or quat_nb.dtype != wp.vec4:
-            raise ValueError(f"poses must be vec3 positions and vec4 quaternions, got {pos_n.dtype}, {quat_nb.dtype}")
+            raise FilterError(f"poses must be vec3 positions and vec4 quaternions, got {pos_n.dtype}, {quat_nb.dtype}")
         if pos_n.shape != quat_nb.shape:
-            raise ValueError(f"pos_n has shape {pos_n.shape} but quat_nb {quat_nb.shape}")
+            raise FilterError(f"pos_n has shape {pos_n.shape} but quat_nb {quat_nb.shape}")
         return device
 
 
@@ -318,7 +319,7 @@ class _PointCloudModel(MeasurementModel):
     def _m_of(items) -> int:
         m = len(items[0].ranges_m)
         if any(len(c.ranges_m) != m for c in items):
-            raise ValueError(f"the point clouds of a batch must have the same number of points, got "
+            raise FilterError(f"the point clouds of a batch must have the same number of points, got "
                              f"{sorted({len(c.ranges_m) for c in items})}")
         return m
 
@@ -443,7 +444,7 @@ class AltimeterModel(MeasurementModel):
         self.surface = bool(surface)
         super().__init__(terrain, likelihood)
         if not (np.isfinite(baro_sigma_m) and baro_sigma_m > 0):
-            raise ValueError(f"baro_sigma_m must be a positive number of metres, got {baro_sigma_m!r}")
+            raise FilterError(f"baro_sigma_m must be a positive number of metres, got {baro_sigma_m!r}")
         self.use_baro = bool(use_baro)
         self.baro_sigma_m = float(baro_sigma_m)
 
@@ -479,7 +480,7 @@ def make_model(name: str, terrain, likelihood: Likelihood | None = None, backend
                **kwargs) -> MeasurementModel:
     """Build a model by name ("raycast", "sliding", "altimeter"); ``backend`` applies to raycast."""
     if name not in MODELS:
-        raise ValueError(f"unknown measurement model {name!r}; choose one of {', '.join(MODELS)}")
+        raise FilterError(f"unknown measurement model {name!r}; choose one of {', '.join(MODELS)}")
     if name == "raycast":
         kwargs.setdefault("caster", RayCaster(backend))
     return MODELS[name](terrain, likelihood, **kwargs)

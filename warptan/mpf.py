@@ -107,7 +107,7 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 
-from warptan.checks import check_float32
+from warptan.checks import FilterError, check_float32
 from warptan.device import resolve_device
 from warptan.frames import quat_exp, quat_mul
 from warptan.imu import ImuGrade, check_rate, imu_grade
@@ -212,9 +212,9 @@ def _as_cov(value, n: int, name: str) -> np.ndarray:
     if a.shape == (n,):
         a = np.diag(a**2)
     if a.shape != (n, n) or not np.isfinite(a).all():
-        raise ValueError(f"{name} must be {n} standard deviations or an {n}×{n} covariance, got shape {a.shape}")
+        raise FilterError(f"{name} must be {n} standard deviations or an {n}×{n} covariance, got shape {a.shape}")
     if np.any(np.linalg.eigvalsh(0.5 * (a + a.T)) < -1e-12):
-        raise ValueError(f"{name} is not positive semi-definite")
+        raise FilterError(f"{name} is not positive semi-definite")
     check_float32(np.sqrt(np.abs(np.diag(a))), f"{name} (its σ: the particles are float32)")
     return a
 
@@ -298,36 +298,36 @@ class MarginalizedParticleFilter:
                  respread_scale: float = 1.0, measurement_update: bool = True, closed_loop: bool = False,
                  gate_linear_update: bool = True, graph: bool | None = None, bad_imu: str = "raise"):
         if not (isinstance(n_particles, (int, np.integer)) and n_particles >= 1):
-            raise ValueError(f"n_particles must be a positive integer, got {n_particles!r}")
+            raise FilterError(f"n_particles must be a positive integer, got {n_particles!r}")
         if bad_imu not in BAD_IMU_POLICIES:
-            raise ValueError(f"bad_imu must be one of {', '.join(BAD_IMU_POLICIES)}, got {bad_imu!r}")
+            raise FilterError(f"bad_imu must be one of {', '.join(BAD_IMU_POLICIES)}, got {bad_imu!r}")
         if resampler not in SCHEMES:
-            raise ValueError(f"unknown resampler {resampler!r}; choose one of {', '.join(SCHEMES)}")
+            raise FilterError(f"unknown resampler {resampler!r}; choose one of {', '.join(SCHEMES)}")
         for name, value in (("resample_threshold", resample_threshold), ("temper_ess", temper_ess),
                             ("shrinkage", shrinkage),
                             ("max_unpredictable", max_unpredictable)):
             if not (np.isfinite(value) and 0.0 <= value <= 1.0):
-                raise ValueError(f"{name} must be in [0, 1], got {value!r}")
+                raise FilterError(f"{name} must be in [0, 1], got {value!r}")
         for name, value in (("pos_noise", pos_noise), ("kalman_pos_noise", kalman_pos_noise),
                             ("regularize", regularize), ("respread_scale", respread_scale)):
             if not (np.isfinite(value) and value >= 0):
-                raise ValueError(f"{name} must be a number ≥ 0, got {value!r}")
+                raise FilterError(f"{name} must be a number ≥ 0, got {value!r}")
         for name, value in (("max_stages", max_stages), ("integrity_window", integrity_window)):
             if not (isinstance(value, (int, np.integer)) and 1 <= value <= 64):
-                raise ValueError(f"{name} must be an integer in [1, 64], got {value!r}")
+                raise FilterError(f"{name} must be an integer in [1, 64], got {value!r}")
         if not (np.isfinite(integrity_threshold) and integrity_threshold > 0):
-            raise ValueError(f"integrity_threshold must be a positive number, got {integrity_threshold!r}")
+            raise FilterError(f"integrity_threshold must be a positive number, got {integrity_threshold!r}")
         nominals = list(nominal) if isinstance(nominal, (list, tuple)) else [nominal]
         if not nominals or not all(isinstance(x, NavState) for x in nominals):
-            raise ValueError("nominal must be a NavState or a non-empty list of NavStates")
+            raise FilterError("nominal must be a NavState or a non-empty list of NavStates")
         self.batched = isinstance(nominal, (list, tuple))
         self.n_filters = b = len(nominals)
         raw = np.atleast_1d(np.asarray(seed))
         if raw.dtype.kind not in "iu" or raw.ndim != 1 or (raw.size and (raw.min() < 0 or raw.max() > 2**63 - 1)):
-            raise ValueError(f"seed must be a whole number in [0, 2**63) or a list of them, got {seed!r}")
+            raise FilterError(f"seed must be a whole number in [0, 2**63) or a list of them, got {seed!r}")
         seeds = raw.astype(np.int64)
         if seeds.shape != (b,) and seeds.shape != (1,):
-            raise ValueError(f"{b} filters need {b} seeds (or one), got {seeds.shape[0]}")
+            raise FilterError(f"{b} filters need {b} seeds (or one), got {seeds.shape[0]}")
         self.seeds = np.broadcast_to(seeds, (b,)).copy()
         self.model = model
         self.grade = imu_grade(grade)
@@ -339,7 +339,7 @@ class MarginalizedParticleFilter:
         self.resample_threshold = float(resample_threshold)
         self.scheme = SCHEMES[resampler]
         if kalman_pos_noise == 0 and not np.any(p0[0:3, 0:3]):
-            raise ValueError("kalman_pos_noise = 0 with a zero velocity prior makes N_k singular; give one of them")
+            raise FilterError("kalman_pos_noise = 0 with a zero velocity prior makes N_k singular; give one of them")
         self.q_pos = (kalman_pos_noise**2) * self.dt
         self.q_rough = (pos_noise**2) * self.dt
         ql = np.diag(process_noise(self.grade, self.dt))[3:15]
@@ -461,9 +461,9 @@ class MarginalizedParticleFilter:
             f = np.asarray(f_b, dtype=np.float64)
             w = np.asarray(w_b, dtype=np.float64)
         except (TypeError, ValueError):
-            raise ValueError(f"IMU sample must be numbers, got {f_b!r} and {w_b!r}") from None
+            raise FilterError(f"IMU sample must be numbers, got {f_b!r} and {w_b!r}") from None
         if f.size != 3 * b or w.size != 3 * b:
-            raise ValueError(f"IMU sample must be {'(3,)' if b == 1 else f'({b}, 3)'}, got {f.shape} and {w.shape}")
+            raise FilterError(f"IMU sample must be {'(3,)' if b == 1 else f'({b}, 3)'}, got {f.shape} and {w.shape}")
         f, w = f.reshape(b, 3), w.reshape(b, 3)
         with np.errstate(invalid="ignore"):
             bad = ~((np.abs(f) <= self.grade.accel_range).all(axis=1)
@@ -474,7 +474,7 @@ class MarginalizedParticleFilter:
             if not held:
                 where = f" (filter {k})" if b > 1 else ""
                 what = "implausible" if np.isfinite(f[k]).all() and np.isfinite(w[k]).all() else "non-finite"
-                raise ValueError(
+                raise FilterError(
                     f"{what} IMU sample {self.n_imu_steps}{where}: specific force {f[k].tolist()} m/s², body "
                     f"rate {w[k].tolist()} rad/s (grade {self.grade.name}: |f| ≤ {self.grade.accel_range:g} m/s², "
                     f"|ω| ≤ {self.grade.gyro_range:g} rad/s per axis, finite)"
@@ -712,7 +712,7 @@ class MarginalizedParticleFilter:
             records are read later with :meth:`history`).
         """
         if self.batched and not (isinstance(measurement, (list, tuple)) and len(measurement) == self.n_filters):
-            raise ValueError(f"a batch of {self.n_filters} filters needs a list of {self.n_filters} measurements")
+            raise FilterError(f"a batch of {self.n_filters} filters needs a list of {self.n_filters} measurements")
         out = self.model.stage(measurement, self._pos, self._quat)  # validates first: a bad one loses nothing
         if hasattr(self.model, "bind_attitude_cov"):
             self.model.bind_attitude_cov(self._dev["att_cov"])

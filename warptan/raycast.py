@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 
-from warptan.checks import FLOAT32_MAX
+from warptan.checks import FLOAT32_MAX, FilterError
 from warptan.device import resolve_device
 from warptan.kernels import raycast as kray
 
@@ -38,9 +38,9 @@ class RayCaster:
     def __post_init__(self):
         check_backend(self.backend)
         if self.step_m is not None and not (np.isfinite(self.step_m) and self.step_m > 0):
-            raise ValueError(f"bisection step_m must be a positive number of metres, got {self.step_m!r}")
+            raise FilterError(f"bisection step_m must be a positive number of metres, got {self.step_m!r}")
         if not (isinstance(self.n_bisect, (int, np.integer)) and 0 <= self.n_bisect <= 40):
-            raise ValueError(f"n_bisect must be an integer in [0, 40], got {self.n_bisect!r}")
+            raise FilterError(f"n_bisect must be an integer in [0, 40], got {self.n_bisect!r}")
 
     def launch_args(self, terrain, device) -> list:
         """The leading kernel arguments (grid, mesh id, backend code, step, halvings) for ``device``."""
@@ -52,7 +52,7 @@ class RayCaster:
 def check_backend(backend: str) -> str:
     """Return ``backend`` if it names a ray-cast backend, else raise a ValueError listing the valid ones."""
     if backend not in BACKENDS:
-        raise ValueError(f"unknown ray-cast backend {backend!r}; choose one of {', '.join(BACKENDS)}")
+        raise FilterError(f"unknown ray-cast backend {backend!r}; choose one of {', '.join(BACKENDS)}")
     return backend
 
 
@@ -62,10 +62,10 @@ def _as_vec3_array(name: str, value, device) -> wp.array:
             return value
         if value.dtype == wp.float32 and value.ndim == 2 and value.shape[1] == 3:
             return wp.array(ptr=value.ptr, dtype=wp.vec3, shape=value.shape[0], device=value.device, copy=False)
-        raise ValueError(f"{name} must be a (K, 3) array of float32 or (K,) of vec3, got {value.dtype} {value.shape}")
+        raise FilterError(f"{name} must be a (K, 3) array of float32 or (K,) of vec3, got {value.dtype} {value.shape}")
     arr = np.asarray(value, dtype=np.float64)
     if arr.ndim != 2 or arr.shape[1] != 3:
-        raise ValueError(f"{name} must have shape (K, 3), got {arr.shape}")
+        raise FilterError(f"{name} must have shape (K, 3), got {arr.shape}")
     return wp.array(arr.astype(np.float32), dtype=wp.vec3, device=device)
 
 
@@ -75,19 +75,19 @@ def _check_rays(origins, dirs) -> None:
     d = dirs.numpy() if isinstance(dirs, wp.array) else np.asarray(dirs, dtype=np.float64)
     for name, a in (("origins_n", o), ("dirs_n", d)):
         if a.ndim != 2 or a.shape[1] != 3:
-            raise ValueError(f"{name} must have shape (K, 3), got {a.shape}")
+            raise FilterError(f"{name} must have shape (K, 3), got {a.shape}")
     if len(o) != len(d):
-        raise ValueError(f"origins and dirs must have the same number of rays, got {len(o)} and {len(d)}")
+        raise FilterError(f"origins and dirs must have the same number of rays, got {len(o)} and {len(d)}")
     with np.errstate(invalid="ignore"):
         bad = ~(np.abs(o) <= FLOAT32_MAX).all(axis=1)
     if bad.any():
         k = int(np.argmax(bad))
-        raise ValueError(f"{bad.sum()} ray origins are not finite in float32 (the device's precision; first at index "
+        raise FilterError(f"{bad.sum()} ray origins are not finite in float32 (the device's precision; first at index "
                          f"{k}: {o[k].tolist()})")
     norm = np.linalg.norm(d, axis=1)
     bad = ~np.isfinite(norm) | (norm < 1e-6)
     if bad.any():
-        raise ValueError(
+        raise FilterError(
             f"{bad.sum()} ray directions are zero-length or not finite (first at index {int(np.argmax(bad))})"
         )
 
@@ -112,9 +112,9 @@ def raycast(terrain, origins_n, dirs_n, backend: str = "dda", device=None, *, st
     warp_in = isinstance(origins_n, wp.array) or isinstance(dirs_n, wp.array)
     if warp_in:
         if not (isinstance(origins_n, wp.array) and isinstance(dirs_n, wp.array)):
-            raise ValueError("origins_n and dirs_n must both be Warp arrays or both NumPy arrays")
+            raise FilterError("origins_n and dirs_n must both be Warp arrays or both NumPy arrays")
         if origins_n.device != dirs_n.device:
-            raise ValueError(f"origins_n is on {origins_n.device} but dirs_n on {dirs_n.device}")
+            raise FilterError(f"origins_n is on {origins_n.device} but dirs_n on {dirs_n.device}")
         device = origins_n.device
     else:
         device = resolve_device(device)
@@ -124,7 +124,7 @@ def raycast(terrain, origins_n, dirs_n, backend: str = "dda", device=None, *, st
     if out is None:
         out = wp.empty(o.shape[0], dtype=wp.float32, device=device)
     elif out.shape != (o.shape[0],) or out.device != device or out.dtype != wp.float32:
-        raise ValueError(f"out must be a ({o.shape[0]},) float32 array on {device}")
+        raise FilterError(f"out must be a ({o.shape[0]},) float32 array on {device}")
     if o.shape[0]:
         wp.launch(kray.raycast_kernel, dim=o.shape[0], inputs=[*caster.launch_args(terrain, device), o, d],
                   outputs=[out], device=device)
@@ -146,7 +146,7 @@ def raycast_pattern(terrain, pos_n: wp.array, quat_nb: wp.array, dirs_s: wp.arra
     device = pos_n.device
     check_same_device(pos_n=pos_n, quat_nb=quat_nb, dirs_s=dirs_s)
     if quat_nb.shape[0] != pos_n.shape[0]:
-        raise ValueError(f"pos_n has {pos_n.shape[0]} poses but quat_nb {quat_nb.shape[0]}")
+        raise FilterError(f"pos_n has {pos_n.shape[0]} poses but quat_nb {quat_nb.shape[0]}")
     shape = (pos_n.shape[0], dirs_s.shape[0])
     if out is None:
         out = wp.empty(shape, dtype=wp.float32, device=device)
@@ -160,5 +160,5 @@ def check_same_device(**arrays: wp.array) -> wp.Device:
     devices = {name: a.device for name, a in arrays.items()}
     if len({str(d) for d in devices.values()}) > 1:
         listing = ", ".join(f"{name} on {d}" for name, d in devices.items())
-        raise ValueError(f"arrays must be on one device, got {listing}")
+        raise FilterError(f"arrays must be on one device, got {listing}")
     return next(iter(devices.values()))

@@ -15,6 +15,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import warp as wp
 
+from warptan.checks import FilterError
 from warptan.frames import quat_conj, quat_exp, quat_log, quat_mul
 from warptan.imu import ImuModel
 from warptan.ins import Ins, NavState
@@ -154,22 +155,22 @@ def run_filter(truth: Trajectory, terrain_map, model, imu: ImuModel | Sequence[I
     seeds = [int(s) for s in (seed if batched else [seed])]
     imus = list(imu) if isinstance(imu, (list, tuple)) else [imu] * len(seeds)
     if len(imus) != len(seeds):
-        raise ValueError(f"{len(seeds)} seeds need {len(seeds)} IMU models (or one), got {len(imus)}")
+        raise FilterError(f"{len(seeds)} seeds need {len(seeds)} IMU models (or one), got {len(imus)}")
     initial = initial or InitialErrors()
     terrain_truth = terrain_truth or terrain_map
     for m in imus:
         if abs(m.rate_hz - truth.rate_hz) > 1e-9:
-            raise ValueError(f"IMU rate {m.rate_hz} Hz differs from the trajectory's {truth.rate_hz} Hz")
+            raise FilterError(f"IMU rate {m.rate_hz} Hz differs from the trajectory's {truth.rate_hz} Hz")
     decim = truth.rate_hz / meas_rate_hz
     if meas_rate_hz <= 0 or abs(decim - round(decim)) > 1e-9:
-        raise ValueError(f"measurement rate {meas_rate_hz} Hz must divide the IMU rate {truth.rate_hz} Hz")
+        raise FilterError(f"measurement rate {meas_rate_hz} Hz must divide the IMU rate {truth.rate_hz} Hz")
     decim = round(decim)
     altimeter = isinstance(model, AltimeterModel)
     if altimeter:
         sensor = sensor or RadarAltimeter()
         baro = baro or Barometer()
     elif sensor is None:
-        raise ValueError("a point-cloud model needs a PointCloudSensor")
+        raise FilterError("a point-cloud model needs a PointCloudSensor")
     rngs = [np.random.default_rng(np.random.SeedSequence([s, 0x7A4])) for s in seeds]
     nominal0 = [initial_nominal(truth.state(0), initial, rng) for rng in rngs]
     corrupted = [m.corrupt(truth.f_b, truth.w_b) for m in imus]

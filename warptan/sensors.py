@@ -13,6 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 
+from warptan.checks import FilterError
 from warptan.frames import check_unit_quat
 from warptan.raycast import RayCaster, raycast_pattern
 
@@ -28,13 +29,13 @@ class ScanPattern:
     def __init__(self, dirs_s, name: str = "custom"):
         d = np.asarray(dirs_s, dtype=np.float64)
         if d.ndim != 2 or d.shape[1] != 3:
-            raise ValueError(f"scan pattern directions must have shape (M, 3), got {d.shape}")
+            raise FilterError(f"scan pattern directions must have shape (M, 3), got {d.shape}")
         if len(d) == 0:
-            raise ValueError("scan pattern is empty: it needs at least one direction")
+            raise FilterError("scan pattern is empty: it needs at least one direction")
         norm = np.linalg.norm(d, axis=1)
         bad = ~np.isfinite(norm) | (norm < 1e-9)
         if bad.any():
-            raise ValueError(f"scan pattern has {bad.sum()} zero-length or non-finite directions "
+            raise FilterError(f"scan pattern has {bad.sum()} zero-length or non-finite directions "
                              f"(first at index {int(np.argmax(bad))})")
         self.dirs_s = d / norm[:, None]
         """(M, 3) unit directions, sensor frame."""
@@ -53,10 +54,10 @@ class ScanPattern:
         The footprint on flat ground is a rectangular grid. The default is the scenarios' 10×10 over ±30°."""
         hx, hy = (half_angle_deg, half_angle_deg) if np.isscalar(half_angle_deg) else half_angle_deg
         if nx < 1 or ny < 1:
-            raise ValueError(f"grid pattern needs nx, ny ≥ 1, got {nx}×{ny}")
+            raise FilterError(f"grid pattern needs nx, ny ≥ 1, got {nx}×{ny}")
         for h in (hx, hy):
             if not 0.0 <= h < 90.0:
-                raise ValueError(f"half angle must be in [0, 90) degrees, got {h}")
+                raise FilterError(f"half angle must be in [0, 90) degrees, got {h}")
         ax = np.radians(np.linspace(-hx, hx, nx)) if nx > 1 else np.zeros(1)
         ay = np.radians(np.linspace(-hy, hy, ny)) if ny > 1 else np.zeros(1)
         gx, gy = np.meshgrid(np.tan(ax), np.tan(ay), indexing="ij")
@@ -67,9 +68,9 @@ class ScanPattern:
     def ring(cls, n: int = 32, half_angle_deg: float = 30.0) -> ScanPattern:
         """``n`` directions on a cone of ``half_angle_deg`` around nadir (a conical scanner)."""
         if n < 1:
-            raise ValueError(f"ring pattern needs n ≥ 1, got {n}")
+            raise FilterError(f"ring pattern needs n ≥ 1, got {n}")
         if not 0.0 < half_angle_deg < 90.0:
-            raise ValueError(f"ring half angle must be in (0, 90) degrees, got {half_angle_deg}")
+            raise FilterError(f"ring half angle must be in (0, 90) degrees, got {half_angle_deg}")
         az = 2.0 * np.pi * np.arange(n) / n
         s = np.sin(np.radians(half_angle_deg))
         d = np.stack([s * np.cos(az), s * np.sin(az), np.full(n, np.cos(np.radians(half_angle_deg)))], axis=1)
@@ -112,12 +113,12 @@ class PointCloud:
         self.dirs_s = np.asarray(self.dirs_s, dtype=np.float64)
         r = np.asarray(self.ranges_m, dtype=np.float64).copy()
         if self.dirs_s.ndim != 2 or self.dirs_s.shape[1] != 3 or r.shape != (len(self.dirs_s),):
-            raise ValueError(f"point cloud needs dirs (M, 3) and ranges (M,), got {self.dirs_s.shape} and {r.shape}")
+            raise FilterError(f"point cloud needs dirs (M, 3) and ranges (M,), got {self.dirs_s.shape} and {r.shape}")
         if len(r) == 0:
-            raise ValueError("point cloud is empty")
+            raise FilterError("point cloud is empty")
         norm = np.linalg.norm(self.dirs_s, axis=1)
         if not np.all(np.abs(norm - 1.0) < 1e-6):
-            raise ValueError("point cloud directions must be unit vectors")
+            raise FilterError("point cloud directions must be unit vectors")
         with np.errstate(invalid="ignore"):
             r[~((r > 0.0) & (r <= MAX_RANGE_M))] = np.nan
         self.ranges_m = r
@@ -127,7 +128,7 @@ class PointCloud:
         """From (M, 3) sensor-frame points ``c_j``; rows with a NaN (or at the origin) are invalid."""
         c = np.asarray(points_s, dtype=np.float64)
         if c.ndim != 2 or c.shape[1] != 3:
-            raise ValueError(f"points must have shape (M, 3), got {c.shape}")
+            raise FilterError(f"points must have shape (M, 3), got {c.shape}")
         r = np.linalg.norm(c, axis=1)
         ok = np.isfinite(r) & (r > 0)
         dirs = np.where(ok[:, None], c / np.where(ok, r, 1.0)[:, None], [0.0, 0.0, 1.0])
@@ -157,7 +158,7 @@ class PointCloudSensor:
     def __init__(self, pattern: ScanPattern, range_sigma_m: float = 0.5, max_range_m: float | None = None,
                  caster: RayCaster | None = None):
         if not (np.isfinite(range_sigma_m) and range_sigma_m >= 0):
-            raise ValueError(f"range_sigma_m must be ≥ 0, got {range_sigma_m!r}")
+            raise FilterError(f"range_sigma_m must be ≥ 0, got {range_sigma_m!r}")
         self.pattern = pattern
         self.range_sigma_m = float(range_sigma_m)
         self.max_range_m = max_range_m
@@ -171,7 +172,7 @@ class PointCloudSensor:
         """Scans from one true pose with independent noise, one per generator in ``rngs`` (one ray cast)."""
         pos = np.asarray(pos_n, dtype=np.float64).reshape(3)
         if not np.isfinite(pos).all():
-            raise ValueError(f"sensor position is not finite: {pos}")
+            raise FilterError(f"sensor position is not finite: {pos}")
         q = check_unit_quat(np.asarray(quat_nb).reshape(4), "sensor attitude")
         device = wp.get_device(device)
         exact = raycast_pattern(
@@ -201,9 +202,9 @@ class AltimeterReading:
         try:
             r, baro = float(self.range_m), float(self.baro_alt_m)
         except (TypeError, ValueError):
-            raise ValueError(f"altimeter reading needs numbers, got {self.range_m!r}, {self.baro_alt_m!r}") from None
+            raise FilterError(f"altimeter reading needs numbers, got {self.range_m!r}, {self.baro_alt_m!r}") from None
         if abs(baro) > MAX_BARO_ALT_M:  # NaN (no barometer) passes
-            raise ValueError(f"baro_alt_m = {baro!r} is not an altitude (|h| ≤ {MAX_BARO_ALT_M:g} m; NaN = none)")
+            raise FilterError(f"baro_alt_m = {baro!r} is not an altitude (|h| ≤ {MAX_BARO_ALT_M:g} m; NaN = none)")
         object.__setattr__(self, "range_m", r if 0.0 < r <= MAX_RANGE_M else float("nan"))
         object.__setattr__(self, "baro_alt_m", baro)
 
@@ -218,7 +219,7 @@ class RadarAltimeter:
 
     def __init__(self, sigma_m: float = 1.0):
         if not (np.isfinite(sigma_m) and sigma_m >= 0):
-            raise ValueError(f"altimeter sigma_m must be ≥ 0, got {sigma_m!r}")
+            raise FilterError(f"altimeter sigma_m must be ≥ 0, got {sigma_m!r}")
         self.sigma_m = float(sigma_m)
 
     def measure(self, terrain, pos_n, rng: np.random.Generator | None = None) -> float:
@@ -235,7 +236,7 @@ class Barometer:
 
     def __init__(self, sigma_m: float = 1.0, bias_m: float = 0.0):
         if not (np.isfinite(sigma_m) and sigma_m >= 0 and np.isfinite(bias_m)):
-            raise ValueError(f"barometer needs sigma_m ≥ 0 and a finite bias, got {sigma_m!r}, {bias_m!r}")
+            raise FilterError(f"barometer needs sigma_m ≥ 0 and a finite bias, got {sigma_m!r}, {bias_m!r}")
         self.sigma_m = float(sigma_m)
         self.bias_m = float(bias_m)
 

@@ -19,7 +19,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from warptan.checks import check_positive
+from warptan.checks import FilterError, check_positive
 from warptan.frames import euler_to_quat, quat_conj, quat_log, quat_mul, quat_to_mat
 from warptan.imu import G0, check_rate
 from warptan.ins import GRAVITY_N, NavState
@@ -34,7 +34,7 @@ def smootherstep(x: np.ndarray) -> np.ndarray:
 def _bank(value: float) -> float:
     b = float(value)
     if not (math.isfinite(b) and abs(b) < 90.0):
-        raise ValueError(f"bank angle must be strictly between -90° and 90°, got {value!r}")
+        raise FilterError(f"bank angle must be strictly between -90° and 90°, got {value!r}")
     return b
 
 
@@ -127,9 +127,9 @@ class Trajectory:
         rate = check_rate(rate_hz)
         start = np.asarray(start_pos_n, dtype=np.float64).reshape(-1)
         if start.shape != (3,) or not np.isfinite(start).all():
-            raise ValueError(f"start_pos_n must be 3 finite numbers, got {start_pos_n!r}")
+            raise FilterError(f"start_pos_n must be 3 finite numbers, got {start_pos_n!r}")
         if not segments:
-            raise ValueError("a trajectory needs at least one segment")
+            raise FilterError("a trajectory needs at least one segment")
         plan = [_plan(seg, speed) for seg in segments]  # (duration, bank(τ) fn, flight path target)
         total = sum(p[0] for p in plan)
         n = round(total * rate)
@@ -175,25 +175,25 @@ def _plan(seg, speed: float):
         duration = check_positive(seg.duration_s, f"{type(seg).__name__}.duration_s")
         fp = float(seg.flight_path_deg)
         if not (math.isfinite(fp) and abs(fp) < 45.0):
-            raise ValueError(f"flight_path_deg must be within ±45°, got {seg.flight_path_deg!r}")
+            raise FilterError(f"flight_path_deg must be within ±45°, got {seg.flight_path_deg!r}")
         return duration, (lambda tau: np.zeros_like(tau)), math.radians(fp), min(gamma_transition, duration)
     if isinstance(seg, Orbit):
         duration = check_positive(seg.duration_s, "Orbit.duration_s")
         bank = math.radians(_bank(seg.bank_deg))
         roll = float(seg.roll_time_s)
         if roll < 0 or 2 * roll > duration:
-            raise ValueError(f"Orbit roll_time_s must be in [0, duration/2], got {seg.roll_time_s!r}")
+            raise FilterError(f"Orbit roll_time_s must be in [0, duration/2], got {seg.roll_time_s!r}")
         return duration, _roll_profile(bank, roll, duration), 0.0, min(gamma_transition, duration)
     if isinstance(seg, Turn):
         change = float(seg.heading_change_deg)
         if not math.isfinite(change) or change == 0.0:
-            raise ValueError(f"Turn.heading_change_deg must be a non-zero number, got {seg.heading_change_deg!r}")
+            raise FilterError(f"Turn.heading_change_deg must be a non-zero number, got {seg.heading_change_deg!r}")
         bank_mag = abs(_bank(seg.bank_deg))
         if bank_mag == 0.0:
-            raise ValueError("Turn.bank_deg must be non-zero")
+            raise FilterError("Turn.bank_deg must be non-zero")
         roll = float(seg.roll_time_s)
         if not (math.isfinite(roll) and roll >= 0):
-            raise ValueError(f"Turn.roll_time_s must be ≥ 0, got {seg.roll_time_s!r}")
+            raise FilterError(f"Turn.roll_time_s must be ≥ 0, got {seg.roll_time_s!r}")
         bank = math.copysign(math.radians(bank_mag), change)
         full_rate = G0 * math.tan(abs(bank)) / speed
         # heading change during one roll-in (= one roll-out), by quadrature of g tan(φ(t)) / V
@@ -201,8 +201,8 @@ def _plan(seg, speed: float):
         per_roll = float(np.trapezoid(G0 * np.tan(abs(bank) * smootherstep(x)) / speed, x * roll)) if roll else 0.0
         hold = (math.radians(abs(change)) - 2.0 * per_roll) / full_rate
         if hold < 0.0:
-            raise ValueError(f"Turn of {change}° at {bank_mag}° bank is shorter than its roll-in and roll-out "
+            raise FilterError(f"Turn of {change}° at {bank_mag}° bank is shorter than its roll-in and roll-out "
                              f"({math.degrees(2 * per_roll):.1f}°); use a larger heading change or shorter roll_time_s")
         duration = hold + 2.0 * roll
         return duration, _roll_profile(bank, roll, duration), 0.0, min(gamma_transition, duration)
-    raise ValueError(f"unknown trajectory segment {seg!r}; use Straight, Climb, Turn or Orbit")
+    raise FilterError(f"unknown trajectory segment {seg!r}; use Straight, Climb, Turn or Orbit")
