@@ -26,7 +26,7 @@ import numpy as np
 import warp as wp
 
 import warptan as wt
-from warptan.cli import script_inputs
+from warptan.cli import count_arg, script_inputs
 from warptan.imu import ImuModel
 from warptan.kernels import mpf as kmpf
 from warptan.meta import run_meta
@@ -118,16 +118,16 @@ def bench(terrain, model_name, n, m_side, device, repeats, warmup, imu_per_meas=
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--device", nargs="+", default=["cpu"])
-    parser.add_argument("--n", type=int, nargs="+", default=[500, 5000])
-    parser.add_argument("--m-side", type=int, nargs="+", default=[10], help="scan is m_side × m_side rays")
+    parser.add_argument("--n", type=count_arg, nargs="+", default=[500, 5000])
+    parser.add_argument("--m-side", type=count_arg, nargs="+", default=[10], help="scan is m_side × m_side rays")
     parser.add_argument("--models", nargs="+", default=["sliding", "dda"], choices=MODELS)
-    parser.add_argument("--batch", type=int, nargs="+", default=[1], help="filters per batch B")
+    parser.add_argument("--batch", type=count_arg, nargs="+", default=[1], help="filters per batch B")
     parser.add_argument("--graph", nargs="+", default=["auto"], choices=["auto", "on", "off"],
                         help="replay a captured graph (auto: on CUDA only)")
     parser.add_argument("--terrain", default="synthetic:rugged")
     parser.add_argument("--likelihood", nargs="+", default=["paper"], choices=["paper", "gaussian", "student_t"])
-    parser.add_argument("--repeats", type=int, default=20)
-    parser.add_argument("--warmup", type=int, default=3)
+    parser.add_argument("--repeats", type=count_arg, default=20)
+    parser.add_argument("--warmup", type=count_arg, default=3)
     parser.add_argument("--json", dest="json_out")
     args = parser.parse_args(argv)
     terrain = script_inputs("bench_filter_step", args.device, args.terrain)

@@ -23,7 +23,7 @@ import numpy as np
 import warp as wp
 
 import warptan as wt
-from warptan.cli import script_inputs
+from warptan.cli import count_arg, number_arg, script_inputs
 from warptan.frames import euler_to_quat
 from warptan.meta import run_meta
 from warptan.outputs import write_json
@@ -163,11 +163,12 @@ def main(argv=None) -> int:
     parser.add_argument("--device", nargs="+", default=["cpu"], help="Warp devices, e.g. cpu cuda:0")
     parser.add_argument("--terrain", default="synthetic:rugged", help="DEM path or synthetic:KIND spec")
     parser.add_argument("--quick", action="store_true", help=f"N in {QUICK_N}, M in {QUICK_M}, 3 repeats")
-    parser.add_argument("--n", type=int, nargs="+", help="particle counts (overrides the preset)")
-    parser.add_argument("--m", type=int, nargs="+", help="points per scan (overrides the preset)")
+    parser.add_argument("--n", type=count_arg, nargs="+", help="particle counts (overrides the preset)")
+    parser.add_argument("--m", type=count_arg, nargs="+", help="points per scan (overrides the preset)")
     parser.add_argument("--models", nargs="+", default=list(MODELS), choices=MODELS)
-    parser.add_argument("--repeats", type=int, default=None, help="timed repeats (default 7, quick 3)")
-    parser.add_argument("--max-config-s", type=float, default=20.0, help="skip configurations predicted slower")
+    parser.add_argument("--repeats", type=count_arg, default=None, help="timed repeats (default 7, quick 3)")
+    parser.add_argument("--max-config-s", type=number_arg(0.0, True), default=20.0,
+                        help="skip configurations predicted slower")
     parser.add_argument("--json", dest="json_out", help="write results here")
     parser.add_argument("--plot", help="write a log-log PNG here")
     args = parser.parse_args(argv)

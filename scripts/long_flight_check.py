@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
+from warptan.cli import count_arg
 from warptan.meta import run_meta
 from warptan.outputs import write_json
 from warptan.scenarios import run_scenario_batch
@@ -40,7 +41,7 @@ def summarise(result) -> dict:
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("out", nargs="?", default="long_flight_check.json")
-    parser.add_argument("--seeds", type=int, default=4, help="seeds 0 … N-1 (one batched run per likelihood)")
+    parser.add_argument("--seeds", type=count_arg, default=4, help="seeds 0 … N-1 (one batched run per likelihood)")
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--terrain", default=None,
                         help="truth = map DEM (a path or name); 600 s at 100 m/s needs more than the package's ±22 km "

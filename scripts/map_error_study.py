@@ -22,6 +22,7 @@ from pathlib import Path
 import numpy as np
 
 import warptan as wt
+from warptan.cli import count_arg, number_arg
 from warptan.meta import run_meta
 from warptan.outputs import write_json
 from warptan.report import ci95
@@ -149,14 +150,14 @@ def plot(data: dict, out: Path) -> list[str]:
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--seeds", type=int, default=20)
+    parser.add_argument("--seeds", type=count_arg, default=20)
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--out", default="map-error-study")
     parser.add_argument("--terrain", default="rugged30", help="the world (default: the 30 m San Gabriel tile)")
     parser.add_argument("--scenarios", nargs="+", default=list(MODELS))
-    parser.add_argument("--spacings", nargs="+", type=float, default=[30.0, 60.0, 90.0, 180.0])
-    parser.add_argument("--noises", nargs="+", type=float, default=[0.0, 1.0, 3.0, 10.0])
-    parser.add_argument("--duration-s", type=float, default=120.0)
+    parser.add_argument("--spacings", nargs="+", type=number_arg(0.0, True), default=[30.0, 60.0, 90.0, 180.0])
+    parser.add_argument("--noises", nargs="+", type=number_arg(0.0, False), default=[0.0, 1.0, 3.0, 10.0])
+    parser.add_argument("--duration-s", type=number_arg(0.0, True), default=120.0)
     parser.add_argument("--resume", action="store_true", help="keep the rows already in OUT/study.json")
     parser.add_argument("--report-only", action="store_true", help="rewrite study.md and the plots from the JSON")
     args = parser.parse_args(argv)

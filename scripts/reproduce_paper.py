@@ -19,6 +19,7 @@ from pathlib import Path
 
 import warptan as wt
 from warptan import claims
+from warptan.cli import count_arg, number_arg
 from warptan.measurement import LIKELIHOODS
 from warptan.meta import run_meta
 from warptan.outputs import write_json
@@ -28,13 +29,13 @@ from warptan.scenarios import SCENARIO_IDS, prepare, run_scenario, run_scenario_
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--seeds", type=int, default=10)
+    parser.add_argument("--seeds", type=count_arg, default=10)
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--out", default="paper-results")
     parser.add_argument("--scenarios", nargs="+", default=list(SCENARIO_IDS))
     parser.add_argument("--terrain", default=None, help="one DEM for every scenario (default: the scenario's)")
-    parser.add_argument("--particles", type=int, default=None)
-    parser.add_argument("--duration-s", type=float, default=None)
+    parser.add_argument("--particles", type=count_arg, default=None)
+    parser.add_argument("--duration-s", type=number_arg(0.0, True), default=None)
     parser.add_argument("--paper-rates", action="store_true")
     parser.add_argument("--no-baro-runs", action="store_true", help="skip the altitude-observability runs")
     parser.add_argument("--no-plots", action="store_true")

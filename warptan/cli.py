@@ -12,8 +12,8 @@ import warnings
 DEFAULT_TERRAIN = "synthetic:rugged"
 
 
-def _count(text: str) -> int:
-    """argparse type: a whole number ≥ 1."""
+def count_arg(text: str) -> int:
+    """argparse type: a whole number ≥ 1 (the command line's and the scripts' counts)."""
     try:
         value = int(text)
     except ValueError:
@@ -23,7 +23,7 @@ def _count(text: str) -> int:
     return value
 
 
-def _number(minimum: float, strict: bool):
+def number_arg(minimum: float, strict: bool):
     """argparse type: a finite number > minimum (strict) or ≥ minimum."""
     def parse(text: str) -> float:
         try:
@@ -39,7 +39,7 @@ def _number(minimum: float, strict: bool):
 
 def _finite(text: str) -> float:
     """argparse type: any finite number."""
-    return _number(-math.inf, False)(text)
+    return number_arg(-math.inf, False)(text)
 
 
 def _terrain_info(args) -> int:
@@ -226,14 +226,15 @@ def build_parser() -> argparse.ArgumentParser:
 
     info = tsub.add_parser("info", help="CRS, bounds, spacing, shape, height range, nodata fraction")
     info.add_argument("terrain", nargs="?", default=DEFAULT_TERRAIN, help=spec_help)
-    info.add_argument("--spacing", type=_number(0.0, True), default=None, help="resample to this post spacing in m")
+    info.add_argument("--spacing", type=number_arg(0.0, True), default=None, help="resample to this post spacing in m")
     info.add_argument("--json", action="store_true", help="print JSON instead of a table")
     info.set_defaults(func=_terrain_info)
 
     export = tsub.add_parser("export", help="write the triangulated DEM as PLY/GLB/OBJ/STL for viewing")
     export.add_argument("terrain", help=spec_help)
     export.add_argument("out", help="output file (.ply, .glb, .obj, .stl)")
-    export.add_argument("--spacing", type=_number(0.0, True), default=None, help="resample to this post spacing in m")
+    export.add_argument("--spacing", type=number_arg(0.0, True), default=None,
+                        help="resample to this post spacing in m")
     export.add_argument("--frame", choices=("enu", "ned"), default="enu", help="vertex frame (default enu, z up)")
     export.set_defaults(func=_terrain_export)
 
@@ -242,14 +243,14 @@ def build_parser() -> argparse.ArgumentParser:
                                      "and PNG plots. Without a scenario: a one-minute demonstration (S8, 60 s, "
                                      "generated rugged terrain).")
     run.add_argument("scenarios", nargs="*", help="S1 … S12, 'all', or scenario .toml files")
-    run.add_argument("--seeds", type=_count, default=None, help="seeds per scenario, ≥ 1 (default 1)")
+    run.add_argument("--seeds", type=count_arg, default=None, help="seeds per scenario, ≥ 1 (default 1)")
     run.add_argument("--batch", action="store_true",
                      help="run the seeds of a scenario as one batched filter (one launch per kernel for all; "
                           "results as without it)")
     run.add_argument("--device", default="cpu", help="Warp device (cpu, cuda:0)")
     run.add_argument("--out", default=None, help="output folder (default warptan-results, demo: warptan-demo)")
     run.add_argument("--paper-rates", action="store_true", help="terrain measurements at the IMU rate, as the paper")
-    run.add_argument("--particles", type=_count, default=None, help="override the particle count")
+    run.add_argument("--particles", type=count_arg, default=None, help="override the particle count")
     run.add_argument("--backend", default=None, help="ray-cast backend: dda, mesh, bisection")
     run.add_argument("--likelihood", default=None, help="paper, gaussian or student_t")
     run.add_argument("--surface", default=None,
@@ -259,13 +260,13 @@ def build_parser() -> argparse.ArgumentParser:
                      help="the world of every scenario: rugged, rugged30 (30 m San Gabriel tile), flat, a DEM path "
                           "or synthetic:KIND (default: the scenario's)")
     run.add_argument("--map", default=None, help="the filter's map from another DEM file of the same ground")
-    run.add_argument("--map-spacing-m", type=_number(0.0, True), default=None,
+    run.add_argument("--map-spacing-m", type=number_arg(0.0, True), default=None,
                      help="map error: coarser posts (block means)")
-    run.add_argument("--map-noise-m", type=_number(0.0, False), default=None,
+    run.add_argument("--map-noise-m", type=number_arg(0.0, False), default=None,
                      help="map error: white noise σ per post, m")
     run.add_argument("--map-bias-m", type=_finite, default=None,
                      help="map error: vertical offset of the map, m")
-    run.add_argument("--duration-s", type=_number(0.0, True), default=None,
+    run.add_argument("--duration-s", type=number_arg(0.0, True), default=None,
                      help="override the flight duration, s (at least one measurement interval)")
     run.add_argument("--no-baro", action="store_true", help="altimeter scenarios without a barometer")
     run.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
