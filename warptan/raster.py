@@ -44,6 +44,8 @@ NETWORK_PREFIXES = ("/vsicurl", "/vsis3", "/vsigs", "/vsiaz", "/vsiadls", "/vsio
 NETWORK_DRIVERS = frozenset({"WMS", "WMTS", "WCS", "HTTP", "EEDA", "EEDAI", "DAAS", "PLMOSAIC", "STACIT", "STACTA",
                              "OGCAPI", "NGW"})
 """GDAL drivers whose "files" are service descriptions fetched over the network (e.g. a ``<GDAL_WMS>`` XML)."""
+MAX_VRT_BYTES = 64 << 20
+"""Largest VRT file whose sources are checked (a mosaic of ~100 000 tiles)."""
 _SERVICE_TAGS = (b"<GDAL_WMS", b"<GDAL_WMTS", b"<GDAL_WCS", b"<WCS_GDAL", b"<WMS_Capabilities", b"<Capabilities")
 
 
@@ -81,6 +83,11 @@ def check_references(path: str, allow_network: bool = False, allow_raw_vrt: bool
                            "refused (pass allow_network=True to allow it)")
     if not start.startswith(b"<VRTDataset"):
         return
+    if len(head) == 1 << 20:  # a large VRT (a mosaic of many tiles): read it whole
+        with open(path, "rb") as f:
+            head = f.read(MAX_VRT_BYTES + 1)
+        if len(head) > MAX_VRT_BYTES:
+            raise TerrainError(f"{path}: a VRT larger than {MAX_VRT_BYTES >> 20} MiB")
     try:
         root = ET.fromstring(head)
     except ET.ParseError as err:
@@ -182,12 +189,11 @@ def read_raster(path: str | os.PathLike, spacing: float | None = None,
     spacing = check_spacing(spacing)
     path = os.fspath(path)
     check_references(path, allow_network, allow_raw_vrt)
-    if _is_network(path):
-        return _read(path, spacing, frame, allow_raw_vrt, allow_network)
-    if not os.path.exists(path):
-        raise FileNotFoundError(f"DEM file not found: {path}")
-    if os.path.isdir(path):
-        raise TerrainError(f"{path}: is a directory, not a DEM file")
+    if not _is_network(path):  # (an allowed network path has no local file to look for)
+        if not os.path.exists(path):
+            raise FileNotFoundError(f"DEM file not found: {path}")
+        if os.path.isdir(path):
+            raise TerrainError(f"{path}: is a directory, not a DEM file")
     return _read(path, spacing, frame, allow_raw_vrt, allow_network)
 
 
