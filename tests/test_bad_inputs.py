@@ -320,6 +320,7 @@ def test_other_expected_failures_are_one_line(capsys, tmp_path):
         (["run", "S8", "--map", str(tmp_path / "absent.tif"), "--check"], "absent.tif"),
         (["run", "S8", "--terrain", "synthetic:rugged,size_m=500", "--check"], "leaves the DEM"),
         (["run", "S8", "--out", "", "--check"], "output folder name is empty"),
+        (["run", "S8", "--batch", "--seeds", "2", "--map-noise-m", "1", "--check"], "own map"),
     )
     for argv, fragment in cases:
         status, _, err = _run_cli(capsys, *argv)
@@ -330,7 +331,7 @@ def test_other_expected_failures_are_one_line(capsys, tmp_path):
 # ---------------------------------------------------------------------------------------------------- API
 def test_seeds_and_terrain_arguments_are_checked():
     """seed 2**63 raised OverflowError, 1.7 silently ran seed 1, terrain=42 a bare TypeError."""
-    for seed, fragment in ((1.7, "whole number"), (2**63, "must be in"), (-1, "must be in"), (True, "whole number")):
+    for seed, fragment in ((1.7, "whole number"), (2**63, "must be in"), (-1, "≥ 0, got -1"), (True, "whole number")):
         with pytest.raises(ScenarioError, match=fragment):
             run_scenario("S8", seed=seed, duration_s=0.1)
     with pytest.raises(ScenarioError, match=r"terrain=42 \(int\)"):

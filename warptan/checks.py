@@ -20,6 +20,8 @@ class FilterError(ValueError):
 
 FLOAT32_MAX = 3.4028234663852886e38
 """Largest finite float32."""
+LOCAL_FRAME_M = 1e7
+"""Largest NED coordinate a position or a terrain origin may have, m (a local frame; float32 keeps 1 m there)."""
 
 
 def check_positive(value, name: str, error: type[Exception] = FilterError) -> float:

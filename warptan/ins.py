@@ -24,16 +24,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from warptan.checks import FilterError
+from warptan.checks import LOCAL_FRAME_M, FilterError
 from warptan.frames import check_unit_quat, quat_conj, quat_exp, quat_log, quat_mul
 from warptan.imu import ImuGrade, check_rate
 
 GRAVITY_N = np.array([0.0, 0.0, 9.80665])
 """Gravity in NED, m/s² (flat earth, SPEC §1)."""
-
-
-LOCAL_FRAME_M = 1e7
-"""Largest NED coordinate a navigation state may have, m (a local frame; float32 keeps 1 m there)."""
 
 
 @dataclass

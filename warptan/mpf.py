@@ -286,7 +286,7 @@ class MarginalizedParticleFilter:
             resampling, record) once and replay it: True, False, or None = on CUDA only.
         bad_imu: What :meth:`predict` does with a sample that is not finite or beyond the grade's range
             (``ImuGrade.accel_range`` per axis of the specific force, ``gyro_range`` of the body rate): "raise" (a
-            ValueError naming the sample) or "hold" (integrate the interval with the last good sample instead, as a
+            FilterError naming the sample) or "hold" (integrate the interval with the last good sample instead, as a
             receiver's zero-order hold; counted in ``n_imu_held``; a first sample that is bad still raises).
     """
 

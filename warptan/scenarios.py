@@ -38,6 +38,7 @@ from pathlib import Path
 
 import numpy as np
 
+from warptan.checks import check_seed
 from warptan.imu import IMU_GRADES, ImuModel
 from warptan.measurement import LIKELIHOODS, MODELS, Likelihood, make_model
 from warptan.mpf import RESAMPLERS
@@ -281,11 +282,10 @@ def check_seeds(seeds, base: int = 0) -> list[int]:
         seeds = [seeds]
     out = []
     for seed in seeds:
-        if isinstance(seed, (bool, np.bool_)) or not isinstance(seed, (int, np.integer)):
-            raise ScenarioError(f"seed {seed!r} must be a whole number ≥ 0 (got {type(seed).__name__})")
-        if not 0 <= int(seed) <= MAX_SEED - base:
+        value = check_seed(seed, "seed", ScenarioError)
+        if value > MAX_SEED - base:
             raise ScenarioError(f"seed {seed} must be in [0, {MAX_SEED - base}] (run.seed {base} + seed ≤ {MAX_SEED})")
-        out.append(int(seed))
+        out.append(value)
     if not out:
         raise ScenarioError("at least one seed is needed")
     if len(set(out)) != len(out):
@@ -310,8 +310,6 @@ def memory_estimate(config: dict, n_seeds: int) -> dict[str, float]:
 
 def available_memory(device) -> dict[str, float]:
     """Bytes available now on the host (MemAvailable) and on ``device`` (free memory; the host's for the CPU)."""
-    import warp as wp
-
     from warptan.device import resolve_device
 
     host = float(os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES"))
@@ -323,7 +321,7 @@ def available_memory(device) -> dict[str, float]:
     except OSError:
         pass
     d = resolve_device(device)
-    dev = host if d.is_cpu else float(getattr(d, "free_memory", 0) or wp.get_device(d).total_memory)
+    dev = host if d.is_cpu else float(getattr(d, "free_memory", 0) or d.total_memory)
     return {"host": host, "device": dev}
 
 
@@ -645,12 +643,18 @@ def scenario_likelihood(config: dict, the_map: Terrain, truth: Terrain | None = 
                       map_correlation=n_corr, footprint_correlation=n_fp)
 
 
-def prepare(name_or_path, seed: int = 0, terrain=None, *, seeds=None, device=None, **overrides):
+def prepare(name_or_path, seed: int = 0, terrain=None, *, seeds=None, device=None, batched: bool = False,
+            **overrides):
     """Validate and build everything a run needs (config, truth terrain, flight) without running it: the file and
-    overrides, the seeds (``seeds``, default ``[seed]``), the memory the run needs on ``device`` (when given), the
-    terrain, the flight inside the DEM, and the filter's map. ``warptan run --check`` is this."""
+    overrides, the seeds (``seeds``, default ``[seed]``; ``batched``: run as one batch, which a map with per-seed
+    noise cannot be), the memory the run needs on ``device`` (when given), the terrain, the flight inside the DEM,
+    and the filter's map. ``warptan run --check`` is this."""
     config = load_config(name_or_path, **overrides)
     seeds = check_seeds([seed] if seeds is None else seeds, config["run"]["seed"])
+    t = config["terrain"]
+    if batched and len(seeds) > 1 and t["map_noise_m"] and t["map_seed"] < 0:
+        raise ScenarioError(f"{config['id']}: map_noise_m = {t['map_noise_m']} with map_seed = -1 gives every seed its "
+                            "own map; run the seeds one by one (without --batch), or fix terrain.map_seed")
     if device is not None:
         check_memory(config, len(seeds), device)
     truth_terrain = resolve_terrain(config, terrain)
@@ -681,13 +685,12 @@ def run_scenario_batch(name_or_path, seeds, device="cpu", progress=None, **overr
     import time
 
     terrain = overrides.pop("terrain", None)
-    config, truth_terrain, flight = prepare(name_or_path, terrain=terrain, seeds=seeds, device=device, **overrides)
-    seeds = check_seeds(seeds, config["run"]["seed"])
+    seeds = list(seeds)
+    config, truth_terrain, flight = prepare(name_or_path, terrain=terrain, seeds=seeds, device=device, batched=True,
+                                            **overrides)
+    seeds = [int(seed) for seed in seeds]  # checked by prepare
     s = config["sensor"]
     total_seeds = [int(config["run"]["seed"]) + seed for seed in seeds]
-    if len(seeds) > 1 and config["terrain"]["map_noise_m"] and config["terrain"]["map_seed"] < 0:
-        raise ValueError(f"{config['id']}: map_noise_m = {config['terrain']['map_noise_m']} with map_seed = -1 gives "
-                         "every seed its own map; run the seeds one by one (without --batch), or fix map_seed")
     the_map = map_terrain(truth_terrain, config, total_seeds[0])
     likelihood = scenario_likelihood(config, the_map, truth_terrain)
     model_kwargs = {"use_baro": s["use_baro"], "baro_sigma_m": max(s["baro_sigma_m"], 0.1)} \

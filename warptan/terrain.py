@@ -24,6 +24,7 @@ from pathlib import Path
 import numpy as np
 import warp as wp
 
+from warptan.checks import LOCAL_FRAME_M
 from warptan.device import resolve_device
 from warptan.kernels import terrain as kterrain
 from warptan.outputs import current_umask
@@ -114,8 +115,9 @@ class Terrain:
             check_spacing(getattr(self, key), f"{self.name}: {key}")
         for key in ("n0", "e0"):
             value = getattr(self, key)
-            if not (isinstance(value, (int, float, np.number)) and math.isfinite(value) and abs(value) < 1e7):
-                raise TerrainError(f"{self.name}: {key} = {value!r} must be a finite number of metres (|{key}| < 1e7)")
+            if not (isinstance(value, (int, float, np.number)) and math.isfinite(value) and abs(value) < LOCAL_FRAME_M):
+                raise TerrainError(f"{self.name}: {key} = {value!r} must be a finite number of metres (|{key}| < "
+                                   f"{LOCAL_FRAME_M:g})")
         low, high = (float(v) for v in self.valid_range_m)
         if not low < high:
             raise TerrainError(f"{self.name}: valid_range_m = {self.valid_range_m!r} must be (low, high), low < high")
