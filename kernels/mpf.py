@@ -262,8 +262,11 @@ def stage_loglik(ll: float, floor: float) -> float:
     return floor
 
 
-@wp.kernel
-def temper_partials_kernel(
+@wp.func
+def temper_partial(
+    b: int,
+    c: int,
+    g: int,
     n_per: int,
     stage: int,
     loglik: wp.array(dtype=wp.float32),
@@ -276,9 +279,7 @@ def temper_partials_kernel(
 ):
     """Filter b, chunk c, candidate exponent ``γ_g``: streaming log-sum-exp partials ``[max, Σe, Σe²]`` of
     ``logw_i + γ_g loglik_i`` (rescaled to the running maximum), and at stage 0 (``g == 0``) the weighted fraction of
-    the received points the particles cannot predict. One thread per (filter, chunk, candidate): one per (filter,
-    chunk) looping over the 20 candidates took 55 µs per stage on an H100 at N = 500 (64 threads per filter)."""
-    b, c, g = wp.tid()
+    the received points the particles cannot predict."""
     rem = stats[b, ST_REMAIN]
     if stage > 0 and rem <= wp.float64(0.0):
         return
@@ -316,9 +317,27 @@ def temper_partials_kernel(
 
 
 @wp.kernel
-def temper_ess_kernel(partial_in: wp.array4d(dtype=wp.float64), ess_out: wp.array2d(dtype=wp.float64)):
-    """Filter b, candidate g: the ESS the candidate exponent would leave, from the chunks' streaming partials."""
-    b, g = wp.tid()
+def temper_partials_kernel(
+    n_per: int,
+    stage: int,
+    loglik: wp.array(dtype=wp.float32),
+    n_valid: wp.array(dtype=wp.int32),
+    meta: wp.array2d(dtype=wp.float32),
+    logw: wp.array(dtype=wp.float32),
+    stats: wp.array2d(dtype=wp.float64),
+    partial_out: wp.array4d(dtype=wp.float64),
+    unpred_out: wp.array2d(dtype=wp.float64),
+):
+    """:func:`temper_partial` of every candidate at once, one thread per (filter, chunk, candidate) (CUDA): one per
+    (filter, chunk) looping over the 20 candidates took 55 µs per stage on an H100 at N = 500 (64 threads per
+    filter)."""
+    b, c, g = wp.tid()
+    temper_partial(b, c, g, n_per, stage, loglik, n_valid, meta, logw, stats, partial_out, unpred_out)
+
+
+@wp.func
+def temper_ess_of(b: int, g: int, partial_in: wp.array4d(dtype=wp.float64), ess_out: wp.array2d(dtype=wp.float64)):
+    """The ESS candidate g of filter b would leave, from the chunks' streaming partials."""
     big = partial_in[b, 0, g, 0]
     for c in range(N_CHUNKS):
         big = wp.max(big, partial_in[b, c, g, 0])
@@ -329,6 +348,44 @@ def temper_ess_kernel(partial_in: wp.array4d(dtype=wp.float64), ess_out: wp.arra
         s1 += partial_in[b, c, g, 1] * scale
         s2 += partial_in[b, c, g, 2] * scale * scale
     ess_out[b, g] = s1 * s1 / s2
+
+
+@wp.kernel
+def temper_ess_kernel(partial_in: wp.array4d(dtype=wp.float64), ess_out: wp.array2d(dtype=wp.float64)):
+    """Filter b, candidate g: :func:`temper_ess_of`."""
+    b, g = wp.tid()
+    temper_ess_of(b, g, partial_in, ess_out)
+
+
+@wp.kernel
+def temper_search_kernel(
+    n_per: int,
+    stage: int,
+    params: UpdateParams,
+    loglik: wp.array(dtype=wp.float32),
+    n_valid: wp.array(dtype=wp.int32),
+    meta: wp.array2d(dtype=wp.float32),
+    logw: wp.array(dtype=wp.float32),
+    stats: wp.array2d(dtype=wp.float64),
+    partial_out: wp.array4d(dtype=wp.float64),
+    unpred_out: wp.array2d(dtype=wp.float64),
+    ess_out: wp.array2d(dtype=wp.float64),
+):
+    """One thread per filter (the CPU's form of :data:`temper_partials_kernel` + :data:`temper_ess_kernel`): the
+    candidates in order, largest exponent first, each scored over every chunk exactly as there, stopping at the first
+    one :data:`temper_select_kernel` takes (ESS ≥ ``temper_ess · n``; after the first when tempering is off). The
+    selection reads no candidate after that one, so the result is the same bits for a fraction of the work: usually
+    one candidate of 20 (the whole exponent keeps the ESS)."""
+    b = wp.tid()
+    if stage > 0 and stats[b, ST_REMAIN] <= wp.float64(0.0):
+        return
+    target = wp.float64(params.temper_ess) * wp.float64(n_per)
+    for g in range(N_TEMPER):
+        for c in range(N_CHUNKS):
+            temper_partial(b, c, g, n_per, stage, loglik, n_valid, meta, logw, stats, partial_out, unpred_out)
+        temper_ess_of(b, g, partial_out, ess_out)
+        if params.temper_ess <= 0.0 or ess_out[b, g] >= target:
+            break
 
 
 @wp.kernel

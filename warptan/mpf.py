@@ -566,11 +566,16 @@ class MarginalizedParticleFilter:
     def _launch_stage(self, out, stage: int) -> None:
         """One tempering stage: choose the exponent, weight, normalise and decide to resample (device)."""
         d, b, n, st = self.device, self.n_filters, self.n, self.state
-        launch(kmpf.temper_partials_kernel, dim=(b, kmpf.N_CHUNKS, kmpf.N_TEMPER),
-                  inputs=[n, stage, out.loglik, out.n_valid, out.meta, st.logw, self._stats],
-                  outputs=[self._temper_partials, self._unpred_partials], device=d)
-        launch(kmpf.temper_ess_kernel, dim=(b, kmpf.N_TEMPER), inputs=[self._temper_partials],
-                  outputs=[self._temper_ess], device=d)
+        if d.is_cpu:  # candidates in order until one is taken (same bits, usually 1 of 20 evaluated)
+            launch(kmpf.temper_search_kernel, dim=b,
+                   inputs=[n, stage, self.params, out.loglik, out.n_valid, out.meta, st.logw, self._stats],
+                   outputs=[self._temper_partials, self._unpred_partials, self._temper_ess], device=d)
+        else:  # every candidate in parallel
+            launch(kmpf.temper_partials_kernel, dim=(b, kmpf.N_CHUNKS, kmpf.N_TEMPER),
+                   inputs=[n, stage, out.loglik, out.n_valid, out.meta, st.logw, self._stats],
+                   outputs=[self._temper_partials, self._unpred_partials], device=d)
+            launch(kmpf.temper_ess_kernel, dim=(b, kmpf.N_TEMPER), inputs=[self._temper_partials],
+                   outputs=[self._temper_ess], device=d)
         launch(kmpf.temper_select_kernel, dim=b,
                   inputs=[n, stage, int(stage == self.max_stages - 1), self.params, out.meta, self._temper_ess,
                           self._unpred_partials], outputs=[self._stats], device=d)
