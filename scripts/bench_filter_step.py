@@ -9,7 +9,10 @@ before the clock stops): ``predict_ms`` (one ``predict`` call: the host buffers 
 ``step_ms`` (the whole interval, synchronised: the latency), ``filter_steps_per_s`` (B / step time),
 ``throughput_step_ms`` (the same intervals run back to back with one synchronisation at the end: the host stages
 interval k + 1 while the device runs interval k) and ``estimate_ms`` (moments → host, not part of a step). The
-measurement upload is part of the step (``stage``); simulating it is not.
+measurement upload is part of the step (``stage``); simulating it is not. Then a third run of intervals with the
+filter's own timers on (:class:`warptan.mpf.StepTimer`): the medians ``host_ms`` (Python: IMU buffering, interval
+staging, issuing launches or the graph), ``upload_ms`` (validating, packing and copying the measurement to the
+device) and ``device_ms`` (the update's device work: CUDA events around it, or the CPU's launches) per interval.
 
     python scripts/bench_filter_step.py --n 500 5000 --models sliding dda --json step.json
     python scripts/bench_filter_step.py --device cuda:0 --n 500 --batch 1 100 --m-side 20 --graph on off
@@ -30,7 +33,7 @@ from warptan.cli import count_arg, script_inputs
 from warptan.imu import ImuModel
 from warptan.kernels import mpf as kmpf
 from warptan.meta import run_meta
-from warptan.mpf import MarginalizedParticleFilter
+from warptan.mpf import MarginalizedParticleFilter, StepTimer
 from warptan.outputs import write_json
 from warptan.runner import InitialErrors, initial_nominal, prior_linear_cov
 from warptan.trajectory import Straight, Trajectory
@@ -49,7 +52,7 @@ def build(model_name: str, terrain, likelihood):
 def bench(terrain, model_name, n, m_side, device, repeats, warmup, imu_per_meas=10, seed=0, graph=None, batch=1,
           likelihood="paper"):
     intervals = repeats + warmup
-    truth = Trajectory.build([Straight(2 * intervals * imu_per_meas / 100.0 + 0.5)], 100.0,
+    truth = Trajectory.build([Straight(3 * intervals * imu_per_meas / 100.0 + 0.5)], 100.0,
                              [0.0, 0.0, -(terrain.h_max + 600.0)])
     imu = ImuModel("navigation", 100.0, seed=seed)
     f, w, _ = imu.corrupt(truth.f_b, truth.w_b)
@@ -67,7 +70,7 @@ def bench(terrain, model_name, n, m_side, device, repeats, warmup, imu_per_meas=
     alt, baro = wt.RadarAltimeter(), wt.Barometer()
     t_pred, t_upd, t_step, t_est = [], [], [], []
     measurements = []
-    for it in range(2 * intervals):
+    for it in range(3 * intervals):
         k_meas = (it + 1) * imu_per_meas
         if model_name == "altimeter":
             meas = [wt.AltimeterReading(alt.measure(terrain, truth.pos_n[k_meas], rng),
@@ -105,6 +108,16 @@ def bench(terrain, model_name, n, m_side, device, repeats, warmup, imu_per_meas=
         mpf.update(measurements[it], sync=False)
     wp.synchronize_device(device)
     throughput_ms = 1e3 * (time.perf_counter() - t0) / intervals
+    # breakdown: the filter's timers, each interval synchronised (CUDA event times are read at the end)
+    mpf.timer = StepTimer()
+    for it in range(2 * intervals, 3 * intervals):
+        for _ in range(imu_per_meas):
+            mpf.predict(f[k], w[k])
+            k += 1
+        mpf.update(measurements[it], sync=False)
+        wp.synchronize_device(device)
+    parts = {name: float(np.median(v[warmup:])) for name, v in mpf.timer.times().items()}
+    mpf.timer = None
     med = statistics.median
     stages = mpf.history()[warmup:, :, kmpf.H_STAGES]
     return {"model": model_name, "likelihood": likelihood, "B": batch, "N": n, "graph": mpf.graph,
@@ -112,7 +125,8 @@ def bench(terrain, model_name, n, m_side, device, repeats, warmup, imu_per_meas=
             "filter_steps_per_s": batch / med(t_step), "M": 1 if model_name == "altimeter" else m_side * m_side,
             "device": wt.resolve_device(device).alias, "imu_per_meas": imu_per_meas,
             "predict_ms": 1e3 * med(t_pred), "update_ms": 1e3 * med(t_upd), "step_ms": 1e3 * med(t_step),
-            "estimate_ms": 1e3 * med(t_est), "throughput_step_ms": throughput_ms, "repeats": repeats}
+            "estimate_ms": 1e3 * med(t_est), "throughput_step_ms": throughput_ms, "repeats": repeats,
+            "host_ms": parts["host"], "upload_ms": parts["upload"], "device_ms": parts["device"]}
 
 
 def main(argv=None) -> int:
@@ -133,7 +147,8 @@ def main(argv=None) -> int:
     terrain = script_inputs("bench_filter_step", args.device, args.terrain)
     rows = []
     print(f"{'device':7s} {'model':9s} {'lik':8s} {'graph':5s} {'B':>4s} {'N':>7s} {'M':>5s} {'predict ms':>11s} "
-          f"{'update ms':>10s} {'step ms':>9s} {'pipelined':>9s} {'filter-steps/s':>15s} {'stages':>6s}")
+          f"{'update ms':>10s} {'step ms':>9s} {'pipelined':>9s} {'filter-steps/s':>15s} {'stages':>6s} "
+          f"{'host':>6s} {'upload':>6s} {'device':>6s}")
     modes = {"auto": None, "on": True, "off": False}
     for device in args.device:
         for m_side in args.m_side:
@@ -149,12 +164,14 @@ def main(argv=None) -> int:
                                       f"{r['M']:>5d} {r['predict_ms']:11.3f} {r['update_ms']:10.3f} "
                                       f"{r['step_ms']:9.3f} {r['throughput_step_ms']:9.3f} "
                                       f"{r['filter_steps_per_s']:15.0f} "
-                                      f"{r['tempering_stages_mean']:6.2f}")
+                                      f"{r['tempering_stages_mean']:6.2f} {r['host_ms']:6.3f} "
+                                      f"{r['upload_ms']:6.3f} {r['device_ms']:6.3f}")
     if args.json_out:
         meta = run_meta(args.device, terrain=terrain.name,
                         what="median ms per IMU predict call, per measurement update, and per whole interval "
                              "(imu_per_meas predicts + one update) of B filters x N particles; filter_steps_per_s = "
-                             "B / step time")
+                             "B / step time; host_ms / upload_ms / device_ms: median breakdown of an interval from "
+                             "the filter's StepTimer (warptan.mpf)")
         write_json(args.json_out, {"meta": meta, "results": rows})
         print(f"wrote {args.json_out}")
     return 0

@@ -102,6 +102,7 @@ skipped — no information, so it cannot drag the estimate towards the map — a
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass
 
 import numpy as np
@@ -229,6 +230,40 @@ def _from_blocks(m: np.ndarray) -> np.ndarray:
     """(..., k, k, 3, 3) -> (..., 3k, 3k)."""
     lead, k = m.shape[:-4], m.shape[-4]
     return m.swapaxes(-3, -2).reshape(*lead, 3 * k, 3 * k)
+
+
+class StepTimer:
+    """Where the time of each measurement interval goes, from timers in :class:`MarginalizedParticleFilter` (set
+    ``mpf.timer = StepTimer()``; None, the default, costs nothing). Per update, in ms:
+
+    * ``host``: Python on the host — buffering the interval's IMU samples (:meth:`~MarginalizedParticleFilter.predict`),
+      staging the interval, issuing the launches or the graph (CUDA; on the CPU the launches run as they are issued
+      and count as device);
+    * ``upload``: the model's ``stage`` — validating the measurement, packing it and copying it to the device (a
+      host-to-device copy on CUDA, a copy into the particles' arrays on the CPU); the interval's IMU samples are
+      copied inside the update's graph (device);
+    * ``device``: the update's device work — CUDA: the time between two events around it on the stream (the IMU
+      copies, INS and Riccati, moves, model, weights, resampling, record); CPU: the wall time of its launches.
+
+    Device times on CUDA are read from their events when :meth:`times` is called (one synchronisation)."""
+
+    def __init__(self):
+        self.host_s: list[float] = []
+        self.upload_s: list[float] = []
+        self._device: list = []
+        self._predict_s = 0.0
+
+    def _add(self, host_s: float, upload_s: float, device) -> None:
+        self.host_s.append(host_s + self._predict_s)
+        self.upload_s.append(upload_s)
+        self._device.append(device)
+        self._predict_s = 0.0
+
+    def times(self) -> dict[str, np.ndarray]:
+        """``{"host": ..., "upload": ..., "device": ...}``, one value in ms per timed update."""
+        device = [1e3 * d if isinstance(d, float) else wp.get_event_elapsed_time(*d) for d in self._device]
+        return {"host": 1e3 * np.asarray(self.host_s), "upload": 1e3 * np.asarray(self.upload_s),
+                "device": np.asarray(device, dtype=np.float64)}
 
 
 class MarginalizedParticleFilter:
@@ -368,6 +403,8 @@ class MarginalizedParticleFilter:
         """Eager CPU updates replay their fixed pieces from recorded launches (:class:`warptan.parallel.Recorder`);
         None launches every kernel anew (CUDA eager, or set to None to compare)."""
         self.bad_imu = bad_imu
+        self.timer: StepTimer | None = None
+        """A :class:`StepTimer` to record where each update's time goes, or None."""
         self.n_imu_held = np.zeros(b, dtype=np.int64)
         """Per filter: IMU samples replaced by the last good one (``bad_imu="hold"``)."""
         self._last_imu = np.full((b, 2, 3), np.nan)
@@ -456,6 +493,7 @@ class MarginalizedParticleFilter:
         host; the nominal INS, the Riccati recursion and the particle moves of all samples since the last
         measurement run in one launch each. A sample that is not finite or beyond the grade's range is refused or
         held (``bad_imu``)."""
+        t_enter = time.perf_counter()
         b = self.n_filters
         try:
             f = np.asarray(f_b, dtype=np.float64)
@@ -491,6 +529,8 @@ class MarginalizedParticleFilter:
         imu[:, self._k, 1] = w
         self._k += 1
         self.n_imu_steps += 1
+        if self.timer is not None:
+            self.timer._predict_s += time.perf_counter() - t_enter
 
     def _stage_interval(self) -> None:
         """Host part of an interval (O(B)): the sample count and the interval's seeds next to the buffered samples."""
@@ -716,15 +756,35 @@ class MarginalizedParticleFilter:
             :class:`UpdateInfo` (a list of B for a batch); with ``sync=False`` nothing (no host sync: the
             records are read later with :meth:`history`).
         """
+        t_enter = time.perf_counter()
         if self.batched and not (isinstance(measurement, (list, tuple)) and len(measurement) == self.n_filters):
             raise FilterError(f"a batch of {self.n_filters} filters needs a list of {self.n_filters} measurements")
         out = self.model.stage(measurement, self._pos, self._quat)  # validates first: a bad one loses nothing
+        t_staged = time.perf_counter()
         if hasattr(self.model, "bind_attitude_cov"):
             self.model.bind_attitude_cov(self._dev["att_cov"])
         self._ensure_history()
         self._stage_interval()
         self.last_n_received = np.array(out.n_received)
         self.n_updates += 1
+        timer, events = self.timer, None
+        if timer is not None and self.device.is_cuda:
+            events = (wp.Event(self.device, enable_timing=True), wp.Event(self.device, enable_timing=True))
+            wp.get_stream(self.device).record_event(events[0])
+        t_queue = time.perf_counter()
+        self._queue_update(out)
+        t_queued = time.perf_counter()
+        if timer is not None:
+            if events is not None:  # CUDA: issuing is host work, the device time is between the events
+                wp.get_stream(self.device).record_event(events[1])
+                timer._add(t_queued - t_staged, t_staged - t_enter, events)
+            else:  # CPU: the launches ran as they were issued
+                timer._add(t_queue - t_staged, t_staged - t_enter, t_queued - t_queue)
+        self._next_set()
+        return self._info(out) if sync else None
+
+    def _queue_update(self, out) -> None:
+        """The device work of an update: eager launches (the CPU replaying its recorded pieces) or the graph."""
         if self._recorder is not None:
             key = self._record_key()
             if key != self._graph_key:  # re-record when an array the recorded launches hold was replaced
@@ -732,26 +792,23 @@ class MarginalizedParticleFilter:
                 self._graph_key = key
         if not self.graph:
             self._device_update(out, read_flags=self.device.is_cpu)
-            self._next_set()
-            return self._info(out) if sync else None
+            return
         key = self._record_key()
         if self._graph_key is None:  # the first update runs eagerly: modules load, buffers settle
             self._graph_key = ()
             self._device_update(out)
-        else:
-            if key != self._graph_key:  # (re)capture when a buffer the graphs hold was replaced
-                self._graphs.clear()
-                self._graph_key = key
-            graph = self._graphs.get(self._set)  # one graph per staging set (its copies read that set)
-            if graph is None:
-                wp.capture_begin(device=self.device)
-                try:
-                    self._device_update(out)
-                finally:
-                    graph = self._graphs[self._set] = wp.capture_end(device=self.device)
-            wp.capture_launch(graph)
-        self._next_set()
-        return self._info(out) if sync else None
+            return
+        if key != self._graph_key:  # (re)capture when a buffer the graphs hold was replaced
+            self._graphs.clear()
+            self._graph_key = key
+        graph = self._graphs.get(self._set)  # one graph per staging set (its copies read that set)
+        if graph is None:
+            wp.capture_begin(device=self.device)
+            try:
+                self._device_update(out)
+            finally:
+                graph = self._graphs[self._set] = wp.capture_end(device=self.device)
+        wp.capture_launch(graph)
 
     def _record_key(self) -> tuple:
         """The generation of everything the recorded launches (graphs or CPU recordings) hold: the filter's own
