@@ -4,8 +4,9 @@ measurement update, resampling included when the filter decides to) for B filter
 device and launch mode (eager launches or a replayed graph).
 
 Reported per configuration (medians over ``--repeats`` intervals after ``--warmup`` intervals, synchronised
-before the clock stops): ``predict_ms`` (one ``predict`` call: the host buffers the sample), ``update_ms``
-(host INS + Riccati for the interval, particle moves, poses, model, weights, resampling, record),
+before the clock stops): ``predict_ms`` (per IMU sample: the interval's samples are buffered by one
+``predict_many`` call), ``update_ms``
+(the interval's INS + Riccati, particle moves, poses, model, weights, resampling, record),
 ``step_ms`` (the whole interval, synchronised: the latency), ``filter_steps_per_s`` (B / step time),
 ``throughput_step_ms`` (the same intervals run back to back with one synchronisation at the end: the host stages
 interval k + 1 while the device runs interval k) and ``estimate_ms`` (moments → host, not part of a step). The
@@ -83,9 +84,8 @@ def bench(terrain, model_name, n, m_side, device, repeats, warmup, imu_per_meas=
     for it in range(intervals):  # latency: each interval synchronised before the clock stops
         wp.synchronize_device(device)
         t0 = time.perf_counter()
-        for _ in range(imu_per_meas):
-            mpf.predict(f[k], w[k])
-            k += 1
+        mpf.predict_many(f[k:k + imu_per_meas], w[k:k + imu_per_meas])
+        k += imu_per_meas
         t1 = time.perf_counter()
         mpf.update(measurements[it], sync=False)
         wp.synchronize_device(device)
@@ -102,18 +102,16 @@ def bench(terrain, model_name, n, m_side, device, repeats, warmup, imu_per_meas=
     wp.synchronize_device(device)
     t0 = time.perf_counter()
     for it in range(intervals, 2 * intervals):
-        for _ in range(imu_per_meas):
-            mpf.predict(f[k], w[k])
-            k += 1
+        mpf.predict_many(f[k:k + imu_per_meas], w[k:k + imu_per_meas])
+        k += imu_per_meas
         mpf.update(measurements[it], sync=False)
     wp.synchronize_device(device)
     throughput_ms = 1e3 * (time.perf_counter() - t0) / intervals
     # breakdown: the filter's timers, each interval synchronised (CUDA event times are read at the end)
     mpf.timer = StepTimer()
     for it in range(2 * intervals, 3 * intervals):
-        for _ in range(imu_per_meas):
-            mpf.predict(f[k], w[k])
-            k += 1
+        mpf.predict_many(f[k:k + imu_per_meas], w[k:k + imu_per_meas])
+        k += imu_per_meas
         mpf.update(measurements[it], sync=False)
         wp.synchronize_device(device)
     parts = {name: float(np.median(v[warmup:])) for name, v in mpf.timer.times().items()}

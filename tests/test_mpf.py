@@ -5,6 +5,7 @@ import pytest
 import warp as wp
 
 import warptan as wt
+from warptan.checks import FilterError
 from warptan.frames import quat_conj, quat_exp, quat_log, quat_mul
 from warptan.imu import ImuModel
 from warptan.ins import Ins, error_transition, process_noise
@@ -765,6 +766,38 @@ def test_imu_buffer_flushes_itself_every_64_samples(rugged):
     np.testing.assert_allclose(nav.vel_n, ins.state.vel_n, atol=1e-9)
     np.testing.assert_allclose(nav.quat_nb, ins.state.quat_nb, atol=1e-12)
     np.testing.assert_allclose(nav.pos_n, truth.pos_n[150], atol=1e-3)
+
+
+def test_predict_many_equals_one_predict_per_sample(rugged):
+    """An interval's IMU samples in one ``predict_many`` call (a block crossing the 64-sample buffer, a batch of
+    two filters, a block holding a bad sample) leave the same bits as one ``predict`` per sample: nominal, P,
+    particles and update records."""
+    truth = Trajectory.build([Straight(0.5), Turn(30.0, 20.0)], 100.0, [-3000.0, 0.0, -(rugged.h_max + 600.0)])
+    sensor = wt.PointCloudSensor(wt.ScanPattern.grid(4, 4, 30.0), range_sigma_m=0.5)
+    f = np.repeat(truth.f_b[:, None], 2, axis=1)
+    w = np.repeat(truth.w_b[:, None], 2, axis=1)
+    f[95, 1, 0] = np.nan  # held in both runs
+    runs = []
+    for many in (False, True):
+        mpf = MarginalizedParticleFilter(wt.SlidingModel(rugged), [truth.state(0)] * 2, "navigation", 100.0,
+                                         [5.0, 5.0, 2.0], np.eye(12) * 1e-6, n_particles=32, device="cpu",
+                                         seed=[1, 2], bad_imu="hold")
+        rng = np.random.default_rng(0)
+        for a, b in ((0, 70), (70, 80), (80, 100), (100, 110)):
+            if many:
+                mpf.predict_many(f[a:b], w[a:b])
+            else:
+                for k in range(a, b):
+                    mpf.predict(f[k], w[k])
+            mpf.update(sensor.measure_many(rugged, truth.pos_n[b], truth.quat_nb[b], [rng, rng]))
+        st = mpf.state
+        runs.append([mpf.history(), mpf.nominal_history(), mpf.P, st.dp.numpy(), st.lin.numpy(), st.logw.numpy(),
+                     mpf.n_imu_held.copy(), mpf.n_imu_steps])
+    for a, b in zip(*runs, strict=True):
+        np.testing.assert_array_equal(a, b)
+    assert runs[1][6].tolist() == [0, 1]
+    with pytest.raises(FilterError, match=r"\(K, 2, 3\)"):
+        mpf.predict_many(truth.f_b[:3], truth.w_b[:3])
 
 
 def test_device_cdf_matches_numpy_cumsum(device):

@@ -333,12 +333,11 @@ class _PointCloudModel(MeasurementModel):
         if host is None or host.shape != (b, m, klik.CLOUD_ROW_LEN):
             host = self._host["cloud"] = np.empty((b, m, klik.CLOUD_ROW_LEN), dtype=np.float32)
         p, d = klik.CR_POINT, klik.CR_DIR
-        for k, cloud in enumerate(items):
-            ok = cloud.valid
-            host[k, :, p:p + 3] = np.where(ok[:, None], cloud.points_s, 0.0)
-            host[k, :, d:d + 3] = cloud.dirs_s
-            host[k, :, klik.CR_RANGE] = np.where(ok, cloud.ranges_m, np.nan)
-            host[k, :, klik.CR_VALID] = ok
+        ok = np.stack([cloud.valid for cloud in items])  # the batch at once: a loop per cloud cost 2 ms at B = 100
+        host[:, :, p:p + 3] = np.where(ok[:, :, None], np.stack([cloud.points_s for cloud in items]), 0.0)
+        host[:, :, d:d + 3] = np.stack([cloud.dirs_s for cloud in items])
+        host[:, :, klik.CR_RANGE] = np.where(ok, np.stack([cloud.ranges_m for cloud in items]), np.nan)
+        host[:, :, klik.CR_VALID] = ok
         self._staged.assign(host)
         return host[:, :, klik.CR_VALID].sum(axis=1).astype(np.int64)
 

@@ -532,6 +532,45 @@ class MarginalizedParticleFilter:
         if self.timer is not None:
             self.timer._predict_s += time.perf_counter() - t_enter
 
+    def predict_many(self, f_b, w_b) -> None:
+        """K IMU samples at once, (K, 3) each or (K, B, 3) for a batch: the same as K calls of :meth:`predict` (same
+        buffering, flushes and results), with the checks done on the whole block — the host cost of an interval is
+        then one call instead of K (20 µs each). A block with a sample that is not finite or beyond the grade's range
+        is fed sample by sample (:meth:`predict`'s ``bad_imu`` handling and message)."""
+        t_enter = time.perf_counter()
+        b = self.n_filters
+        try:
+            f = np.asarray(f_b, dtype=np.float64)
+            w = np.asarray(w_b, dtype=np.float64)
+        except (TypeError, ValueError):
+            raise FilterError("IMU samples must be arrays of numbers") from None
+        shape = (f.shape[0], 3) if b == 1 and f.ndim == 2 else (f.shape[0] if f.ndim else 0, b, 3)
+        if f.ndim not in (2, 3) or f.shape != shape or w.shape != shape or (b > 1 and f.ndim != 3):
+            want = "(K, 3)" if b == 1 else f"(K, {b}, 3)"
+            raise FilterError(f"IMU samples must be {want} arrays, got {f.shape} and {w.shape}")
+        f, w = f.reshape(-1, b, 3), w.reshape(-1, b, 3)
+        with np.errstate(invalid="ignore"):
+            good = (np.abs(f) <= self.grade.accel_range).all() and (np.abs(w) <= self.grade.gyro_range).all()
+        if not good:  # sample by sample: the policy and the message name the sample
+            for k in range(f.shape[0]):
+                self.predict(f[k] if self.batched else f[k, 0], w[k] if self.batched else w[k, 0])
+            return
+        k0, n = 0, f.shape[0]
+        while k0 < n:
+            if self._k == MAX_STEPS_PER_INTERVAL:
+                self.flush()
+            take = min(n - k0, MAX_STEPS_PER_INTERVAL - self._k)
+            imu = self._imu_np[self._set]
+            imu[:, self._k:self._k + take, 0] = f[k0:k0 + take].swapaxes(0, 1)
+            imu[:, self._k:self._k + take, 1] = w[k0:k0 + take].swapaxes(0, 1)
+            self._k += take
+            self.n_imu_steps += take
+            k0 += take
+        if n:
+            self._last_imu[:, 0], self._last_imu[:, 1] = f[-1], w[-1]
+        if self.timer is not None:
+            self.timer._predict_s += time.perf_counter() - t_enter
+
     def _stage_interval(self) -> None:
         """Host part of an interval (O(B)): the sample count and the interval's seeds next to the buffered samples."""
         ints = self._ints_np[self._set]

@@ -191,9 +191,9 @@ def run_filter(truth: Trajectory, terrain_map, model, imu: ImuModel | Sequence[I
     k = 0
     for epoch in epochs[1:]:
         t0 = time.perf_counter()
-        while k < epoch:
-            mpf.predict(f_meas[k] if batched else f_meas[k, 0], w_meas[k] if batched else w_meas[k, 0])
-            k += 1
+        mpf.predict_many(f_meas[k:epoch] if batched else f_meas[k:epoch, 0],
+                         w_meas[k:epoch] if batched else w_meas[k:epoch, 0])
+        k = epoch
         predict_time += time.perf_counter() - t0
         p_true, q_true = truth.pos_n[k], truth.quat_nb[k]
         if altimeter:
