@@ -800,6 +800,27 @@ def test_predict_many_equals_one_predict_per_sample(rugged):
         mpf.predict_many(truth.f_b[:3], truth.w_b[:3])
 
 
+def test_step_timer_records_each_update(device, rugged):
+    """``mpf.timer = StepTimer()``: one host / upload / device time per update, finite and ≥ 0, the IMU buffering
+    counted as host; timing changes no result (same records as an untimed run)."""
+    from warptan.mpf import StepTimer
+
+    hist = []
+    for timed in (False, True):
+        model = wt.SlidingModel(rugged, Likelihood("gaussian", sigma_m=1.0))
+        truth, mpf = _manual_filter(rugged, model, device=device)
+        if timed:
+            mpf.timer = StepTimer()
+        _drive(truth, mpf, rugged, 4)
+        hist.append(mpf.history())
+    times = mpf.timer.times()
+    assert set(times) == {"host", "upload", "device"}
+    for v in times.values():
+        assert v.shape == (4,) and np.isfinite(v).all() and (v >= 0).all()
+    assert (times["device"] > 0).all() and (times["host"] > 0).all()
+    np.testing.assert_array_equal(hist[0], hist[1])
+
+
 def test_device_cdf_matches_numpy_cumsum(device):
     """The resampling CDF built on the device from log-weights (chunked float64 sums) equals np.cumsum of the
     weights, and is non-decreasing."""
