@@ -168,9 +168,7 @@ def point_terms(p: LikParams, res: float, sigma: float, jac: wp.vec3, jac_pos: w
     model propagates the sensor's noise per point, which adds ``-log(sigma / p.sigma)``) adds to the running sums,
     with ``jac`` the prediction's Jacobian w.r.t. dθ (m/rad) and ``jac_pos`` w.r.t. the position (dimensionless):
     (``min(z², k_out²)``, point log-density, its ``log(sigma / p.sigma)`` (0 when ``sigma == p.sigma``), ``Hᵀ H /
-    σ²``, ``Hᵀ r / σ²``, ``G Gᵀ / σ²``, ``H Gᵀ / σ²``, ``Gᵀ r / σ²``; zeros for the paper's form). Kernels add them
-    to locals (a running :class:`Acc` struct in a loop costs a copy of it per point on the CPU: 30 % of the sliding
-    kernel)."""
+    σ²``, ``Hᵀ r / σ²``, ``G Gᵀ / σ²``, ``H Gᵀ / σ²``, ``Gᵀ r / σ²``; zeros for the paper's form)."""
     z = res / sigma
     z2c = wp.min(z * z, p.k_out * p.k_out)
     ll = point_loglik(p.lik, res, sigma, p.nu)
@@ -212,26 +210,6 @@ def acc_add(acc: Acc, p: LikParams, res: float, sigma: float, axis_w: wp.vec3, j
     a.lam_pp = a.lam_pp + lam_pp
     a.lam_tp = a.lam_tp + lam_tp
     a.info_p = a.info_p + info_p
-    return a
-
-
-@wp.func
-def acc_of(n_recv: int, n_ok: int, sum_abs: float, sum_axes: wp.vec3, last: float, ll_points: float, sum_sq: float,
-           lam: wp.mat33, info: wp.vec3, lam_pp: wp.mat33, lam_tp: wp.mat33, info_p: wp.vec3) -> Acc:
-    """An :class:`Acc` from sums a kernel kept in locals."""
-    a = Acc()
-    a.n_recv = n_recv
-    a.n_ok = n_ok
-    a.sum_abs = sum_abs
-    a.sum_axes = sum_axes
-    a.last = last
-    a.ll_points = ll_points
-    a.sum_sq = sum_sq
-    a.lam = lam
-    a.info = info
-    a.lam_pp = lam_pp
-    a.lam_tp = lam_tp
-    a.info_p = info_p
     return a
 
 
@@ -448,40 +426,15 @@ def _reduce_loglik(tiled: bool):
             stride = 1
         b = (row0 + t) // n_per
         mat = quat_to_mat_wxyz(quat_nb[t])
-        n_recv = int(0)
-        n_ok = int(0)
-        sum_abs = float(0.0)
-        sum_axes = wp.vec3()
-        last = float(0.0)
-        ll_points = float(0.0)
-        sum_sq = float(0.0)
-        lam = wp.mat33()
-        info = wp.vec3()
-        lam_pp = wp.mat33()
-        lam_tp = wp.mat33()
-        info_p = wp.vec3()
-        for j in range(lane, residual.shape[1], stride):  # the sums of acc_add, kept in locals
+        acc = acc_init()
+        for j in range(lane, residual.shape[1], stride):
             row = cloud[b, j]
             res = residual[t, j]
             if row[CR_VALID] != 0.0:
-                n_recv += 1
+                acc.n_recv = acc.n_recv + 1
                 if not wp.isnan(res):
                     jac, jac_pos = ray_jacobians(mat, row, res, normal[t, j])
-                    z2c, ll, log_ratio, d_lam, d_info, d_lam_pp, d_lam_tp, d_info_p = point_terms(
-                        params, res, params.sigma, jac, jac_pos)
-                    r = wp.abs(res)
-                    n_ok += 1
-                    sum_abs = sum_abs + r
-                    sum_axes = sum_axes + r * axis_weights(row)
-                    last = res
-                    sum_sq = sum_sq + z2c
-                    ll_points = (ll_points + ll) - log_ratio
-                    lam = lam + d_lam
-                    info = info + d_info
-                    lam_pp = lam_pp + d_lam_pp
-                    lam_tp = lam_tp + d_lam_tp
-                    info_p = info_p + d_info_p
-        acc = acc_of(n_recv, n_ok, sum_abs, sum_axes, last, ll_points, sum_sq, lam, info, lam_pp, lam_tp, info_p)
+                    acc = acc_add(acc, params, res, params.sigma, axis_weights(row), jac, jac_pos)
         if wp.static(tiled):
             acc = acc_block_sum(acc)
         if lane == 0:

@@ -23,11 +23,9 @@ from warptan.kernels.likelihood import (
     acc_block_sum,
     acc_finish,
     acc_init,
-    acc_of,
     acc_store,
     cloud_row,
     per_particle_kernels,
-    point_terms,
     row_dir,
     row_point,
 )
@@ -92,22 +90,13 @@ def _sliding_loglik(tiled: bool):
         b = (row0 + t) // n_per
         mat = quat_to_mat_wxyz(quat_nb[t])
         p = pos_n[t]
-        n_recv = int(0)
-        n_ok = int(0)
-        sum_abs = float(0.0)
-        last = float(0.0)
-        ll_points = float(0.0)
-        sum_sq = float(0.0)
-        lam = wp.mat33()
-        info = wp.vec3()
-        lam_pp = wp.mat33()
-        lam_tp = wp.mat33()
-        info_p = wp.vec3()
-        for j in range(lane, cloud.shape[1], stride):  # the sums of acc_add, kept in locals (no per-axis error)
+        ones = wp.vec3(1.0, 1.0, 1.0)
+        acc = acc_init()
+        for j in range(lane, cloud.shape[1], stride):
             row = cloud[b, j]
             res = float(wp.nan)
             if row[CR_VALID] != 0.0:
-                n_recv += 1
+                acc.n_recv = acc.n_recv + 1
                 c = row_point(row)
                 w = p + mat * c
                 h, grad = grid_height_gradient(grid, surface, w[0], w[1])
@@ -116,21 +105,9 @@ def _sliding_loglik(tiled: bool):
                 if not wp.isnan(res):
                     nabla = wp.vec3(grad[0], grad[1], 1.0)
                     sigma = sliding_sigma(params, mat[2, 2], wp.dot(nabla, mat * row_dir(row)))
-                    z2c, ll, log_ratio, d_lam, d_info, d_lam_pp, d_lam_tp, d_info_p = point_terms(
-                        params, res, sigma, sliding_jacobian(mat, c, c_hat, grad),
-                        nabla * (-mat[2, 2]))  # ∂ĉ_z/∂p = -g_z ∇F
-                    n_ok += 1
-                    sum_abs = sum_abs + wp.abs(res)
-                    last = res
-                    sum_sq = sum_sq + z2c
-                    ll_points = (ll_points + ll) - log_ratio
-                    lam = lam + d_lam
-                    info = info + d_info
-                    lam_pp = lam_pp + d_lam_pp
-                    lam_tp = lam_tp + d_lam_tp
-                    info_p = info_p + d_info_p
+                    acc = acc_add(acc, params, res, sigma, ones, sliding_jacobian(mat, c, c_hat, grad),
+                                  nabla * (-mat[2, 2]))  # ∂ĉ_z/∂p = -g_z ∇F
             residual_out[t, j] = res
-        acc = acc_of(n_recv, n_ok, sum_abs, wp.vec3(), last, ll_points, sum_sq, lam, info, lam_pp, lam_tp, info_p)
         if wp.static(tiled):
             acc = acc_block_sum(acc)
         if lane == 0:

@@ -502,41 +502,12 @@ class MarginalizedParticleFilter:
             raise FilterError(f"IMU sample must be numbers, got {f_b!r} and {w_b!r}") from None
         if f.size != 3 * b or w.size != 3 * b:
             raise FilterError(f"IMU sample must be {'(3,)' if b == 1 else f'({b}, 3)'}, got {f.shape} and {w.shape}")
-        f, w = f.reshape(b, 3), w.reshape(b, 3)
-        with np.errstate(invalid="ignore"):
-            bad = ~((np.abs(f) <= self.grade.accel_range).all(axis=1)
-                    & (np.abs(w) <= self.grade.gyro_range).all(axis=1))
-        if bad.any():
-            k = int(np.argmax(bad))
-            held = self.bad_imu == "hold" and np.isfinite(self._last_imu[bad]).all()
-            if not held:
-                where = f" (filter {k})" if b > 1 else ""
-                what = "implausible" if np.isfinite(f[k]).all() and np.isfinite(w[k]).all() else "non-finite"
-                raise FilterError(
-                    f"{what} IMU sample {self.n_imu_steps}{where}: specific force {f[k].tolist()} m/s², body "
-                    f"rate {w[k].tolist()} rad/s (grade {self.grade.name}: |f| ≤ {self.grade.accel_range:g} m/s², "
-                    f"|ω| ≤ {self.grade.gyro_range:g} rad/s per axis, finite)"
-                    + ("" if self.bad_imu == "hold" else
-                       "; bad_imu='hold' integrates such samples as the last good one"))
-            f, w = f.copy(), w.copy()
-            f[bad], w[bad] = self._last_imu[bad, 0], self._last_imu[bad, 1]
-            self.n_imu_held += bad
-        self._last_imu[:, 0], self._last_imu[:, 1] = f, w
-        if self._k == MAX_STEPS_PER_INTERVAL:
-            self.flush()
-        imu = self._imu_np[self._set]
-        imu[:, self._k, 0] = f
-        imu[:, self._k, 1] = w
-        self._k += 1
-        self.n_imu_steps += 1
-        if self.timer is not None:
-            self.timer._predict_s += time.perf_counter() - t_enter
+        self._buffer(f.reshape(1, b, 3), w.reshape(1, b, 3), t_enter)
 
     def predict_many(self, f_b, w_b) -> None:
         """K IMU samples at once, (K, 3) each or (K, B, 3) for a batch: the same as K calls of :meth:`predict` (same
-        buffering, flushes and results), with the checks done on the whole block — the host cost of an interval is
-        then one call instead of K (20 µs each). A block with a sample that is not finite or beyond the grade's range
-        is fed sample by sample (:meth:`predict`'s ``bad_imu`` handling and message)."""
+        buffering, flushes, ``bad_imu`` handling and results), with the checks done on the whole block — the host
+        cost of an interval is then one call instead of K (20 µs each)."""
         t_enter = time.perf_counter()
         b = self.n_filters
         try:
@@ -548,13 +519,20 @@ class MarginalizedParticleFilter:
         if f.ndim not in (2, 3) or f.shape != shape or w.shape != shape or (b > 1 and f.ndim != 3):
             want = "(K, 3)" if b == 1 else f"(K, {b}, 3)"
             raise FilterError(f"IMU samples must be {want} arrays, got {f.shape} and {w.shape}")
-        f, w = f.reshape(-1, b, 3), w.reshape(-1, b, 3)
+        self._buffer(f.reshape(-1, b, 3), w.reshape(-1, b, 3), t_enter)
+
+    def _buffer(self, f: np.ndarray, w: np.ndarray, t_enter: float) -> None:
+        """Buffer (K, B, 3) samples: checked as one block; a block with a sample that is not finite or beyond the
+        grade's range is refused or held sample by sample (``bad_imu``); the buffer flushes itself when full."""
         with np.errstate(invalid="ignore"):
-            good = (np.abs(f) <= self.grade.accel_range).all() and (np.abs(w) <= self.grade.gyro_range).all()
-        if not good:  # sample by sample: the policy and the message name the sample
+            bad = ~((np.abs(f) <= self.grade.accel_range).all(axis=2)
+                    & (np.abs(w) <= self.grade.gyro_range).all(axis=2))
+        if bad.any():
+            f, w = f.copy(), w.copy()
             for k in range(f.shape[0]):
-                self.predict(f[k] if self.batched else f[k, 0], w[k] if self.batched else w[k, 0])
-            return
+                if bad[k].any():
+                    self._hold(f[k], w[k], bad[k], self.n_imu_steps + k)
+                self._last_imu[:, 0], self._last_imu[:, 1] = f[k], w[k]
         k0, n = 0, f.shape[0]
         while k0 < n:
             if self._k == MAX_STEPS_PER_INTERVAL:
@@ -570,6 +548,23 @@ class MarginalizedParticleFilter:
             self._last_imu[:, 0], self._last_imu[:, 1] = f[-1], w[-1]
         if self.timer is not None:
             self.timer._predict_s += time.perf_counter() - t_enter
+
+    def _hold(self, f: np.ndarray, w: np.ndarray, bad: np.ndarray, sample: int) -> None:
+        """Sample ``sample`` (B, 3), bad in the filters ``bad``: replaced in place by the last good one (``bad_imu =
+        "hold"``), else a FilterError naming it."""
+        b = self.n_filters
+        k = int(np.argmax(bad))
+        if not (self.bad_imu == "hold" and np.isfinite(self._last_imu[bad]).all()):
+            where = f" (filter {k})" if b > 1 else ""
+            what = "implausible" if np.isfinite(f[k]).all() and np.isfinite(w[k]).all() else "non-finite"
+            raise FilterError(
+                f"{what} IMU sample {sample}{where}: specific force {f[k].tolist()} m/s², body "
+                f"rate {w[k].tolist()} rad/s (grade {self.grade.name}: |f| ≤ {self.grade.accel_range:g} m/s², "
+                f"|ω| ≤ {self.grade.gyro_range:g} rad/s per axis, finite)"
+                + ("" if self.bad_imu == "hold" else
+                   "; bad_imu='hold' integrates such samples as the last good one"))
+        f[bad], w[bad] = self._last_imu[bad, 0], self._last_imu[bad, 1]
+        self.n_imu_held += bad
 
     def _stage_interval(self) -> None:
         """Host part of an interval (O(B)): the sample count and the interval's seeds next to the buffered samples."""
