@@ -232,6 +232,14 @@ def _from_blocks(m: np.ndarray) -> np.ndarray:
     return m.swapaxes(-3, -2).reshape(*lead, 3 * k, 3 * k)
 
 
+def _imu_arrays(f_b, w_b) -> tuple[np.ndarray, np.ndarray]:
+    """IMU specific force and body rate as float64 arrays, or a FilterError."""
+    try:
+        return np.asarray(f_b, dtype=np.float64), np.asarray(w_b, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise FilterError(f"IMU samples must be numbers, got {f_b!r} and {w_b!r}") from None
+
+
 class StepTimer:
     """Where the time of each measurement interval goes, from timers in :class:`MarginalizedParticleFilter` (set
     ``mpf.timer = StepTimer()``; None, the default, costs nothing). Per update, in ms:
@@ -495,11 +503,7 @@ class MarginalizedParticleFilter:
         held (``bad_imu``)."""
         t_enter = time.perf_counter()
         b = self.n_filters
-        try:
-            f = np.asarray(f_b, dtype=np.float64)
-            w = np.asarray(w_b, dtype=np.float64)
-        except (TypeError, ValueError):
-            raise FilterError(f"IMU sample must be numbers, got {f_b!r} and {w_b!r}") from None
+        f, w = _imu_arrays(f_b, w_b)
         if f.size != 3 * b or w.size != 3 * b:
             raise FilterError(f"IMU sample must be {'(3,)' if b == 1 else f'({b}, 3)'}, got {f.shape} and {w.shape}")
         self._buffer(f.reshape(1, b, 3), w.reshape(1, b, 3), t_enter)
@@ -510,11 +514,7 @@ class MarginalizedParticleFilter:
         cost of an interval is then one call instead of K (20 µs each)."""
         t_enter = time.perf_counter()
         b = self.n_filters
-        try:
-            f = np.asarray(f_b, dtype=np.float64)
-            w = np.asarray(w_b, dtype=np.float64)
-        except (TypeError, ValueError):
-            raise FilterError("IMU samples must be arrays of numbers") from None
+        f, w = _imu_arrays(f_b, w_b)
         shape = (f.shape[0], 3) if b == 1 and f.ndim == 2 else (f.shape[0] if f.ndim else 0, b, 3)
         if f.ndim not in (2, 3) or f.shape != shape or w.shape != shape or (b > 1 and f.ndim != 3):
             want = "(K, 3)" if b == 1 else f"(K, {b}, 3)"
