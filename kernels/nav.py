@@ -1,7 +1,8 @@
 """The nominal INS and the shared Kalman covariance of B filters, one measurement interval per launch (SPEC §3, §6).
 
 Runs on the host (the CPU device, float64): one thread per filter b steps through the K IMU samples of the
-interval. Per sample, from the nominal state *before* the step:
+interval. Per sample, from the nominal state *before* the step (its own step ``dt_k``, ``imu[b, k, 2][0]``: a
+recorded flight's samples need not be evenly spaced; the noise per step scales as ``dt_k / dt``):
 
 * the error transition blocks (3×3 blocks, order ``[dp, dv, dth, dba, dbg]``; see :mod:`warptan.ins`)::
 
@@ -123,7 +124,7 @@ def block_of(k: int, m0: wp.mat33d, m1: wp.mat33d, m2: wp.mat33d, m3: wp.mat33d,
 def nav_interval_kernel(
     row0: int,
     counts: wp.array2d(dtype=wp.int32),
-    dt: wp.float64,
+    nominal_dt: wp.float64,
     q_pos: wp.float64,
     q_rough: wp.float64,
     q_lin: wp.vec4d,
@@ -144,7 +145,8 @@ def nav_interval_kernel(
     p_col_out: wp.array2d(dtype=wp.mat33),
 ):
     """Thread b: K = ``counts[b, INT_STEPS]`` IMU samples (specific force ``imu[b, k, 0]``, body rate
-    ``imu[b, k, 1]``) of filter ``b = row0 + t``: advances its nominal state and ``cov`` (P, 4×4 blocks) in place;
+    ``imu[b, k, 1]``, step length ``imu[b, k, 2][0]`` in s; ``nominal_dt`` is the step the noise terms are given
+    for) of filter ``b = row0 + t``: advances its nominal state and ``cov`` (P, 4×4 blocks) in place;
     writes Φ and the lower Cholesky factor of S (5×5 blocks, float32), the nominal pose ``[p (3), q (4)]`` at the end
     of the interval, and what the update's kernels read of P: ``P_θθ`` (``att_cov_out``) and the column blocks ``P_:θ``
     (``p_col_out``).
@@ -168,9 +170,13 @@ def nav_interval_kernel(
     ba = accel_bias[b]
     bg = gyro_bias[b]
     n_steps = counts[b, INT_STEPS]
+    steps = wp.float64(0.0)  # Σ dt_k / dt: the interval in nominal steps (n_steps when evenly spaced)
     for k in range(n_steps):
         f = imu[b, k, 0]
         w = imu[b, k, 1]
+        dt = imu[b, k, 2][0]
+        scale = dt / nominal_dt  # exactly 1 for a nominal step: the same bits as a fixed step
+        steps = steps + scale
         rot = rot_d(q)
         acc = f - ba
         wdt = (w - bg) * dt
@@ -195,7 +201,7 @@ def nav_interval_kernel(
         pa1 = dt * cov[b, 1, 0] + half * dt * (cov[b, 1, 1] * wp.transpose(a) + cov[b, 1, 2] * wp.transpose(bm))
         pa2 = dt * cov[b, 2, 0] + half * dt * (cov[b, 2, 1] * wp.transpose(a) + cov[b, 2, 2] * wp.transpose(bm))
         pa3 = dt * cov[b, 3, 0] + half * dt * (cov[b, 3, 1] * wp.transpose(a) + cov[b, 3, 2] * wp.transpose(bm))
-        nk = sym_d(dt * pa0 + half * dt * (a * pa1 + bm * pa2) + q_pos * eye)
+        nk = sym_d(dt * pa0 + half * dt * (a * pa1 + bm * pa2) + (q_pos * scale) * eye)
         l0, l1 = apply_l(pa0, pa1, pa2, pa3, a, bm, e, jm)
         inv_nk = wp.inverse(nk)
         g0 = l0 * inv_nk
@@ -217,7 +223,7 @@ def nav_interval_kernel(
             gn = block_of(r + 1, eye, g0, g1, g2, g3) * nk
             for c in range(4):
                 cov[b, r, c] = cov[b, r, c] - gn * wp.transpose(block_of(c + 1, eye, g0, g1, g2, g3))
-            cov[b, r, r] = cov[b, r, r] + q_lin[r] * eye
+            cov[b, r, r] = cov[b, r, r] + (q_lin[r] * scale) * eye
         for r in range(4):
             cov[b, r, r] = sym_d(cov[b, r, r])
             for c in range(r + 1, 4):
@@ -254,7 +260,7 @@ def nav_interval_kernel(
     pos[b] = p
     vel[b] = v
     quat[b] = q
-    noise[b, 0, 0] = noise[b, 0, 0] + wp.float64(n_steps) * q_rough * eye
+    noise[b, 0, 0] = noise[b, 0, 0] + steps * q_rough * eye
     # ---- outputs: Φ (float32) and chol(S), scalar Cholesky on a 15×15 scratch (semi-definite safe)
     for r in range(5):
         for c in range(5):

@@ -1,26 +1,30 @@
 """The host navigation kernel (nominal INS + Riccati + interval composition) against the float64 Python path."""
 
 import numpy as np
+import pytest
 import warp as wp
 
 from warptan.imu import ImuModel
-from warptan.ins import Ins, error_transition, process_noise
+from warptan.ins import error_transition, mechanize, process_noise
 from warptan.kernels import nav as knav
 from warptan.runner import InitialErrors, initial_nominal, prior_linear_cov
 from warptan.trajectory import Straight, Trajectory, Turn
 
 
-def _python_interval(nominal, f, w, dt, P, q_n, q_l):
-    """Reference: the MPF Riccati of SPEC §6 step by step, and Φ, S composed from the 15×15 transitions."""
-    ins = Ins(nominal, 1.0 / dt)
+def _python_interval(nominal, f, w, dt, P, q_n, q_l, steps=None):
+    """Reference: the MPF Riccati of SPEC §6 step by step, and Φ, S composed from the 15×15 transitions (``steps``:
+    each sample's own step, the noise scaled by ``step / dt``)."""
+    state = nominal.copy()
+    steps = np.full(len(f), dt) if steps is None else steps
     phi, S = np.eye(15), np.zeros((15, 15))
     for k in range(len(f)):
-        F = error_transition(ins.state, f[k], w[k], dt)
+        h = steps[k]
+        F = error_transition(state, f[k], w[k], h)
         a_n, a_l = F[0:3, 3:15], F[3:15, 3:15]
         pa = P @ a_n.T
-        n_k = a_n @ pa + q_n
+        n_k = a_n @ pa + q_n * (h / dt)
         gain = np.linalg.solve(n_k, (a_l @ pa).T).T
-        P = a_l @ P @ a_l.T + q_l - gain @ n_k @ gain.T
+        P = a_l @ P @ a_l.T + q_l * (h / dt) - gain @ n_k @ gain.T
         P = 0.5 * (P + P.T)
         T = np.eye(15)
         T[0:3, 3:15] = a_n
@@ -28,8 +32,8 @@ def _python_interval(nominal, f, w, dt, P, q_n, q_l):
         G = np.vstack([np.eye(3), gain])
         phi = T @ phi
         S = T @ S @ T.T + G @ n_k @ G.T
-        ins.step(f[k], w[k])
-    return ins.state, P, phi, S
+        state = mechanize(state, f[k], w[k], h)
+    return state, P, phi, S
 
 
 def _blocks(a):
@@ -38,9 +42,11 @@ def _blocks(a):
     return a.transpose(0, 1, 3, 2, 4).reshape(b, a.shape[1] * 3, a.shape[2] * 3)
 
 
-def test_nav_kernel_matches_python(device):
+@pytest.mark.parametrize("uneven", [False, True])
+def test_nav_kernel_matches_python(device, uneven):
     """The interval kernel (nominal INS, Riccati, interval composition; float64 on the filter's device) against
-    the Python INS and a NumPy Riccati, on the CPU and on CUDA."""
+    the Python INS and a NumPy Riccati, on the CPU and on CUDA; evenly spaced samples and samples with their own
+    steps (a recorded flight's jitter, ±40 %)."""
     rate, k_steps = 100.0, 10
     dt = 1.0 / rate
     truth = Trajectory.build([Straight(0.05), Turn(20, bank_deg=30)], rate, [0, 0, -1000.0])
@@ -72,17 +78,21 @@ def test_nav_kernel_matches_python(device):
     att_cov = wp.empty(B, dtype=wp.mat33, device=d)
     p_col = wp.empty((B, 4), dtype=wp.mat33, device=d)
     qd = np.diag(q_l)
+    steps = dt * (1.0 + 0.4 * np.sin(np.arange(2 * k_steps))) if uneven else np.full(2 * k_steps, dt)
+    step_col = np.zeros((B, k_steps, 3))
+    step_col[:, :, 0] = steps.reshape(B, k_steps)
     counts = wp.array(np.full((B, 3), k_steps, dtype=np.int32), dtype=wp.int32, device=d)
     wp.launch(knav.nav_interval_kernel, dim=B,
               inputs=[0, counts, dt, 0.25 * dt, 0.0, wp.vec4d(qd[0], qd[3], qd[6], qd[9]),
-                      wp.array(np.stack([fb, wb], axis=2), dtype=wp.vec3d, device=d),
+                      wp.array(np.stack([fb, wb, step_col], axis=2), dtype=wp.vec3d, device=d),
                       pos, vel, quat, ba, bg, cov, phi, noise, scratch],
               outputs=[phi_out, chol_out, pose_out, att_cov, p_col], device=d)
     covs = _blocks(cov.numpy())
     phis = _blocks(phi_out.numpy().astype(np.float64))
     chols = _blocks(chol_out.numpy().astype(np.float64))
     for b in range(B):
-        state, P, phi_ref, S_ref = _python_interval(nominals[b], fb[b], wb[b], dt, P0.copy(), q_n, q_l)
+        state, P, phi_ref, S_ref = _python_interval(nominals[b], fb[b], wb[b], dt, P0.copy(), q_n, q_l,
+                                                    steps[b * k_steps:(b + 1) * k_steps])
         np.testing.assert_allclose(pos.numpy()[b], state.pos_n, rtol=0, atol=1e-9)
         np.testing.assert_allclose(vel.numpy()[b], state.vel_n, rtol=0, atol=1e-11)
         np.testing.assert_allclose(quat.numpy()[b], state.quat_nb, rtol=0, atol=1e-13)

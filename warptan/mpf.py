@@ -128,6 +128,8 @@ BAD_IMU_POLICIES = ("raise", "hold")
 """What :meth:`MarginalizedParticleFilter.predict` does with an implausible IMU sample."""
 MAX_STEPS_PER_INTERVAL = 64
 """IMU samples buffered between measurements before the particles are moved anyway."""
+MAX_STEP_S = 1.0
+"""Longest IMU step :meth:`MarginalizedParticleFilter.predict` integrates, s."""
 
 
 def step_seed(seed, counter: int, stream: int):
@@ -439,7 +441,7 @@ class MarginalizedParticleFilter:
         # CUDA two pinned sets, alternating: the update's graph copies one while the host fills the other (an event
         # per set says when the graph that read it is done).
         n_sets = 2 if d.is_cuda else 1
-        self._imu_host = [wp.zeros((b, MAX_STEPS_PER_INTERVAL, 2), dtype=wp.vec3d, device=cpu, pinned=d.is_cuda)
+        self._imu_host = [wp.zeros((b, MAX_STEPS_PER_INTERVAL, 3), dtype=wp.vec3d, device=cpu, pinned=d.is_cuda)
                           for _ in range(n_sets)]
         self._ints_host = [wp.zeros((b, knav.N_INTS), dtype=wp.int32, device=cpu, pinned=d.is_cuda)
                            for _ in range(n_sets)]
@@ -496,22 +498,23 @@ class MarginalizedParticleFilter:
                   outputs=[self.state.dp, self.state.lin, self.state.logw], device=d)
 
     # ------------------------------------------------------------------ time update
-    def predict(self, f_b, w_b) -> None:
-        """One IMU sample, (3,) or (B, 3) for a batch: specific force (m/s²) and body rate (rad/s). Buffered on the
-        host; the nominal INS, the Riccati recursion and the particle moves of all samples since the last
-        measurement run in one launch each. A sample that is not finite or beyond the grade's range is refused or
-        held (``bad_imu``)."""
+    def predict(self, f_b, w_b, dt: float | None = None) -> None:
+        """One IMU sample, (3,) or (B, 3) for a batch: specific force (m/s²) and body rate (rad/s), held over the
+        next ``dt`` seconds (default: the nominal step, 1 / ``rate_hz``). Buffered on the host; the nominal INS, the
+        Riccati recursion and the particle moves of all samples since the last measurement run in one launch each. A
+        sample that is not finite or beyond the grade's range is refused or held (``bad_imu``)."""
         t_enter = time.perf_counter()
         b = self.n_filters
         f, w = _imu_arrays(f_b, w_b)
         if f.size != 3 * b or w.size != 3 * b:
             raise FilterError(f"IMU sample must be {'(3,)' if b == 1 else f'({b}, 3)'}, got {f.shape} and {w.shape}")
-        self._buffer(f.reshape(1, b, 3), w.reshape(1, b, 3), t_enter)
+        self._buffer(f.reshape(1, b, 3), w.reshape(1, b, 3), self._steps(dt, 1), t_enter)
 
-    def predict_many(self, f_b, w_b) -> None:
+    def predict_many(self, f_b, w_b, dt=None) -> None:
         """K IMU samples at once, (K, 3) each or (K, B, 3) for a batch: the same as K calls of :meth:`predict` (same
         buffering, flushes, ``bad_imu`` handling and results), with the checks done on the whole block — the host
-        cost of an interval is then one call instead of K (20 µs each)."""
+        cost of an interval is then one call instead of K (20 µs each). ``dt``: each sample's step in s, (K,) or one
+        number (all filters of a batch share it; default the nominal step)."""
         t_enter = time.perf_counter()
         b = self.n_filters
         f, w = _imu_arrays(f_b, w_b)
@@ -519,11 +522,28 @@ class MarginalizedParticleFilter:
         if f.ndim not in (2, 3) or f.shape != shape or w.shape != shape or (b > 1 and f.ndim != 3):
             want = "(K, 3)" if b == 1 else f"(K, {b}, 3)"
             raise FilterError(f"IMU samples must be {want} arrays, got {f.shape} and {w.shape}")
-        self._buffer(f.reshape(-1, b, 3), w.reshape(-1, b, 3), t_enter)
+        self._buffer(f.reshape(-1, b, 3), w.reshape(-1, b, 3), self._steps(dt, f.shape[0]), t_enter)
 
-    def _buffer(self, f: np.ndarray, w: np.ndarray, t_enter: float) -> None:
-        """Buffer (K, B, 3) samples: checked as one block; a block with a sample that is not finite or beyond the
-        grade's range is refused or held sample by sample (``bad_imu``); the buffer flushes itself when full."""
+    def _steps(self, dt, k: int) -> np.ndarray:
+        """(K,) step lengths in s: ``dt`` (a number or K of them) or the nominal step; each in (0, MAX_STEP_S]."""
+        if dt is None:
+            return np.full(k, self.dt)
+        try:
+            steps = np.broadcast_to(np.asarray(dt, dtype=np.float64), (k,))
+        except (TypeError, ValueError):
+            raise FilterError(f"IMU step dt must be a number or {k} numbers (s), got {dt!r}") from None
+        with np.errstate(invalid="ignore"):
+            bad = ~((steps > 0.0) & (steps <= MAX_STEP_S))
+        if bad.any():
+            i = int(np.argmax(bad))
+            raise FilterError(f"IMU step dt[{i}] = {steps[i]!r} s: each step must be in (0, {MAX_STEP_S:g}] s "
+                              "(a longer gap is lost data, not a step)")
+        return steps
+
+    def _buffer(self, f: np.ndarray, w: np.ndarray, steps: np.ndarray, t_enter: float) -> None:
+        """Buffer (K, B, 3) samples with their (K,) steps: checked as one block; a block with a sample that is not
+        finite or beyond the grade's range is refused or held sample by sample (``bad_imu``); the buffer flushes
+        itself when full."""
         with np.errstate(invalid="ignore"):
             bad = ~((np.abs(f) <= self.grade.accel_range).all(axis=2)
                     & (np.abs(w) <= self.grade.gyro_range).all(axis=2))
@@ -541,6 +561,7 @@ class MarginalizedParticleFilter:
             imu = self._imu_np[self._set]
             imu[:, self._k:self._k + take, 0] = f[k0:k0 + take].swapaxes(0, 1)
             imu[:, self._k:self._k + take, 1] = w[k0:k0 + take].swapaxes(0, 1)
+            imu[:, self._k:self._k + take, 2, 0] = steps[k0:k0 + take]
             self._k += take
             self.n_imu_steps += take
             k0 += take
