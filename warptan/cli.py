@@ -1,4 +1,5 @@
-"""The ``warptan`` command line: ``warptan run`` (scenarios, reports, plots) and ``warptan terrain``."""
+"""The ``warptan`` command line: ``warptan run`` (scenarios, reports, plots), ``warptan replay`` (recorded flights)
+and ``warptan terrain``."""
 
 from __future__ import annotations
 
@@ -148,27 +149,110 @@ def _run(args) -> int:
     for config, _, flight in plans.values():
         decim = 1 if args.paper_rates else round(config["imu"]["rate_hz"] / config["sensor"]["rate_hz"])
         total += seeds * (len(flight.f_b) // decim)
-    results, terrains = [], {}
+    export = None
+    if args.export_log is not None:
+        export = OutputFolder(args.export_log)
+        if os.path.realpath(export.path) == os.path.realpath(out.path):
+            raise ScenarioError("--export-log must be another folder than --out")
+        if args.export_bag:
+            _require_rosbags()
+    elif args.export_bag:
+        raise ScenarioError("--export-bag writes beside --export-log; give --export-log DIR")
+    results, terrains, logs = [], {}, ([] if export is not None else None)
     with tqdm(total=total, unit="update", disable=args.quiet, dynamic_ncols=True) as bar:
         for name in names:
             if args.batch:
                 bar.set_description(f"{name} seeds 0-{seeds - 1} (batch)")
                 batch = run_scenario_batch(name, list(range(seeds)), device=args.device,
-                                           progress=lambda k, n: bar.update(seeds), terrain=terrain, **overrides)
+                                           progress=lambda k, n: bar.update(seeds), export_logs=logs,
+                                           terrain=terrain, **overrides)
             else:
                 batch = []
                 for seed in range(seeds):
                     bar.set_description(f"{name} seed {seed}")
                     batch.append(run_scenario(name, seed=seed, device=args.device,
-                                              progress=lambda k, n: bar.update(1), terrain=terrain, **overrides))
+                                              progress=lambda k, n: bar.update(1), export_logs=logs, terrain=terrain,
+                                              **overrides))
             results.extend(batch)
             terrains[batch[0].scenario] = batch[0].truth_terrain
+    if export is not None:
+        _write_logs(logs, export, args.export_bag)
     written = write_outputs(results, out, terrains, plots=not args.no_plots)
     print(written["table"])
     if not written["plots"] and not args.no_plots:
         print("plots skipped: matplotlib is not installed (pip install 'warptan[plot]')")
     print("wrote " + ", ".join(written["files"]))
     return 0
+
+
+def _require_rosbags() -> None:
+    try:
+        import rosbags  # noqa: F401
+    except ModuleNotFoundError:
+        raise OSError("ROS 2 bags need the rosbags package: pip install 'warptan[ros]'") from None
+
+
+def _write_logs(logs, folder, bags: bool) -> None:
+    """Each flight as ``NAME.h5`` (and ``NAME_bag/`` with ``--export-bag``) in ``folder``, as one whole."""
+    from warptan.flightlog import write_log
+
+    names = []
+    with folder as out:
+        for log in logs:
+            write_log(log, out / f"{log.name}.h5")
+            names.append(f"{log.name}.h5")
+            if bags:
+                from warptan.rosbag import write_bag
+
+                write_bag(log, out / f"{log.name}_bag")
+                names.append(f"{log.name}_bag")
+    print(f"wrote flight logs in {folder.path}: " + ", ".join(names))
+
+
+def _replay(args) -> int:
+    from warptan.outputs import OutputFolder
+    from warptan.replay import replay
+    from warptan.report import write_outputs
+
+    out = OutputFolder(args.out if args.out is not None else "warptan-replay")
+    log = _load_flight(args)
+    try:
+        from tqdm import tqdm
+    except ModuleNotFoundError:
+        tqdm = _NoProgress
+    n_meas = len(log.alt_t if (args.model == "altimeter" or (args.model is None and not log.has_scans))
+                 else log.scan_t)
+    with tqdm(total=n_meas, unit="update", disable=args.quiet, dynamic_ncols=True) as bar:
+        bar.set_description(f"replay {log.name}")
+        result = replay(log, args.terrain, model=args.model, backend=args.backend, particles=args.particles,
+                        likelihood=args.likelihood, seed=args.seed, device=args.device,
+                        progress=lambda k, n: bar.update(1))
+    dropped = result.run.info.get("dropped_measurements", 0)
+    if dropped:
+        print(f"warptan: note: {dropped} measurement(s) outside the IMU's time span were not used")
+    written = write_outputs([result], out, {result.scenario: result.truth_terrain}, plots=not args.no_plots,
+                            trajectories=True, title=f"warptan replay of {log.name}")
+    print(written["table"])
+    if not log.has_truth:
+        print("(the log has no truth: errors are undefined; results.json holds the estimate and its 3σ)")
+    print("wrote " + ", ".join(written["files"]))
+    return 0
+
+
+def _load_flight(args):
+    """The LOG argument: a warptan flight log (.h5) or a ROS 2 bag (folder, .db3 or .mcap)."""
+    from warptan.flightlog import read_log
+
+    path = args.log
+    if os.path.isdir(path) or path.endswith((".db3", ".mcap")):
+        _require_rosbags()
+        from warptan.rosbag import BagConfig, read_bag
+
+        config = BagConfig.load(args.bag_config) if args.bag_config else BagConfig.for_bag(path)
+        config = config.with_overrides(imu=args.imu_topic, cloud=args.cloud_topic, range=args.range_topic,
+                                       baro=args.baro_topic, odom=args.odom_topic, grade=args.imu_grade)
+        return read_bag(path, config)
+    return read_log(path)
 
 
 class _NoProgress:
@@ -268,7 +352,37 @@ def build_parser() -> argparse.ArgumentParser:
                      help="validate everything a run would (scenarios, seeds, memory, terrain, flight, map, --out) "
                           "and stop")
     run.add_argument("--quiet", action="store_true", help="no progress bar")
+    run.add_argument("--export-log", default=None, metavar="DIR",
+                     help="also write each simulated flight as a warptan flight log DIR/ID_seedN.h5 (warptan replay "
+                          "reads it back)")
+    run.add_argument("--export-bag", action="store_true",
+                     help="with --export-log: also as a ROS 2 bag DIR/ID_seedN_bag (FLU/ENU topics; needs rosbags)")
     run.set_defaults(func=_run)
+
+    rep = sub.add_parser("replay", help="filter a recorded flight (warptan flight log or ROS 2 bag)",
+                         description="Run the filter on a recorded flight with its timestamps; write results.json, "
+                                     "results.md, plots and the trajectory (CSV; GeoJSON when the DEM has a CRS).")
+    rep.add_argument("log", help="a warptan flight log (.h5) or a ROS 2 bag (folder, .db3 or .mcap)")
+    rep.add_argument("--terrain", default=None, help="the DEM (name, path or spec; default: the log's dem.reference)")
+    rep.add_argument("--model", choices=("sliding", "raycast", "altimeter"), default=None,
+                     help="measurement model (default: the log's settings, else sliding with scans, altimeter without)")
+    rep.add_argument("--backend", default=None, help="ray-cast backend: dda, mesh, bisection")
+    rep.add_argument("--likelihood", default=None, help="paper, gaussian or student_t")
+    rep.add_argument("--particles", type=count_arg, default=None, help="particle count")
+    rep.add_argument("--seed", type=int, default=None, help="the filter's seed (default: the log's, else 0)")
+    rep.add_argument("--device", default="cpu", help="Warp device (cpu, cuda:0)")
+    rep.add_argument("--out", default=None, help="output folder (default warptan-replay)")
+    rep.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
+    rep.add_argument("--quiet", action="store_true", help="no progress bar")
+    bag = rep.add_argument_group("ROS 2 bags", "topics and mounting (a TOML file, or these flags)")
+    bag.add_argument("--bag-config", default=None, help="TOML with topics, mounting, initial σ, IMU grade")
+    bag.add_argument("--imu-topic", default=None, help="sensor_msgs/Imu topic (default /imu)")
+    bag.add_argument("--cloud-topic", default=None, help="sensor_msgs/PointCloud2 topic (default /points)")
+    bag.add_argument("--range-topic", default=None, help="sensor_msgs/Range altimeter topic (default /altimeter)")
+    bag.add_argument("--baro-topic", default=None, help="sensor_msgs/FluidPressure topic (default /baro)")
+    bag.add_argument("--odom-topic", default=None, help="nav_msgs/Odometry truth topic (default /truth)")
+    bag.add_argument("--imu-grade", default=None, help="IMU grade (default navigation)")
+    rep.set_defaults(func=_replay)
     return parser
 
 

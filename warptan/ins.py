@@ -145,8 +145,9 @@ class Ins:
         _step_inplace(s.pos_n, s.vel_n, s.quat_nb, s.accel_bias, s.gyro_bias, f, w, self.dt)
         return s
 
-    def run(self, f_b, w_b) -> dict[str, np.ndarray]:
-        """Propagate through (K, 3) samples; returns the K+1 states as arrays ``pos_n, vel_n, quat_nb``."""
+    def run(self, f_b, w_b, dt=None) -> dict[str, np.ndarray]:
+        """Propagate through (K, 3) samples (``dt``: each sample's step, (K,) s; default the nominal step);
+        returns the K+1 states as arrays ``pos_n, vel_n, quat_nb``."""
         f_b = np.asarray(f_b, dtype=np.float64)
         w_b = np.asarray(w_b, dtype=np.float64)
         if f_b.shape != w_b.shape or f_b.ndim != 2 or f_b.shape[1] != 3:
@@ -161,8 +162,9 @@ class Ins:
         ba, bg = list(s.accel_bias), list(s.gyro_bias)
         pos[0], vel[0], quat[0] = p, v, q
         f_list, w_list = f_b.tolist(), w_b.tolist()
+        steps = [self.dt] * k if dt is None else np.broadcast_to(np.asarray(dt, dtype=np.float64), (k,)).tolist()
         for i in range(k):
-            _step_inplace(p, v, q, ba, bg, f_list[i], w_list[i], self.dt)
+            _step_inplace(p, v, q, ba, bg, f_list[i], w_list[i], steps[i])
             pos[i + 1], vel[i + 1], quat[i + 1] = p, v, q
         self.state = NavState(p, v, q, ba, bg)
         return {"pos_n": pos, "vel_n": vel, "quat_nb": quat}

@@ -256,6 +256,13 @@ def hillshade(heights: np.ndarray, dn: float, de: float, azimuth_deg: float = 31
     return np.clip(shade, 0.0, 1.0)
 
 
+def _p95(values) -> float:
+    """95th percentile of |values| over the finite ones (NaN when there is none)."""
+    v = np.abs(np.asarray(values, dtype=np.float64))
+    v = v[np.isfinite(v)]
+    return float(np.percentile(v, 95)) if v.size else float("nan")
+
+
 def plot_run(result, terrain, out_prefix: str | os.PathLike) -> list[str]:
     """Two PNGs for one run: ``_track.png`` (truth, INS only, estimate over a hillshade) and ``_errors.png``
     (error per axis with ±3σ, and ESS). Returns the paths."""
@@ -265,11 +272,12 @@ def plot_run(result, terrain, out_prefix: str | os.PathLike) -> list[str]:
     import matplotlib.pyplot as plt
 
     run = result.run
+    truth = bool(np.isfinite(run.truth_pos).any())  # a recorded flight may have none: estimate and 3σ only
     prefix = os.fspath(out_prefix)
     pad = 2000.0
     pts = np.concatenate([run.truth_pos[:, :2], run.ins_pos[:, :2], run.est_pos[:, :2]])
-    n_lo, e_lo = pts.min(axis=0) - pad
-    n_hi, e_hi = pts.max(axis=0) + pad
+    n_lo, e_lo = np.nanmin(pts, axis=0) - pad
+    n_hi, e_hi = np.nanmax(pts, axis=0) + pad
     rows, cols = terrain.shape
     i0 = int(np.clip((n_lo - terrain.n0) / terrain.dn, 0, rows - 1))
     i1 = int(np.clip((n_hi - terrain.n0) / terrain.dn, 0, rows - 1)) + 1
@@ -301,7 +309,7 @@ def plot_run(result, terrain, out_prefix: str | os.PathLike) -> list[str]:
         ax.plot(run.t_s, run.error[:, k], "b-", lw=1, label="estimate − truth")
         ax.fill_between(run.t_s, -run.sigma3_pos[:, k], run.sigma3_pos[:, k], color="b", alpha=0.15, label="±3σ")
         ax.plot(run.t_s, (run.ins_pos - run.truth_pos)[:, k], "r--", lw=0.8, label="INS only")
-        lim = max(5.0, 1.5 * float(np.percentile(np.abs(run.error[:, k]), 95)))
+        lim = max(5.0, 1.5 * _p95(run.error[:, k]) if truth else 1.2 * _p95(run.sigma3_pos[:, k]))
         ax.set_ylim(-lim, lim)
         ax.set_ylabel(f"{name} error (m)")
         ax.grid(alpha=0.3)
@@ -310,7 +318,8 @@ def plot_run(result, terrain, out_prefix: str | os.PathLike) -> list[str]:
         axes[3].plot(run.t_s, np.degrees(run.lin_err[:, 3 + k]), f"{colour}-", lw=1, label=name)
         axes[3].plot(run.t_s, np.degrees(run.sigma3_lin[:, 3 + k]), f"{colour}:", lw=0.8)
         axes[3].plot(run.t_s, -np.degrees(run.sigma3_lin[:, 3 + k]), f"{colour}:", lw=0.8)
-    att_lim = 1.5 * float(np.percentile(np.abs(np.degrees(run.lin_err[:, 3:6])), 95)) + 1e-3
+    att_lim = (1.5 * _p95(np.degrees(run.lin_err[:, 3:6])) if truth else 1.2 * _p95(np.degrees(run.sigma3_lin[:, 3:6])))
+    att_lim = att_lim + 1e-3 if np.isfinite(att_lim) else 1.0
     axes[3].set_ylim(-att_lim, att_lim)
     axes[3].set_ylabel("attitude error (°), ±3σ")
     axes[3].legend(loc="upper right", fontsize=8)
@@ -327,10 +336,12 @@ def plot_run(result, terrain, out_prefix: str | os.PathLike) -> list[str]:
     return [track, errors]
 
 
-def write_outputs(results, out_dir, terrains: dict, plots: bool = True) -> dict[str, object]:
+def write_outputs(results, out_dir, terrains: dict, plots: bool = True, trajectories: bool = False,
+                  title: str = "warptan scenario results") -> dict[str, object]:
     """Write ``results.json`` (strict JSON: an undefined number is null), ``results.md`` and (first seed of each
     scenario) the plots as one whole into ``out_dir`` (a path or a checked :class:`~warptan.outputs.OutputFolder`):
-    written beside it and swapped into place when complete, so the folder never mixes two runs."""
+    written beside it and swapped into place when complete, so the folder never mixes two runs. ``trajectories``:
+    also each run's trajectory file (:func:`warptan.replay.write_trajectory`)."""
     folder = out_dir if isinstance(out_dir, OutputFolder) else OutputFolder(out_dir)
     agg = aggregate(results)
     table = markdown_table(agg)
@@ -344,11 +355,16 @@ def write_outputs(results, out_dir, terrains: dict, plots: bool = True) -> dict[
         write_json(out / "results.json", {"meta": run_meta(sorted({r.device for r in results}) or ["cpu"]),
                                           "scenarios": agg, "runs": [r.summary() for r in results]})
         (out / "results.md").write_text(
-            "# warptan scenario results\n\nRMSE x / y / z = north / east / down in metres, mean ± 95 % interval "
+            f"# {title}\n\nRMSE x / y / z = north / east / down in metres, mean ± 95 % interval "
             "over seeds; \"after convergence\" counts from `filter.converged_after_s`.\n\n" + table + "\n\n"
             "## Attitude, gyro bias and the honesty of the bounds (after convergence)\n\nAttitude error = "
             "Log(q_true⁻¹ q_est) in body axes (roll / pitch / yaw); RMSE pooled over seeds as the RMS of the runs' "
             "RMSE; σ / RMSE ≈ 1 means the reported 3σ neither lies nor balloons.\n\n" + attitude_table(agg) + "\n")
+        if trajectories:
+            from warptan.replay import write_trajectory
+
+            for r in results:
+                names += write_trajectory(r, terrains[r.scenario], out)
         if plots:
             done = set()
             for r in results:

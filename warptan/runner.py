@@ -128,7 +128,7 @@ def prior_linear_cov(errors: InitialErrors, imu: ImuModel) -> np.ndarray:
 def run_filter(truth: Trajectory, terrain_map, model, imu: ImuModel | Sequence[ImuModel], sensor=None, *,
                terrain_truth=None, baro: Barometer | None = None, n_particles: int = 500, device=None,
                seed: int | Sequence[int] = 0, meas_rate_hz: float = 10.0, initial: InitialErrors | None = None,
-               progress=None, **filter_kwargs) -> FilterRun | list[FilterRun]:
+               progress=None, record: dict | None = None, **filter_kwargs) -> FilterRun | list[FilterRun]:
     """Run one filter over a simulated flight — or a batch of independent runs (one per seed) in one filter.
 
     Args:
@@ -146,6 +146,9 @@ def run_filter(truth: Trajectory, terrain_map, model, imu: ImuModel | Sequence[I
         meas_rate_hz: Measurement rate; a divisor of the IMU rate (``--paper-rates``: equal to it).
         initial: Initial-error σ (drawn for the INS and used as the prior).
         progress: Optional callable(k, n_steps) called at every measurement epoch.
+        record: A dict to fill with what the filter received (for a flight log, :mod:`warptan.flightlog`):
+            ``f``, ``w`` (K, B, 3) IMU samples, ``epochs`` (IMU sample index of each update), ``measurements``
+            (per update, the B measurements), ``nominal0`` (B initial INS states), ``true_bias`` (B × (K, 6)).
         **filter_kwargs: Passed to :class:`~warptan.mpf.MarginalizedParticleFilter`.
 
     Returns:
@@ -185,7 +188,6 @@ def run_filter(truth: Trajectory, terrain_map, model, imu: ImuModel | Sequence[I
     n_steps = len(truth.f_b)
     epochs = [0, *range(decim, n_steps + 1, decim)]
     prior = mpf.estimate()
-    prior = prior if batched else [prior]
     received, update_time = [], []
     predict_time = 0.0
     k = 0
@@ -202,19 +204,49 @@ def run_filter(truth: Trajectory, terrain_map, model, imu: ImuModel | Sequence[I
         else:
             meas = sensor.measure_many(terrain_truth, p_true, q_true, rngs, device=mpf.device)
         t0 = time.perf_counter()
+        if record is not None:
+            record.setdefault("measurements", []).append(meas)
         mpf.update(meas if batched else meas[0], sync=False)
         update_time.append(time.perf_counter() - t0)
         received.append(mpf.last_n_received)
         if progress is not None:
             progress(k, n_steps)
+    if record is not None:
+        record.update(f=f_meas, w=w_meas, epochs=epochs[1:], nominal0=nominal0, true_bias=true_bias)
+    idx = np.array(epochs)
+    truth_at = {"pos": truth.pos_n[idx], "vel": truth.vel_n[idx], "quat": truth.quat_nb[idx]}
+    k_bias = np.minimum(idx, n_steps - 1)
+    return collect_runs(mpf, truth.t_s[idx], truth_at, [tb[k_bias] for tb in true_bias],
+                        [ins[idx] for ins in ins_only], prior, received, update_time, predict_time, batched,
+                        {"imu_steps": n_steps, "meas_rate_hz": meas_rate_hz})
+
+
+def collect_runs(mpf: MarginalizedParticleFilter, t_s: np.ndarray, truth: dict | None, true_bias: list | None,
+                 ins_pos: list, prior, received: list, update_time: list, predict_time: float, batched: bool,
+                 info: dict) -> FilterRun | list[FilterRun]:
+    """The :class:`FilterRun` of each filter from its device history (the one read-back of a run).
+
+    Args:
+        t_s: (T,) epoch times (the prior, then one per update).
+        truth: ``pos``, ``vel``, ``quat`` (T, ·) at the epochs, or None (a recorded flight without truth: errors NaN).
+        true_bias: Per filter (T, 6) true accelerometer and gyro biases at the epochs, or None.
+        ins_pos: Per filter (T, 3) INS-only positions at the epochs.
+        prior: The filters' estimates before the first update (``mpf.estimate()``; a list when batched).
+    """
     wp.synchronize_device(mpf.device)
     hist = mpf.history()  # (T, B, N_SUMMARY): the one read-back of the run
     nominal_hist, p_diag = mpf.nominal_history(), mpf.covariance_history()
-    idx = np.array(epochs)
+    n_epochs = len(t_s)
+    if truth is None:
+        truth = {"pos": np.full((n_epochs, 3), np.nan), "vel": np.full((n_epochs, 3), np.nan),
+                 "quat": np.full((n_epochs, 4), np.nan)}
+    prior = prior if batched else [prior]
+    n_particles = mpf.n
     runs = []
-    for b in range(len(seeds)):
+    for b in range(mpf.n_filters):
         h = hist[:, b]
-        lin_err, sig_lin = _linear_errors(truth, idx, true_bias[b], prior[b], nominal_hist[:, b],
+        bias = np.full((n_epochs, 6), np.nan) if true_bias is None else true_bias[b]
+        lin_err, sig_lin = _linear_errors(truth, bias, prior[b], nominal_hist[:, b],
                                           h[:, kmpf.H_MEAN_L:kmpf.H_MEAN_L + 12],
                                           p_diag[:, b] + h[:, kmpf.H_VAR_L:kmpf.H_VAR_L + 12])
         mean = h[:, kmpf.H_MEAN_DP:kmpf.H_MEAN_DP + 3]
@@ -223,35 +255,36 @@ def run_filter(truth: Trajectory, terrain_map, model, imu: ImuModel | Sequence[I
         sig = np.vstack([prior[b].sigma3_pos, 3.0 * np.sqrt(np.maximum(var, 0.0))])
         respread = h[:, kmpf.H_RESPREAD] > 0
         runs.append(FilterRun(
-            t_s=truth.t_s[idx], truth_pos=truth.pos_n[idx], ins_pos=ins_only[b][idx], est_pos=est, sigma3_pos=sig,
-            ess=np.r_[float(n_particles), h[:, kmpf.H_ESS]], resampled=np.r_[False, h[:, kmpf.H_RESAMPLES] > 0],
+            t_s=np.asarray(t_s, dtype=np.float64), truth_pos=truth["pos"], ins_pos=ins_pos[b], est_pos=est,
+            sigma3_pos=sig, ess=np.r_[float(n_particles), h[:, kmpf.H_ESS]],
+            resampled=np.r_[False, h[:, kmpf.H_RESAMPLES] > 0],
             n_unpredictable=np.r_[0, h[:, kmpf.H_UNPREDICTABLE]].astype(int),
             n_bad_loglik=np.r_[0, h[:, kmpf.H_BAD]].astype(int), respread=np.r_[False, respread],
-            all_points_invalid=np.r_[False, np.array(received)[:, b] == 0],
+            all_points_invalid=np.r_[False, np.array(received).reshape(len(received), -1)[:, b] == 0],
             stages=np.r_[0, h[:, kmpf.H_STAGES]].astype(int), nis=np.r_[np.nan, h[:, kmpf.H_NIS]],
             nis_avg=np.r_[np.nan, h[:, kmpf.H_NIS_AVG]], skipped=np.r_[False, h[:, kmpf.H_SKIPPED] > 0],
             lin_err=lin_err, sigma3_lin=sig_lin,
             update_time_s=np.r_[0.0, update_time], predict_time_s=predict_time, n_particles=n_particles,
             device=mpf.device.alias,
             info={"respreads": int(respread.sum()), "skipped_updates": int((h[:, kmpf.H_SKIPPED] > 0).sum()),
-                  "imu_steps": n_steps, "meas_rate_hz": meas_rate_hz, "batch": len(seeds),
-                  "sigma_m": float(model.sigma_m), "injections": int(mpf.n_injections[b])},
+                  **info, "batch": mpf.n_filters, "sigma_m": float(mpf.model.sigma_m),
+                  "injections": int(mpf.n_injections[b])},
         ))
     return runs if batched else runs[0]
 
 
-def _linear_errors(truth: Trajectory, idx: np.ndarray, true_bias: np.ndarray, prior, nominal: np.ndarray,
-                   mean_l: np.ndarray, var_l: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(T, 12) estimate minus truth of [v, θ, b_a, b_g] at the epochs ``idx`` and their 3σ, from the prior and,
-    per update, the nominal INS before any injection, the mean Kalman mean and its total variance."""
-    k = np.minimum(idx, len(true_bias) - 1)
+def _linear_errors(truth: dict, true_bias: np.ndarray, prior, nominal: np.ndarray, mean_l: np.ndarray,
+                   var_l: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(T, 12) estimate minus truth of [v, θ, b_a, b_g] at the epochs (``truth`` and ``true_bias`` there) and their
+    3σ, from the prior and, per update, the nominal INS before any injection, the mean Kalman mean and its total
+    variance."""
     nom = {k: nominal[:, o:o + n] for k, o, n in (("vel", kmpf.NOM_VEL, 3), ("quat", kmpf.NOM_QUAT, 4),
                                                     ("ba", kmpf.NOM_BA, 3), ("bg", kmpf.NOM_BG, 3))}
     vel = np.vstack([prior.nav.vel_n, nom["vel"] + mean_l[:, 0:3]])
     quat = np.vstack([prior.nav.quat_nb, quat_mul(nom["quat"], quat_exp(mean_l[:, 3:6]))])
     bias = np.vstack([np.r_[prior.nav.accel_bias, prior.nav.gyro_bias],
                       np.hstack([nom["ba"] + mean_l[:, 6:9], nom["bg"] + mean_l[:, 9:12]])])
-    att = quat_log(quat_mul(quat_conj(truth.quat_nb[idx]), quat / np.linalg.norm(quat, axis=1, keepdims=True)))
-    err = np.hstack([vel - truth.vel_n[idx], att, bias - true_bias[k]])
+    att = quat_log(quat_mul(quat_conj(truth["quat"]), quat / np.linalg.norm(quat, axis=1, keepdims=True)))
+    err = np.hstack([vel - truth["vel"], att, bias - true_bias])
     sig = 3.0 * np.sqrt(np.maximum(np.vstack([np.diag(prior.cov_lin), var_l]), 0.0))
     return err, sig

@@ -663,7 +663,8 @@ def prepare(name_or_path, seed: int = 0, terrain=None, *, seeds=None, device=Non
     return config, truth_terrain, flight
 
 
-def run_scenario(name_or_path, seed: int = 0, device="cpu", progress=None, **overrides) -> ScenarioResult:
+def run_scenario(name_or_path, seed: int = 0, device="cpu", progress=None, export_logs=None,
+                 **overrides) -> ScenarioResult:
     """Run one scenario with one seed.
 
     Args:
@@ -674,14 +675,49 @@ def run_scenario(name_or_path, seed: int = 0, device="cpu", progress=None, **ove
         **overrides: ``terrain=`` (path, spec or Terrain), ``particles=``, ``duration_s=``, ``backend=``,
             ``likelihood=``, ``model=``, ``meas_rate_hz=``, ``paper_rates=True``, ``use_baro=``, ``r_err_m2=``,
             ``sigma_m=``, ``imu_grade=``.
+        export_logs: A list to append the run's :class:`~warptan.flightlog.FlightLog` to (see
+            :func:`run_scenario_batch`).
     """
-    return run_scenario_batch(name_or_path, [seed], device, progress, **overrides)[0]
+    return run_scenario_batch(name_or_path, [seed], device, progress, export_logs, **overrides)[0]
 
 
-def run_scenario_batch(name_or_path, seeds, device="cpu", progress=None, **overrides) -> list[ScenarioResult]:
+def scenario_model(config: dict, the_map: Terrain, likelihood: Likelihood):
+    """The scenario's measurement model on ``the_map``."""
+    s = config["sensor"]
+    model_kwargs = {"use_baro": s["use_baro"], "baro_sigma_m": max(s["baro_sigma_m"], 0.1)} \
+        if s["model"] == "altimeter" else {}
+    if s["model"] != "raycast":
+        model_kwargs["surface"] = s["surface"] == "triangles"
+    return make_model(s["model"], the_map, likelihood, backend=s["backend"], **model_kwargs)
+
+
+def filter_kwargs(config: dict) -> dict:
+    """The scenario's :class:`~warptan.mpf.MarginalizedParticleFilter` keywords (besides particles and seed)."""
+    f = config["filter"]
+    return dict(resample_threshold=f["resample_threshold"], resampler=f["resampler"], pos_noise=f["pos_noise_m_rthz"],
+                kalman_pos_noise=f["kalman_pos_noise_m_rthz"], regularize=f["regularize"], shrinkage=f["shrinkage"],
+                temper_ess=f["temper_ess"], max_stages=f["max_stages"], integrity_window=f["integrity_window"],
+                integrity_threshold=f["integrity_threshold"], measurement_update=f["measurement_update"],
+                closed_loop=f["closed_loop"])
+
+
+def terrain_spec(config: dict, terrain=None) -> str:
+    """The spec :func:`resolve_terrain` loads the world from (a name, path or ``synthetic:`` spec; a Terrain object
+    given directly: its name)."""
+    if isinstance(terrain, Terrain):
+        return terrain.name
+    if terrain is not None:
+        return os.fspath(terrain)
+    return config["terrain"]["path"] if config["terrain"]["kind"] == "path" else config["terrain"]["kind"]
+
+
+def run_scenario_batch(name_or_path, seeds, device="cpu", progress=None, export_logs=None,
+                       **overrides) -> list[ScenarioResult]:
     """Run one scenario with several seeds as one batched filter (every run's particles in one array, one
     launch per kernel for all of them); each result is the same as :func:`run_scenario` with that seed on the
-    same device. A scenario whose map has per-seed error cannot be batched (its runs use different maps)."""
+    same device. A scenario whose map has per-seed error cannot be batched (its runs use different maps).
+    ``export_logs``: a list to which each seed's flight is appended as a :class:`~warptan.flightlog.FlightLog`
+    (what the filter received, truth, prior and settings: ``warptan replay`` of it gives the same run)."""
     import time
 
     terrain = overrides.pop("terrain", None)
@@ -693,11 +729,7 @@ def run_scenario_batch(name_or_path, seeds, device="cpu", progress=None, **overr
     total_seeds = [int(config["run"]["seed"]) + seed for seed in seeds]
     the_map = map_terrain(truth_terrain, config, total_seeds[0])
     likelihood = scenario_likelihood(config, the_map, truth_terrain)
-    model_kwargs = {"use_baro": s["use_baro"], "baro_sigma_m": max(s["baro_sigma_m"], 0.1)} \
-        if s["model"] == "altimeter" else {}
-    if s["model"] != "raycast":
-        model_kwargs["surface"] = s["surface"] == "triangles"
-    model = make_model(s["model"], the_map, likelihood, backend=s["backend"], **model_kwargs)
+    model = scenario_model(config, the_map, likelihood)
     if s["model"] == "altimeter":
         sensor = RadarAltimeter(s["altimeter_sigma_m"])
     else:
@@ -705,19 +737,19 @@ def run_scenario_batch(name_or_path, seeds, device="cpu", progress=None, **overr
                                   range_sigma_m=s["range_sigma_m"])
     ie, f = config["initial_error"], config["filter"]
     imus = [ImuModel(config["imu"]["grade"], config["imu"]["rate_hz"], seed=ts) for ts in total_seeds]
+    record = {} if export_logs is not None else None
     t0 = time.perf_counter()
     runs = run_filter(
         flight, the_map, model, imus, sensor, terrain_truth=truth_terrain, baro=Barometer(s["baro_sigma_m"]),
         n_particles=f["particles"], device=device, seed=total_seeds, meas_rate_hz=s["rate_hz"],
         initial=InitialErrors(tuple(ie["pos_m"]), ie["vel_mps"], tuple(ie["att_deg"])), progress=progress,
-        resample_threshold=f["resample_threshold"], resampler=f["resampler"], pos_noise=f["pos_noise_m_rthz"],
-        kalman_pos_noise=f["kalman_pos_noise_m_rthz"], regularize=f["regularize"], shrinkage=f["shrinkage"],
-        temper_ess=f["temper_ess"],
-        max_stages=f["max_stages"], integrity_window=f["integrity_window"],
-        integrity_threshold=f["integrity_threshold"], measurement_update=f["measurement_update"],
-        closed_loop=f["closed_loop"],
-    )
+        record=record, **filter_kwargs(config))
     wall = time.perf_counter() - t0
+    if export_logs is not None:
+        from warptan.replay import logs_from_record
+
+        export_logs.extend(logs_from_record(record, flight, config, likelihood, total_seeds, seeds,
+                                            terrain_spec(config, terrain)))
     return [ScenarioResult(scenario=config["id"], seed=seed, device=run.device, terrain=truth_terrain.name,
                            config=config, run=run, wall_s=wall, truth_terrain=truth_terrain, map=the_map.name,
                            map_sigma_m=likelihood.map_sigma_m)

@@ -1,0 +1,377 @@
+"""The warptan flight log: a recorded flight in one HDF5 file that ``warptan replay`` filters (format version 1).
+
+Why HDF5 (h5py): a flight is a few long time series of different rates and shapes — IMU samples (K, 3), scans
+(S, M) with their directions, altimeter and barometer readings — plus metadata. HDF5 holds them in one file as
+named, typed, chunked arrays with units as attributes, is read natively by MATLAB (``h5read``), Python, Julia and C,
+and needs no table flattening (Parquet would store a scan as M columns or a list column). The layout::
+
+    /                    format = "warptan-flight-log", version = 1, name
+    /imu                 t (K,) s; f_b (K, 3) m/s² specific force; w_b (K, 3) rad/s body rate — body frame FRD;
+                         attrs rate_hz (nominal rate), grade (IMU grade name), t_end (end of the last sample's step)
+    /scans   (optional)  t (S,) s; dirs_s (S, M, 3) unit directions, sensor frame FRD; ranges_m (S, M);
+                         valid (S, M) bool; attrs range_sigma_m
+    /altimeter (opt.)    t (A,) s; range_m (A,) (NaN = no return); attrs sigma_m
+    /baro    (optional)  t (P,) s; alt_m (P,) barometric altitude above the DEM's datum (= -down); attrs sigma_m
+    /truth   (optional)  t (T,) s; pos_n (T, 3) m, vel_n (T, 3) m/s (NED in the DEM's map frame); quat_nb (T, 4)
+                         [w, x, y, z] body FRD to NED; accel_bias (T, 3), gyro_bias (T, 3) (optional)
+    /initial             t, pos_n, vel_n, quat_nb, accel_bias, gyro_bias (the INS's initial nominal state);
+                         sigma (15,): σ of its error [pos m (3), vel m/s (3), attitude rad (3), accel bias m/s² (3),
+                         gyro bias rad/s (3)] — the filter's prior
+    /mounting            quat_bs (4,) sensor to body; lever_b (3,) m, sensor origin in the body frame
+    /dem                 attrs reference (path or spec of the DEM the flight is over), crs
+    /settings (optional) attrs json: the filter settings of the run that wrote the log (replay defaults)
+
+Conventions: times in seconds on one clock. IMU sample k (``f_b[k]``, ``w_b[k]``) is held over its step
+``[t[k], t[k+1])`` (the last one until ``t_end``): the zero-order hold warptan's own INS integrates. Map frame:
+north/east in metres on the DEM's grid (:meth:`warptan.terrain.Terrain.latlon_to_ne` converts latitude/longitude),
+down = −altitude above the DEM's vertical datum. Point-cloud mounting: a point ``c_s = r d_s`` in the sensor frame is
+``R(quat_bs) c_s + lever_b`` in the body frame; the altimeter's range is taken as vertical from the body origin.
+
+:func:`read_log` validates the whole file and lists every problem it finds at once (:class:`LogError`);
+:func:`write_log` validates before it writes and writes beside the target, then renames: a bad log writes nothing.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from warptan.checks import FilterError
+
+FORMAT = "warptan-flight-log"
+VERSION = 1
+MAX_GAP_S = 1.0
+"""Longest gap between consecutive IMU samples a log may have, s (a longer one is lost data)."""
+UNIT_TOL = 1e-6
+
+
+class LogError(FilterError):
+    """A flight log that cannot be used; the message lists every problem found."""
+
+    def __init__(self, source: str, problems: list[str]):
+        self.source = source
+        self.problems = list(problems)
+        super().__init__(f"{source}: {len(problems)} problem(s): " + "; ".join(problems))
+
+
+@dataclass
+class FlightLog:
+    """A recorded flight (see the module docstring for units and frames). Arrays are float64 NumPy arrays."""
+
+    imu_t: np.ndarray
+    imu_f: np.ndarray
+    imu_w: np.ndarray
+    imu_rate_hz: float
+    imu_grade: str
+    t_end: float
+    init_t: float
+    init_pos: np.ndarray
+    init_vel: np.ndarray
+    init_quat: np.ndarray
+    init_sigma: np.ndarray
+    init_accel_bias: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    init_gyro_bias: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    scan_t: np.ndarray | None = None
+    scan_dirs: np.ndarray | None = None
+    scan_ranges: np.ndarray | None = None
+    scan_valid: np.ndarray | None = None
+    range_sigma_m: float = 0.5
+    alt_t: np.ndarray | None = None
+    alt_range: np.ndarray | None = None
+    altimeter_sigma_m: float = 1.0
+    baro_t: np.ndarray | None = None
+    baro_alt: np.ndarray | None = None
+    baro_sigma_m: float = 1.0
+    truth_t: np.ndarray | None = None
+    truth_pos: np.ndarray | None = None
+    truth_vel: np.ndarray | None = None
+    truth_quat: np.ndarray | None = None
+    truth_accel_bias: np.ndarray | None = None
+    truth_gyro_bias: np.ndarray | None = None
+    mount_quat: np.ndarray = field(default_factory=lambda: np.array([1.0, 0.0, 0.0, 0.0]))
+    mount_lever: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    dem_reference: str = ""
+    dem_crs: str = ""
+    settings: dict = field(default_factory=dict)
+    name: str = "flight"
+
+    @property
+    def has_truth(self) -> bool:
+        return self.truth_t is not None
+
+    @property
+    def has_scans(self) -> bool:
+        return self.scan_t is not None
+
+    @property
+    def has_altimeter(self) -> bool:
+        return self.alt_t is not None
+
+    @property
+    def step_s(self) -> np.ndarray:
+        """(K,) each IMU sample's step, s."""
+        return np.diff(np.r_[self.imu_t, self.t_end])
+
+    def problems(self) -> list[str]:
+        """Every problem of the log (empty: usable)."""
+        return _problems(self)
+
+    def validate(self, source: str = "flight log") -> FlightLog:
+        """Raise a :class:`LogError` listing every problem; return self when there is none."""
+        found = self.problems()
+        if found:
+            raise LogError(source, found)
+        return self
+
+
+def _finite_rows(name: str, a: np.ndarray, problems: list[str]) -> None:
+    bad = ~np.isfinite(a).reshape(len(a), -1).all(axis=1)
+    if bad.any():
+        problems.append(f"{name} has {int(bad.sum())} non-finite sample(s) (first at index {int(np.argmax(bad))})")
+
+
+def _increasing(name: str, t: np.ndarray, problems: list[str]) -> bool:
+    if t.ndim != 1 or len(t) == 0:
+        problems.append(f"{name} must be a non-empty 1-D time array, got shape {t.shape}")
+        return False
+    if not np.isfinite(t).all():
+        problems.append(f"{name} has non-finite times (first at index {int(np.argmax(~np.isfinite(t)))})")
+        return False
+    back = np.diff(t) <= 0
+    if back.any():
+        i = int(np.argmax(back))
+        problems.append(f"{name} is not strictly increasing: t[{i + 1}] = {t[i + 1]!r} s after t[{i}] = {t[i]!r} s")
+        return False
+    return True
+
+
+def _shape(name: str, a, shape: tuple, problems: list[str]) -> bool:
+    if a is None:
+        problems.append(f"{name} is missing")
+        return False
+    if a.shape != shape:
+        problems.append(f"{name} has shape {a.shape}, expected {shape}")
+        return False
+    return True
+
+
+def _unit_quats(name: str, q: np.ndarray, problems: list[str]) -> None:
+    with np.errstate(invalid="ignore"):
+        bad = ~(np.abs(np.linalg.norm(q.reshape(-1, 4), axis=1) - 1.0) < UNIT_TOL)
+    if bad.any():
+        problems.append(f"{name} has {int(bad.sum())} quaternion(s) that are not unit [w, x, y, z] "
+                        f"(first at index {int(np.argmax(bad))})")
+
+
+def _problems(log: FlightLog) -> list[str]:
+    p: list[str] = []
+    from warptan.imu import IMU_GRADES
+
+    if log.imu_grade not in IMU_GRADES:
+        p.append(f"imu.grade {log.imu_grade!r} is not a grade warptan knows ({', '.join(IMU_GRADES)})")
+    if not (np.isfinite(log.imu_rate_hz) and log.imu_rate_hz > 0):
+        p.append(f"imu.rate_hz must be a positive number, got {log.imu_rate_hz!r}")
+    ok_t = _increasing("imu.t", log.imu_t, p)
+    k = len(log.imu_t)
+    if _shape("imu.f_b", log.imu_f, (k, 3), p):
+        _finite_rows("imu.f_b", log.imu_f, p)
+    if _shape("imu.w_b", log.imu_w, (k, 3), p):
+        _finite_rows("imu.w_b", log.imu_w, p)
+    if ok_t:
+        if not (np.isfinite(log.t_end) and log.t_end > log.imu_t[-1]):
+            p.append(f"imu.t_end = {log.t_end!r} s must be after the last sample (t = {log.imu_t[-1]!r} s)")
+        else:
+            steps = log.step_s
+            gap = steps > MAX_GAP_S
+            if gap.any():
+                i = int(np.argmax(gap))
+                p.append(f"imu has a gap of {steps[i]:.3f} s after t = {log.imu_t[i]!r} s (sample {i}; at most "
+                         f"{MAX_GAP_S:g} s: a longer gap is lost data)")
+    for name in ("init_pos", "init_vel", "init_accel_bias", "init_gyro_bias", "mount_lever"):
+        a = getattr(log, name)
+        if _shape(_field(name), a, (3,), p) and not np.isfinite(a).all():
+            p.append(f"{_field(name)} is not finite: {a.tolist()}")
+    for name in ("init_quat", "mount_quat"):
+        if _shape(_field(name), getattr(log, name), (4,), p):
+            _unit_quats(_field(name), getattr(log, name), p)
+    if _shape("initial.sigma", log.init_sigma, (15,), p) and not (
+            np.isfinite(log.init_sigma).all() and (log.init_sigma >= 0).all() and (log.init_sigma[:3] > 0).all()):
+        p.append(f"initial.sigma must be 15 finite σ ≥ 0 (position σ > 0), got {log.init_sigma.tolist()}")
+    if ok_t and not (np.isfinite(log.init_t) and abs(log.init_t - log.imu_t[0]) <= UNIT_TOL * log.step_s.max()):
+        p.append(f"initial.t = {log.init_t!r} s must be the time of the first IMU sample ({log.imu_t[0]!r} s)")
+    if not (log.has_scans or log.has_altimeter):
+        p.append("the log has neither scans nor altimeter readings: nothing to navigate with")
+    if log.has_scans and _increasing("scans.t", log.scan_t, p):
+        s = len(log.scan_t)
+        m = log.scan_ranges.shape[1] if log.scan_ranges is not None and log.scan_ranges.ndim == 2 else -1
+        if m < 1:
+            p.append(f"scans.ranges_m must have shape (S, M), got "
+                     f"{None if log.scan_ranges is None else log.scan_ranges.shape}")
+        else:
+            _shape("scans.ranges_m", log.scan_ranges, (s, m), p)
+            if _shape("scans.valid", log.scan_valid, (s, m), p) and _shape("scans.dirs_s", log.scan_dirs,
+                                                                            (s, m, 3), p):
+                d = log.scan_dirs[log.scan_valid]
+                with np.errstate(invalid="ignore"):
+                    bad = ~(np.abs(np.linalg.norm(d, axis=1) - 1.0) < UNIT_TOL)
+                if bad.any():
+                    p.append(f"scans.dirs_s has {int(bad.sum())} valid direction(s) that are not unit vectors")
+                r = log.scan_ranges[log.scan_valid]
+                with np.errstate(invalid="ignore"):
+                    bad_r = ~((r > 0) & np.isfinite(r))
+                if bad_r.any():
+                    p.append(f"scans.ranges_m has {int(bad_r.sum())} point(s) marked valid with a range that is not a "
+                             "positive number (NaN sensor samples must be marked invalid)")
+    if log.has_altimeter and _increasing("altimeter.t", log.alt_t, p):
+        _shape("altimeter.range_m", log.alt_range, log.alt_t.shape, p)
+    if log.baro_t is not None and _increasing("baro.t", log.baro_t, p):
+        if _shape("baro.alt_m", log.baro_alt, log.baro_t.shape, p):
+            _finite_rows("baro.alt_m", log.baro_alt, p)
+    if log.has_truth and _increasing("truth.t", log.truth_t, p):
+        n = len(log.truth_t)
+        for name, width in (("truth_pos", 3), ("truth_vel", 3), ("truth_quat", 4)):
+            if _shape(_field(name), getattr(log, name), (n, width), p):
+                _finite_rows(_field(name), getattr(log, name), p)
+        if log.truth_quat is not None and log.truth_quat.shape == (n, 4):
+            _unit_quats("truth.quat_nb", log.truth_quat, p)
+        for name in ("truth_accel_bias", "truth_gyro_bias"):
+            if getattr(log, name) is not None:
+                _shape(_field(name), getattr(log, name), (n, 3), p)
+    for name in ("range_sigma_m", "altimeter_sigma_m", "baro_sigma_m"):
+        v = getattr(log, name)
+        if not (np.isfinite(v) and v >= 0):
+            p.append(f"{_field(name)} must be a number ≥ 0, got {v!r}")
+    return p
+
+
+_FIELDS = {"init_pos": "initial.pos_n", "init_vel": "initial.vel_n", "init_quat": "initial.quat_nb",
+           "init_accel_bias": "initial.accel_bias", "init_gyro_bias": "initial.gyro_bias",
+           "mount_quat": "mounting.quat_bs", "mount_lever": "mounting.lever_b", "truth_pos": "truth.pos_n",
+           "truth_vel": "truth.vel_n", "truth_quat": "truth.quat_nb", "truth_accel_bias": "truth.accel_bias",
+           "truth_gyro_bias": "truth.gyro_bias", "range_sigma_m": "scans.range_sigma_m",
+           "altimeter_sigma_m": "altimeter.sigma_m", "baro_sigma_m": "baro.sigma_m"}
+
+
+def _field(name: str) -> str:
+    """The log's name of a FlightLog attribute (group.dataset), for messages."""
+    return _FIELDS.get(name, name)
+
+
+# ---------------------------------------------------------------------- file
+_LAYOUT = {  # group: [(dataset, attribute)]
+    "imu": [("t", "imu_t"), ("f_b", "imu_f"), ("w_b", "imu_w")],
+    "scans": [("t", "scan_t"), ("dirs_s", "scan_dirs"), ("ranges_m", "scan_ranges"), ("valid", "scan_valid")],
+    "altimeter": [("t", "alt_t"), ("range_m", "alt_range")],
+    "baro": [("t", "baro_t"), ("alt_m", "baro_alt")],
+    "truth": [("t", "truth_t"), ("pos_n", "truth_pos"), ("vel_n", "truth_vel"), ("quat_nb", "truth_quat"),
+              ("accel_bias", "truth_accel_bias"), ("gyro_bias", "truth_gyro_bias")],
+    "initial": [("pos_n", "init_pos"), ("vel_n", "init_vel"), ("quat_nb", "init_quat"), ("sigma", "init_sigma"),
+                ("accel_bias", "init_accel_bias"), ("gyro_bias", "init_gyro_bias")],
+    "mounting": [("quat_bs", "mount_quat"), ("lever_b", "mount_lever")],
+}
+_SCALARS = {  # (group, attribute) -> FlightLog attribute
+    ("imu", "rate_hz"): "imu_rate_hz", ("imu", "grade"): "imu_grade", ("imu", "t_end"): "t_end",
+    ("initial", "t"): "init_t", ("scans", "range_sigma_m"): "range_sigma_m",
+    ("altimeter", "sigma_m"): "altimeter_sigma_m", ("baro", "sigma_m"): "baro_sigma_m",
+    ("dem", "reference"): "dem_reference", ("dem", "crs"): "dem_crs",
+}
+_UNITS = {"t": "s", "f_b": "m/s^2 (specific force, body FRD)", "w_b": "rad/s (body FRD)",
+          "dirs_s": "unit vector, sensor FRD", "ranges_m": "m", "range_m": "m", "alt_m": "m above datum",
+          "pos_n": "m, NED map frame", "vel_n": "m/s, NED", "quat_nb": "[w, x, y, z], body FRD to NED",
+          "quat_bs": "[w, x, y, z], sensor to body", "lever_b": "m, body FRD", "accel_bias": "m/s^2",
+          "gyro_bias": "rad/s", "sigma": "pos m (3), vel m/s (3), att rad (3), accel bias m/s^2 (3), gyro bias "
+                                         "rad/s (3)", "valid": "bool"}
+_REQUIRED = ("imu", "initial", "mounting")
+
+
+def write_log(log: FlightLog, path: str | os.PathLike) -> Path:
+    """Write ``log`` to ``path`` (HDF5), validated first; written beside the target and renamed into place."""
+    import h5py
+
+    path = Path(path)
+    log.validate(f"flight log {path}")
+    tmp = path.with_name(f".{path.name}.partial")
+    try:
+        with h5py.File(tmp, "w") as f:
+            f.attrs["format"] = FORMAT
+            f.attrs["version"] = VERSION
+            f.attrs["name"] = log.name
+            for group, items in _LAYOUT.items():
+                values = {ds: getattr(log, attr) for ds, attr in items}
+                if all(v is None for v in values.values()):
+                    continue
+                g = f.create_group(group)
+                for ds, value in values.items():
+                    if value is not None:
+                        d = g.create_dataset(ds, data=np.asarray(value), compression="gzip" if np.size(value) > 4096
+                                             else None)
+                        d.attrs["units"] = _UNITS.get(ds, "")
+            for (group, key), attr in _SCALARS.items():
+                if group in f or group == "dem":
+                    g = f.require_group(group)
+                    g.attrs[key] = getattr(log, attr)
+            if log.settings:
+                f.create_group("settings").attrs["json"] = json.dumps(log.settings, sort_keys=True)
+        os.replace(tmp, path)
+    finally:
+        if tmp.exists():
+            tmp.unlink()
+    return path
+
+
+def read_log(path: str | os.PathLike) -> FlightLog:
+    """Read and validate a flight log; a :class:`LogError` lists every problem (a file that is not a warptan log
+    at all: one problem saying so)."""
+    import h5py
+
+    path = Path(path)
+    source = f"flight log {path}"
+    if not path.is_file():
+        raise LogError(source, ["no such file"])
+    try:
+        f = h5py.File(path, "r")
+    except OSError as err:
+        raise LogError(source, [f"not an HDF5 file ({err})"]) from None
+    with f:
+        if f.attrs.get("format") != FORMAT:
+            raise LogError(source, [f"not a warptan flight log (attribute format = {f.attrs.get('format')!r}, "
+                                    f"expected {FORMAT!r})"])
+        version = int(f.attrs.get("version", -1))
+        if version != VERSION:
+            raise LogError(source, [f"format version {version} is not one this warptan reads ({VERSION})"])
+        problems = [f"group /{g} is missing" for g in _REQUIRED if g not in f]
+        if problems:
+            raise LogError(source, problems)
+        kw: dict = {"name": str(f.attrs.get("name", path.stem))}
+        for group, items in _LAYOUT.items():
+            if group not in f:
+                continue
+            for ds, attr in items:
+                if ds in f[group]:
+                    kw[attr] = np.asarray(f[group][ds][()])
+                    if ds != "valid":
+                        kw[attr] = kw[attr].astype(np.float64)
+                    else:
+                        kw[attr] = kw[attr].astype(bool)
+        for (group, key), attr in _SCALARS.items():
+            if group in f and key in f[group].attrs:
+                value = f[group].attrs[key]
+                kw[attr] = value.decode() if isinstance(value, bytes) else (str(value) if isinstance(value, str)
+                                                                          else float(value))
+        if "settings" in f:
+            kw["settings"] = json.loads(f["settings"].attrs["json"])
+    missing = [name for name, attr in (("imu.t", "imu_t"), ("imu.f_b", "imu_f"), ("imu.w_b", "imu_w"),
+                                       ("imu.rate_hz", "imu_rate_hz"), ("imu.grade", "imu_grade"),
+                                       ("imu.t_end", "t_end"), ("initial.t", "init_t"), ("initial.pos_n", "init_pos"),
+                                       ("initial.vel_n", "init_vel"), ("initial.quat_nb", "init_quat"),
+                                       ("initial.sigma", "init_sigma")) if attr not in kw]
+    if missing:
+        raise LogError(source, [f"{name} is missing" for name in missing])
+    if "scan_t" in kw and "scan_ranges" in kw:
+        kw.setdefault("scan_valid", np.isfinite(kw["scan_ranges"]))
+        kw["scan_ranges"] = np.where(kw["scan_valid"], kw["scan_ranges"], np.nan)
+    return FlightLog(**kw).validate(source)

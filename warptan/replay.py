@@ -1,0 +1,355 @@
+"""Filtering a recorded flight (``warptan replay``): a :class:`~warptan.flightlog.FlightLog` through the same filter
+as ``warptan run``, and simulated runs written as flight logs (``warptan run --export-log``).
+
+Timing: IMU sample k is held over its step ``[t_k, t_k+1)``; each step is integrated with its own length (the
+filter's ``predict_many(..., dt=)``). A step within 1 ppm of the nominal period (1 / ``imu.rate_hz``) is taken as the
+nominal period (float rounding of timestamps, not jitter), so an evenly sampled log runs exactly as the simulator.
+A measurement between two IMU samples **splits** that sample's step: the filter integrates the sample up to the
+measurement time, updates, and integrates the rest of the step after it (no interpolation of IMU data). A
+measurement within 1 ppm of a period of a sample boundary is taken at the boundary. Measurements before the first
+IMU sample or after the end of the last step are not used (counted in ``info["dropped_measurements"]``). The
+altimeter's barometric altitude is the barometer stream interpolated linearly at the altimeter's time (NaN = none
+when the barometer has no reading within 1 s).
+
+Truth, when the log has it, is interpolated to the update times (linear; quaternions normalised; exact at a
+recorded time), for the errors; without truth the errors are NaN and the report shows the estimate and its 3σ.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+from pathlib import Path
+
+import numpy as np
+
+from warptan.checks import FilterError
+from warptan.flightlog import MAX_GAP_S, FlightLog, LogError
+from warptan.frames import quat_to_mat
+from warptan.ins import Ins, NavState
+from warptan.measurement import Likelihood
+from warptan.mpf import MarginalizedParticleFilter
+from warptan.runner import collect_runs
+from warptan.sensors import AltimeterReading, PointCloud
+
+SNAP = 1e-6
+"""Relative tolerance (of the nominal period) within which a step is the nominal period and a time a boundary."""
+
+
+# ---------------------------------------------------------------------- simulation -> log
+def logs_from_record(record: dict, flight, config: dict, likelihood: Likelihood, total_seeds: list[int],
+                     seeds: list[int], terrain_spec: str) -> list[FlightLog]:
+    """One :class:`FlightLog` per seed of a simulated batch (``run_filter(record=...)``): the IMU samples, scans or
+    altimeter/barometer readings the filter received, the truth, the prior and the run's settings."""
+    ie, s = config["initial_error"], config["sensor"]
+    k_total = record["f"].shape[0]
+    t_imu = np.asarray(flight.t_s[:k_total], dtype=np.float64)
+    t_meas = np.asarray(flight.t_s[np.array(record["epochs"])], dtype=np.float64)
+    sigma_lin = None
+    logs = []
+    for b, (total, seed) in enumerate(zip(total_seeds, seeds, strict=True)):
+        from warptan.imu import imu_grade
+
+        grade = imu_grade(config["imu"]["grade"])
+        sigma_lin = np.concatenate([np.full(3, ie["vel_mps"]), np.radians(ie["att_deg"]), np.full(3, grade.accel_bias),
+                                    np.full(3, grade.gyro_bias)])
+        nominal0 = record["nominal0"][b]
+        bias = record["true_bias"][b][np.minimum(np.arange(k_total + 1), k_total - 1)]
+        meas = [epoch[b] for epoch in record["measurements"]]
+        kw: dict = {}
+        if s["model"] == "altimeter":
+            kw.update(alt_t=t_meas, alt_range=np.array([m.range_m for m in meas]),
+                      altimeter_sigma_m=s["altimeter_sigma_m"], baro_t=t_meas,
+                      baro_alt=np.array([m.baro_alt_m for m in meas]), baro_sigma_m=s["baro_sigma_m"])
+        else:
+            ranges = np.array([m.ranges_m for m in meas])
+            kw.update(scan_t=t_meas, scan_dirs=np.array([m.dirs_s for m in meas]), scan_ranges=ranges,
+                      scan_valid=np.isfinite(ranges), range_sigma_m=s["range_sigma_m"])
+        settings = {"config": config, "likelihood": dataclasses.asdict(likelihood), "seed": int(total),
+                    "scenario_seed": int(seed), "terrain_spec": terrain_spec}
+        logs.append(FlightLog(
+            imu_t=t_imu, imu_f=record["f"][:, b], imu_w=record["w"][:, b], imu_rate_hz=float(flight.rate_hz),
+            imu_grade=str(config["imu"]["grade"]), t_end=float(flight.t_s[k_total]), init_t=float(t_imu[0]),
+            init_pos=nominal0.pos_n, init_vel=nominal0.vel_n, init_quat=nominal0.quat_nb,
+            init_accel_bias=nominal0.accel_bias, init_gyro_bias=nominal0.gyro_bias,
+            init_sigma=np.r_[np.asarray(ie["pos_m"], dtype=np.float64), sigma_lin],
+            truth_t=np.asarray(flight.t_s[:k_total + 1], dtype=np.float64), truth_pos=flight.pos_n[:k_total + 1],
+            truth_vel=flight.vel_n[:k_total + 1], truth_quat=flight.quat_nb[:k_total + 1],
+            truth_accel_bias=bias[:, 0:3], truth_gyro_bias=bias[:, 3:6],
+            dem_reference=terrain_spec, settings=settings, name=f"{config['id']}_seed{seed}", **kw))
+    return logs
+
+
+# ---------------------------------------------------------------------- timeline
+def timeline(log: FlightLog, times: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The filter's steps for measurements at ``times``: ``(sample, dt, ends, used)`` — the IMU sample index and
+    length of each step, the number of steps before each used measurement, and which measurements are used (inside
+    the IMU span)."""
+    nominal = 1.0 / log.imu_rate_hz
+    tol = SNAP * nominal
+    edges = np.r_[log.imu_t, log.t_end]
+    full = np.diff(edges)
+    full = np.where(np.abs(full - nominal) <= tol, nominal, full)
+    used = (times >= edges[0] - tol) & (times <= edges[-1] + tol)
+    sample, dts, ends = [], [], []
+    t_cur, k = edges[0], 0
+    for tm in times[used]:
+        near = int(np.clip(np.searchsorted(edges, tm), 1, len(edges) - 1))
+        for j in (near - 1, near):
+            if abs(edges[j] - tm) <= tol:
+                tm = edges[j]
+        tm = max(tm, t_cur)
+        while k < len(full) and edges[k + 1] <= tm:
+            sample.append(k)
+            dts.append(full[k] if t_cur == edges[k] else edges[k + 1] - t_cur)
+            t_cur = edges[k + 1]
+            k += 1
+        if t_cur < tm:
+            sample.append(k)
+            dts.append(tm - t_cur)
+            t_cur = tm
+        ends.append(len(sample))
+    return np.array(sample, dtype=np.int64), np.array(dts, dtype=np.float64), np.array(ends, dtype=np.int64), used
+
+
+def _at(t_src: np.ndarray, values: np.ndarray, t: np.ndarray, unit: bool = False) -> np.ndarray:
+    """``values`` (T, n) at times ``t``: exact at a recorded time, else linear (normalised when ``unit``)."""
+    i = np.clip(np.searchsorted(t_src, t), 1, len(t_src) - 1)
+    t0, t1 = t_src[i - 1], t_src[i]
+    frac = np.clip((t - t0) / (t1 - t0), 0.0, 1.0)[:, None]
+    out = values[i - 1] + frac * (values[i] - values[i - 1])
+    if unit:
+        out = out / np.linalg.norm(out, axis=1, keepdims=True)
+    exact = np.searchsorted(t_src, t)
+    hit = (exact < len(t_src)) & (t_src[np.minimum(exact, len(t_src) - 1)] == t)
+    out[hit] = values[exact[hit]]
+    outside = (t < t_src[0]) | (t > t_src[-1])
+    out[outside] = np.nan
+    return out
+
+
+def _measurements(log: FlightLog, model_name: str, times_used: np.ndarray, idx: np.ndarray) -> list:
+    """The filter's measurement objects at the used measurement indices."""
+    if model_name == "altimeter":
+        baro = np.full(len(idx), np.nan)
+        if log.baro_t is not None:
+            baro = np.interp(times_used, log.baro_t, log.baro_alt, left=np.nan, right=np.nan)
+            near = np.abs(log.baro_t[np.clip(np.searchsorted(log.baro_t, times_used), 0, len(log.baro_t) - 1)]
+                          - times_used)
+            near = np.minimum(near, np.abs(log.baro_t[np.clip(np.searchsorted(log.baro_t, times_used) - 1, 0,
+                                                                len(log.baro_t) - 1)] - times_used))
+            baro[near > MAX_GAP_S] = np.nan
+        return [AltimeterReading(float(log.alt_range[j]), float(baro[i])) for i, j in enumerate(idx)]
+    rot = quat_to_mat(log.mount_quat)
+    mounted = not (np.array_equal(log.mount_quat, [1.0, 0.0, 0.0, 0.0]) and not log.mount_lever.any())
+    clouds = []
+    for j in idx:
+        ranges = np.where(log.scan_valid[j], log.scan_ranges[j], np.nan)
+        dirs = np.where(log.scan_valid[j][:, None], log.scan_dirs[j], [0.0, 0.0, 1.0])
+        if mounted:  # body-frame points, as range and direction from the body origin
+            clouds.append(PointCloud.from_points((ranges[:, None] * dirs) @ rot.T + log.mount_lever))
+        else:
+            clouds.append(PointCloud(dirs, ranges))
+    return clouds
+
+
+# ---------------------------------------------------------------------- replay
+def replay_config(log: FlightLog, model: str | None = None, backend: str | None = None,
+                  particles: int | None = None, likelihood: str | None = None) -> dict:
+    """The scenario-style config of a replay: the one the log was simulated with (settings), else S8's filter and
+    likelihood settings with the log's IMU grade, sensor and rates; the keywords override."""
+    from warptan.scenarios import load_config
+
+    stored = log.settings.get("config")
+    config = load_config("S8") if stored is None else json_copy(stored)
+    s = config["sensor"]
+    if stored is None:
+        config["id"] = "replay"
+        config["description"] = f"replay of {log.name}"
+        config["paper_rmse_m"] = [math.nan] * 3
+        config["imu"]["grade"], config["imu"]["rate_hz"] = log.imu_grade, log.imu_rate_hz
+        s["model"] = "sliding" if log.has_scans else "altimeter"
+        s["range_sigma_m"], s["altimeter_sigma_m"] = log.range_sigma_m, log.altimeter_sigma_m
+        s["baro_sigma_m"], s["use_baro"] = log.baro_sigma_m, log.baro_t is not None
+        times = log.scan_t if log.has_scans else log.alt_t
+        if len(times) > 1:
+            s["rate_hz"] = float(1.0 / np.median(np.diff(times)))
+        config["flight"]["speed_mps"] = float(max(np.linalg.norm(log.init_vel), 1.0))
+        config["flight"]["duration_s"] = float(log.t_end - log.imu_t[0])
+        config["flight"]["bank_deg"] = math.nan
+        config["flight"]["altitude_rule"] = "recorded"
+        config["filter"]["converged_after_s"] = min(config["filter"]["converged_after_s"],
+                                                    0.5 * config["flight"]["duration_s"])
+    if model is not None:
+        if model not in ("sliding", "raycast", "altimeter"):
+            raise FilterError(f"unknown model {model!r}; choose sliding, raycast or altimeter")
+        s["model"] = model
+    if backend is not None:
+        s["backend"] = backend
+    if particles is not None:
+        config["filter"]["particles"] = int(particles)
+    if likelihood is not None:
+        config["likelihood"]["kind"] = likelihood
+    if s["model"] == "altimeter" and not log.has_altimeter:
+        raise LogError(f"flight log {log.name}", ["the altimeter model needs altimeter readings (group /altimeter)"])
+    if s["model"] != "altimeter" and not log.has_scans:
+        raise LogError(f"flight log {log.name}", [f"the {s['model']} model needs point-cloud scans (group /scans)"])
+    return config
+
+
+def json_copy(value):
+    import json
+
+    return json.loads(json.dumps(value))
+
+
+def _likelihood(log: FlightLog, config: dict, the_map) -> Likelihood:
+    """The log's stored likelihood when the model is the one it was simulated with, else calibrated from the log:
+    sensor σ, map correlation from the speed and scan rate, footprint from the scan's extent at its median range."""
+    stored = log.settings.get("likelihood")
+    stored_config = log.settings.get("config")
+    if stored is not None and stored_config is not None and stored_config["sensor"]["model"] == config["sensor"][
+            "model"] and stored_config["likelihood"]["kind"] == config["likelihood"]["kind"]:
+        return Likelihood(**stored)
+    s, lk = config["sensor"], config["likelihood"]
+    noise = s["range_sigma_m"]
+    if s["model"] == "altimeter":
+        noise = math.hypot(s["altimeter_sigma_m"], s["baro_sigma_m"] if s["use_baro"] else 0.0)
+    step_m = max(config["flight"]["speed_mps"] / s["rate_hz"], 1e-3)
+    n_corr = max(1.0, math.sqrt(the_map.dn * the_map.de) / step_m)
+    n_fp = n_corr
+    if s["model"] != "altimeter":
+        valid = log.scan_valid
+        r = float(np.nanmedian(np.where(valid, log.scan_ranges, np.nan)))
+        along = np.where(valid, log.scan_dirs[..., 0] / np.maximum(log.scan_dirs[..., 2], 1e-3), np.nan)
+        footprint = r * float(np.nanmax(along) - np.nanmin(along)) if np.isfinite(along).any() else 0.0
+        n_fp = max(n_corr, footprint / step_m)
+    return Likelihood(lk["kind"], r_err=lk["r_err_m2"], sigma_m=None if lk["sigma_m"] == "auto" else lk["sigma_m"],
+                      nu=lk["nu"], sensor_sigma_m=noise, map_sigma_m=config["terrain"]["map_noise_m"],
+                      map_correlation=n_corr, footprint_correlation=n_fp)
+
+
+def check_coverage(log: FlightLog, terrain, ins_pos: np.ndarray) -> None:
+    """A :class:`LogError` when the DEM does not cover the flight: the initial position and the truth (without
+    truth: the INS-only track at the updates)."""
+    tracks = [("initial.pos_n", np.array([log.imu_t[0]]), log.init_pos[None]),
+              ("truth.pos_n", log.truth_t, log.truth_pos) if log.has_truth else ("INS-only track", None, ins_pos)]
+    problems = []
+    for name, t, pos in tracks:
+        inside = terrain.contains(pos[:, 0], pos[:, 1])
+        if not inside.all():
+            i = int(np.argmax(~inside))
+            when = f" at t = {t[i]:.2f} s" if t is not None else f" (epoch {i})"
+            problems.append(f"{name} leaves the DEM {terrain.name}{when}: north {pos[i, 0]:.1f} m, east "
+                            f"{pos[i, 1]:.1f} m (DEM north {terrain.bounds_ne[0]:.0f} … {terrain.bounds_ne[1]:.0f}, "
+                            f"east {terrain.bounds_ne[2]:.0f} … {terrain.bounds_ne[3]:.0f} m)")
+    if problems:
+        raise LogError(f"flight log {log.name}", problems)
+
+
+def replay(log: FlightLog, terrain=None, *, model: str | None = None, backend: str | None = None,
+           particles: int | None = None, likelihood: str | None = None, seed: int | None = None, device="cpu",
+           progress=None):
+    """Filter a recorded flight; returns a :class:`~warptan.scenarios.ScenarioResult` (errors NaN without truth).
+
+    Args:
+        log: The flight (validated).
+        terrain: The DEM (Terrain, name, path or spec); default the log's ``dem.reference``.
+        model, backend, particles, likelihood: Override the log's settings (default: the settings of the run that
+            wrote the log, else S8's with the log's sensors).
+        seed: The filter's seed (default the log's, else 0).
+        device: Warp device.
+        progress: Optional callable(k, n) per update.
+    """
+    from warptan.imu import imu_grade
+    from warptan.scenarios import ScenarioResult, filter_kwargs, map_terrain, resolve_terrain, scenario_model
+
+    log.validate(f"flight log {log.name}")
+    config = replay_config(log, model, backend, particles, likelihood)
+    spec = terrain if terrain is not None else (log.settings.get("terrain_spec") or log.dem_reference or None)
+    if spec is None:
+        raise LogError(f"flight log {log.name}", ["no DEM: the log names none (dem.reference); give --terrain"])
+    truth_terrain = resolve_terrain(config, spec)
+    filter_seed = int(log.settings.get("seed", 0) if seed is None else seed)
+    the_map = map_terrain(truth_terrain, config, filter_seed) if "config" in log.settings else truth_terrain
+    s = config["sensor"]
+    altimeter = s["model"] == "altimeter"
+    times = log.alt_t if altimeter else log.scan_t
+    sample, dts, ends, used = timeline(log, times)
+    nominal0 = NavState(log.init_pos, log.init_vel, log.init_quat, log.init_accel_bias, log.init_gyro_bias)
+    ins = Ins(nominal0, log.imu_rate_hz).run(log.imu_f[sample], log.imu_w[sample], dt=dts)["pos_n"]
+    ins_at = ins[np.r_[0, ends]]
+    check_coverage(log, truth_terrain, ins_at)
+    lik = _likelihood(log, config, the_map)
+    mpf_model = scenario_model(config, the_map, lik)
+    sig = log.init_sigma
+    mpf = MarginalizedParticleFilter(mpf_model, nominal0, imu_grade(log.imu_grade), log.imu_rate_hz, sig[0:3],
+                                     np.diag(sig[3:15] ** 2), n_particles=config["filter"]["particles"],
+                                     device=device, seed=filter_seed, **filter_kwargs(config))
+    idx = np.flatnonzero(used)
+    t_used = times[used]
+    prior = mpf.estimate()
+    received, update_time, predict_time = [], [], 0.0
+    t_start = time.perf_counter()
+    start = 0
+    for n, (j, end) in enumerate(zip(idx, ends, strict=True)):
+        t0 = time.perf_counter()
+        if end > start:
+            mpf.predict_many(log.imu_f[sample[start:end]], log.imu_w[sample[start:end]], dt=dts[start:end])
+        start = end
+        predict_time += time.perf_counter() - t0
+        meas = _measurements(log, s["model"], t_used[n:n + 1], np.array([j]))[0]
+        t0 = time.perf_counter()
+        mpf.update(meas, sync=False)
+        update_time.append(time.perf_counter() - t0)
+        received.append(mpf.last_n_received)
+        if progress is not None:
+            progress(n + 1, len(idx))
+    edges = np.r_[log.imu_t, log.t_end]
+    epoch_t = np.r_[edges[0], np.minimum(np.maximum(t_used, edges[0]), edges[-1])]
+    truth = bias = None
+    if log.has_truth:
+        truth = {"pos": _at(log.truth_t, log.truth_pos, epoch_t), "vel": _at(log.truth_t, log.truth_vel, epoch_t),
+                 "quat": _at(log.truth_t, log.truth_quat, epoch_t, unit=True)}
+        if log.truth_accel_bias is not None and log.truth_gyro_bias is not None:
+            bias = [_at(log.truth_t, np.hstack([log.truth_accel_bias, log.truth_gyro_bias]), epoch_t)]
+    run = collect_runs(mpf, epoch_t, truth, bias, [ins_at], prior, received, update_time, predict_time, False,
+                       {"imu_steps": len(sample), "meas_rate_hz": s["rate_hz"],
+                        "dropped_measurements": int((~used).sum()), "log": log.name})
+    wall = time.perf_counter() - t_start
+    return ScenarioResult(scenario=config["id"], seed=int(log.settings.get("scenario_seed", filter_seed)),
+                          device=run.device, terrain=truth_terrain.name, config=config, run=run, wall_s=wall,
+                          truth_terrain=truth_terrain, map=the_map.name, map_sigma_m=lik.map_sigma_m)
+
+
+# ---------------------------------------------------------------------- trajectory file
+def write_trajectory(result, terrain, folder: Path) -> list[str]:
+    """``<id>_seed<s>_trajectory.csv`` (time, NED estimate and 3σ, truth when known, and latitude/longitude/altitude
+    when the DEM has a CRS) and, with a CRS, ``..._trajectory.geojson`` (a LineString of the estimate, lon/lat/alt:
+    QGIS and Google Earth load it). Returns the file names."""
+    run = result.run
+    stem = f"{result.scenario}_seed{result.seed}_trajectory"
+    cols = {"t_s": run.t_s, "north_m": run.est_pos[:, 0], "east_m": run.est_pos[:, 1], "down_m": run.est_pos[:, 2],
+            "sigma3_north_m": run.sigma3_pos[:, 0], "sigma3_east_m": run.sigma3_pos[:, 1],
+            "sigma3_down_m": run.sigma3_pos[:, 2]}
+    lat = lon = None
+    if getattr(terrain, "crs_wkt", None):
+        lat, lon = terrain.ne_to_latlon(run.est_pos[:, 0], run.est_pos[:, 1])
+        cols.update(lat_deg=lat, lon_deg=lon, alt_m=-run.est_pos[:, 2])
+    if np.isfinite(run.truth_pos).any():
+        cols.update(truth_north_m=run.truth_pos[:, 0], truth_east_m=run.truth_pos[:, 1],
+                    truth_down_m=run.truth_pos[:, 2])
+    table = np.column_stack(list(cols.values()))
+    np.savetxt(folder / f"{stem}.csv", table, delimiter=",", header=",".join(cols), comments="", fmt="%.9g")
+    names = [f"{stem}.csv"]
+    if lat is not None:
+        import json
+
+        feature = {"type": "Feature", "properties": {"name": f"{result.scenario} estimate", "source": "warptan"},
+                   "geometry": {"type": "LineString",
+                                "coordinates": [[float(a), float(b), float(c)] for a, b, c in
+                                                zip(lon, lat, -run.est_pos[:, 2], strict=True)]}}
+        (folder / f"{stem}.geojson").write_text(json.dumps({"type": "FeatureCollection", "features": [feature]}))
+        names.append(f"{stem}.geojson")
+    return names
