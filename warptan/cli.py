@@ -210,11 +210,13 @@ def _write_logs(logs, folder, bags: bool) -> None:
 
 
 def _replay(args) -> int:
+    from warptan.device import resolve_device
     from warptan.outputs import OutputFolder
     from warptan.replay import replay
     from warptan.report import write_outputs
 
     out = OutputFolder(args.out if args.out is not None else "warptan-replay")
+    resolve_device(args.device)
     log = _load_flight(args)
     try:
         from tqdm import tqdm

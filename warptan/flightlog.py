@@ -144,7 +144,8 @@ def _increasing(name: str, t: np.ndarray, problems: list[str]) -> bool:
     back = np.diff(t) <= 0
     if back.any():
         i = int(np.argmax(back))
-        problems.append(f"{name} is not strictly increasing: t[{i + 1}] = {t[i + 1]!r} s after t[{i}] = {t[i]!r} s")
+        problems.append(f"{name} is not strictly increasing: t[{i + 1}] = {float(t[i + 1])!r} s after "
+                        f"t[{i}] = {float(t[i])!r} s")
         return False
     return True
 
@@ -183,13 +184,13 @@ def _problems(log: FlightLog) -> list[str]:
         _finite_rows("imu.w_b", log.imu_w, p)
     if ok_t:
         if not (np.isfinite(log.t_end) and log.t_end > log.imu_t[-1]):
-            p.append(f"imu.t_end = {log.t_end!r} s must be after the last sample (t = {log.imu_t[-1]!r} s)")
+            p.append(f"imu.t_end = {log.t_end!r} s must be after the last sample (t = {float(log.imu_t[-1])!r} s)")
         else:
             steps = log.step_s
             gap = steps > MAX_GAP_S
             if gap.any():
                 i = int(np.argmax(gap))
-                p.append(f"imu has a gap of {steps[i]:.3f} s after t = {log.imu_t[i]!r} s (sample {i}; at most "
+                p.append(f"imu has a gap of {steps[i]:.3f} s after t = {float(log.imu_t[i])!r} s (sample {i}; at most "
                          f"{MAX_GAP_S:g} s: a longer gap is lost data)")
     for name in ("init_pos", "init_vel", "init_accel_bias", "init_gyro_bias", "mount_lever"):
         a = getattr(log, name)
@@ -202,7 +203,7 @@ def _problems(log: FlightLog) -> list[str]:
             np.isfinite(log.init_sigma).all() and (log.init_sigma >= 0).all() and (log.init_sigma[:3] > 0).all()):
         p.append(f"initial.sigma must be 15 finite σ ≥ 0 (position σ > 0), got {log.init_sigma.tolist()}")
     if ok_t and not (np.isfinite(log.init_t) and abs(log.init_t - log.imu_t[0]) <= UNIT_TOL * log.step_s.max()):
-        p.append(f"initial.t = {log.init_t!r} s must be the time of the first IMU sample ({log.imu_t[0]!r} s)")
+        p.append(f"initial.t = {log.init_t!r} s must be the time of the first IMU sample ({float(log.imu_t[0])!r} s)")
     if not (log.has_scans or log.has_altimeter):
         p.append("the log has neither scans nor altimeter readings: nothing to navigate with")
     if log.has_scans and _increasing("scans.t", log.scan_t, p):

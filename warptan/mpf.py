@@ -536,7 +536,7 @@ class MarginalizedParticleFilter:
             bad = ~((steps > 0.0) & (steps <= MAX_STEP_S))
         if bad.any():
             i = int(np.argmax(bad))
-            raise FilterError(f"IMU step dt[{i}] = {steps[i]!r} s: each step must be in (0, {MAX_STEP_S:g}] s "
+            raise FilterError(f"IMU step dt[{i}] = {float(steps[i])!r} s: each step must be in (0, {MAX_STEP_S:g}] s "
                               "(a longer gap is lost data, not a step)")
         return steps
 
