@@ -53,7 +53,7 @@ def test_replay_without_truth_writes_estimate_and_trajectory(simulated, tmp_path
     out = tmp_path / "out"
     proc = subprocess.run([sys.executable, "-m", "warptan", "replay", str(path), "--terrain", "rugged", "--out",
                            str(out), "--quiet", "--no-plots", "--particles", "128"],
-                          capture_output=True, text=True, timeout=300)
+                          capture_output=True, text=True, timeout=300, cwd=tmp_path)
     assert proc.returncode == 0, proc.stderr
     data = json.loads((out / "results.json").read_text())
     run = data["runs"][0]
@@ -131,7 +131,7 @@ def test_replay_refuses_a_dem_that_does_not_cover_the_flight(simulated, tmp_path
     out = tmp_path / "out"
     proc = subprocess.run([sys.executable, "-m", "warptan", "replay", str(path), "--terrain",
                            "synthetic:rugged,size_m=300", "--out", str(out), "--quiet"],
-                          capture_output=True, text=True, timeout=300)
+                          capture_output=True, text=True, timeout=300, cwd=tmp_path)
     assert proc.returncode == 2
     assert "leaves the DEM" in proc.stderr and "Traceback" not in proc.stderr
     assert not out.exists()
