@@ -41,6 +41,7 @@ from pathlib import Path
 import numpy as np
 
 from warptan.checks import FilterError
+from warptan.imu import IMU_GRADES
 
 FORMAT = "warptan-flight-log"
 VERSION = 1
@@ -170,8 +171,6 @@ def _unit_quats(name: str, q: np.ndarray, problems: list[str]) -> None:
 
 def _problems(log: FlightLog) -> list[str]:
     p: list[str] = []
-    from warptan.imu import IMU_GRADES
-
     if log.imu_grade not in IMU_GRADES:
         p.append(f"imu.grade {log.imu_grade!r} is not a grade warptan knows ({', '.join(IMU_GRADES)})")
     if not (np.isfinite(log.imu_rate_hz) and log.imu_rate_hz > 0):

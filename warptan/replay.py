@@ -17,6 +17,7 @@ recorded time), for the errors; without truth the errors are NaN and the report 
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import math
 import time
@@ -27,10 +28,11 @@ import numpy as np
 from warptan.checks import FilterError
 from warptan.flightlog import MAX_GAP_S, FlightLog, LogError
 from warptan.frames import quat_to_mat
+from warptan.imu import imu_grade
 from warptan.ins import Ins, NavState
 from warptan.measurement import Likelihood
 from warptan.mpf import MarginalizedParticleFilter
-from warptan.runner import collect_runs
+from warptan.runner import InitialErrors, collect_runs, prior_linear_sigma
 from warptan.sensors import AltimeterReading, PointCloud
 
 SNAP = 1e-6
@@ -46,14 +48,11 @@ def logs_from_record(record: dict, flight, config: dict, likelihood: Likelihood,
     k_total = record["f"].shape[0]
     t_imu = np.asarray(flight.t_s[:k_total], dtype=np.float64)
     t_meas = np.asarray(flight.t_s[np.array(record["epochs"])], dtype=np.float64)
-    sigma_lin = None
+    sigma = np.r_[np.asarray(ie["pos_m"], dtype=np.float64),
+                  prior_linear_sigma(InitialErrors(tuple(ie["pos_m"]), ie["vel_mps"], tuple(ie["att_deg"])),
+                                     imu_grade(config["imu"]["grade"]))]
     logs = []
     for b, (total, seed) in enumerate(zip(total_seeds, seeds, strict=True)):
-        from warptan.imu import imu_grade
-
-        grade = imu_grade(config["imu"]["grade"])
-        sigma_lin = np.concatenate([np.full(3, ie["vel_mps"]), np.radians(ie["att_deg"]), np.full(3, grade.accel_bias),
-                                    np.full(3, grade.gyro_bias)])
         nominal0 = record["nominal0"][b]
         bias = record["true_bias"][b][np.minimum(np.arange(k_total + 1), k_total - 1)]
         meas = [epoch[b] for epoch in record["measurements"]]
@@ -73,7 +72,7 @@ def logs_from_record(record: dict, flight, config: dict, likelihood: Likelihood,
             imu_grade=str(config["imu"]["grade"]), t_end=float(flight.t_s[k_total]), init_t=float(t_imu[0]),
             init_pos=nominal0.pos_n, init_vel=nominal0.vel_n, init_quat=nominal0.quat_nb,
             init_accel_bias=nominal0.accel_bias, init_gyro_bias=nominal0.gyro_bias,
-            init_sigma=np.r_[np.asarray(ie["pos_m"], dtype=np.float64), sigma_lin],
+            init_sigma=sigma,
             truth_t=np.asarray(flight.t_s[:k_total + 1], dtype=np.float64), truth_pos=flight.pos_n[:k_total + 1],
             truth_vel=flight.vel_n[:k_total + 1], truth_quat=flight.quat_nb[:k_total + 1],
             truth_accel_bias=bias[:, 0:3], truth_gyro_bias=bias[:, 3:6],
@@ -129,18 +128,18 @@ def _at(t_src: np.ndarray, values: np.ndarray, t: np.ndarray, unit: bool = False
     return out
 
 
-def _measurements(log: FlightLog, model_name: str, times_used: np.ndarray, idx: np.ndarray) -> list:
-    """The filter's measurement objects at the used measurement indices."""
+def _measurements(log: FlightLog, model_name: str, idx: np.ndarray) -> list:
+    """The filter's measurement objects of the log's measurements ``idx`` (altimeter readings or point clouds)."""
     if model_name == "altimeter":
+        t = log.alt_t[idx]
         baro = np.full(len(idx), np.nan)
         if log.baro_t is not None:
-            baro = np.interp(times_used, log.baro_t, log.baro_alt, left=np.nan, right=np.nan)
-            near = np.abs(log.baro_t[np.clip(np.searchsorted(log.baro_t, times_used), 0, len(log.baro_t) - 1)]
-                          - times_used)
-            near = np.minimum(near, np.abs(log.baro_t[np.clip(np.searchsorted(log.baro_t, times_used) - 1, 0,
-                                                                len(log.baro_t) - 1)] - times_used))
-            baro[near > MAX_GAP_S] = np.nan
-        return [AltimeterReading(float(log.alt_range[j]), float(baro[i])) for i, j in enumerate(idx)]
+            baro = np.interp(t, log.baro_t, log.baro_alt, left=np.nan, right=np.nan)
+            after = np.clip(np.searchsorted(log.baro_t, t), 0, len(log.baro_t) - 1)
+            before = np.maximum(after - 1, 0)
+            gap = np.minimum(np.abs(log.baro_t[after] - t), np.abs(log.baro_t[before] - t))
+            baro[gap > MAX_GAP_S] = np.nan
+        return [AltimeterReading(float(log.alt_range[j]), float(h)) for j, h in zip(idx, baro, strict=True)]
     rot = quat_to_mat(log.mount_quat)
     mounted = not (np.array_equal(log.mount_quat, [1.0, 0.0, 0.0, 0.0]) and not log.mount_lever.any())
     clouds = []
@@ -162,7 +161,7 @@ def replay_config(log: FlightLog, model: str | None = None, backend: str | None 
     from warptan.scenarios import load_config
 
     stored = log.settings.get("config")
-    config = load_config("S8") if stored is None else json_copy(stored)
+    config = load_config("S8") if stored is None else copy.deepcopy(stored)
     s = config["sensor"]
     if stored is None:
         config["id"] = "replay"
@@ -198,36 +197,24 @@ def replay_config(log: FlightLog, model: str | None = None, backend: str | None 
     return config
 
 
-def json_copy(value):
-    import json
-
-    return json.loads(json.dumps(value))
-
-
 def _likelihood(log: FlightLog, config: dict, the_map) -> Likelihood:
-    """The log's stored likelihood when the model is the one it was simulated with, else calibrated from the log:
-    sensor σ, map correlation from the speed and scan rate, footprint from the scan's extent at its median range."""
-    stored = log.settings.get("likelihood")
-    stored_config = log.settings.get("config")
-    if stored is not None and stored_config is not None and stored_config["sensor"]["model"] == config["sensor"][
-            "model"] and stored_config["likelihood"]["kind"] == config["likelihood"]["kind"]:
+    """The log's stored likelihood when the model and likelihood are the ones it was simulated with, else the
+    scenarios' calibration (:func:`~warptan.scenarios.scenario_likelihood`) with the scan footprint measured from
+    the log: the along-track extent of its directions at their median range."""
+    from warptan.scenarios import scenario_likelihood
+
+    stored, stored_config = log.settings.get("likelihood"), log.settings.get("config")
+    if stored is not None and stored_config is not None and all(
+            stored_config[group][key] == config[group][key] for group, key in (("sensor", "model"),
+                                                                             ("likelihood", "kind"))):
         return Likelihood(**stored)
-    s, lk = config["sensor"], config["likelihood"]
-    noise = s["range_sigma_m"]
-    if s["model"] == "altimeter":
-        noise = math.hypot(s["altimeter_sigma_m"], s["baro_sigma_m"] if s["use_baro"] else 0.0)
-    step_m = max(config["flight"]["speed_mps"] / s["rate_hz"], 1e-3)
-    n_corr = max(1.0, math.sqrt(the_map.dn * the_map.de) / step_m)
-    n_fp = n_corr
-    if s["model"] != "altimeter":
+    footprint = None
+    if config["sensor"]["model"] != "altimeter":
         valid = log.scan_valid
-        r = float(np.nanmedian(np.where(valid, log.scan_ranges, np.nan)))
+        median_range = float(np.nanmedian(np.where(valid, log.scan_ranges, np.nan)))
         along = np.where(valid, log.scan_dirs[..., 0] / np.maximum(log.scan_dirs[..., 2], 1e-3), np.nan)
-        footprint = r * float(np.nanmax(along) - np.nanmin(along)) if np.isfinite(along).any() else 0.0
-        n_fp = max(n_corr, footprint / step_m)
-    return Likelihood(lk["kind"], r_err=lk["r_err_m2"], sigma_m=None if lk["sigma_m"] == "auto" else lk["sigma_m"],
-                      nu=lk["nu"], sensor_sigma_m=noise, map_sigma_m=config["terrain"]["map_noise_m"],
-                      map_correlation=n_corr, footprint_correlation=n_fp)
+        footprint = median_range * float(np.nanmax(along) - np.nanmin(along)) if np.isfinite(along).any() else 0.0
+    return scenario_likelihood(config, the_map, None, footprint_m=footprint)
 
 
 def check_coverage(log: FlightLog, terrain, ins_pos: np.ndarray) -> None:
@@ -262,7 +249,6 @@ def replay(log: FlightLog, terrain=None, *, model: str | None = None, backend: s
         device: Warp device.
         progress: Optional callable(k, n) per update.
     """
-    from warptan.imu import imu_grade
     from warptan.scenarios import ScenarioResult, filter_kwargs, map_terrain, resolve_terrain, scenario_model
 
     log.validate(f"flight log {log.name}")
@@ -289,17 +275,17 @@ def replay(log: FlightLog, terrain=None, *, model: str | None = None, backend: s
                                      device=device, seed=filter_seed, **filter_kwargs(config))
     idx = np.flatnonzero(used)
     t_used = times[used]
+    measurements = _measurements(log, s["model"], idx)
     prior = mpf.estimate()
     received, update_time, predict_time = [], [], 0.0
     t_start = time.perf_counter()
     start = 0
-    for n, (j, end) in enumerate(zip(idx, ends, strict=True)):
+    for n, (meas, end) in enumerate(zip(measurements, ends, strict=True)):
         t0 = time.perf_counter()
         if end > start:
             mpf.predict_many(log.imu_f[sample[start:end]], log.imu_w[sample[start:end]], dt=dts[start:end])
         start = end
         predict_time += time.perf_counter() - t0
-        meas = _measurements(log, s["model"], t_used[n:n + 1], np.array([j]))[0]
         t0 = time.perf_counter()
         mpf.update(meas, sync=False)
         update_time.append(time.perf_counter() - t0)

@@ -28,7 +28,7 @@ from __future__ import annotations
 
 import json
 import math
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -101,7 +101,6 @@ class BagConfig:
     baro_sigma_m: float = 1.0
     dem: str = ""
     settings_json: str = ""
-    extra: dict = field(default_factory=dict)
 
     @classmethod
     def load(cls, path) -> BagConfig:
@@ -111,7 +110,7 @@ class BagConfig:
             data = tomllib.loads(path.read_text())
         except (OSError, tomllib.TOMLDecodeError) as err:
             raise LogError(f"bag config {path}", [f"does not load: {err}"]) from None
-        known = {f for f in cls.__dataclass_fields__ if f != "extra"}
+        known = set(cls.__dataclass_fields__)
         unknown = sorted(set(data) - known)
         if unknown:
             raise LogError(f"bag config {path}", [f"unknown key(s) {', '.join(unknown)} (known: "
@@ -132,7 +131,7 @@ class BagConfig:
         lines = []
         for name in self.__dataclass_fields__:
             value = getattr(self, name)
-            if name == "extra" or value is None:
+            if value is None:
                 continue
             if isinstance(value, str):
                 lines.append(f"{name} = {json.dumps(value)}")

@@ -117,12 +117,15 @@ def initial_nominal(truth0: NavState, errors: InitialErrors, rng: np.random.Gene
     return NavState(truth0.pos_n - dp0, truth0.vel_n - dv0, q / np.linalg.norm(q))
 
 
+def prior_linear_sigma(errors: InitialErrors, grade) -> np.ndarray:
+    """(12,) prior σ of [dv, dth, dba, dbg]: the initial velocity/attitude σ and the grade's turn-on bias σ."""
+    return np.concatenate([np.full(3, errors.vel_mps), np.radians(errors.att_deg), np.full(3, grade.accel_bias),
+                           np.full(3, grade.gyro_bias)])
+
+
 def prior_linear_cov(errors: InitialErrors, imu: ImuModel) -> np.ndarray:
-    """P0 of [dv, dth, dba, dbg]: the initial velocity/attitude σ and the grade's turn-on bias σ."""
-    g = imu.grade
-    sig = np.concatenate([np.full(3, errors.vel_mps), np.radians(errors.att_deg), np.full(3, g.accel_bias),
-                          np.full(3, g.gyro_bias)])
-    return np.diag(sig**2)
+    """P0 of [dv, dth, dba, dbg] (diagonal, :func:`prior_linear_sigma` squared)."""
+    return np.diag(prior_linear_sigma(errors, imu.grade) ** 2)
 
 
 def run_filter(truth: Trajectory, terrain_map, model, imu: ImuModel | Sequence[ImuModel], sensor=None, *,
@@ -203,9 +206,9 @@ def run_filter(truth: Trajectory, terrain_map, model, imu: ImuModel | Sequence[I
                     for rng in rngs]
         else:
             meas = sensor.measure_many(terrain_truth, p_true, q_true, rngs, device=mpf.device)
-        t0 = time.perf_counter()
         if record is not None:
             record.setdefault("measurements", []).append(meas)
+        t0 = time.perf_counter()
         mpf.update(meas if batched else meas[0], sync=False)
         update_time.append(time.perf_counter() - t0)
         received.append(mpf.last_n_received)

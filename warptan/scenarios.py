@@ -610,7 +610,8 @@ class ScenarioResult:
             }
 
 
-def scenario_likelihood(config: dict, the_map: Terrain, truth: Terrain | None = None) -> Likelihood:
+def scenario_likelihood(config: dict, the_map: Terrain, truth: Terrain | None = None,
+                        footprint_m: float | None = None) -> Likelihood:
     """The scenario's likelihood; ``sigma_m = "auto"`` calibrates σ from the sensor noise (range; altimeter ⊕
     barometer for the altimeter with a barometer), the map noise and the
     model's surface mismatch, with the map part inflated by the updates over which the scan reads the same DEM
@@ -623,7 +624,8 @@ def scenario_likelihood(config: dict, the_map: Terrain, truth: Terrain | None = 
     the_map.interpolation_sigma_m(map_noise_m))``: the map's own bilinear error at its post spacing, estimated
     from its roughness (:meth:`~warptan.terrain.Terrain.interpolation_sigma_m`; 30 m tile at 60/90/180 m posts:
     2.8/5.1/12.1 m estimated, 2.3/4.8/12.9 m measured against the 30 m triangles). A map on the world's own
-    posts has no interpolation error beyond the bilinear-vs-triangles mismatch every sliding model counts."""
+    posts has no interpolation error beyond the bilinear-vs-triangles mismatch every sliding model counts.
+    ``footprint_m`` replaces the scenario's footprint (a recorded flight's, measured from its scans)."""
     lk, s = config["likelihood"], config["sensor"]
     noise_m = s["range_sigma_m"]
     if s["model"] == "altimeter":  # the residual a - (h_baro - h(p)) carries both sensors' noise
@@ -631,9 +633,10 @@ def scenario_likelihood(config: dict, the_map: Terrain, truth: Terrain | None = 
     step_m = config["flight"]["speed_mps"] / s["rate_hz"]
     n_corr = max(1.0, math.sqrt(the_map.dn * the_map.de) / step_m)
     n_fp = n_corr
-    if s["model"] != "altimeter":  # the scan's along-track footprint at the flight's clearance
-        footprint_m = 2.0 * ABOVE_TERRAIN_M[config["flight"]["altitude_rule"]] * math.tan(
-            math.radians(s["scan_half_angle_deg"]))
+    if s["model"] != "altimeter":  # the scan's along-track footprint (default: at the flight's clearance)
+        if footprint_m is None:
+            footprint_m = 2.0 * ABOVE_TERRAIN_M[config["flight"]["altitude_rule"]] * math.tan(
+                math.radians(s["scan_half_angle_deg"]))
         n_fp = max(n_corr, footprint_m / step_m)
     map_sigma = config["terrain"]["map_noise_m"]
     if lk["map_aware"] and truth is not None and map_grid_differs(config, truth):
