@@ -1,5 +1,5 @@
-"""The ``warptan`` command line: ``warptan run`` (scenarios, reports, plots), ``warptan replay`` (recorded flights)
-and ``warptan terrain``."""
+"""The ``warptan`` command line: ``warptan run`` (scenarios, reports, plots), ``warptan replay`` (recorded flights),
+``warptan campaign`` (sweeps × seeds, local or on Ray) and ``warptan terrain``."""
 
 from __future__ import annotations
 
@@ -182,6 +182,43 @@ def _run(args) -> int:
     if not written["plots"] and not args.no_plots:
         print("plots skipped: matplotlib is not installed (pip install 'warptan[plot]')")
     print("wrote " + ", ".join(written["files"]))
+    return 0
+
+
+def _campaign(args) -> int:
+    from warptan.campaign import Campaign, run_campaign, write_campaign
+    from warptan.outputs import OutputFolder
+
+    out = OutputFolder(args.out)
+    campaign = Campaign.load(args.file)
+    if args.address is not None and args.engine != "ray":
+        raise ValueError("--address names a Ray cluster; it needs --engine ray")
+    if args.engine == "local":
+        from warptan.device import resolve_device
+
+        resolve_device(args.device)
+    plans = campaign.check(args.device if args.engine == "local" else "cpu")
+    if args.check:
+        for b, (config, truth, flight) in zip(campaign.batches, plans, strict=True):
+            print(f"{b.label}: ok ({truth.name}{_map_words(config)}, {flight.duration_s:.0f} s, "
+                  f"{config['sensor']['model']}, {len(b.seeds)} seed(s){'' if b.batched else ', seed by seed'})")
+        print(f"{len(campaign.batches)} batch(es); output folder {out.path}: ok")
+        return 0
+    if not args.quiet:
+        print(f"warptan campaign {campaign.title}: {len(campaign.batches)} batch(es) × {len(campaign.seeds)} seed(s), "
+              f"engine {args.engine}, device {args.device}", file=sys.stderr)
+    result = run_campaign(campaign, engine=args.engine, device=args.device, address=args.address,
+                          cpus_per_task=args.cpus_per_task, progress=not args.quiet, checked=True)
+    written = write_campaign(result, out, plots=not args.no_plots)
+    print(written["table"])
+    if not written["plots"] and not args.no_plots and campaign.sweep:
+        print("plots skipped: matplotlib is not installed (pip install 'warptan[plot]')")
+    print("wrote " + ", ".join(written["files"]))
+    if result.failures:
+        print(f"warptan: error: {len(result.failures)} of {len(campaign.batches)} batch(es) failed after "
+              f"{result.failures[0]['attempts']} attempts (listed in campaign.json and campaign.md); the other rows "
+              "were written", file=sys.stderr)
+        return 1
     return 0
 
 
@@ -385,6 +422,27 @@ def build_parser() -> argparse.ArgumentParser:
     bag.add_argument("--odom-topic", default=None, help="nav_msgs/Odometry truth topic (default /truth)")
     bag.add_argument("--imu-grade", default=None, help="IMU grade (default navigation)")
     rep.set_defaults(func=_replay)
+
+    camp = sub.add_parser("campaign", help="parameter sweeps × seeds × scenarios, in-process or on a Ray cluster",
+                          description="Run a campaign file (scenarios, seeds, [overrides], [sweep]): one batch per "
+                                      "(scenario, combination), in this process or as Ray tasks; write campaign.json, "
+                                      "campaign.md and one plot per swept parameter.")
+    camp.add_argument("file", help="campaign .toml file")
+    camp.add_argument("--engine", choices=("local", "ray"), default="local",
+                      help="local: in-process, one batch after another (default); ray: one Ray task per batch "
+                           "(pip install 'warptan[cluster]')")
+    camp.add_argument("--address", default=None,
+                      help="Ray cluster address (default: start a local cluster for the campaign)")
+    camp.add_argument("--device", default="cpu",
+                      help="cpu or a CUDA device (local: cuda:0; ray: cuda = one GPU per task)")
+    camp.add_argument("--cpus-per-task", type=count_arg, default=1,
+                      help="ray on the CPU: CPUs each task asks for (its launch threads; default 1)")
+    camp.add_argument("--out", default="warptan-campaign", help="output folder (default warptan-campaign)")
+    camp.add_argument("--check", action="store_true",
+                      help="validate the file and every batch (scenario, seeds, memory, terrain, flight) and stop")
+    camp.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
+    camp.add_argument("--quiet", action="store_true", help="no progress bar")
+    camp.set_defaults(func=_campaign)
     return parser
 
 

@@ -1,0 +1,205 @@
+"""Campaigns (``warptan campaign``): the file, validation before work, rows against direct runs, the local and Ray
+engines giving identical rows, retries and failure reports."""
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from warptan.campaign import Campaign, CampaignError, make_row, run_batch, run_campaign, write_campaign
+from warptan.report import ci95
+from warptan.scenarios import run_scenario, run_scenario_batch
+
+SMALL = {"scenarios": ["S8"], "seeds": 2, "overrides": {"duration_s": 3.0}, "sweep": {"particles": [100, 200, 300]}}
+"""A campaign of three short batches (about 1 s on the CPU together)."""
+
+
+def _rows_json(rows) -> str:
+    from warptan.outputs import json_ready
+
+    return json.dumps(json_ready(rows), sort_keys=True, allow_nan=False)
+
+
+def _cli(*args, cwd):
+    """``warptan ARGS`` with the current directory off the import path (as the installed console script runs)."""
+    code = "import sys; sys.path.pop(0); from warptan.cli import main; sys.exit(main())"
+    return subprocess.run([sys.executable, "-c", code, *args], capture_output=True, text=True, cwd=cwd, timeout=600)
+
+
+@pytest.fixture(scope="module")
+def small_local():
+    campaign = Campaign.from_dict(SMALL)
+    return run_campaign(campaign, engine="local", progress=False)
+
+
+def test_file_problems_are_listed_together(tmp_path):
+    bad = {"scenarios": ["S8", "all"], "seeds": [1, 1, -2], "overides": {}, "overrides": {"particles": 10, "foo": 1},
+           "sweep": {"particles": [1, 2], "likelihood": "paper", "backend": ["dda", "dda"]}}
+    with pytest.raises(CampaignError) as err:
+        Campaign.from_dict(bad, source="bad.toml")
+    text = str(err.value)
+    for needle in ("unknown key 'overides' (did you mean 'overrides'?)", "'all' runs every scenario",
+                   "seeds must be ≥ 0, got [-2]", "seed(s) [1] given more than once",
+                   "[overrides] 'foo' is not a run_scenario keyword", "[sweep] likelihood must be a non-empty list",
+                   "[sweep] backend repeats ['dda']", "'particles' is both in [overrides] and in [sweep]"):
+        assert needle in text, (needle, text)
+    assert text.startswith("8 problem(s) in campaign bad.toml")
+    with pytest.raises(CampaignError, match="scenarios is missing"):
+        Campaign.from_dict({"seeds": 1})
+    with pytest.raises(CampaignError, match="seeds must be a count"):
+        Campaign.from_dict({"scenarios": "S8", "seeds": True})
+    with pytest.raises(CampaignError, match="unknown scenario 'S13'"):
+        Campaign.from_dict({"scenarios": ["S13"], "seeds": 1})
+    path = tmp_path / "broken.toml"
+    path.write_text("scenarios = [S8\n")
+    with pytest.raises(CampaignError, match="broken.toml: not a valid TOML file"):
+        Campaign.load(path)
+
+
+def test_batches_are_the_cartesian_product_and_paths_resolve(tmp_path):
+    scenario = Path(__file__).resolve().parents[1] / "warptan" / "scenario_files" / "S8.toml"
+    (tmp_path / "mine.toml").write_text(scenario.read_text().replace('id = "S8"', 'id = "MINE"'))
+    (tmp_path / "campaign.toml").write_text(
+        'scenarios = ["s8", "mine.toml"]\nseeds = [4, 7]\n[overrides]\nduration_s = 3.0\n'
+        '[sweep]\nparticles = [100, 200]\nlikelihood = ["paper", "gaussian"]\n')
+    c = Campaign.load(tmp_path / "campaign.toml")
+    assert c.scenarios == ["S8", str((tmp_path / "mine.toml").resolve())]
+    assert [b.label for b in c.batches[:4]] == ["S8 particles=100 likelihood=paper",
+                                                "S8 particles=100 likelihood=gaussian",
+                                                "S8 particles=200 likelihood=paper",
+                                                "S8 particles=200 likelihood=gaussian"]
+    assert len(c.batches) == 8 and c.batches[5].name == "mine"
+    assert all(b.seeds == (4, 7) and b.overrides["duration_s"] == 3.0 for b in c.batches)
+
+
+def test_every_batch_is_checked_before_any_runs():
+    c = Campaign.from_dict({"scenarios": ["S7", "S8"], "seeds": 1, "overrides": {"duration_s": 3.0},
+                            "sweep": {"particles": [100, 0], "backend": ["dda", "warp-drive"]}})
+    with pytest.raises(CampaignError) as err:
+        run_campaign(c, task=lambda *a: pytest.fail("a batch ran before the campaign was checked"))
+    text = str(err.value)
+    assert text.startswith("6 of 8 batch(es) of campaign campaign cannot run")
+    assert "S7 particles=0 backend=dda" in text and "S8 particles=100 backend=warp-drive" in text
+    with pytest.raises(CampaignError, match="unknown engine 'spark'"):
+        run_campaign(Campaign.from_dict(SMALL), engine="spark")
+    with pytest.raises(CampaignError, match="needs --engine ray"):
+        run_campaign(Campaign.from_dict(SMALL), address="ray://head:10001")
+
+
+def test_rows_are_the_direct_runs_summarised(small_local):
+    """Each row is the mean ± 95 % interval of the per-seed RMSE of the batched runs run_scenario_batch gives."""
+    assert [r["params"] for r in small_local.rows] == [{"particles": p} for p in (100, 200, 300)]
+    assert not small_local.failures and len(small_local.tasks) == 3
+    for row in small_local.rows:
+        direct = run_scenario_batch("S8", [0, 1], duration_s=3.0, particles=row["params"]["particles"])
+        mean, half = ci95([r.rmse for r in direct])
+        np.testing.assert_array_equal(row["rmse_m"], mean)
+        np.testing.assert_array_equal(row["rmse_ci95_m"], half)
+        np.testing.assert_array_equal(row["coverage_3sigma"],
+                                      np.mean([r.summary()["coverage_3sigma"] for r in direct], axis=0))
+        assert row["seeds"] == [0, 1] and row["scenario"] == "S8"
+        assert np.isnan(row["rmse_converged_m"]).all()  # 3 s < converged_after_s: undefined, not made up
+    assert small_local.rows[0]["rmse_m"] != small_local.rows[1]["rmse_m"]  # the sweep reached the runs
+
+
+def test_a_scenario_that_cannot_be_batched_runs_seed_by_seed():
+    """A map with per-seed noise (map_seed = -1) gives every seed its own map: the batch runs seed by seed and its
+    row is the one run_scenario gives per seed."""
+    c = Campaign.from_dict({"scenarios": ["S8"], "seeds": 2,
+                            "overrides": {"duration_s": 2.0, "particles": 100, "map_noise_m": 2.0, "map_seed": -1}})
+    result = run_campaign(c, progress=False)
+    assert c.batches[0].batched is False
+    direct = [run_scenario("S8", seed=s, duration_s=2.0, particles=100, map_noise_m=2.0, map_seed=-1)
+              for s in (0, 1)]
+    assert _rows_json(result.rows) == _rows_json([make_row(c.batches[0], [r.summary() for r in direct])])
+
+
+def test_a_failing_batch_is_retried_once_then_reported(tmp_path, small_local):
+    c = Campaign.from_dict(SMALL)
+    result = run_campaign(c, progress=False, task=_flaky_task(tmp_path))
+    _assert_flaky_outcome(result, small_local, tmp_path)
+
+
+def _flaky_task(marks: Path):
+    """A batch function whose particles=100 batch fails once (then works) and particles=300 batch always fails;
+    every attempt leaves a file in ``marks`` (a closure: Ray ships it to its workers by value)."""
+    def task(spec, device, cpu_threads=None):
+        p = spec["overrides"]["particles"]
+        attempt = len(list(marks.glob(f"p{p}_*")))
+        (marks / f"p{p}_{attempt}").touch()
+        if (p == 100 and attempt == 0) or p == 300:
+            raise RuntimeError(f"injected failure of particles={p}, attempt {attempt}")
+        return run_batch(spec, device, cpu_threads)
+    return task
+
+
+def _assert_flaky_outcome(result, reference, marks: Path):
+    assert sorted(m.name for m in marks.iterdir()) == ["p100_0", "p100_1", "p200_0", "p300_0", "p300_1"]
+    assert _rows_json(result.rows) == _rows_json(reference.rows[:2])  # the retried batch: the same row
+    (failure,) = result.failures
+    assert failure["params"] == {"particles": 300} and failure["attempts"] == 2 and failure["scenario"] == "S8"
+    assert failure["error"] == "RuntimeError: injected failure of particles=300, attempt 1"
+
+
+def test_outputs_table_json_and_one_plot_per_swept_parameter(tmp_path, small_local):
+    pytest.importorskip("matplotlib", reason="plots need the plot extra")
+    written = write_campaign(small_local, tmp_path / "out")
+    names = sorted(Path(f).name for f in written["files"])
+    assert names == ["campaign.json", "campaign.md", "campaign_particles.png"]
+    data = json.loads((tmp_path / "out" / "campaign.json").read_text())
+    assert data["meta"]["engine"] == "local" and data["meta"]["batches"] == {"done": 3, "failed": 0}
+    assert data["meta"]["campaign"]["sweep"] == {"particles": [100, 200, 300]} and data["failures"] == []
+    assert {"git_commit", "devices", "wall_s", "command", "tasks"} <= set(data["meta"])
+    assert data["rows"][0]["rmse_converged_m"] == [None, None, None]  # strict JSON
+    table = (tmp_path / "out" / "campaign.md").read_text()
+    assert "| S8 | 200 | 2 |" in table and "Every run: `duration_s = 3.0`" in table
+
+
+def test_cli_check_and_bad_input(tmp_path):
+    good = tmp_path / "c.toml"
+    good.write_text('scenarios = ["S8"]\nseeds = 2\n[overrides]\nduration_s = 3.0\n[sweep]\nparticles = [100, 200]\n')
+    proc = _cli("campaign", str(good), "--check", cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    assert "S8 particles=200: ok" in proc.stdout and "2 batch(es)" in proc.stdout
+    assert not (tmp_path / "warptan-campaign").exists()
+    bad = tmp_path / "bad.toml"
+    bad.write_text('scenarios = ["S8"]\nseeds = 0\n')
+    proc = _cli("campaign", str(bad), "--out", str(tmp_path / "o"), cwd=tmp_path)
+    assert proc.returncode == 2 and proc.stderr.strip().splitlines() == [
+        f"warptan: error: 1 problem(s) in campaign {bad}: seeds must be ≥ 1, got 0"]
+    assert not (tmp_path / "o").exists()
+    proc = _cli("campaign", str(good), "--address", "10.0.0.1:6379", cwd=tmp_path)
+    assert proc.returncode == 2 and "needs --engine ray" in proc.stderr
+    proc = _cli("campaign", str(tmp_path / "missing.toml"), cwd=tmp_path)
+    assert proc.returncode == 2 and "campaign file not found" in proc.stderr
+
+
+@pytest.mark.slow
+def test_ray_engine_gives_the_local_rows(tmp_path, small_local):
+    """``--engine ray`` on a local cluster (this machine's CPUs): the same rows as in-process. The command runs
+    in a folder holding a decoy ``warptan`` package that must not reach the workers (Ray puts the driver's
+    directory on their import path unless the campaign gives them a working folder of their own)."""
+    pytest.importorskip("ray", reason="the Ray engine needs the cluster extra")
+    decoy = tmp_path / "warptan"
+    decoy.mkdir()
+    (decoy / "__init__.py").write_text("raise ImportError('the decoy warptan in the current directory was imported')")
+    (tmp_path / "c.toml").write_text(
+        'scenarios = ["S8"]\nseeds = 2\n[overrides]\nduration_s = 3.0\n[sweep]\nparticles = [100, 200, 300]\n')
+    proc = _cli("campaign", "c.toml", "--engine", "ray", "--out", "ray-out", "--quiet", "--no-plots", cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    data = json.loads((tmp_path / "ray-out" / "campaign.json").read_text())
+    assert _rows_json(data["rows"]) == _rows_json(small_local.rows)
+    assert data["meta"]["engine"] == "ray" and data["meta"]["cluster"]["resources"]["CPU"] >= 1
+    assert len({t["pid"] for t in data["meta"]["tasks"]}) >= 1 and data["failures"] == []
+
+
+@pytest.mark.slow
+def test_ray_engine_retries_once_and_keeps_the_other_rows(tmp_path, small_local):
+    pytest.importorskip("ray", reason="the Ray engine needs the cluster extra")
+    c = Campaign.from_dict(SMALL)
+    result = run_campaign(c, engine="ray", progress=False, task=_flaky_task(tmp_path))
+    _assert_flaky_outcome(result, small_local, tmp_path)
+    assert "injected failure of particles=300" in result.failures[0]["traceback"]
