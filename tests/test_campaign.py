@@ -55,7 +55,7 @@ def test_file_problems_are_listed_together(tmp_path):
         Campaign.from_dict({"scenarios": ["S13"], "seeds": 1})
     path = tmp_path / "broken.toml"
     path.write_text("scenarios = [S8\n")
-    with pytest.raises(CampaignError, match="broken.toml: not a valid TOML file"):
+    with pytest.raises(CampaignError, match=r"broken\.toml: not a valid TOML file"):
         Campaign.load(path)
 
 

@@ -215,9 +215,10 @@ def _campaign(args) -> int:
         print("plots skipped: matplotlib is not installed (pip install 'warptan[plot]')")
     print("wrote " + ", ".join(written["files"]))
     if result.failures:
+        kept = f"the other {len(result.rows)} row(s) were written" if result.rows else "no row was written"
         print(f"warptan: error: {len(result.failures)} of {len(campaign.batches)} batch(es) failed after "
-              f"{result.failures[0]['attempts']} attempts (listed in campaign.json and campaign.md); the other rows "
-              "were written", file=sys.stderr)
+              f"{result.failures[0]['attempts']} attempts (listed in campaign.json and campaign.md); {kept}",
+              file=sys.stderr)
         return 1
     return 0
 
