@@ -203,3 +203,34 @@ def test_ray_engine_retries_once_and_keeps_the_other_rows(tmp_path, small_local)
     result = run_campaign(c, engine="ray", progress=False, task=_flaky_task(tmp_path))
     _assert_flaky_outcome(result, small_local, tmp_path)
     assert "injected failure of particles=300" in result.failures[0]["traceback"]
+
+
+@pytest.mark.slow
+def test_ray_gpu_tasks_run_on_the_gpu_ray_assigned(tmp_path):
+    """With ``--device cuda`` each task asks Ray for one GPU and runs on the Warp device of the GPU Ray assigned
+    (workers see every GPU and are reused). A cluster told it has two GPUs (this CPU machine's stand-in): tasks that
+    run at the same time were given different devices, and only those two. The stand-in task records the device it
+    was given and runs the batch on the CPU."""
+    ray = pytest.importorskip("ray", reason="the Ray engine needs the cluster extra")
+
+    def task(spec, device, cpu_threads=None):
+        import time as _time
+
+        _time.sleep(1.0)  # long enough for the first two tasks to overlap
+        return {**run_batch(spec, "cpu"), "device_given": device}
+
+    ray.init(num_cpus=2, num_gpus=2, include_dashboard=False, log_to_driver=False,
+             runtime_env={"working_dir": str(tmp_path)})
+    try:
+        result = run_campaign(Campaign.from_dict(SMALL), engine="ray", device="cuda", progress=False, task=task)
+    finally:
+        ray.shutdown()
+    tasks = result.tasks
+    assert not result.failures and len(tasks) == 3
+    assert {t["device_given"] for t in tasks} <= {"cuda:0", "cuda:1"}
+    assert all(t["device_given"] == f"cuda:{t['ray_gpu_ids'][0]}" for t in tasks)
+    overlapping = [(a, b) for i, a in enumerate(tasks) for b in tasks[i + 1:]
+                   if a["start_unix"] < b["end_unix"] and b["start_unix"] < a["end_unix"]]
+    assert overlapping and all(a["device_given"] != b["device_given"] for a, b in overlapping)
+    with pytest.raises(CampaignError, match="not 'cuda:1'"):
+        run_campaign(Campaign.from_dict(SMALL), engine="ray", device="cuda:1")

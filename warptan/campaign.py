@@ -430,6 +430,22 @@ def traceback_text(err: BaseException) -> str:
     return "".join(traceback.format_exception(type(err), err, err.__traceback__))[-4000:]
 
 
+def _on_ray_worker(task: Callable, spec: dict, cuda: bool, cpu_threads: int | None) -> dict:
+    """A batch on a Ray worker: on the GPU Ray assigned to this task (its Warp ordinal among the GPUs the worker
+    sees), else on the CPU with ``cpu_threads`` launch threads."""
+    device, ids = "cpu", []
+    if cuda:
+        import ray
+
+        ids = [str(i) for i in ray.get_gpu_ids()]
+        visible = os.environ.get("CUDA_VISIBLE_DEVICES")
+        order = [v.strip() for v in visible.split(",")] if visible else None
+        if not ids or (order is not None and ids[0] not in order):
+            raise RuntimeError(f"Ray assigned GPU(s) {ids} but the worker sees CUDA_VISIBLE_DEVICES={visible}")
+        device = f"cuda:{order.index(ids[0]) if order is not None else int(ids[0])}"
+    return {**task(spec, device, cpu_threads), "ray_gpu_ids": ids}
+
+
 def _run_ray(campaign: Campaign, cuda: bool, address: str | None, cpus_per_task: int, task: Callable,
              progress: bool) -> tuple[dict[int, dict], dict]:
     try:
@@ -462,12 +478,17 @@ def _run_ray(campaign: Campaign, cuda: bool, address: str | None, cpus_per_task:
         if not cuda and resources.get("CPU", 0) < cpus_per_task:
             raise CampaignError(f"--cpus-per-task {cpus_per_task}: the Ray cluster has {resources.get('CPU', 0):g} "
                                 "CPUs")
-        # A GPU task's worker exits after it (Ray's default for GPU tasks, kept explicit): CUDA_VISIBLE_DEVICES is
-        # fixed when a process first touches CUDA, so a reused worker could not move to another GPU.
-        options = {"num_gpus": 1, "num_cpus": 1, "max_calls": 1} if cuda else {"num_cpus": cpus_per_task}
-        remote = ray.remote(max_retries=RETRIES, retry_exceptions=True, **options)(task)
-        device, threads = ("cuda:0", None) if cuda else ("cpu", cpus_per_task)
-        refs = {remote.remote(b.spec(), device, threads): b for b in campaign.batches}
+        if cuda:
+            # Workers are reused between GPU tasks (a fresh worker costs seconds: Python, Warp, CUDA context,
+            # kernel modules). Ray would pin each worker's CUDA_VISIBLE_DEVICES to its first task's GPU, which a
+            # CUDA process cannot change later; so the workers see every GPU and each task runs on the one Ray
+            # assigned to it (:func:`_on_ray_worker`).
+            options = {"num_gpus": 1, "num_cpus": 1, "max_calls": 0,
+                       "runtime_env": {"env_vars": {"RAY_EXPERIMENTAL_NOSET_CUDA_VISIBLE_DEVICES": "1"}}}
+        else:
+            options = {"num_cpus": cpus_per_task}
+        remote = ray.remote(max_retries=RETRIES, retry_exceptions=True, **options)(_on_ray_worker)
+        refs = {remote.remote(task, b.spec(), cuda, None if cuda else cpus_per_task): b for b in campaign.batches}
         outcomes = {}
         with _bar(len(refs), progress) as bar:
             while refs:
