@@ -68,9 +68,14 @@ def run_config(config: str, campaign: Path, device: str, folder: Path, cpus_per_
         return result
     data = json.loads((out / "campaign.json").read_text())
     tasks = data["meta"]["tasks"]
+    first = min((t["start_unix"] for t in tasks), default=0.0)
+    span = max((t["end_unix"] for t in tasks), default=0.0) - first
     result.update({
         "wall_s": data["meta"]["wall_s"], "batches": data["meta"]["batches"], "failures": data["failures"],
         "max_concurrent_batches": max_concurrent(tasks),
+        "tasks_span_s": span, "batch_s_sum": sum(t["wall_s"] for t in tasks),
+        "timeline": [{"batch": t["batch"], "device": t["device"], "pid": t["pid"],
+                      "start_s": t["start_unix"] - first, "end_s": t["end_unix"] - first} for t in tasks],
         "devices": sorted({f"{t['host']} {t['device']} CUDA_VISIBLE_DEVICES={t.get('cuda_visible_devices')} "
                            f"({t['device_name']})" for t in tasks}),
         "batch_wall_s": sorted(t["wall_s"] for t in tasks), "rows": data["rows"],
@@ -103,9 +108,15 @@ def main() -> None:
         for config in args.configs:
             r = run_config(config, args.campaign, args.device, Path(tmp), args.cpus_per_task)
             runs.append(r)
-            print(f"{config:>10}: " + (f"wall {r['wall_s']:.1f} s (process {r['process_s']:.1f} s), "
-                                        f"{r['batches']['done']} batches, at most {r['max_concurrent_batches']} at once"
-                                        if "wall_s" in r else f"failed: {r['error']}"), flush=True)
+            if args.json:  # what is measured so far survives an interrupted run
+                write_json(args.json, {"partial": True, "configs": runs})
+            if "wall_s" in r:
+                line = (f"wall {r['wall_s']:.1f} s (process {r['process_s']:.1f} s; first batch start to last end "
+                        f"{r['tasks_span_s']:.1f} s), {r['batches']['done']} batches, at most "
+                        f"{r['max_concurrent_batches']} at once")
+            else:
+                line = f"failed: {r['error']}"
+            print(f"{config:>10}: {line}", flush=True)
     done = [r for r in runs if "rows" in r]
     reference = json.dumps(done[0]["rows"], sort_keys=True) if done else None
     identical = [r["config"] for r in done if json.dumps(r["rows"], sort_keys=True) == reference]
