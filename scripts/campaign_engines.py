@@ -133,7 +133,12 @@ def main() -> None:
         rows = done[0]["rows"] if done else []
         for r in runs:
             r.pop("rows", None)
-        write_json(args.json, {"meta": run_meta(["cpu"], campaign=str(args.campaign), device=args.device),
+        devices = ["cpu"]
+        if args.device == "cuda":  # every GPU of the machine (after the runs: this process touches CUDA only now)
+            import warp as wp
+
+            devices += [d.alias for d in wp.get_cuda_devices()]
+        write_json(args.json, {"meta": run_meta(devices, campaign=str(args.campaign), device=args.device),
                                "summary": summary, "configs": runs, "rows": rows})
         print(f"wrote {args.json}")
     if summary["rows_differ_in"] or summary["failed"]:
