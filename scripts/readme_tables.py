@@ -249,10 +249,38 @@ def batch_block() -> str:
             + _provenance("results/s7_batch100/results.json"))
 
 
+def campaign_block() -> str:
+    sources = ("results/campaign_engines_cpu.json", "results/campaign_engines_2gpu.json",
+               "results/campaign_engines_100seeds_2gpu.json")
+    lines = ["| campaign | configuration | wall time (s) | first batch start → last batch end (s) | sum of batch "
+             "times (s) | batches at once | devices | rows identical to the first configuration |",
+             "|---|---|---|---|---|---|---|---|"]
+    for path in sources:
+        data = _load(path)
+        same = set(data["summary"]["rows_identical_in"])
+        name = Path(data["meta"]["campaign"]).name
+        for c in data["configs"]:
+            where = ", ".join(sorted({t["device"] for t in c["timeline"]}))
+            config = c["config"] if c.get("cuda_visible_devices") is None else \
+                f"{c['engine']}, CUDA_VISIBLE_DEVICES={c['cuda_visible_devices']}"
+            lines.append(f"| `{name}` | {config} | {c['wall_s']:.1f} | {c['tasks_span_s']:.1f} | "
+                         f"{c['batch_s_sum']:.1f} | {c['max_concurrent_batches']} | {where} | "
+                         f"{'yes' if c['config'] in same else 'NO'} |")
+        for missing in data["summary"].get("not_run", []):
+            lines.append(f"| `{name}` | {missing}: not measured | | | | | | |")
+    ratios = []
+    for path in sources[1:]:
+        data = _load(path)
+        walls = {c["config"]: c["wall_s"] for c in data["configs"]}
+        ratios.append(f"`{Path(data['meta']['campaign']).name}` {walls['ray:0'] / walls['ray:0,1']:.2f}×")
+    lines += ["", "Wall time of Ray on one GPU over Ray on two: " + ", ".join(ratios) + ". " + _provenance(*sources)]
+    return "\n".join(lines)
+
+
 BLOCKS = {"paper": paper_block, "attitude": attitude_block, "paper30": lambda: paper_block("results/paper30"),
           "closed_loop": closed_loop_block, "map_error": map_error_block, "long_flight": long_flight_block,
           "step": step_block, "profile": profile_block, "kernels": kernels_block, "threads": threads_block,
-          "numpy": numpy_block, "batch": batch_block}
+          "numpy": numpy_block, "batch": batch_block, "campaign": campaign_block}
 
 _BLOCK = re.compile(r"<!-- generated:(\w+) -->\n.*?<!-- /generated:\1 -->", re.S)
 _FENCE = re.compile(r"```.*?```", re.S)

@@ -16,6 +16,7 @@ Conventions (SPEC §1), used everywhere in the package:
 """
 
 from warptan import frames
+from warptan.campaign import Campaign, CampaignError, run_campaign, write_campaign
 from warptan.checks import FilterError
 from warptan.device import resolve_device
 from warptan.imu import IMU_GRADES, ImuModel
@@ -38,6 +39,8 @@ __all__ = [
     "AltimeterModel",
     "AltimeterReading",
     "Barometer",
+    "Campaign",
+    "CampaignError",
     "Climb",
     "FilterError",
     "ImuModel",
@@ -66,7 +69,9 @@ __all__ = [
     "make_model",
     "raycast",
     "resolve_device",
+    "run_campaign",
     "run_filter",
     "run_scenario",
     "run_scenario_batch",
+    "write_campaign",
 ]
