@@ -419,12 +419,12 @@ def _run_local(campaign: Campaign, device: str, task: Callable, progress: bool) 
                     break
                 except Exception as err:  # a failed batch is reported, the campaign goes on
                     outcomes[b.index] = {"error": _describe_error(err), "attempts": attempt,
-                                         "traceback": traceback_text(err)}
+                                         "traceback": _traceback_text(err)}
             bar.update(1)
     return outcomes
 
 
-def traceback_text(err: BaseException) -> str:
+def _traceback_text(err: BaseException) -> str:
     import traceback
 
     return "".join(traceback.format_exception(type(err), err, err.__traceback__))[-4000:]
