@@ -178,22 +178,25 @@ def test_cli_check_and_bad_input(tmp_path):
 
 
 @pytest.mark.slow
-def test_ray_engine_gives_the_local_rows(tmp_path, small_local):
-    """``--engine ray`` on a local cluster (this machine's CPUs): the same rows as in-process. The command runs
-    in a folder holding a decoy ``warptan`` package that must not reach the workers (Ray puts the driver's
-    directory on their import path unless the campaign gives them a working folder of their own)."""
+def test_ray_engine_gives_the_local_rows(tmp_path):
+    """Issue 18's check: ``campaigns/example_quick.toml`` (S7 and S8 × 3 particle counts × 2 likelihoods, 8 s, 2
+    seeds) with ``--engine ray`` on a local cluster (this machine's CPUs) gives the rows of the local engine. The
+    command runs in a folder holding a decoy ``warptan`` package that must not reach the workers (Ray puts the
+    driver's directory on their import path unless the campaign gives them a working folder of their own)."""
     pytest.importorskip("ray", reason="the Ray engine needs the cluster extra")
+    example = Path(__file__).resolve().parents[1] / "campaigns" / "example_quick.toml"
+    local = run_campaign(Campaign.load(example), progress=False)
+    assert len(local.rows) == 12 and not local.failures
     decoy = tmp_path / "warptan"
     decoy.mkdir()
     (decoy / "__init__.py").write_text("raise ImportError('the decoy warptan in the current directory was imported')")
-    (tmp_path / "c.toml").write_text(
-        'scenarios = ["S8"]\nseeds = 2\n[overrides]\nduration_s = 3.0\n[sweep]\nparticles = [100, 200, 300]\n')
-    proc = _cli("campaign", "c.toml", "--engine", "ray", "--out", "ray-out", "--quiet", "--no-plots", cwd=tmp_path)
+    proc = _cli("campaign", str(example), "--engine", "ray", "--out", "ray-out", "--quiet", "--no-plots",
+                cwd=tmp_path)
     assert proc.returncode == 0, proc.stderr[-3000:]
     data = json.loads((tmp_path / "ray-out" / "campaign.json").read_text())
-    assert _rows_json(data["rows"]) == _rows_json(small_local.rows)
+    assert _rows_json(data["rows"]) == _rows_json(local.rows)
     assert data["meta"]["engine"] == "ray" and data["meta"]["cluster"]["resources"]["CPU"] >= 1
-    assert len({t["pid"] for t in data["meta"]["tasks"]}) >= 1 and data["failures"] == []
+    assert data["failures"] == [] and len(data["meta"]["tasks"]) == 12
 
 
 @pytest.mark.slow
