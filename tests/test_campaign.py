@@ -173,6 +173,8 @@ def test_cli_check_and_bad_input(tmp_path):
     assert not (tmp_path / "o").exists()
     proc = _cli("campaign", str(good), "--address", "10.0.0.1:6379", cwd=tmp_path)
     assert proc.returncode == 2 and "needs --engine ray" in proc.stderr
+    proc = _cli("campaign", str(good), "--engine", "ray", "--device", "cuda:1", "--check", cwd=tmp_path)
+    assert proc.returncode == 2 and "give --device cuda" in proc.stderr  # refused already by --check
     proc = _cli("campaign", str(tmp_path / "missing.toml"), cwd=tmp_path)
     assert proc.returncode == 2 and "campaign file not found" in proc.stderr
 

@@ -36,7 +36,7 @@ import socket
 import tempfile
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -47,12 +47,10 @@ except ModuleNotFoundError:  # Python 3.10
     import tomli as tomllib
 
 from warptan.report import ci95
-from warptan.scenarios import OVERRIDES, SCENARIO_IDS, load_config, prepare, scenario_path
+from warptan.scenarios import RUN_KEYWORDS, SCENARIO_IDS, load_config, per_seed_maps, prepare, scenario_path
 
 ENGINES = ("local", "ray")
 CAMPAIGN_KEYS = ("title", "scenarios", "seeds", "overrides", "sweep")
-RUN_KEYWORDS = (*OVERRIDES, "terrain", "paper_rates")
-"""The run_scenario keywords a campaign may set or sweep."""
 PATH_KEYWORDS = ("terrain", "map_path")
 """Keywords whose string values may be files, resolved relative to the campaign file's folder."""
 RETRIES = 1
@@ -108,7 +106,6 @@ class Campaign:
     sweep: dict
     batches: list[Batch] = field(default_factory=list)
 
-
     @classmethod
     def load(cls, path: str | os.PathLike) -> Campaign:
         """Read a campaign file; raises :class:`CampaignError` naming the file and every problem in it."""
@@ -162,12 +159,9 @@ class Campaign:
         problems, plans = [], []
         for i, b in enumerate(self.batches):
             try:
-                t = load_config(b.scenario, **b.overrides)["terrain"]
-                batched = not (len(b.seeds) > 1 and t["map_noise_m"] and t["map_seed"] < 0)
-                self.batches[i] = b = Batch(b.index, b.scenario, b.params, b.overrides, b.seeds, batched)
-                plan = prepare(b.scenario, seeds=list(b.seeds), device=device, batched=batched, **b.overrides) \
-                    if batched else prepare(b.scenario, seed=b.seeds[0], device=device, **b.overrides)
-                plans.append(plan)
+                self.batches[i] = b = replace(b, batched=not per_seed_maps(load_config(b.scenario, **b.overrides)))
+                plans.append(prepare(b.scenario, seeds=list(b.seeds), device=device, batched=b.batched,
+                                     **b.overrides))
             except (ValueError, OSError) as err:
                 problems.append(f"{b.label}: " + " ".join(str(err).split()))
         if problems:
@@ -341,6 +335,27 @@ class CampaignResult:
     cluster: dict | None = None
 
 
+def check_options(engine: str, device, address: str | None = None, cpus_per_task: int = 1) -> str:
+    """Refuse (:class:`CampaignError`, or ValueError for an absent local device) engine options that cannot run;
+    returns the device the batches' memory is checked against (Ray workers may have other devices than this
+    process: this host's memory)."""
+    if engine not in ENGINES:
+        raise CampaignError(f"unknown engine {engine!r}; use one of {', '.join(ENGINES)}")
+    if address is not None and engine != "ray":
+        raise CampaignError("--address names a Ray cluster; it needs --engine ray")
+    if not isinstance(cpus_per_task, int) or cpus_per_task < 1:
+        raise CampaignError(f"cpus_per_task must be a whole number ≥ 1, got {cpus_per_task!r}")
+    if engine == "local":
+        from warptan.device import resolve_device
+
+        resolve_device(device)
+        return device
+    if str(device).startswith("cuda") and str(device) != "cuda":
+        raise CampaignError(f"with the ray engine give --device cuda (each task gets one GPU of the cluster), "
+                            f"not {device!r}")
+    return "cpu"
+
+
 def run_campaign(campaign: Campaign, engine: str = "local", device: str = "cpu", address: str | None = None,
                  cpus_per_task: int = 1, progress: bool = True, task: Callable | None = None,
                  checked: bool = False) -> CampaignResult:
@@ -354,32 +369,20 @@ def run_campaign(campaign: Campaign, engine: str = "local", device: str = "cpu",
         cpus_per_task: CPUs a Ray task asks for on a CPU device (its CPU launch threads).
         progress: A tqdm progress bar over the batches (stderr).
         task: The function that runs a batch (default :func:`run_batch`; for instrumentation and tests).
-        checked: :meth:`Campaign.check` was already called with this device.
+        checked: :meth:`Campaign.check` was already called (with the device :func:`check_options` returns).
 
     A batch that raises is run once more, then reported in ``failures``; the other batches are kept.
     """
-    if engine not in ENGINES:
-        raise CampaignError(f"unknown engine {engine!r}; use one of {', '.join(ENGINES)}")
-    if address is not None and engine != "ray":
-        raise CampaignError("--address names a Ray cluster; it needs --engine ray")
-    if not isinstance(cpus_per_task, int) or cpus_per_task < 1:
-        raise CampaignError(f"cpus_per_task must be a whole number ≥ 1, got {cpus_per_task!r}")
-    cuda = str(device).startswith("cuda")
-    if engine == "ray" and cuda and str(device) != "cuda":
-        raise CampaignError(f"with the ray engine give --device cuda (each task gets one GPU of the cluster), "
-                            f"not {device!r}")
-    if engine == "local":
-        from warptan.device import resolve_device
-
-        resolve_device(device)
-    if not checked:  # Ray workers may have other devices: memory is checked against this host's
-        campaign.check(device if engine == "local" else "cpu")
+    memory_device = check_options(engine, device, address, cpus_per_task)
+    if not checked:
+        campaign.check(memory_device)
     task = task or run_batch
     t0 = time.perf_counter()
     if engine == "local":
         outcomes, cluster = _run_local(campaign, device, task, progress), None
     else:
-        outcomes, cluster = _run_ray(campaign, cuda, address, cpus_per_task, task, progress)
+        outcomes, cluster = _run_ray(campaign, str(device).startswith("cuda"), address, cpus_per_task, task,
+                                     progress)
     wall = time.perf_counter() - t0
     rows, failures, tasks = [], [], []
     for b in campaign.batches:

@@ -186,18 +186,12 @@ def _run(args) -> int:
 
 
 def _campaign(args) -> int:
-    from warptan.campaign import Campaign, run_campaign, write_campaign
+    from warptan.campaign import Campaign, check_options, run_campaign, write_campaign
     from warptan.outputs import OutputFolder
 
     out = OutputFolder(args.out)
     campaign = Campaign.load(args.file)
-    if args.address is not None and args.engine != "ray":
-        raise ValueError("--address names a Ray cluster; it needs --engine ray")
-    if args.engine == "local":
-        from warptan.device import resolve_device
-
-        resolve_device(args.device)
-    plans = campaign.check(args.device if args.engine == "local" else "cpu")
+    plans = campaign.check(check_options(args.engine, args.device, args.address, args.cpus_per_task))
     if args.check:
         for b, (config, truth, flight) in zip(campaign.batches, plans, strict=True):
             print(f"{b.label}: ok ({truth.name}{_map_words(config)}, {flight.duration_s:.0f} s, "

@@ -207,6 +207,8 @@ OVERRIDES = {
     "map_aware": ("likelihood", "map_aware"),
 }
 """run_scenario keyword -> (section, key). Also: terrain= (path, spec or Terrain), paper_rates=True."""
+RUN_KEYWORDS = (*OVERRIDES, "terrain", "paper_rates")
+"""Every keyword run_scenario takes besides the seed, device and callbacks."""
 
 
 def _type_ok(value, kind) -> bool:
@@ -374,7 +376,7 @@ def load_config(name_or_path, **overrides) -> dict:
         if value is None or key in ("terrain", "paper_rates"):
             continue
         if key not in OVERRIDES:
-            hint = difflib.get_close_matches(key, [*OVERRIDES, "terrain", "paper_rates"], n=1)
+            hint = difflib.get_close_matches(key, RUN_KEYWORDS, n=1)
             problems.append(f"unknown override {key!r}" + (f" (did you mean {hint[0]!r}?)" if hint else ""))
             continue
         section, k = OVERRIDES[key]
@@ -655,15 +657,22 @@ def prepare(name_or_path, seed: int = 0, terrain=None, *, seeds=None, device=Non
     config = load_config(name_or_path, **overrides)
     seeds = check_seeds([seed] if seeds is None else seeds, config["run"]["seed"])
     t = config["terrain"]
-    if batched and len(seeds) > 1 and t["map_noise_m"] and t["map_seed"] < 0:
+    if batched and len(seeds) > 1 and per_seed_maps(config):
         raise ScenarioError(f"{config['id']}: map_noise_m = {t['map_noise_m']} with map_seed = -1 gives every seed its "
                             "own map; run the seeds one by one (without --batch), or fix terrain.map_seed")
-    if device is not None:
-        check_memory(config, len(seeds), device)
+    if device is not None:  # seeds one by one hold one seed's memory at a time
+        check_memory(config, len(seeds) if batched else 1, device)
     truth_terrain = resolve_terrain(config, terrain)
     flight = build_flight(config, truth_terrain)
     map_terrain(truth_terrain, config, config["run"]["seed"] + seeds[0])
     return config, truth_terrain, flight
+
+
+def per_seed_maps(config: dict) -> bool:
+    """The filter's map has noise drawn per seed (``map_noise_m`` with ``map_seed = -1``): every seed reads its own
+    map, so the seeds cannot share one batched filter."""
+    t = config["terrain"]
+    return bool(t["map_noise_m"]) and t["map_seed"] < 0
 
 
 def run_scenario(name_or_path, seed: int = 0, device="cpu", progress=None, export_logs=None,
