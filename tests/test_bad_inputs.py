@@ -314,7 +314,7 @@ def test_other_expected_failures_are_one_line(capsys, tmp_path):
         (["terrain", "export", "synthetic:flat,size_m=2000,spacing=100", str(tmp_path / "x.xyz")],
          "unsupported mesh format"),
         (["terrain", "export", "synthetic:flat,size_m=2000,spacing=100", str(tmp_path / "no" / "x.ply")],
-         "No such file or directory"),
+         "does not exist"),
         (["run", "S99", "--check"], "unknown scenario"),
         (["run", "S8", "--backend", "foo", "--check"], "sensor.backend = 'foo'"),
         (["run", "S8", "--map", str(tmp_path / "absent.tif"), "--check"], "absent.tif"),

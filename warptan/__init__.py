@@ -17,7 +17,7 @@ Conventions (SPEC §1), used everywhere in the package:
 
 from warptan import frames
 from warptan.campaign import Campaign, CampaignError, run_campaign, write_campaign
-from warptan.checks import FilterError
+from warptan.checks import FilterError, FilterWarning
 from warptan.device import resolve_device
 from warptan.imu import IMU_GRADES, ImuModel
 from warptan.ins import Ins, NavState
@@ -43,6 +43,7 @@ __all__ = [
     "CampaignError",
     "Climb",
     "FilterError",
+    "FilterWarning",
     "ImuModel",
     "InitialErrors",
     "Ins",

@@ -26,6 +26,7 @@ Ray is imported only by the Ray engine (``pip install "warptan[cluster]"``): ``i
 
 from __future__ import annotations
 
+import collections
 import difflib
 import itertools
 import logging
@@ -47,10 +48,12 @@ except ModuleNotFoundError:  # Python 3.10
     import tomli as tomllib
 
 from warptan.report import ci95
-from warptan.scenarios import RUN_KEYWORDS, SCENARIO_IDS, load_config, per_seed_maps, prepare, scenario_path
+from warptan.scenarios import MAX_SEED, RUN_KEYWORDS, SCENARIO_IDS, load_config, per_seed_maps, prepare, scenario_path
 
 ENGINES = ("local", "ray")
 CAMPAIGN_KEYS = ("title", "scenarios", "seeds", "overrides", "sweep")
+MAX_CAMPAIGN_SEEDS = 1_000_000
+"""Most seeds a campaign runs per batch (a count beyond it is refused before a list of seeds is made)."""
 PATH_KEYWORDS = ("terrain", "map_path")
 """Keywords whose string values may be files, resolved relative to the campaign file's folder."""
 RETRIES = 1
@@ -159,9 +162,11 @@ class Campaign:
         problems, plans = [], []
         for i, b in enumerate(self.batches):
             try:
-                self.batches[i] = b = replace(b, batched=not per_seed_maps(load_config(b.scenario, **b.overrides)))
+                source = f"campaign {self.source} [overrides]/[sweep]"
+                config = load_config(b.scenario, overrides_from=source, **b.overrides)
+                self.batches[i] = b = replace(b, batched=not per_seed_maps(config))
                 plans.append(prepare(b.scenario, seeds=list(b.seeds), device=device, batched=b.batched,
-                                     **b.overrides))
+                                     overrides_from=source, **b.overrides))
             except (ValueError, OSError) as err:
                 problems.append(f"{b.label}: " + " ".join(str(err).split()))
         if problems:
@@ -176,6 +181,14 @@ class Campaign:
             raise CampaignError(f"campaign {self.source}: two scenarios have the id {', '.join(clash)} (rows are kept "
                                 "by id); give one of the files another id")
         return plans
+
+    def inputs(self) -> list[str]:
+        """The files the campaign reads besides itself: scenario files and DEMs named in [overrides] or [sweep]."""
+        files = [s for s in self.scenarios if s not in SCENARIO_IDS]
+        for key in PATH_KEYWORDS:
+            values = [self.overrides.get(key), *self.sweep.get(key, [])]
+            files += [v for v in values if isinstance(v, str) and v and os.path.exists(v)]
+        return files
 
     def describe(self) -> dict:
         """The campaign as JSON-ready data (campaign.json's ``meta.campaign``)."""
@@ -221,14 +234,21 @@ def _seeds(value, problems: list[str]) -> list[int]:
         if value < 1:
             problems.append(f"seeds must be ≥ 1, got {value}")
             return []
+        if value > MAX_CAMPAIGN_SEEDS:  # arithmetic, before any list of seeds is made
+            problems.append(f"seeds = {value} is more than {MAX_CAMPAIGN_SEEDS} runs per batch"
+                            + (f" (and beyond the largest seed {MAX_SEED})" if value > MAX_SEED + 1 else ""))
+            return []
         return list(range(value))
     if isinstance(value, list) and value and all(isinstance(v, int) and not isinstance(v, bool) for v in value):
-        bad = [v for v in value if v < 0]
-        if bad:
-            problems.append(f"seeds must be ≥ 0, got {bad}")
-        repeated = sorted({v for v in value if value.count(v) > 1})
+        negative, beyond = [v for v in value if v < 0], [v for v in value if v > MAX_SEED]
+        if negative:
+            problems.append(f"seeds must be ≥ 0, got {negative[:10]}")
+        if beyond:
+            problems.append(f"seeds must be ≤ {MAX_SEED} (the generators' range), got {beyond[:10]}")
+        repeated = sorted(v for v, n in collections.Counter(value).items() if n > 1)
         if repeated:
-            problems.append(f"seed(s) {repeated} given more than once; each seed is one run")
+            problems.append(f"seed(s) {repeated[:10]}{' …' if len(repeated) > 10 else ''} given more than once; each "
+                            "seed is one run")
         return list(value)
     problems.append(f"seeds must be a count ≥ 1 or a non-empty list of whole numbers, got {value!r}")
     return []

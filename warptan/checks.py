@@ -11,11 +11,16 @@ from __future__ import annotations
 
 import math
 import numbers
+import os
 
 
 class FilterError(ValueError):
     """A bad input to the navigation layer (filter, INS, IMU, sensors, measurement models, ray casts, trajectories);
     the message names the argument or sample and the value."""
+
+
+class FilterWarning(UserWarning):
+    """A navigation-layer setting that runs but whose results are not meaningful (e.g. two particles)."""
 
 
 FLOAT32_MAX = 3.4028234663852886e38
@@ -55,3 +60,16 @@ def check_float32(values, name: str, error: type[Exception] = FilterError) -> No
         first = a[bad].ravel()[0]
         why = "not finite" if not np.isfinite(first) else "beyond float32 range (±3.4e38)"
         raise error(f"{name}: {int(bad.sum())} value(s) {why}, first {first!r}")
+
+
+def host_memory_available() -> float:
+    """Bytes of host memory available now (Linux MemAvailable; elsewhere the physical memory)."""
+    host = float(os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES"))
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    host = float(line.split()[1]) * 1024.0
+    except OSError:
+        pass
+    return host

@@ -7,7 +7,9 @@ import argparse
 import json
 import math
 import os
+import signal
 import sys
+import threading
 import warnings
 
 DEFAULT_TERRAIN = "synthetic:rugged"
@@ -72,10 +74,11 @@ def _terrain_info(args) -> int:
 
 
 def _terrain_export(args) -> int:
-    from warptan.terrain import Terrain
+    from warptan.terrain import Terrain, check_export_path
 
+    check_export_path(args.out, args.overwrite)  # before the DEM is loaded
     terrain = Terrain.load(args.terrain, spacing=args.spacing)
-    terrain.export(args.out, frame=args.frame)
+    terrain.export(args.out, frame=args.frame, overwrite=args.overwrite)
     print(f"wrote {args.out} ({terrain.shape[0]}×{terrain.shape[1]} posts, {args.frame.upper()} frame)")
     return 0
 
@@ -117,7 +120,16 @@ def _run(args) -> int:
     seeds = args.seeds if args.seeds is not None else 1
     # Validate everything before any computation: the output folder, the device, every scenario (file,
     # overrides, seeds, memory, terrain, flight, map). --check stops here.
-    out = OutputFolder(args.out if args.out is not None else ("warptan-demo" if demo else "warptan-results"))
+    out = OutputFolder(args.out if args.out is not None else ("warptan-demo" if demo else "warptan-results"),
+                       kind="run")
+    export = None
+    if args.export_log is not None:
+        export = OutputFolder(args.export_log, kind="flight-logs", option="--export-log")
+        _refuse_nested(out, export)
+        if args.export_bag:
+            _require_rosbags()
+    elif args.export_bag:
+        raise ScenarioError("--export-bag writes beside --export-log; give --export-log DIR")
     resolve_device(args.device)
     overrides = {"particles": args.particles, "backend": args.backend, "surface": args.surface,
                  "likelihood": args.likelihood,
@@ -131,11 +143,15 @@ def _run(args) -> int:
     if clash:
         raise ScenarioError(f"two scenarios have the id {', '.join(clash)} (results are kept by id); give one of "
                             "the files another id")
+    inputs = [path for name, (config, _, _) in plans.items() for path in _scenario_inputs(name, config, terrain)]
+    for folder in (out, export):
+        if folder is not None:
+            folder.refuse_inputs(inputs)
     if args.check:
         for config, truth, flight in plans.values():
             print(f"{config['id']}: ok ({truth.name}{_map_words(config)}, altitude {-flight.pos_n[0, 2]:.0f} m, "
                   f"{flight.duration_s:.0f} s, {config['sensor']['model']}, {seeds} seed(s))")
-        print(f"output folder {out.path}: ok")
+        print(f"output folder {out.path}: ok" + (f"; flight logs {export.path}: ok" if export else ""))
         return 0
     if demo:
         print(f"warptan run: no scenario given, running the demonstration: S8 (sliding, navigation IMU) for "
@@ -149,15 +165,6 @@ def _run(args) -> int:
     for config, _, flight in plans.values():
         decim = 1 if args.paper_rates else round(config["imu"]["rate_hz"] / config["sensor"]["rate_hz"])
         total += seeds * (len(flight.f_b) // decim)
-    export = None
-    if args.export_log is not None:
-        export = OutputFolder(args.export_log)
-        if os.path.realpath(export.path) == os.path.realpath(out.path):
-            raise ScenarioError("--export-log must be another folder than --out")
-        if args.export_bag:
-            _require_rosbags()
-    elif args.export_bag:
-        raise ScenarioError("--export-bag writes beside --export-log; give --export-log DIR")
     results, terrains, logs = [], {}, ([] if export is not None else None)
     with tqdm(total=total, unit="update", disable=args.quiet, dynamic_ncols=True) as bar:
         for name in names:
@@ -182,16 +189,56 @@ def _run(args) -> int:
     if not written["plots"] and not args.no_plots:
         print("plots skipped: matplotlib is not installed (pip install 'warptan[plot]')")
     print("wrote " + ", ".join(written["files"]))
+    return _report_skipped(results)
+
+
+def _report_skipped(results) -> int:
+    """A line for every run in which updates were skipped; 1 (after an error line) when a run used none of its
+    updates (it navigated nothing: INS only), else 0."""
+    blind = []
+    for r in results:
+        s = r.summary()
+        label = f"{r.scenario} seed {r.seed}"
+        if s["updates_used"] == 0 and s["updates"] > 0:
+            blind.append(label)
+        elif s["skipped_updates"] or s["updates_without_points"]:
+            print(f"warptan: note: {label}: {s['updates'] - s['updates_used']} of {s['updates']} updates were not "
+                  f"used ({s['skipped_updates']} skipped: the map could not predict the scan; "
+                  f"{s['updates_without_points']} without a valid measurement)")
+    if blind:
+        print(f"warptan: error: {', '.join(blind)}: every update was skipped (no valid measurement, or the map does "
+              "not cover the scans): the run navigated nothing (INS only); results were written, marked "
+              "updates_used = 0 in results.json", file=sys.stderr)
+        return 1
     return 0
+
+
+def _refuse_nested(out, export) -> None:
+    """--out and --export-log are two folders, neither inside the other."""
+    from warptan.outputs import OutputError
+
+    a, b = out.path, export.path
+    if a == b or a in b.parents or b in a.parents:
+        raise OutputError(f"--export-log {b} and --out {a} must be separate folders, neither inside the other")
+
+
+def _scenario_inputs(name: str, config: dict, terrain) -> list:
+    """The files a scenario run reads: its scenario file (not for S1…S12), the world's DEM and the map's DEM."""
+    from warptan.scenarios import SCENARIO_IDS, scenario_path
+
+    t = config["terrain"]
+    world = terrain if isinstance(terrain, (str, os.PathLike)) else (t["path"] if t["kind"] == "path" else None)
+    return [None if name.upper() in SCENARIO_IDS else scenario_path(name), world, t["map_path"] or None]
 
 
 def _campaign(args) -> int:
     from warptan.campaign import Campaign, check_options, run_campaign, write_campaign
     from warptan.outputs import OutputFolder
 
-    out = OutputFolder(args.out)
+    out = OutputFolder(args.out, kind="campaign")
     campaign = Campaign.load(args.file)
     plans = campaign.check(check_options(args.engine, args.device, args.address, args.cpus_per_task))
+    out.refuse_inputs([args.file, *campaign.inputs()])
     if args.check:
         for b, (config, truth, flight) in zip(campaign.batches, plans, strict=True):
             print(f"{b.label}: ok ({truth.name}{_map_words(config)}, {flight.duration_s:.0f} s, "
@@ -247,15 +294,19 @@ def _replay(args) -> int:
     from warptan.replay import replay
     from warptan.report import write_outputs
 
-    out = OutputFolder(args.out if args.out is not None else "warptan-replay")
+    out = OutputFolder(args.out if args.out is not None else "warptan-replay", kind="replay")
+    out.refuse_inputs([args.log, _bag_folder(args.log), args.terrain, args.bag_config])
     resolve_device(args.device)
     log = _load_flight(args)
+    out.refuse_inputs([log.dem_reference or None, log.settings.get("terrain_spec")])
     try:
         from tqdm import tqdm
     except ModuleNotFoundError:
         tqdm = _NoProgress
-    n_meas = len(log.alt_t if (args.model == "altimeter" or (args.model is None and not log.has_scans))
-                 else log.scan_t)
+    from warptan.replay import replay_config
+
+    config = replay_config(log, args.model, args.backend, args.particles, args.likelihood)  # checks the model
+    n_meas = len(log.alt_t if config["sensor"]["model"] == "altimeter" else log.scan_t)
     with tqdm(total=n_meas, unit="update", disable=args.quiet, dynamic_ncols=True) as bar:
         bar.set_description(f"replay {log.name}")
         result = replay(log, args.terrain, model=args.model, backend=args.backend, particles=args.particles,
@@ -270,7 +321,14 @@ def _replay(args) -> int:
     if not log.has_truth:
         print("(the log has no truth: errors are undefined; results.json holds the estimate and its 3σ)")
     print("wrote " + ", ".join(written["files"]))
-    return 0
+    return _report_skipped([result])
+
+
+def _bag_folder(path: str) -> str | None:
+    """The bag folder of a bag's .db3/.mcap file (the whole bag is the input), else None."""
+    if path.endswith((".db3", ".mcap")) and os.path.isfile(os.path.join(os.path.dirname(path) or ".", "metadata.yaml")):
+        return os.path.dirname(os.path.abspath(path))
+    return None
 
 
 def _load_flight(args):
@@ -348,6 +406,7 @@ def build_parser() -> argparse.ArgumentParser:
     export.add_argument("--spacing", type=number_arg(0.0, True), default=None,
                         help="resample to this post spacing in m")
     export.add_argument("--frame", choices=("enu", "ned"), default="enu", help="vertex frame (default enu, z up)")
+    export.add_argument("--overwrite", action="store_true", help="replace the output file if it exists")
     export.set_defaults(func=_terrain_export)
 
     run = sub.add_parser("run", help="run scenarios S1–S12 (no scenario: a short demonstration)",
@@ -444,18 +503,42 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the ``warptan`` command; returns the exit status."""
     from warptan.device import quiet_warp
+    from warptan.outputs import release_locks
 
     quiet_warp()
     args = build_parser().parse_args(argv)
     warnings.formatwarning = _warning_line
+    previous = _terminate_as_interrupt()
     try:
         return args.func(args)
     except (ValueError, OSError) as err:  # every expected failure: one line, exit 2, no traceback
         print(f"warptan: error: {_one_line(err)}", file=sys.stderr)
         return 2
+    except Terminated:
+        print("warptan: terminated (SIGTERM); the output folder is as it was before this run", file=sys.stderr)
+        return 128 + signal.SIGTERM
     except KeyboardInterrupt:
         print("warptan: interrupted; the output folder is as it was before this run", file=sys.stderr)
         return 130
+    finally:
+        release_locks()
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM, raised where the command is (as Ctrl-C is) so that it cleans up the same way."""
+
+
+def _terminate_as_interrupt():
+    """Make SIGTERM raise :class:`Terminated` in the main thread; returns the previous handler (None elsewhere)."""
+    if threading.current_thread() is not threading.main_thread():
+        return None
+
+    def handler(signum, frame):
+        raise Terminated()
+
+    return signal.signal(signal.SIGTERM, handler)
 
 
 def _warning_line(message, category, *_, **__) -> str:

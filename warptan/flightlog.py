@@ -41,7 +41,7 @@ from pathlib import Path
 import numpy as np
 
 from warptan.checks import FilterError
-from warptan.imu import IMU_GRADES
+from warptan.imu import IMU_GRADES, imu_grade
 
 FORMAT = "warptan-flight-log"
 VERSION = 1
@@ -130,9 +130,23 @@ class FlightLog:
 
 
 def _finite_rows(name: str, a: np.ndarray, problems: list[str]) -> None:
+    if len(a) == 0:  # an empty stream is reported by its time array
+        return
     bad = ~np.isfinite(a).reshape(len(a), -1).all(axis=1)
     if bad.any():
         problems.append(f"{name} has {int(bad.sum())} non-finite sample(s) (first at index {int(np.argmax(bad))})")
+
+
+def _in_range(log: FlightLog, problems: list[str]) -> None:
+    """IMU samples beyond the grade's measurement range (the filter refuses them): the first one named."""
+    grade = imu_grade(log.imu_grade)
+    bad = (np.abs(log.imu_f) > grade.accel_range).any(axis=1) | (np.abs(log.imu_w) > grade.gyro_range).any(axis=1)
+    if bad.any():
+        i = int(np.argmax(bad))
+        problems.append(f"imu has {int(bad.sum())} sample(s) beyond the {grade.name} grade's range (|f| ≤ "
+                        f"{grade.accel_range:g} m/s², |ω| ≤ {grade.gyro_range:g} rad/s per axis); first: sample {i} "
+                        f"at t = {float(log.imu_t[i])!r} s, f_b = {log.imu_f[i].tolist()} m/s², w_b = "
+                        f"{log.imu_w[i].tolist()} rad/s")
 
 
 def _increasing(name: str, t: np.ndarray, problems: list[str]) -> bool:
@@ -181,6 +195,8 @@ def _problems(log: FlightLog) -> list[str]:
         _finite_rows("imu.f_b", log.imu_f, p)
     if _shape("imu.w_b", log.imu_w, (k, 3), p):
         _finite_rows("imu.w_b", log.imu_w, p)
+    if log.imu_grade in IMU_GRADES and k and not any("imu.f_b" in x or "imu.w_b" in x for x in p):
+        _in_range(log, p)
     if ok_t:
         if not (np.isfinite(log.t_end) and log.t_end > log.imu_t[-1]):
             p.append(f"imu.t_end = {log.t_end!r} s must be after the last sample (t = {float(log.imu_t[-1])!r} s)")

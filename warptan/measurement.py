@@ -26,6 +26,7 @@ B filters passes B measurements; its N = B·n particles are filter-major (partic
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass, field
 
@@ -133,7 +134,9 @@ class Likelihood:
 
 @dataclass
 class ModelOutput:
-    """Per-particle results of one measurement update (device arrays, reused between calls)."""
+    """Per-particle results of one measurement update, on the device. From :meth:`MeasurementModel.evaluate`: the
+    caller's own arrays; from :meth:`MeasurementModel.launch` (the filter's path): the model's buffers, which the
+    next ``stage``/``launch`` overwrites (on the CPU, ``.numpy()`` of them is a view, not a copy)."""
 
     loglik: wp.array
     """(N,) float32 log-likelihood (finite for every particle)."""
@@ -164,6 +167,25 @@ class ModelOutput:
     def all_points_invalid(self) -> bool:
         """Warning flag: no received point was valid (in any filter), every particle got the same score."""
         return bool(np.all(self.n_received == 0))
+
+
+QUAT_NORM_TOL = 1e-3
+"""How far from 1 the norm of a quaternion given to :meth:`MeasurementModel.evaluate` may be."""
+
+
+def _check_pose_values(pos_n: wp.array, quat_nb: wp.array) -> None:
+    """FilterError naming the first particle with a non-finite position or a quaternion that is not unit."""
+    pos, quat = pos_n.numpy(), quat_nb.numpy()
+    bad_pos = ~np.isfinite(pos).all(axis=1)
+    if bad_pos.any():
+        i = int(np.argmax(bad_pos))
+        raise FilterError(f"pos_n[{i}] = {pos[i].tolist()} is not finite ({int(bad_pos.sum())} such particle(s))")
+    with np.errstate(invalid="ignore"):
+        bad = ~(np.abs(np.linalg.norm(quat.astype(np.float64), axis=1) - 1.0) <= QUAT_NORM_TOL)
+    if bad.any():
+        i = int(np.argmax(bad))
+        raise FilterError(f"quat_nb[{i}] = {quat[i].tolist()} is not a unit quaternion [w, x, y, z] "
+                          f"({int(bad.sum())} such particle(s); |q| must be 1 within {QUAT_NORM_TOL:g})")
 
 
 def _as_batch(measurement, kind, model_name: str) -> list:
@@ -274,9 +296,19 @@ class MeasurementModel:
         return self._out
 
     def evaluate(self, pos_n: wp.array, quat_nb: wp.array, measurement) -> ModelOutput:
-        """Log-likelihood of the received measurement (or a list of B, one per filter of a batch)."""
+        """Log-likelihood of the received measurement (or a list of B, one per filter of a batch) at the poses.
+
+        The poses are checked first (finite positions; unit quaternions, |‖q‖ − 1| ≤ 1e-3: a zero or NaN
+        quaternion is an error, not the identity or the log-likelihood floor). The returned arrays are the
+        caller's: copies that a later call does not overwrite (this allocates them; the filter's step uses
+        :meth:`stage` and :meth:`launch`, which reuse the model's buffers and allocate nothing per step)."""
         self.stage(measurement, pos_n, quat_nb)
-        return self.launch(pos_n, quat_nb)
+        _check_pose_values(pos_n, quat_nb)
+        out = self.launch(pos_n, quat_nb)
+        return dataclasses.replace(out, **{f.name: wp.clone(getattr(out, f.name))
+                                           for f in dataclasses.fields(out)
+                                           if isinstance(getattr(out, f.name), wp.array)},
+                                   n_received=out.n_received.copy())
 
     def stage(self, measurement, pos_n: wp.array, quat_nb: wp.array) -> ModelOutput:
         """Copy the measurement(s) into this model's device buffers for particles of shape ``pos_n``."""

@@ -103,12 +103,13 @@ skipped — no information, so it cannot drag the estimate towards the map — a
 from __future__ import annotations
 
 import time
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
 import warp as wp
 
-from warptan.checks import FilterError, check_float32
+from warptan.checks import FilterError, FilterWarning, check_float32
 from warptan.device import resolve_device
 from warptan.frames import quat_exp, quat_mul
 from warptan.imu import ImuGrade, check_rate, imu_grade
@@ -125,6 +126,11 @@ _STREAM_MOVE, _STREAM_RESAMPLE, _STREAM_INIT = 1, 2, 0
 _SYM6_INDEX = np.array([[0, 3, 4], [3, 1, 5], [4, 5, 2]])
 """Entry of a symmetric 3×3 matrix stored as six columns (00 11 22 01 02 12, as the kernels write it)."""
 BAD_IMU_POLICIES = ("raise", "hold")
+MIN_PARTICLES = 2
+"""Fewest particles per filter: with one, no position is weighed against another (the filter is the INS)."""
+FEW_PARTICLES = 10
+"""Below this many particles per filter the filter warns (:class:`~warptan.checks.FilterWarning`): too few to
+represent the position error; its estimate and bounds are not meaningful."""
 """What :meth:`MarginalizedParticleFilter.predict` does with an implausible IMU sample."""
 MAX_STEPS_PER_INTERVAL = 64
 """IMU samples buffered between measurements before the particles are moved anyway."""
@@ -211,11 +217,18 @@ class Estimate:
 
 
 def _as_cov(value, n: int, name: str) -> np.ndarray:
-    a = np.asarray(value, dtype=np.float64)
-    if a.shape == (n,):
-        a = np.diag(a**2)
-    if a.shape != (n, n) or not np.isfinite(a).all():
+    try:
+        a = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise FilterError(f"{name} must be {n} standard deviations or an {n}×{n} covariance, got {value!r}") from None
+    if a.shape not in ((n,), (n, n)):
         raise FilterError(f"{name} must be {n} standard deviations or an {n}×{n} covariance, got shape {a.shape}")
+    if not np.isfinite(a).all():
+        raise FilterError(f"{name} must be finite, got {a.tolist()}")
+    if a.shape == (n,):
+        if (a < 0).any():
+            raise FilterError(f"{name}: standard deviations must be ≥ 0, got {a.tolist()}")
+        a = np.diag(a**2)
     if np.any(np.linalg.eigvalsh(0.5 * (a + a.T)) < -1e-12):
         raise FilterError(f"{name} is not positive semi-definite")
     check_float32(np.sqrt(np.abs(np.diag(a))), f"{name} (its σ: the particles are float32)")
@@ -342,8 +355,14 @@ class MarginalizedParticleFilter:
                  max_unpredictable: float = 0.5, integrity_window: int = 20, integrity_threshold: float = 9.0,
                  respread_scale: float = 1.0, measurement_update: bool = True, closed_loop: bool = False,
                  gate_linear_update: bool = True, graph: bool | None = None, bad_imu: str = "raise"):
-        if not (isinstance(n_particles, (int, np.integer)) and n_particles >= 1):
-            raise FilterError(f"n_particles must be a positive integer, got {n_particles!r}")
+        if not (isinstance(n_particles, (int, np.integer)) and not isinstance(n_particles, bool)
+                and n_particles >= MIN_PARTICLES):
+            raise FilterError(f"n_particles must be a whole number ≥ {MIN_PARTICLES} per filter (one particle cannot "
+                              f"weigh one position against another), got {n_particles!r}")
+        if n_particles < FEW_PARTICLES:
+            warnings.warn(f"n_particles = {n_particles}: too few particles to represent the position error; the "
+                          f"estimate and its bounds are not meaningful (use ≥ {FEW_PARTICLES}; the scenarios use 500)",
+                          FilterWarning, stacklevel=2)
         if bad_imu not in BAD_IMU_POLICIES:
             raise FilterError(f"bad_imu must be one of {', '.join(BAD_IMU_POLICIES)}, got {bad_imu!r}")
         if resampler not in SCHEMES:

@@ -1,17 +1,29 @@
-"""Output folders written as a whole, and strictly valid JSON.
+"""Output folders written as a whole, by one writer at a time, holding outputs only; and strictly valid JSON.
 
 A run's outputs are written into a temporary folder beside the target (``.NAME.warptan-partial-*``, same file
 system) and swapped into place when complete, so the target holds one whole run: the previous one or the new
-one, never a mix, whenever the process is interrupted.
+one, never a mix, whenever the process is interrupted (Ctrl-C or SIGTERM) or a write fails (a full disk: the
+error names the file, and the previous run stays).
 
-* The target may be missing, empty, or a previous warptan run (a ``.warptan-run`` manifest lists its files; a
-  folder from before the manifest is recognised by its ``results.json``). Anything else (a file, a folder of
-  other things, an unwritable parent) is refused by :meth:`OutputFolder.check` before any work starts.
-* Files in the target that the previous run did not write (the user's notes, a sub-folder) are carried into the
-  new folder as hard links (copies where links are impossible) before the swap: they are never deleted.
+* **One writer per folder**: an advisory lock (``flock`` on ``.NAME.warptan-lock`` beside the target; the kernel
+  releases it on any exit, SIGKILL included) is held from the check to the swap. A second run on the same folder
+  is refused at once, naming the process that holds it. Partial folders a killed writer left are removed by the
+  next holder of the lock.
+* **Kinds**: the ``.warptan-run`` manifest names what wrote the folder (``run``, ``replay``, ``campaign`` or
+  ``flight-logs``) and lists its files. A folder is replaced only by the same kind of output: flight logs written
+  by ``--export-log`` are the inputs of a later replay, never a previous run that ``--out`` may replace.
+* **Outputs only**: :meth:`OutputFolder.refuse_inputs` refuses a target that is, contains or lies inside any input
+  of the run (log, bag, DEM, map, scenario or campaign file).
+* The target may be missing, empty, or a previous output of the same kind (a folder from before the manifest is
+  recognised by its ``results.json``). Anything else (a file, a folder of other things, a read-only or immutable
+  folder, an unwritable parent) is refused by :meth:`OutputFolder.check` before any work starts.
+* Replacing a previous output removes only the files its manifest lists: anything else in the folder (the user's
+  notes, a file added inside a sub-folder) is carried into the new folder as hard links (copies where links are
+  impossible) before the swap. A user's file with the name of a new output is never overwritten: the new output
+  is then kept beside the folder and the error says where.
 * The swap is one atomic ``renameat2(RENAME_EXCHANGE)`` on Linux; elsewhere (or where the file system refuses
-  it) two renames with Ctrl-C held back between them, and a target left missing by a crash between them is
-  restored from ``.NAME.warptan-old-*`` by the next run.
+  it) two renames with Ctrl-C and SIGTERM held back between them, and a target left missing by a crash between
+  them is restored from ``.NAME.warptan-old-*`` by the next run.
 * JSON: NaN and ±inf become ``null`` (:func:`json_ready`), and :func:`write_json` refuses anything else that is not
   JSON (``allow_nan=False``).
 """
@@ -20,21 +32,29 @@ from __future__ import annotations
 
 import contextlib
 import ctypes
+import errno
 import json
 import math
 import os
 import shutil
 import signal
+import sys
 import tempfile
 import threading
 import uuid
+import weakref
 from pathlib import Path
 
 import numpy as np
 
 MANIFEST = ".warptan-run"
-"""The file in an output folder listing what the run wrote (JSON: ``{"files": [...]}``)."""
+"""The file in an output folder naming its kind and listing what was written (JSON: ``{"kind": .., "files": [..]}``)."""
+KINDS = ("run", "replay", "campaign", "flight-logs")
+"""What writes output folders: ``warptan run``, ``warptan replay``, ``warptan campaign`` and ``--export-log``."""
 _LEGACY_FILES = ("results.json", "results.md")
+_KIND_WORDS = {"run": "a warptan run's results", "replay": "a warptan replay's results",
+               "campaign": "a warptan campaign's results",
+               "flight-logs": "flight logs written by --export-log (inputs of a replay, not a run)"}
 
 
 class OutputError(ValueError):
@@ -63,15 +83,26 @@ def write_json(path: str | os.PathLike, data, indent: int = 1) -> None:
     Path(path).write_text(json.dumps(json_ready(data), indent=indent, allow_nan=False) + "\n")
 
 
-def _previous_run_files(folder: Path) -> set[str] | None:
-    """The files (relative paths) a previous warptan run wrote into ``folder``; None when it is not one."""
+def _previous_output(folder: Path) -> tuple[str, set[str]] | None:
+    """(kind, files) of a previous warptan output in ``folder`` (files: relative paths it wrote, manifest
+    included); None when it is not one. A manifest without a kind (written before kinds) is read from its files."""
     manifest = folder / MANIFEST
     if manifest.is_file():
         try:
-            return {*json.loads(manifest.read_text())["files"], MANIFEST}
-        except (ValueError, KeyError, TypeError, OSError):
+            data = json.loads(manifest.read_text())
+            files = {*data["files"], MANIFEST}
+            kind = data.get("kind")
+        except (ValueError, KeyError, TypeError, AttributeError, OSError):
             raise OutputError(f"{folder}: its {MANIFEST} is corrupt; remove the folder or choose another "
-                              "--out") from None
+                              "folder") from None
+        if kind not in KINDS:
+            if any(f.endswith(".h5") or "_bag/" in f for f in files):
+                kind = "flight-logs"
+            elif "campaign.json" in files:
+                kind = "campaign"
+            else:
+                kind = "results"  # a run or a replay of an earlier version: either may replace it
+        return kind, files
     results = folder / "results.json"
     if results.is_file():  # a run written before the manifest existed
         try:
@@ -80,15 +111,8 @@ def _previous_run_files(folder: Path) -> set[str] | None:
             return None
         if isinstance(data, dict) and {"meta", "scenarios", "runs"} <= set(data):
             plots = {p.name for p in folder.glob("*_seed*_*.png")}
-            return {*_LEGACY_FILES, *plots}
+            return "results", {*_LEGACY_FILES, *plots}
     return None
-
-
-def _user_entries(folder: Path, run_files: set[str]) -> list[str]:
-    """Top-level entries of ``folder`` that its run did not write (a listed file inside a sub-folder keeps that
-    sub-folder a run entry)."""
-    run_tops = {f.split("/", 1)[0] for f in run_files}
-    return sorted(e.name for e in folder.iterdir() if e.name not in run_tops)
 
 
 def _rename_exchange(a: Path, b: Path) -> bool:
@@ -103,67 +127,192 @@ def _rename_exchange(a: Path, b: Path) -> bool:
     return renameat2(at_fdcwd, os.fsencode(a), at_fdcwd, os.fsencode(b), rename_exchange) == 0
 
 
+HELD_SIGNALS = (signal.SIGINT, signal.SIGTERM)
+"""Signals held back between the two renames of the fallback swap."""
+
+
 @contextlib.contextmanager
 def _interrupts_held():
-    """Hold SIGINT until the block ends (main thread only; elsewhere a no-op)."""
+    """Hold SIGINT and SIGTERM until the block ends (main thread only; elsewhere a no-op)."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return
     caught = []
-    previous = signal.signal(signal.SIGINT, lambda *a: caught.append(a))
+    previous = {s: signal.signal(s, lambda *a: caught.append(a)) for s in HELD_SIGNALS}
     try:
         yield
     finally:
-        signal.signal(signal.SIGINT, previous)
-        if caught and callable(previous):
-            previous(*caught[0])
+        for s, handler in previous.items():
+            signal.signal(s, handler)
+        if caught:
+            handler = previous.get(caught[0][0])
+            if callable(handler):
+                handler(*caught[0])
+            elif handler == signal.SIG_DFL:
+                signal.raise_signal(caught[0][0])
+
+
+_HELD_LOCKS: weakref.WeakSet = weakref.WeakSet()
+
+
+def release_locks() -> None:
+    """Release every output-folder lock this process holds (the command line calls it on the way out)."""
+    for folder in list(_HELD_LOCKS):
+        folder.release()
 
 
 class OutputFolder:
-    """The output folder of one run, written as a whole.
+    """The output folder of one run, written as a whole by one writer.
 
     Use::
 
-        out = OutputFolder("results")      # checks the target; nothing is created yet
-        with out as tmp:                   # tmp: the temporary folder beside it
+        out = OutputFolder("results", kind="run")   # checks the target and locks it; nothing is created yet
+        out.refuse_inputs([dem_path, log_path])       # an --out that is, holds or lies in an input is refused
+        with out as tmp:                              # tmp: the temporary folder beside it
             (tmp / "results.json").write_text(...)
-        # leaving the block without an exception swaps tmp into place; with one, tmp is removed
+        # leaving the block without an exception swaps tmp into place and releases the lock; with one, tmp is
+        # removed and the target is as it was
+
+    Args:
+        path: The target folder.
+        kind: What writes it (one of :data:`KINDS`); a previous output of another kind is not replaced.
+        option: How messages name the target (the command-line option: ``--out``, ``--export-log``).
     """
 
-    def __init__(self, path: str | os.PathLike):
+    def __init__(self, path: str | os.PathLike, kind: str = "run", option: str = "--out"):
         text = os.fspath(path)
         if not text or not text.strip():
-            raise OutputError("the output folder name is empty")
+            raise OutputError(f"the output folder name ({option}) is empty")
+        if kind not in KINDS:
+            raise OutputError(f"output kind must be one of {', '.join(KINDS)}, got {kind!r}")
         self.path = Path(os.path.realpath(text))
+        self.kind, self.option = kind, option
         self._tmp: Path | None = None
+        self._lock_fd: int | None = None
         self.check()
 
     def _siblings(self, kind: str) -> list[Path]:
         return sorted(self.path.parent.glob(f".{self.path.name}.warptan-{kind}-*"))
 
+    @property
+    def lock_path(self) -> Path:
+        return self.path.parent / f".{self.path.name}.warptan-lock"
+
+    def _name(self) -> str:
+        return f"{self.option} {self.path}"
+
+    # ------------------------------------------------------------------ lock
+    def _acquire(self) -> None:
+        """Take the folder's advisory lock (refused at once when another process holds it)."""
+        if self._lock_fd is not None:
+            return
+        import fcntl
+
+        lock = self.lock_path
+        for _ in range(20):  # a holder may remove the file between our open and our lock: take the new one
+            try:
+                fd = os.open(lock, os.O_RDWR | os.O_CREAT, 0o644)
+            except OSError as err:
+                raise OutputError(f"{self._name()}: cannot create its lock file {lock} ({err.strerror})") from None
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except OSError as err:
+                holder = _read_holder(fd)
+                os.close(fd)
+                if err.errno in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES):
+                    raise OutputError(f"{self._name()} is being written by another warptan process ({holder}); "
+                                      "wait for it to finish or choose another folder") from None
+                raise OutputError(f"{self._name()}: cannot lock {lock} ({err.strerror})") from None
+            try:
+                same = os.fstat(fd).st_ino == os.stat(lock).st_ino
+            except FileNotFoundError:
+                same = False
+            if same:
+                break
+            os.close(fd)
+        else:
+            raise OutputError(f"{self._name()}: could not take its lock {lock}")
+        os.ftruncate(fd, 0)
+        os.write(fd, f"pid {os.getpid()}: {' '.join([Path(sys.argv[0]).name, *sys.argv[1:]])[:300]}\n".encode())
+        self._lock_fd = fd
+        _HELD_LOCKS.add(self)
+        for stale in self._siblings("partial") + self._siblings("probe"):  # left by a killed writer
+            shutil.rmtree(stale, ignore_errors=True)
+
+    def release(self) -> None:
+        """Release the lock (idempotent; also on garbage collection and, by the kernel, on any exit)."""
+        fd, self._lock_fd = self._lock_fd, None
+        if fd is None:
+            return
+        _HELD_LOCKS.discard(self)
+        with contextlib.suppress(OSError):
+            os.unlink(self.lock_path)  # unlinked while held: a waiting opener sees another inode and retries
+        os.close(fd)
+
+    def __del__(self):
+        with contextlib.suppress(Exception):
+            self.release()
+
+    # ------------------------------------------------------------------ checks
     def check(self) -> None:
-        """Refuse a target that is a file, a folder of other things, or in an unwritable parent (OutputError)."""
+        """Refuse a target that is a file, a folder of other things or of another kind of output, a read-only
+        folder, in an unwritable parent, or locked by another process (OutputError)."""
         target, parent = self.path, self.path.parent
+        if target.exists() and not target.is_dir():
+            raise OutputError(f"{self._name()} is a file, not a folder; choose a folder name")
+        if not parent.is_dir():
+            raise OutputError(f"{self._name()}: its parent folder {parent} does not exist")
+        try:  # the real test (permissions, read-only or full file systems): make and remove a folder there
+            os.rmdir(tempfile.mkdtemp(prefix=f".{target.name}.warptan-probe-", dir=parent))
+        except OSError as err:
+            raise OutputError(f"{self._name()}: cannot create a folder in {parent} ({err.strerror or err})") from None
+        self._acquire()
         if not target.exists():
             stale = [p for p in self._siblings("old") if p.is_dir()]
             if stale:  # a crash between the two renames of a fallback swap: the previous run is there
                 os.rename(stale[-1], target)
-        if target.exists() and not target.is_dir():
-            raise OutputError(f"--out {target} is a file, not a folder; choose a folder name")
-        if not parent.is_dir():
-            raise OutputError(f"--out {target}: its parent folder {parent} does not exist")
-        try:  # the real test (permissions, read-only or full file systems): make and remove a folder there
-            os.rmdir(tempfile.mkdtemp(prefix=f".{target.name}.warptan-probe-", dir=parent))
-        except OSError as err:
-            raise OutputError(f"--out {target}: cannot create a folder in {parent} ({err.strerror or err})") from None
         if target.is_dir():
             if not os.access(target, os.R_OK | os.X_OK):
-                raise OutputError(f"--out {target}: cannot read the folder (permission denied)")
-            if any(target.iterdir()) and _previous_run_files(target) is None:
-                first = sorted(e.name for e in target.iterdir())[:3]
-                raise OutputError(f"--out {target} holds files that are not a warptan run ({', '.join(first)} ...); "
-                                  "choose a new or empty folder (nothing there is replaced)")
+                raise OutputError(f"{self._name()}: cannot read the folder (permission denied)")
+            if not os.access(target, os.W_OK):
+                raise OutputError(f"{self._name()}: the folder is read-only or immutable, so it cannot be replaced; "
+                                  "choose another folder")
+            if any(target.iterdir()):
+                previous = _previous_output(target)
+                if previous is None:
+                    first = sorted(e.name for e in target.iterdir())[:3]
+                    raise OutputError(f"{self._name()} holds files that are not a warptan run "
+                                      f"({', '.join(first)} ...); choose a new or empty folder (nothing there is "
+                                      "replaced)")
+                kind = previous[0]
+                if kind != self.kind and not (kind == "results" and self.kind in ("run", "replay")):
+                    raise OutputError(f"{self._name()} holds {_KIND_WORDS.get(kind, kind)}; a {self.kind} does not "
+                                      "replace them: choose another folder")
 
+    def refuse_inputs(self, inputs) -> None:
+        """Refuse (OutputError) a target that is, contains or lies inside one of ``inputs`` (paths; None and names
+        that are not files are ignored): a run never writes over, or beside and then replaces, what it reads."""
+        for item in inputs:
+            if item is None:
+                continue
+            try:
+                real = Path(os.path.realpath(os.fspath(item)))
+            except TypeError:
+                continue
+            if not real.exists():
+                continue
+            if real == self.path:
+                what = "is"
+            elif self.path in real.parents:
+                what = "contains"
+            elif real in self.path.parents:
+                what = "lies inside"
+            else:
+                continue
+            raise OutputError(f"{self._name()} {what} the input {real}; an output folder holds outputs only: "
+                              "choose another folder")
+
+    # ------------------------------------------------------------------ writing
     def __enter__(self) -> Path:
         self.check()
         self._tmp = Path(tempfile.mkdtemp(prefix=f".{self.path.name}.warptan-partial-", dir=self.path.parent))
@@ -171,29 +320,42 @@ class OutputFolder:
 
     def __exit__(self, exc_type, exc, tb) -> bool:
         tmp, self._tmp = self._tmp, None
-        if exc_type is None:
-            try:
-                self._commit(tmp)
-            except BaseException:
+        try:
+            if exc_type is None:
+                try:
+                    self._commit(tmp)
+                except BaseException:
+                    shutil.rmtree(tmp, ignore_errors=True)
+                    raise
+            else:
+                failed = _failed_file(tmp, exc) if isinstance(exc, OSError) else None
                 shutil.rmtree(tmp, ignore_errors=True)
-                raise
-        else:
-            shutil.rmtree(tmp, ignore_errors=True)
+                if failed is not None:
+                    why = exc.strerror or str(exc)
+                    if exc.errno in (errno.ENOSPC, errno.EFBIG, errno.EDQUOT):
+                        why += " (the disk is full or a file size limit was reached)"
+                    raise OutputError(f"writing {self.path / failed} failed: {why}; {self.path} is as it was "
+                                      "before this run") from None
+        finally:
+            self.release()
         return False
 
     def _commit(self, tmp: Path) -> None:
         written = sorted(str(p.relative_to(tmp)) for p in tmp.rglob("*") if p.is_file())
-        (tmp / MANIFEST).write_text(json.dumps({"files": written}, indent=1) + "\n")
+        (tmp / MANIFEST).write_text(json.dumps({"kind": self.kind, "files": written}, indent=1) + "\n")
         os.chmod(tmp, 0o777 & ~current_umask())  # mkdtemp makes 0700; an output folder is an ordinary folder
         target = self.path
         if not target.exists():
             os.rename(tmp, target)
             return
         self.check()
-        previous = _previous_run_files(target) or set()
-        for name in _user_entries(target, previous):
-            if name not in written and not (tmp / name).exists():
-                _link_tree(target / name, tmp / name)
+        previous = _previous_output(target)
+        clash = _carry_user_files(target, tmp, previous[1] if previous else set())
+        if clash is not None:
+            kept = target.parent / f"{target.name}.new-{uuid.uuid4().hex[:6]}"
+            os.rename(tmp, kept)
+            raise OutputError(f"{target / clash} was not written by the previous run and the new one writes a file "
+                              f"of that name: nothing in {target} was replaced; the new outputs are in {kept}")
         if _rename_exchange(tmp, target):
             shutil.rmtree(tmp, ignore_errors=True)  # tmp now holds the previous run
             return
@@ -202,6 +364,57 @@ class OutputFolder:
             os.rename(target, old)
             os.rename(tmp, target)
         shutil.rmtree(old, ignore_errors=True)
+
+
+def _read_holder(fd: int) -> str:
+    """What the lock file says about its holder (``pid N: command``), or a neutral phrase."""
+    with contextlib.suppress(OSError):
+        text = os.pread(fd, 400, 0).decode(errors="replace").strip()
+        if text:
+            return text
+    return "its process id is not recorded yet"
+
+
+def _failed_file(tmp: Path | None, err: OSError) -> str | None:
+    """The file (relative to the output folder) whose write raised ``err``: the error's own file name when it lies
+    in ``tmp``, else the newest file there (writes are sequential). None when ``tmp`` holds nothing."""
+    if tmp is None or not tmp.is_dir():
+        return None
+    if err.filename:
+        with contextlib.suppress(ValueError):
+            return str(Path(os.path.realpath(os.fsdecode(err.filename))).relative_to(os.path.realpath(tmp)))
+    files = [p for p in tmp.rglob("*") if p.is_file()]
+    if not files:
+        return "(its first file)"
+    return str(max(files, key=lambda p: p.stat().st_mtime_ns).relative_to(tmp))
+
+
+def _carry_user_files(target: Path, tmp: Path, listed: set[str]) -> str | None:
+    """Link every entry of ``target`` that the previous output did not write (not in ``listed``, at any depth)
+    into ``tmp`` at the same place. Returns the first such file whose name the new output also wrote (nothing is
+    then carried further), else None."""
+    listed_dirs = {str(Path(f).parent) for f in listed if "/" in f}
+    listed_dirs |= {str(p) for f in listed_dirs for p in Path(f).parents if str(p) != "."}
+    for root, dirs, files in os.walk(target):
+        rel_root = Path(root).relative_to(target)
+        for name in sorted(dirs):
+            rel = str(rel_root / name) if str(rel_root) != "." else name
+            if rel in listed_dirs:
+                continue  # a folder the previous run wrote into: walk it
+            dirs.remove(name)  # a folder of the user's (or a symlink): carried whole
+            if (tmp / rel).exists():
+                return rel
+            (tmp / rel).parent.mkdir(parents=True, exist_ok=True)
+            _link_tree(target / rel, tmp / rel)
+        for name in sorted(files):
+            rel = str(rel_root / name) if str(rel_root) != "." else name
+            if rel in listed:
+                continue
+            if (tmp / rel).exists() or (tmp / rel).is_symlink():
+                return rel
+            (tmp / rel).parent.mkdir(parents=True, exist_ok=True)
+            _link_tree(target / rel, tmp / rel)
+    return None
 
 
 def current_umask() -> int:

@@ -25,17 +25,21 @@ from __future__ import annotations
 
 import math
 import os
+import warnings
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass
 
 import numpy as np
 
-from warptan.checks import check_positive
+from warptan.checks import check_positive, host_memory_available
 
 MAX_POSTS = 60_000_000
 """Largest grid (posts) a load may produce; beyond it the requested spacing is almost surely a mistake."""
 MAX_SOURCE_POSTS = 4 * MAX_POSTS
-"""Largest raster (pixels) read into memory (float64: 1.9 GB); crop a larger file first."""
+"""Largest raster (pixels) read into memory to be reprojected (float64: 1.9 GB); crop a larger file first. A raster
+read at native resolution (metric, north-up, no spacing) becomes the grid: :data:`MAX_POSTS` applies."""
+READ_BYTES_PER_POST = 32
+"""Host memory a read takes per post, about: the band (float32 and its mask), its float64 copy, the flipped grid."""
 
 
 NETWORK_PREFIXES = ("/vsicurl", "/vsis3", "/vsigs", "/vsiaz", "/vsiadls", "/vsioss", "/vsiswift", "/vsihdfs",
@@ -215,7 +219,9 @@ def _read(path: str, spacing, frame, allow_raw_vrt: bool, allow_network: bool) -
     if not allow_raw_vrt:
         env["GDAL_VRT_ENABLE_RAWRASTERBAND"] = "NO"
     def opener(name):  # without allow_network, a file GDAL reads through a web-service driver is refused
-        src = rasterio.open(name)
+        with warnings.catch_warnings():  # no georeferencing is reported by the checks below, in one line
+            warnings.simplefilter("ignore", rasterio.errors.NotGeoreferencedWarning)
+            src = rasterio.open(name)
         if not allow_network and src.driver.upper() in NETWORK_DRIVERS:
             src.close()
             raise TerrainError(f"{name}: GDAL reads it with the {src.driver} driver (a web service): reading a DEM "
@@ -237,13 +243,26 @@ def _read_open(path: str, spacing, frame, opener, errors) -> RasterGrid:
     with src:
         if src.count < 1:
             raise TerrainError(f"{path}: raster has no bands")
+        truncated = _truncation(src, path)
+        if truncated:
+            raise TerrainError(truncated)
         if src.crs is None:
             raise TerrainError(f"{path}: raster has no CRS (no georeferencing), cannot place it on a metric grid")
         if src.width < 2 or src.height < 2:
             raise TerrainError(f"{path}: raster is {src.height}×{src.width} pixels; a DEM needs at least 2×2 posts")
-        if src.width * src.height > MAX_SOURCE_POSTS:
-            raise TerrainError(f"{path}: raster is {src.height}×{src.width} pixels (limit {MAX_SOURCE_POSTS}); crop it "
-                               "first (gdal_translate -projwin)")
+        native = (spacing is None and frame is None and src.crs.is_projected
+                  and math.isclose(src.crs.linear_units_factor[1], 1.0))
+        limit = MAX_POSTS if native else MAX_SOURCE_POSTS  # read at native resolution, the grid is the raster
+        if src.width * src.height > limit:
+            raise TerrainError(f"{path}: raster is {src.height}×{src.width} = {src.width * src.height} posts (limit "
+                               f"{limit}{' at native resolution' if native else ''}); crop it first (gdal_translate "
+                               "-projwin)" + ("" if not native else " or give a coarser spacing"))
+        need = READ_BYTES_PER_POST * src.width * src.height
+        have = host_memory_available()
+        if need > 0.9 * have:
+            raise TerrainError(f"{path}: reading its {src.height}×{src.width} posts needs about {need / 1e9:.2g} GB "
+                               f"of memory but {have / 1e9:.2g} GB is available; crop it first (gdal_translate "
+                               "-projwin)")
         try:
             band = src.read(1, masked=True)
         except errors as err:
@@ -266,6 +285,30 @@ def _read_open(path: str, spacing, frame, opener, errors) -> RasterGrid:
     if frame is None and metric and north_up and spacing is None:
         return _native_grid(data, crs, transform, path)
     return _reprojected_grid(data, crs, transform, bounds, spacing, path, frame)
+
+
+def _truncation(src, path: str) -> str | None:
+    """Why a GeoTIFF is truncated (its header places image data beyond the end of the file), or None. Checked
+    before anything else: a cut file also loses the tags after its cut (its CRS), and "no CRS" would mislead."""
+    if src.driver != "GTiff" or not os.path.isfile(path):
+        return None
+    size = os.path.getsize(path)
+    bh, bw = src.block_shapes[0]
+    ny, nx = -(-src.height // bh), -(-src.width // bw)
+    if nx * ny <= 4096:
+        blocks = [(x, y) for y in range(ny) for x in range(nx)]
+    else:  # a large tiled file: its first and last rows of blocks
+        blocks = [(x, y) for y in (0, ny - 1) for x in range(min(nx, 2048))]
+    end = 0
+    for x, y in blocks:
+        offset = src.get_tag_item(f"BLOCK_OFFSET_{x}_{y}", "TIFF", bidx=1)
+        length = src.get_tag_item(f"BLOCK_SIZE_{x}_{y}", "TIFF", bidx=1)
+        if offset and length:
+            end = max(end, int(offset) + int(length))
+    if end > size:
+        return (f"{path}: the file is truncated: it has {size} bytes but its header places image data up to byte "
+                f"{end}; copy or download it again")
+    return None
 
 
 def _native_grid(data, crs, transform, path) -> RasterGrid:

@@ -263,6 +263,11 @@ def replay(log: FlightLog, terrain=None, *, model: str | None = None, backend: s
     altimeter = s["model"] == "altimeter"
     times = log.alt_t if altimeter else log.scan_t
     sample, dts, ends, used = timeline(log, times)
+    if not used.any():
+        stream = "altimeter reading" if altimeter else "scan"
+        raise LogError(f"flight log {log.name}", [
+            f"none of its {len(times)} {stream}(s) (t = {times[0]:.3f} … {times[-1]:.3f} s) lies within the IMU's "
+            f"time span (t = {log.imu_t[0]:.3f} … {log.t_end:.3f} s): nothing to navigate with"])
     nominal0 = NavState(log.init_pos, log.init_vel, log.init_quat, log.init_accel_bias, log.init_gyro_bias)
     ins = Ins(nominal0, log.imu_rate_hz).run(log.imu_f[sample], log.imu_w[sample], dt=dts)["pos_n"]
     ins_at = ins[np.r_[0, ends]]

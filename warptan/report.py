@@ -169,6 +169,9 @@ def aggregate(results) -> dict[str, dict]:
             "coverage_3sigma_mean": np.mean([r.run.coverage(cfg["filter"]["converged_after_s"]) for r in runs],
                                             axis=0).tolist(),
             **_linear_aggregate([r.linear_summary() for r in runs]),
+            "updates": int(sum(len(r.run.skipped) - 1 for r in runs)),
+            "skipped_updates": int(sum(r.run.skipped.sum() for r in runs)),
+            "runs_without_any_update": int(sum(r.summary()["updates_used"] == 0 for r in runs)),
             "update_ms_median": 1e3 * float(np.median(np.concatenate([r.run.update_time_s[1:] for r in runs]))),
             "wall_s_mean": float(np.mean([r.wall_s for r in runs])),
         }

@@ -29,6 +29,7 @@ Choices the paper leaves open (SPEC §7 fixes the rest):
 
 from __future__ import annotations
 
+import collections
 import difflib
 import math
 import os
@@ -38,10 +39,10 @@ from pathlib import Path
 
 import numpy as np
 
-from warptan.checks import check_seed
+from warptan.checks import check_seed, host_memory_available
 from warptan.imu import IMU_GRADES, ImuModel
 from warptan.measurement import LIKELIHOODS, MODELS, Likelihood, make_model
-from warptan.mpf import RESAMPLERS
+from warptan.mpf import MIN_PARTICLES, RESAMPLERS
 from warptan.raycast import BACKENDS
 from warptan.runner import FilterRun, InitialErrors, run_filter
 from warptan.sensors import Barometer, PointCloudSensor, RadarAltimeter, ScanPattern
@@ -91,6 +92,8 @@ def _vec(n, check=None):
     def inner(v):
         if not (isinstance(v, list) and len(v) == n and all(isinstance(x, (int, float)) for x in v)):
             return f"must be a list of {n} numbers"
+        if not all(math.isfinite(x) for x in v):
+            return f"must be a list of {n} finite numbers"
         if check:
             bad = [check(x) for x in v if check(x)]
             return bad[0] if bad else None
@@ -144,7 +147,8 @@ SCHEMA: dict[str, dict[str, tuple[type | tuple, object]]] = {
         "map_aware": (bool, None),
     },
     "filter": {
-        "particles": (int, _pos),
+        "particles": (int, lambda v: None if v >= MIN_PARTICLES else f"must be ≥ {MIN_PARTICLES} (a particle filter "
+                      "weighs particles against each other)"),
         "resample_threshold": (float, lambda v: None if 0 <= v <= 1 else "must be in [0, 1]"),
         "resampler": (str, _one_of(tuple(RESAMPLERS))),
         "pos_noise_m_rthz": (float, _upto(1e3, "m/√s")),
@@ -211,11 +215,14 @@ RUN_KEYWORDS = (*OVERRIDES, "terrain", "paper_rates")
 """Every keyword run_scenario takes besides the seed, device and callbacks."""
 
 
-def _type_ok(value, kind) -> bool:
+def _type_ok(value, kind) -> bool | None:
+    """True when ``value`` has the schema type ``kind``; None for a non-finite float (nan, inf: never a setting)."""
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
     if isinstance(kind, tuple):
         return any(_type_ok(value, k) for k in kind)
     if kind is float:
-        return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+        return isinstance(value, (int, float)) and not isinstance(value, bool)
     if kind is int:
         return isinstance(value, int) and not isinstance(value, bool)
     return isinstance(value, kind)
@@ -249,6 +256,9 @@ def validate(config: dict, source: str = "scenario") -> list[str]:
                 problems.append(f"missing key {where}{key}")
                 continue
             value = table[key]
+            if _type_ok(value, float) is None:
+                problems.append(f"{where}{key} = {value!r} must be a finite number")
+                continue
             if not _type_ok(value, kind):
                 names = " or ".join(k.__name__ for k in kind) if isinstance(kind, tuple) else kind.__name__
                 problems.append(f"{where}{key} = {value!r} must be of type {names}")
@@ -280,6 +290,14 @@ def check_seeds(seeds, base: int = 0) -> list[int]:
     Raises:
         ScenarioError: naming the first bad seed.
     """
+    if isinstance(seeds, range):  # arithmetic only: `--seeds 5000000000` is answered at once
+        if len(seeds) == 0:
+            raise ScenarioError("at least one seed is needed")
+        low, high = min(seeds[0], seeds[-1]), max(seeds[0], seeds[-1])
+        if low < 0 or high > MAX_SEED - base:
+            raise ScenarioError(f"seeds {seeds[0]} … {seeds[-1]} ({len(seeds)} seeds) must lie in "
+                                f"[0, {MAX_SEED - base}] (run.seed {base} + seed ≤ {MAX_SEED})")
+        return seeds
     if isinstance(seeds, (str, bytes)) or not hasattr(seeds, "__iter__"):
         seeds = [seeds]
     out = []
@@ -291,8 +309,9 @@ def check_seeds(seeds, base: int = 0) -> list[int]:
     if not out:
         raise ScenarioError("at least one seed is needed")
     if len(set(out)) != len(out):
-        repeated = sorted({x for x in out if out.count(x) > 1})
-        raise ScenarioError(f"seed(s) {repeated} given more than once; each seed is one run")
+        repeated = sorted(x for x, n in collections.Counter(out).items() if n > 1)
+        raise ScenarioError(f"seed(s) {repeated[:10]}{' …' if len(repeated) > 10 else ''} given more than once; "
+                            "each seed is one run")
     return out
 
 
@@ -314,14 +333,7 @@ def available_memory(device) -> dict[str, float]:
     """Bytes available now on the host (MemAvailable) and on ``device`` (free memory; the host's for the CPU)."""
     from warptan.device import resolve_device
 
-    host = float(os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES"))
-    try:
-        with open("/proc/meminfo") as f:
-            for line in f:
-                if line.startswith("MemAvailable:"):
-                    host = float(line.split()[1]) * 1024.0
-    except OSError:
-        pass
+    host = host_memory_available()
     d = resolve_device(device)
     dev = host if d.is_cpu else float(getattr(d, "free_memory", 0) or d.total_memory)
     return {"host": host, "device": dev}
@@ -363,8 +375,9 @@ def scenario_path(name_or_path: str | os.PathLike) -> Path:
     raise ScenarioError(f"unknown scenario {text!r}; use one of {', '.join(SCENARIO_IDS)}, 'all', or a .toml path")
 
 
-def load_config(name_or_path, **overrides) -> dict:
-    """Read, override and validate a scenario; raises :class:`ScenarioError` listing every problem."""
+def load_config(name_or_path, overrides_from: str = "override", **overrides) -> dict:
+    """Read, override and validate a scenario; raises :class:`ScenarioError` listing every problem. A problem of
+    an overridden value names ``overrides_from`` (e.g. the campaign file that set it), not the scenario file."""
     path = scenario_path(name_or_path)
     try:
         with open(path, "rb") as f:
@@ -383,7 +396,13 @@ def load_config(name_or_path, **overrides) -> dict:
         config.setdefault(section, {})[k] = value
     if overrides.get("paper_rates"):
         config.setdefault("sensor", {})["rate_hz"] = config.get("imu", {}).get("rate_hz")
-    problems = [f"{path}: {p}" for p in problems] + validate(config, str(path))
+    overridden = {f"{OVERRIDES[k][0]}.{OVERRIDES[k][1]} ": k for k, v in overrides.items()
+                  if v is not None and k in OVERRIDES}
+    problems = [f"{path}: {p}" for p in problems]
+    for problem in validate(config, ""):
+        problem = problem[2:]  # validate's "{source}: " with an empty source
+        key = next((k for prefix, k in overridden.items() if problem.startswith(prefix)), None)
+        problems.append(f"{overrides_from} {key}: {problem}" if key else f"{path}: {problem}")
     if problems:
         raise ScenarioError(f"{len(problems)} problem(s) in scenario {path.stem}:\n  " + "\n  ".join(problems))
     return config
@@ -496,6 +515,22 @@ def _max_height_near(terrain: Terrain, north, east, radius: float) -> float:
     return best
 
 
+def track_problem(terrain: Terrain, track: np.ndarray, margin: float, what: str) -> str | None:
+    """Why ``terrain`` does not cover the horizontal ``track`` (K, 2: north, east, m) with ``margin`` metres around
+    it (leaves its bounds, or passes over nodata), or None when it does. ``what`` names the terrain in the text."""
+    n_min, n_max, e_min, e_max = terrain.bounds_ne
+    if (track[:, 0].min() - margin < n_min or track[:, 0].max() + margin > n_max or
+            track[:, 1].min() - margin < e_min or track[:, 1].max() + margin > e_max):
+        return (f"the track (north {track[:, 0].min():.0f}…{track[:, 0].max():.0f} m, east {track[:, 1].min():.0f}…"
+                f"{track[:, 1].max():.0f} m) with a {margin:.0f} m margin leaves the {what} (north {n_min:.0f}…"
+                f"{n_max:.0f}, east {e_min:.0f}…{e_max:.0f})")
+    heights = terrain.height_at(track[:, 0], track[:, 1])
+    if np.isnan(heights).any():
+        return (f"the track passes over nodata in the {what} ({int(np.isnan(heights).sum())} of {len(heights)} "
+                "track points)")
+    return None
+
+
 def build_flight(config: dict, terrain: Terrain) -> Trajectory:
     """The truth trajectory of a scenario over ``terrain`` (placement and altitude rule applied).
 
@@ -524,21 +559,12 @@ def build_flight(config: dict, terrain: Terrain) -> Trajectory:
         mid = 0.5 * (path.min(axis=0) + path.max(axis=0))
         offset = np.array([0.5 * (n_min + n_max), 0.5 * (e_min + e_max)]) - mid
     track = path + offset
-    margin = flight["margin_m"]
-    problems = []
     if not np.isfinite(track).all():
-        problems.append(f"the track is not finite (flight.speed_mps = {flight['speed_mps']:g}, duration_s = "
-                        f"{flight['duration_s']:g})")
-    elif (track[:, 0].min() - margin < n_min or track[:, 0].max() + margin > n_max or
-            track[:, 1].min() - margin < e_min or track[:, 1].max() + margin > e_max):
-        problems.append(
-            f"the track (north {track[:, 0].min():.0f}…{track[:, 0].max():.0f} m, east {track[:, 1].min():.0f}…"
-            f"{track[:, 1].max():.0f} m) with a {margin:.0f} m margin leaves the DEM (north {n_min:.0f}…"
-            f"{n_max:.0f}, east {e_min:.0f}…{e_max:.0f}); shorten flight.duration_s or use a larger DEM")
-    elif np.isnan(terrain.height_at(track[:, 0], track[:, 1])).any():
-        problems.append("the track passes over nodata in the DEM")
-    if problems:
-        raise ScenarioError(f"scenario {config['id']}: " + "; ".join(problems))
+        raise ScenarioError(f"scenario {config['id']}: the track is not finite (flight.speed_mps = "
+                            f"{flight['speed_mps']:g}, duration_s = {flight['duration_s']:g})")
+    problem = track_problem(terrain, track, flight["margin_m"], "DEM")
+    if problem:
+        raise ScenarioError(f"scenario {config['id']}: {problem}; shorten flight.duration_s or use a larger DEM")
     radius = 2000.0 if flight["altitude_rule"] == "high" else 1000.0
     above = ABOVE_TERRAIN_M[flight["altitude_rule"]]
     sub = track[:: max(1, int(rate))]
@@ -584,7 +610,10 @@ class ScenarioResult:
             "coverage_3sigma": r.coverage(self.config["filter"]["converged_after_s"]).tolist(),
             "min_ess": float(r.ess[1:].min()) if len(r.ess) > 1 else float(r.ess[0]),
             "resamplings": int(r.resampled.sum()), "respreads": int(r.respread.sum()),
-            "skipped_updates": int(r.skipped.sum()), "max_tempering_stages": int(r.stages.max()),
+            "updates": len(r.skipped) - 1, "skipped_updates": int(r.skipped.sum()),
+            "updates_without_points": int((r.all_points_invalid & ~r.skipped).sum()),
+            "updates_used": int((~r.skipped[1:] & ~r.all_points_invalid[1:]).sum()),
+            "max_tempering_stages": int(r.stages.max()),
             "integrity_max": float(np.nanmax(r.nis_avg)) if len(r.nis_avg) > 1 else 0.0,
             "unpredictable_particle_updates": int(r.n_unpredictable.sum()),
             "update_ms_median": 1e3 * float(np.median(r.update_time_s[1:])) if len(r.update_time_s) > 1 else 0.0,
@@ -664,7 +693,12 @@ def prepare(name_or_path, seed: int = 0, terrain=None, *, seeds=None, device=Non
         check_memory(config, len(seeds) if batched else 1, device)
     truth_terrain = resolve_terrain(config, terrain)
     flight = build_flight(config, truth_terrain)
-    map_terrain(truth_terrain, config, config["run"]["seed"] + seeds[0])
+    the_map = map_terrain(truth_terrain, config, config["run"]["seed"] + seeds[0])
+    if the_map is not truth_terrain:  # the map must cover the flight as the world must
+        problem = track_problem(the_map, flight.pos_n[:, :2], config["flight"]["margin_m"], f"map {the_map.name}")
+        if problem:
+            raise ScenarioError(f"scenario {config['id']}: the filter's map does not cover the flight: {problem}; "
+                                "give a map of the same ground (terrain.map_path / --map)")
     return config, truth_terrain, flight
 
 

@@ -505,22 +505,28 @@ class Terrain:
         remap[used] = np.arange(len(used))
         return trimesh.Trimesh(vertices=verts[used], faces=remap[faces], process=False)
 
-    def export(self, path: str | os.PathLike, frame: str = "enu") -> None:
-        """Write the mesh for viewing (.ply, .glb, .obj, .stl; ENU with z up by default)."""
-        path = os.fspath(path)
+    def export(self, path: str | os.PathLike, frame: str = "enu", overwrite: bool = False) -> None:
+        """Write the mesh for viewing (.ply, .glb, .obj, .stl; ENU with z up by default). An existing file is
+        replaced only with ``overwrite=True`` (whole or not at all); a failed write names the file and leaves
+        it as it was."""
+        path = check_export_path(path, overwrite)
         ext = os.path.splitext(path)[1].lower()
-        if ext not in (".ply", ".glb", ".obj", ".stl"):
-            raise ValueError(f"{path}: unsupported mesh format {ext!r}; use .ply, .glb, .obj or .stl")
-        if os.path.isdir(path):
-            raise ValueError(f"{path}: is a folder; give a file name")
         mesh = self.to_trimesh(frame)
+        folder = os.path.dirname(path) or "."
         # Written beside the target and renamed over it: an existing file is replaced whole or not at all.
-        fd, tmp = tempfile.mkstemp(prefix=".warptan-export-", suffix=ext, dir=os.path.dirname(path) or ".")
+        try:
+            fd, tmp = tempfile.mkstemp(prefix=".warptan-export-", suffix=ext, dir=folder)
+        except OSError as err:
+            raise TerrainError(f"{path}: cannot create a file in {folder} ({err.strerror or err})") from None
         try:
             with os.fdopen(fd, "wb") as f:
                 mesh.export(f, file_type=ext[1:])
             os.chmod(tmp, 0o666 & ~current_umask())
             os.replace(tmp, path)
+        except OSError as err:
+            with contextlib.suppress(OSError):
+                os.remove(tmp)
+            raise TerrainError(f"writing {path} failed: {err.strerror or err}; nothing was written") from None
         except BaseException:
             with contextlib.suppress(OSError):
                 os.remove(tmp)
@@ -543,6 +549,27 @@ class Terrain:
             lat, lon = self.ne_to_latlon(np.array([n_min, n_max]), np.array([e_min, e_max]))
             out["bounds_latlon_deg"] = [float(lat[0]), float(lat[1]), float(lon[0]), float(lon[1])]
         return out
+
+
+MESH_FORMATS = (".ply", ".glb", ".obj", ".stl")
+"""File types :meth:`Terrain.export` writes."""
+
+
+def check_export_path(path: str | os.PathLike, overwrite: bool = False) -> str:
+    """``path`` as text when :meth:`Terrain.export` may write it (a known format, an existing folder, not an
+    existing file unless ``overwrite``), else a TerrainError naming the problem."""
+    path = os.fspath(path)
+    ext = os.path.splitext(path)[1].lower()
+    if ext not in MESH_FORMATS:
+        raise TerrainError(f"{path}: unsupported mesh format {ext!r}; use {', '.join(MESH_FORMATS)}")
+    if os.path.isdir(path):
+        raise TerrainError(f"{path}: is a folder; give a file name")
+    folder = os.path.dirname(path) or "."
+    if not os.path.isdir(folder):
+        raise TerrainError(f"{path}: its folder {folder} does not exist; create it first")
+    if os.path.lexists(path) and not overwrite:
+        raise TerrainError(f"{path} exists; nothing was written (pass --overwrite, or overwrite=True, to replace it)")
+    return path
 
 
 def _crs_summary(crs_wkt: str | None) -> str:
