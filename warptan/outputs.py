@@ -182,7 +182,7 @@ class OutputFolder:
     def __init__(self, path: str | os.PathLike, kind: str = "run", option: str = "--out"):
         text = os.fspath(path)
         if not text or not text.strip():
-            raise OutputError(f"the output folder name ({option}) is empty")
+            raise OutputError(f"{option}: the output folder name is empty")
         if kind not in KINDS:
             raise OutputError(f"output kind must be one of {', '.join(KINDS)}, got {kind!r}")
         self.path = Path(os.path.realpath(text))

@@ -169,13 +169,26 @@ def aggregate(results) -> dict[str, dict]:
             "coverage_3sigma_mean": np.mean([r.run.coverage(cfg["filter"]["converged_after_s"]) for r in runs],
                                             axis=0).tolist(),
             **_linear_aggregate([r.linear_summary() for r in runs]),
-            "updates": int(sum(len(r.run.skipped) - 1 for r in runs)),
-            "skipped_updates": int(sum(r.run.skipped.sum() for r in runs)),
-            "runs_without_any_update": int(sum(r.summary()["updates_used"] == 0 for r in runs)),
+            **_update_counts(runs),
             "update_ms_median": 1e3 * float(np.median(np.concatenate([r.run.update_time_s[1:] for r in runs]))),
             "wall_s_mean": float(np.mean([r.wall_s for r in runs])),
         }
     return out
+
+
+def _update_counts(runs) -> dict:
+    """Updates over the seeds, those skipped (the map could not predict the scan), and the runs that used none."""
+    counts = [update_counts(r.run) for r in runs]
+    return {"updates": sum(c[0] for c in counts), "skipped_updates": sum(c[1] for c in counts),
+            "runs_without_any_update": sum(c[0] > 0 and c[2] == 0 for c in counts)}
+
+
+def update_counts(run) -> tuple[int, int, int]:
+    """(updates, skipped, used) of a :class:`~warptan.runner.FilterRun`: used = neither skipped nor without a valid
+    received point. A run without the flags (no history of them) counts every update as used."""
+    skipped = np.asarray(getattr(run, "skipped", np.zeros(len(run.t_s), dtype=bool)), dtype=bool)[1:]
+    empty = np.asarray(getattr(run, "all_points_invalid", np.zeros(len(run.t_s), dtype=bool)), dtype=bool)[1:]
+    return len(skipped), int(skipped.sum()), int((~skipped & ~empty).sum())
 
 
 def _linear_aggregate(summaries: list[dict]) -> dict:

@@ -601,7 +601,10 @@ class ScenarioResult:
 
     def summary(self) -> dict:
         """JSON-ready numbers of this run."""
+        from warptan.report import update_counts
+
         r = self.run
+        updates, skipped, used = update_counts(r)
         return {
             "scenario": self.scenario, "seed": self.seed, "device": self.device, "terrain": self.terrain,
             "map": self.map or self.terrain, "map_sigma_m": self.map_sigma_m,
@@ -610,9 +613,8 @@ class ScenarioResult:
             "coverage_3sigma": r.coverage(self.config["filter"]["converged_after_s"]).tolist(),
             "min_ess": float(r.ess[1:].min()) if len(r.ess) > 1 else float(r.ess[0]),
             "resamplings": int(r.resampled.sum()), "respreads": int(r.respread.sum()),
-            "updates": len(r.skipped) - 1, "skipped_updates": int(r.skipped.sum()),
-            "updates_without_points": int((r.all_points_invalid & ~r.skipped).sum()),
-            "updates_used": int((~r.skipped[1:] & ~r.all_points_invalid[1:]).sum()),
+            "updates": updates, "skipped_updates": skipped, "updates_used": used,
+            "updates_without_points": updates - skipped - used,
             "max_tempering_stages": int(r.stages.max()),
             "integrity_max": float(np.nanmax(r.nis_avg)) if len(r.nis_avg) > 1 else 0.0,
             "unpredictable_particle_updates": int(r.n_unpredictable.sum()),
