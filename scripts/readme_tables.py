@@ -207,7 +207,8 @@ def kernels_block() -> str:
         ratio = f"{t['dda'] / t['sliding']:.1f}" if "dda" in t and "sliding" in t else "—"
         lines.append(f"| {dev} | {n} × {m} | " + " | ".join(f"{1e3 * t[k]:.3f}" if k in t else "—" for k in models)
                      + f" | {ratio} |")
-    return ("One `model.evaluate` (N × M residual kernel + per-particle reduction), median after warm-up, on the "
+    return ("One model update as the filter runs it (`stage` + `launch`: N × M residual kernel + per-particle "
+            "reduction; `evaluate` before it returned copies), median after warm-up, on the "
             "generated rugged terrain; configurations from N·M = 50 000 up. " + _provenance(*sources) + "\n\n"
             + "\n".join(lines))
 
@@ -215,7 +216,7 @@ def kernels_block() -> str:
 def threads_block() -> str:
     one, two = _load("benchmarks/cpu_threads_1.json"), _load("benchmarks/kernel_timings_cpu.json")
     t1 = {(r["model"], r["N"], r["M"]): r["median_s"] for r in one["results"]}
-    lines = [f"`model.evaluate` with {one['meta']['cpu_threads']} thread (`WARPTAN_CPU_THREADS=1`) against "
+    lines = [f"One model update with {one['meta']['cpu_threads']} thread (`WARPTAN_CPU_THREADS=1`) against "
              f"{two['meta']['cpu_threads']} threads, same machine. "
              + _provenance("benchmarks/cpu_threads_1.json", "benchmarks/kernel_timings_cpu.json"), "",
              "| model | N × M | 1 thread ms | all threads ms | speed-up |", "|---|---|---|---|---|"]

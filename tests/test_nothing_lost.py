@@ -331,9 +331,29 @@ def test_a_run_whose_updates_were_all_skipped_exits_non_zero(capsys, tmp_path):
     run = json.loads((out / "results.json").read_text())
     assert run["runs"][0]["updates_used"] == 0 and run["runs"][0]["skipped_updates"] == run["runs"][0]["updates"] > 0
     assert run["scenarios"]["S8"]["runs_without_any_update"] == 1
+    campaign = tmp_path / "c.toml"
+    campaign.write_text('scenarios = ["S8"]\nseeds = 1\n[overrides]\nmap_path = "strip.tif"\nduration_s = 0.5\n'
+                        'particles = 16\n')
+    status, _, err = _cli(capsys, "campaign", campaign, "--out", tmp_path / "c", "--quiet", "--no-plots")
+    assert status == 1 and "every update was skipped" in err
+    rows = json.loads((tmp_path / "c" / "campaign.json").read_text())["rows"]
+    assert rows[0]["seeds_without_any_update"] == [0]
     status, text, err = _cli(capsys, "run", "S8", "--map", RUGGED_TIF, "--out", tmp_path / "ok", *QUICK)
     assert status == 0, err
-    assert "updates were not used" not in err
+    assert "updates were not used" not in text + err
+
+
+def test_partly_skipped_runs_are_named_in_the_summary(capsys):
+    class Partly:
+        scenario, seed = "S8", 3
+
+        @staticmethod
+        def summary():
+            return {"updates": 200, "skipped_updates": 12, "updates_used": 185, "updates_without_points": 3}
+
+    assert cli._report_skipped([Partly()]) == 0
+    out, _ = capsys.readouterr()
+    assert "S8 seed 3: 15 of 200 updates were not used (12 skipped" in out and "3 without a valid measurement" in out
 
 
 # ------------------------------------------------------------------------------------------- limits
@@ -404,7 +424,7 @@ def test_evaluate_returns_arrays_the_caller_may_keep():
     first = model.evaluate(wp.array(pos, dtype=wp.vec3), wp.array(quat, dtype=wp.vec4), cloud)
     kept, kept_res = first.loglik.numpy(), first.residual_m.numpy()
     copy, copy_res = kept.copy(), kept_res.copy()
-    moved = pos + [100.0, 50.0, 0.0]
+    moved = pos + np.array([100.0, 50.0, 0.0])
     second = model.evaluate(wp.array(moved, dtype=wp.vec3), wp.array(quat, dtype=wp.vec4), cloud)
     assert not np.array_equal(second.loglik.numpy(), copy)  # the second call did compute something else
     np.testing.assert_array_equal(kept, copy)
@@ -480,7 +500,7 @@ def test_replay_errors_are_one_clear_line(capsys, exported, tmp_path):
     import dataclasses
 
     empty = dataclasses.replace(log, imu_t=log.imu_t[:0], imu_f=log.imu_f[:0], imu_w=log.imu_w[:0])
-    with pytest.raises(LogError, match="imu.t must be a non-empty"):
+    with pytest.raises(LogError, match=r"imu\.t must be a non-empty"):
         empty.validate()
     late = dataclasses.replace(log, scan_t=log.scan_t + 1000.0)
     write_log(late, tmp_path / "late.h5")

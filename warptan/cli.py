@@ -255,13 +255,17 @@ def _campaign(args) -> int:
     if not written["plots"] and not args.no_plots and campaign.sweep:
         print("plots skipped: matplotlib is not installed (pip install 'warptan[plot]')")
     print("wrote " + ", ".join(written["files"]))
+    blind = [f"{row['scenario']}{''.join(f' {k}={v}' for k, v in row['params'].items())} seed(s) "
+             f"{row['seeds_without_any_update']}" for row in result.rows if row["seeds_without_any_update"]]
+    if blind:
+        print(f"warptan: error: {len(blind)} batch(es) have runs whose every update was skipped (they navigated "
+              f"nothing; seeds_without_any_update in campaign.json): {'; '.join(blind[:5])}", file=sys.stderr)
     if result.failures:
         kept = f"the other {len(result.rows)} row(s) were written" if result.rows else "no row was written"
         print(f"warptan: error: {len(result.failures)} of {len(campaign.batches)} batch(es) failed after "
               f"{result.failures[0]['attempts']} attempts (listed in campaign.json and campaign.md); {kept}",
               file=sys.stderr)
-        return 1
-    return 0
+    return 1 if result.failures or blind else 0
 
 
 def _require_rosbags() -> None:
