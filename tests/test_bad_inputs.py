@@ -285,8 +285,12 @@ def test_a_crash_between_the_fallback_renames_is_recovered(tmp_path):
     assert (out / "results.md").read_text() == "run 1"
 
 
-def test_sigint_mid_run_exits_130_and_keeps_the_old_outputs(tmp_path):
-    """A real interrupt of `python -m warptan run` while it runs: exit 130, one line, the folder unchanged."""
+@pytest.mark.parametrize("signum, status, words", [
+    (signal.SIGINT, 130, b"interrupted; the output folder is as it was"),
+    (signal.SIGTERM, 143, b"terminated (SIGTERM); the output folder is as it was")], ids=["SIGINT", "SIGTERM"])
+def test_a_signal_mid_run_exits_and_keeps_the_old_outputs(tmp_path, signum, status, words):
+    """A real interrupt (Ctrl-C) or SIGTERM of `python -m warptan run` while it runs: exit 130 / 143, one line, the
+    folder unchanged, no hidden partial folder left (SIGTERM left one, never cleaned up)."""
     out = tmp_path / "res"
     out.mkdir()
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
@@ -300,10 +304,10 @@ def test_sigint_mid_run_exits_130_and_keeps_the_old_outputs(tmp_path):
         if not chunk:  # the process ended before its run started
             break
         seen += chunk
-    proc.send_signal(signal.SIGINT)
+    proc.send_signal(signum)
     _, err = proc.communicate(timeout=60)
-    assert proc.returncode == 130, (seen + err).decode()[-2000:]
-    assert b"interrupted; the output folder is as it was" in err and b"Traceback" not in err
+    assert proc.returncode == status, (seen + err).decode()[-2000:]
+    assert words in err and b"Traceback" not in err
     assert list(out.iterdir()) == [] and not [p for p in tmp_path.iterdir() if ".warptan-" in p.name]
 
 

@@ -198,23 +198,10 @@ def test_a_second_writer_is_refused_at_once_naming_the_first(capsys, tmp_path):
     assert (out / "results.json").exists() and not _leftovers(tmp_path)
 
 
-def test_sigterm_cleans_up_as_sigint_and_a_killed_writers_partial_is_removed(tmp_path):
+def test_a_killed_writers_partial_folder_is_removed_by_the_next(tmp_path):
+    """SIGTERM and SIGINT clean up (tests/test_bad_inputs.py); a SIGKILL during a write cannot: the next holder of
+    the folder's lock removes what it left."""
     out = tmp_path / "res"
-    out.mkdir()
-    proc = subprocess.Popen([sys.executable, "-m", "warptan", "run", "S7", "--seeds", "50", "--particles", "64",
-                             "--out", str(out), "--no-plots"], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                            env={**os.environ, "PYTHONUNBUFFERED": "1"}, cwd=tmp_path)
-    seen, deadline = b"", time.monotonic() + 120
-    while b"update" not in seen and time.monotonic() < deadline:
-        chunk = os.read(proc.stderr.fileno(), 4096)
-        if not chunk:
-            break
-        seen += chunk
-    proc.send_signal(signal.SIGTERM)
-    _, err = proc.communicate(timeout=60)
-    assert proc.returncode == 143, (seen + err).decode()[-2000:]
-    assert b"terminated (SIGTERM)" in err and b"Traceback" not in err
-    assert list(out.iterdir()) == [] and not _leftovers(tmp_path)
     stale = tmp_path / ".res.warptan-partial-deadbeef"  # what a SIGKILL during a write leaves
     stale.mkdir()
     (stale / "results.json").write_text("{")
