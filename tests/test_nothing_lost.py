@@ -483,6 +483,12 @@ def test_replay_errors_are_one_clear_line(capsys, exported, tmp_path):
     status, _, err = _cli(capsys, "replay", log_path, "--model", "altimeter", "--out", tmp_path / "o")
     assert status == 2
     _error_line(err, "the altimeter model needs altimeter readings")
+    for argv, fragment in ((["--particles", "1"], "particles must be a whole number ≥ 2"),
+                           (["--bag-config", tmp_path / "absent.toml"], "--bag-config: for ROS 2 bags"),
+                           (["--terrain", tmp_path / "absent.tif"], "absent.tif")):
+        status, _, err = _cli(capsys, "replay", log_path, "--out", tmp_path / "o", "--quiet", *argv)
+        assert status == 2
+        _error_line(err, fragment)
     log = read_log(log_path)
     import dataclasses
 

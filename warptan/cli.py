@@ -26,6 +26,17 @@ def count_arg(text: str) -> int:
     return value
 
 
+def seed_arg(text: str) -> int:
+    """argparse type: a seed, a whole number in [0, 2**63)."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be a whole number ≥ 0, got {text!r}") from None
+    if not 0 <= value < 2**63:
+        raise argparse.ArgumentTypeError(f"must be in [0, 2**63), got {value}")
+    return value
+
+
 def number_arg(minimum: float, strict: bool):
     """argparse type: a finite number > minimum (strict) or ≥ minimum."""
     def parse(text: str) -> float:
@@ -307,9 +318,10 @@ def _replay(args) -> int:
         from tqdm import tqdm
     except ModuleNotFoundError:
         tqdm = _NoProgress
-    from warptan.replay import replay_config
+    from warptan.replay import replay_config, replay_terrain
 
     config = replay_config(log, args.model, args.backend, args.particles, args.likelihood)  # checks the model
+    replay_terrain(log, config, args.terrain)  # loads (and caches) the DEM before the progress bar
     n_meas = len(log.alt_t if config["sensor"]["model"] == "altimeter" else log.scan_t)
     with tqdm(total=n_meas, unit="update", disable=args.quiet, dynamic_ncols=True) as bar:
         bar.set_description(f"replay {log.name}")
@@ -340,6 +352,9 @@ def _load_flight(args):
     from warptan.flightlog import read_log
 
     path = args.log
+    bag_options = [f"--{name.replace('_', '-')}" for name in ("bag_config", "imu_topic", "cloud_topic", "range_topic",
+                                                              "baro_topic", "odom_topic", "imu_grade")
+                   if getattr(args, name) is not None]
     if os.path.isdir(path) or path.endswith((".db3", ".mcap")):
         _require_rosbags()
         from warptan.rosbag import BagConfig, read_bag
@@ -348,6 +363,9 @@ def _load_flight(args):
         config = config.with_overrides(imu=args.imu_topic, cloud=args.cloud_topic, range=args.range_topic,
                                        baro=args.baro_topic, odom=args.odom_topic, grade=args.imu_grade)
         return read_bag(path, config)
+    if bag_options:
+        raise ValueError(f"{', '.join(bag_options)}: for ROS 2 bags; {path} is a warptan flight log, which carries "
+                         "its own settings")
     return read_log(path)
 
 
@@ -466,7 +484,7 @@ def build_parser() -> argparse.ArgumentParser:
     rep.add_argument("--backend", default=None, help="ray-cast backend: dda, mesh, bisection")
     rep.add_argument("--likelihood", default=None, help="paper, gaussian or student_t")
     rep.add_argument("--particles", type=count_arg, default=None, help="particle count")
-    rep.add_argument("--seed", type=int, default=None, help="the filter's seed (default: the log's, else 0)")
+    rep.add_argument("--seed", type=seed_arg, default=None, help="the filter's seed (default: the log's, else 0)")
     rep.add_argument("--device", default="cpu", help="Warp device (cpu, cuda:0)")
     rep.add_argument("--out", default=None, help="output folder (default warptan-replay)")
     rep.add_argument("--no-plots", action="store_true", help="skip the PNG plots")

@@ -25,13 +25,13 @@ from pathlib import Path
 
 import numpy as np
 
-from warptan.checks import FilterError
+from warptan.checks import FilterError, check_seed
 from warptan.flightlog import MAX_GAP_S, FlightLog, LogError
 from warptan.frames import quat_to_mat
 from warptan.imu import imu_grade
 from warptan.ins import Ins, NavState
 from warptan.measurement import Likelihood
-from warptan.mpf import MarginalizedParticleFilter
+from warptan.mpf import MIN_PARTICLES, MarginalizedParticleFilter
 from warptan.runner import InitialErrors, collect_runs, prior_linear_sigma
 from warptan.sensors import AltimeterReading, PointCloud
 
@@ -187,6 +187,8 @@ def replay_config(log: FlightLog, model: str | None = None, backend: str | None 
     if backend is not None:
         s["backend"] = backend
     if particles is not None:
+        if isinstance(particles, bool) or not isinstance(particles, (int, np.integer)) or particles < MIN_PARTICLES:
+            raise FilterError(f"particles must be a whole number ≥ {MIN_PARTICLES}, got {particles!r}")
         config["filter"]["particles"] = int(particles)
     if likelihood is not None:
         config["likelihood"]["kind"] = likelihood
@@ -235,6 +237,16 @@ def check_coverage(log: FlightLog, terrain, ins_pos: np.ndarray) -> None:
         raise LogError(f"flight log {log.name}", problems)
 
 
+def replay_terrain(log: FlightLog, config: dict, terrain=None):
+    """The DEM of a replay: ``terrain`` (Terrain, name, path or spec), else the one the log names."""
+    from warptan.scenarios import resolve_terrain
+
+    spec = terrain if terrain is not None else (log.settings.get("terrain_spec") or log.dem_reference or None)
+    if spec is None:
+        raise LogError(f"flight log {log.name}", ["no DEM: the log names none (dem.reference); give --terrain"])
+    return resolve_terrain(config, spec)
+
+
 def replay(log: FlightLog, terrain=None, *, model: str | None = None, backend: str | None = None,
            particles: int | None = None, likelihood: str | None = None, seed: int | None = None, device="cpu",
            progress=None):
@@ -249,15 +261,12 @@ def replay(log: FlightLog, terrain=None, *, model: str | None = None, backend: s
         device: Warp device.
         progress: Optional callable(k, n) per update.
     """
-    from warptan.scenarios import ScenarioResult, filter_kwargs, map_terrain, resolve_terrain, scenario_model
+    from warptan.scenarios import ScenarioResult, filter_kwargs, map_terrain, scenario_model
 
     log.validate(f"flight log {log.name}")
     config = replay_config(log, model, backend, particles, likelihood)
-    spec = terrain if terrain is not None else (log.settings.get("terrain_spec") or log.dem_reference or None)
-    if spec is None:
-        raise LogError(f"flight log {log.name}", ["no DEM: the log names none (dem.reference); give --terrain"])
-    truth_terrain = resolve_terrain(config, spec)
-    filter_seed = int(log.settings.get("seed", 0) if seed is None else seed)
+    truth_terrain = replay_terrain(log, config, terrain)
+    filter_seed = check_seed(log.settings.get("seed", 0) if seed is None else seed)
     the_map = map_terrain(truth_terrain, config, filter_seed) if "config" in log.settings else truth_terrain
     s = config["sensor"]
     altimeter = s["model"] == "altimeter"
