@@ -51,6 +51,11 @@ def number_arg(minimum: float, strict: bool):
     return parse
 
 
+def _relief_arg(text: str):
+    """argparse type: 'auto' or a finite number (checked with the scenario)."""
+    return "auto" if text.strip().lower() == "auto" else _finite(text)
+
+
 def _finite(text: str) -> float:
     """argparse type: any finite number."""
     return number_arg(-math.inf, False)(text)
@@ -95,11 +100,15 @@ def _terrain_export(args) -> int:
 
 
 def _map_words(config: dict) -> str:
+    from warptan.world import WorldModel
+
+    model = WorldModel.from_config(config["world"])  # the world's name (the terrain) says how it differs
     t = config["terrain"]
     parts = [f"map {t['map_path']}" if t["map_path"] else "",
              f"map posts {t['map_spacing_m']:g} m" if t["map_spacing_m"] else "",
              f"map noise {t['map_noise_m']:g} m" if t["map_noise_m"] else "",
-             f"map bias {t['map_bias_m']:+g} m" if t["map_bias_m"] else ""]
+             f"map bias {t['map_bias_m']:+g} m" if t["map_bias_m"] else "",
+             "the map is the DEM" if model.active else ""]
     return "".join(", " + p for p in parts if p)
 
 
@@ -146,7 +155,12 @@ def _run(args) -> int:
                  "likelihood": args.likelihood,
                  "duration_s": duration, "paper_rates": args.paper_rates,
                  "use_baro": False if args.no_baro else None, "map_path": args.map,
-                 "map_spacing_m": args.map_spacing_m, "map_noise_m": args.map_noise_m, "map_bias_m": args.map_bias_m}
+                 "map_spacing_m": args.map_spacing_m, "map_noise_m": args.map_noise_m, "map_bias_m": args.map_bias_m,
+                 "world_relief_rms_m": args.world_relief_m, "world_relief_slope": args.world_relief_slope,
+                 "world_error_rms_m": args.world_error_m, "world_error_corr_m": args.world_error_corr_m,
+                 "world_bias_m": args.world_bias_m, "world_clutter_height_m": args.world_clutter_m,
+                 "world_clutter_fraction": args.world_clutter_fraction, "world_refine": args.world_refine,
+                 "world_seed": args.world_seed}
     plans = {name: prepare(name, terrain=terrain, seeds=range(seeds), device=args.device, batched=args.batch,
                            **overrides) for name in names}
     ids = [config["id"] for config, _, _ in plans.values()]
@@ -459,6 +473,24 @@ def build_parser() -> argparse.ArgumentParser:
                      help="map error: white noise σ per post, m")
     run.add_argument("--map-bias-m", type=_finite, default=None,
                      help="map error: vertical offset of the map, m")
+    world = run.add_argument_group("world", "a world that is not the map: the DEM (or --terrain) becomes the filter's "
+                                            "map and the flight sees a world made from it (scenario [world] table)")
+    world.add_argument("--world-relief-m", default=None, type=_relief_arg,
+                       help="sub-post relief RMS, m, or 'auto' (extrapolated from the DEM's spectrum)")
+    world.add_argument("--world-relief-slope", default=None, type=_relief_arg,
+                       help="spectral slope β of the relief (2-D PSD ∝ k^-β, 2…5), or 'auto'")
+    world.add_argument("--world-error-m", type=number_arg(0.0, False), default=None,
+                       help="RMS of the map's correlated vertical error, m")
+    world.add_argument("--world-error-corr-m", type=number_arg(0.0, False), default=None,
+                       help="correlation length of that error, m (≥ one map post)")
+    world.add_argument("--world-bias-m", type=_finite, default=None, help="the map reads this much higher, m")
+    world.add_argument("--world-clutter-m", type=number_arg(0.0, False), default=None,
+                       help="height of canopy / buildings, m")
+    world.add_argument("--world-clutter-fraction", type=number_arg(0.0, False), default=None,
+                       help="fraction of the ground under clutter, [0, 1]")
+    world.add_argument("--world-refine", type=count_arg, default=None, help="world posts per map post (default 3)")
+    world.add_argument("--world-seed", type=int, default=None,
+                       help="realisation of the world's random fields (-1: each run's own)")
     run.add_argument("--duration-s", type=number_arg(0.0, True), default=None,
                      help="override the flight duration, s (at least one measurement interval)")
     run.add_argument("--no-baro", action="store_true", help="altimeter scenarios without a barometer")

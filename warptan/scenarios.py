@@ -30,6 +30,7 @@ Choices the paper leaves open (SPEC §7 fixes the rest):
 from __future__ import annotations
 
 import collections
+import dataclasses
 import difflib
 import math
 import os
@@ -48,6 +49,7 @@ from warptan.runner import FilterRun, InitialErrors, run_filter
 from warptan.sensors import Barometer, PointCloudSensor, RadarAltimeter, ScanPattern
 from warptan.terrain import NAMED_TERRAINS, Terrain, TerrainError
 from warptan.trajectory import Orbit, Straight, Trajectory, Turn
+from warptan.world import AUTO, MAX_REFINE, RELIEF_SLOPE_RANGE, World, WorldModel
 
 try:
     import tomllib
@@ -169,7 +171,24 @@ SCHEMA: dict[str, dict[str, tuple[type | tuple, object]]] = {
         "att_deg": (list, _vec(3, _upto(180.0, "°"))),
     },
     "run": {"seed": (int, lambda v: None if 0 <= v <= MAX_SEED else f"must be in [0, {MAX_SEED}]")},
+    "world": {
+        "relief_rms_m": ((float, str), lambda v: None if v == AUTO or (not isinstance(v, str) and v >= 0)
+                         else "must be 'auto' (extrapolated from the map's spectrum) or a number ≥ 0 (m)"),
+        "relief_slope": ((float, str), lambda v: None if v == AUTO or (
+            not isinstance(v, str) and RELIEF_SLOPE_RANGE[0] <= v <= RELIEF_SLOPE_RANGE[1])
+            else f"must be 'auto' or in [{RELIEF_SLOPE_RANGE[0]:g}, {RELIEF_SLOPE_RANGE[1]:g}]"),
+        "error_rms_m": (float, _upto(1e3, "m")),
+        "error_corr_m": (float, _upto(1e6, "m")),
+        "bias_m": (float, lambda v: None if abs(v) <= 1e4 else "must be within ±10000 m"),
+        "clutter_height_m": (float, _upto(1e3, "m")),
+        "clutter_fraction": (float, lambda v: None if 0 <= v <= 1 else "must be in [0, 1]"),
+        "clutter_patch_m": (float, _pos),
+        "refine": (int, lambda v: None if 1 <= v <= MAX_REFINE else f"must be in [1, {MAX_REFINE}]"),
+        "seed": (int, lambda v: None if -1 <= v <= MAX_SEED else "must be ≥ 0, or -1 (each run's own seed)"),
+    },
 }
+WORLD_DEFAULTS = {f.name: f.default for f in dataclasses.fields(WorldModel)}
+"""A scenario without a ``[world]`` table (or without some of its keys) flies these: the world is the map."""
 
 MAX_SPEED_MPS = 1000.0
 """Fastest flight a scenario may state (Mach 3); beyond it the flight is a typo, not an aircraft."""
@@ -209,6 +228,16 @@ OVERRIDES = {
     "map_bias_m": ("terrain", "map_bias_m"),
     "map_seed": ("terrain", "map_seed"),
     "map_aware": ("likelihood", "map_aware"),
+    "world_relief_rms_m": ("world", "relief_rms_m"),
+    "world_relief_slope": ("world", "relief_slope"),
+    "world_error_rms_m": ("world", "error_rms_m"),
+    "world_error_corr_m": ("world", "error_corr_m"),
+    "world_bias_m": ("world", "bias_m"),
+    "world_clutter_height_m": ("world", "clutter_height_m"),
+    "world_clutter_fraction": ("world", "clutter_fraction"),
+    "world_clutter_patch_m": ("world", "clutter_patch_m"),
+    "world_refine": ("world", "refine"),
+    "world_seed": ("world", "seed"),
 }
 """run_scenario keyword -> (section, key). Also: terrain= (path, spec or Terrain), paper_rates=True."""
 RUN_KEYWORDS = (*OVERRIDES, "terrain", "paper_rates")
@@ -384,6 +413,8 @@ def load_config(name_or_path, overrides_from: str = "override", **overrides) -> 
             config = tomllib.load(f)
     except tomllib.TOMLDecodeError as err:
         raise ScenarioError(f"{path}: not valid TOML ({err})") from None
+    if isinstance(config.get("world", {}), dict):
+        config["world"] = {**WORLD_DEFAULTS, **config.get("world", {})}
     problems = []
     for key, value in overrides.items():
         if value is None or key in ("terrain", "paper_rates"):
@@ -440,9 +471,35 @@ def _load_terrain(spec: str, onto: Terrain | None = None) -> Terrain:
 
 
 def map_grid_differs(config: dict, truth: Terrain) -> bool:
-    """True when the filter's map is not sampled on the world's posts (another file, or coarser posts)."""
+    """True when the filter's map is not sampled on the world's posts (another file, coarser posts, or a world
+    made from the map on a finer grid)."""
     t = config["terrain"]
-    return bool(t["map_path"]) or _coarsening(truth, t["map_spacing_m"]) != (1, 1)
+    return bool(t["map_path"]) or _coarsening(truth, t["map_spacing_m"]) != (1, 1) or (
+        isinstance(truth, World) and truth.model.refine > 1)
+
+
+_WORLD_CACHE: dict = {}
+
+
+def world_terrain(dem: Terrain, config: dict, seed: int) -> Terrain:
+    """The world a scenario flies: ``dem`` itself, or with an active ``[world]`` table the
+    :class:`~warptan.world.World` made from it (``seed``: the run's, used when ``world.seed`` is -1). Checked
+    against the DEM first (a correlation length shorter than a post is refused)."""
+    model = WorldModel.from_config(config["world"])
+    if not model.active:
+        return dem
+    problems = model.problems((dem.dn, dem.de))
+    if problems:
+        raise ScenarioError(f"scenario {config['id']}: " + "; ".join(problems))
+    key = (id(dem), model, seed if model.seed < 0 else None)
+    if key not in _WORLD_CACHE:
+        if len(_WORLD_CACHE) >= 4:  # worlds are large (refine² × the DEM): keep the last few
+            _WORLD_CACHE.pop(next(iter(_WORLD_CACHE)))
+        try:
+            _WORLD_CACHE[key] = (dem, model.build(dem, seed))
+        except TerrainError as err:
+            raise ScenarioError(f"scenario {config['id']}: {err}") from None
+    return _WORLD_CACHE[key][1]
 
 
 def _coarsening(truth: Terrain, spacing_m: float) -> tuple[int, int]:
@@ -458,6 +515,8 @@ def map_terrain(truth: Terrain, config: dict, seed: int) -> Terrain:
     (``map_noise_m``; realisation ``map_seed``, or the run's seed when -1) and a vertical bias (``map_bias_m``)."""
     t = config["terrain"]
     noise, bias = t["map_noise_m"], t["map_bias_m"]
+    if isinstance(truth, World):  # the world was made from the DEM: the DEM is the map
+        truth = truth.base
     the_map = _load_terrain(t["map_path"], onto=truth) if t["map_path"] else truth
     try:
         the_map = the_map.coarsened(*_coarsening(the_map, t["map_spacing_m"]))
@@ -608,6 +667,8 @@ class ScenarioResult:
         return {
             "scenario": self.scenario, "seed": self.seed, "device": self.device, "terrain": self.terrain,
             "map": self.map or self.terrain, "map_sigma_m": self.map_sigma_m,
+            "world": ({"model": dataclasses.asdict(self.truth_terrain.model), **self.truth_terrain.parts}
+                      if isinstance(self.truth_terrain, World) else None),
             "rmse_m": self.rmse.tolist(), "rmse_converged_m": self.rmse_converged.tolist(),
             "ins_only_final_error_m": (r.ins_pos[-1] - r.truth_pos[-1]).tolist(),
             "coverage_3sigma": r.coverage(self.config["filter"]["converged_after_s"]).tolist(),
@@ -687,13 +748,13 @@ def prepare(name_or_path, seed: int = 0, terrain=None, *, seeds=None, device=Non
     and the filter's map. ``warptan run --check`` is this."""
     config = load_config(name_or_path, **overrides)
     seeds = check_seeds([seed] if seeds is None else seeds, config["run"]["seed"])
-    t = config["terrain"]
     if batched and len(seeds) > 1 and per_seed_maps(config):
-        raise ScenarioError(f"{config['id']}: map_noise_m = {t['map_noise_m']} with map_seed = -1 gives every seed its "
-                            "own map; run the seeds one by one (without --batch), or fix terrain.map_seed")
+        raise ScenarioError(f"{config['id']}: map_noise_m with map_seed = -1, or a [world] with seed = -1, gives "
+                            "every seed its own map or world; run the seeds one by one (without --batch), or fix "
+                            "terrain.map_seed / world.seed")
     if device is not None:  # seeds one by one hold one seed's memory at a time
         check_memory(config, len(seeds) if batched else 1, device)
-    truth_terrain = resolve_terrain(config, terrain)
+    truth_terrain = world_terrain(resolve_terrain(config, terrain), config, config["run"]["seed"] + seeds[0])
     flight = build_flight(config, truth_terrain)
     the_map = map_terrain(truth_terrain, config, config["run"]["seed"] + seeds[0])
     if the_map is not truth_terrain:  # the map must cover the flight as the world must
@@ -708,7 +769,7 @@ def per_seed_maps(config: dict) -> bool:
     """The filter's map has noise drawn per seed (``map_noise_m`` with ``map_seed = -1``): every seed reads its own
     map, so the seeds cannot share one batched filter."""
     t = config["terrain"]
-    return bool(t["map_noise_m"]) and t["map_seed"] < 0
+    return (bool(t["map_noise_m"]) and t["map_seed"] < 0) or WorldModel.from_config(config["world"]).per_seed
 
 
 def run_scenario(name_or_path, seed: int = 0, device="cpu", progress=None, export_logs=None,
@@ -775,7 +836,7 @@ def run_scenario_batch(name_or_path, seeds, device="cpu", progress=None, export_
     seeds = [int(seed) for seed in seeds]  # checked by prepare
     s = config["sensor"]
     total_seeds = [int(config["run"]["seed"]) + seed for seed in seeds]
-    the_map = map_terrain(truth_terrain, config, total_seeds[0])
+    the_map = map_terrain(truth_terrain, config, total_seeds[0])  # a World's map: the DEM it was made from
     likelihood = scenario_likelihood(config, the_map, truth_terrain)
     model = scenario_model(config, the_map, likelihood)
     if s["model"] == "altimeter":
