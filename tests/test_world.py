@@ -112,7 +112,8 @@ def test_a_bad_world_table_is_one_clear_error_before_work(capsys, tmp_path, tabl
 
 
 def test_a_run_over_a_world_names_what_flew(capsys, tmp_path):
-    path = _scenario_with_world(tmp_path, 'relief_rms_m = "auto"\nerror_rms_m = 5.0\nerror_corr_m = 800.0\nbias_m = 2.0')
+    path = _scenario_with_world(tmp_path,
+                                'relief_rms_m = "auto"\nerror_rms_m = 5.0\nerror_corr_m = 800.0\nbias_m = 2.0')
     out = tmp_path / "o"
     status = cli.main(["run", path, "--duration-s", "1", "--particles", "32", "--out", str(out), "--quiet",
                        "--no-plots"])
