@@ -252,7 +252,8 @@ def markdown_table(agg: dict[str, dict]) -> str:
         a = agg[sid]
         model = a["model"] + (f" ({a['backend']})" if a["model"] == "raycast" else "")
         model += "" if a["model"] != "altimeter" else (" + baro" if a["use_baro"] else ", no baro")
-        terrain = Path(a["terrain"]).name if not a["terrain"].startswith("synthetic") else a["terrain"]
+        base, plus, world = a["terrain"].partition(" + ")  # a world made from the DEM: "DEM + world(...)"
+        terrain = (Path(base).name if not base.startswith("synthetic") else base) + plus + world
         lines.append(
             f"| {sid} | {terrain} | {a['imu']} | {a['bank_deg']:g}° | {a['altitude_rule']} | {model} | "
             f"{len(a['seeds'])} | {_fmt(a['rmse_mean_m'], a['rmse_ci95_m'])} | "
