@@ -64,6 +64,13 @@ LIK_GAUSS = wp.constant(1)
 LIK_STUDENT = wp.constant(2)
 
 
+MAX_MODES = 16
+"""Most map-error modes a likelihood marginalises (:class:`warptan.measurement.Likelihood`, stated DEM accuracy)."""
+modes_vec = wp.types.vector(length=MAX_MODES, dtype=wp.float32)
+"""One point's row of the map-error mode table: ``sqrt(c_i) u_ji`` for mode i (zero past ``n_modes``)."""
+modes_mat = wp.types.matrix(shape=(MAX_MODES, 3), dtype=wp.float32)
+"""Per mode, ``sqrt(c_i) Σ_j u_ji H_j / σ_j``: the attitude Jacobians seen through the modes (rad⁻¹ · m / m)."""
+
 cloud_row = wp.types.vector(length=8, dtype=wp.float32)
 """One received point: [c_x, c_y, c_z (m), d_x, d_y, d_z, range (m), ok (1 or 0)] (indices below)."""
 CR_POINT = wp.constant(0)  # 3 values: the point in the sensor frame, m (0 where invalid)
@@ -102,6 +109,7 @@ class LikParams:
     pos_precision: float  # prior precision of the position (m⁻²) in the Schur complement; < 0: no projection
     sigma_range: float  # the sensor's range σ, m (the sliding model's per-point σ)
     sigma_map: float  # the vertical map part of σ, m (σ² = sigma_range² + sigma_map² for a nadir point)
+    n_modes: int  # map-error modes marginalised (0: none; the table's rows are sqrt(c_i) u_ji)
 
 
 @wp.func
@@ -129,6 +137,9 @@ class Acc:
     lam_pp: wp.mat33  # Σ G Gᵀ / σ² (G: the prediction's Jacobian w.r.t. the position, 1)
     lam_tp: wp.mat33  # Σ H Gᵀ / σ², m/rad
     info_p: wp.vec3  # Σ Gᵀ r / σ², 1/m
+    proj: modes_vec  # per map-error mode i: sqrt(c_i) Σ_j u_ji r_j / σ_j
+    proj_h: modes_mat  # per mode: sqrt(c_i) Σ_j u_ji H_j / σ_j
+    proj_g: modes_mat  # per mode: sqrt(c_i) Σ_j u_ji G_j / σ_j
 
 
 @wp.func
@@ -147,6 +158,23 @@ def acc_init() -> Acc:
     a.lam_pp = wp.mat33()
     a.lam_tp = wp.mat33()
     a.info_p = wp.vec3()
+    a.proj = modes_vec()
+    a.proj_h = modes_mat()
+    a.proj_g = modes_mat()
+    return a
+
+
+@wp.func
+def acc_modes(acc: Acc, p: LikParams, w: modes_vec, res: float, sigma: float, jac: wp.vec3, jac_pos: wp.vec3) -> Acc:
+    """``acc`` plus one predictable point's projections on the map-error modes (its table row ``w``): the whitened
+    residual ``res / sigma`` and attitude and position Jacobians ``jac / sigma``, ``jac_pos / sigma`` (nothing
+    without modes or for the paper's form)."""
+    a = acc
+    if p.n_modes > 0 and p.lik != LIK_PAPER:
+        inv = 1.0 / sigma
+        a.proj = a.proj + w * (res * inv)
+        a.proj_h = a.proj_h + wp.outer(w, jac * inv)
+        a.proj_g = a.proj_g + wp.outer(w, jac_pos * inv)
     return a
 
 
@@ -213,7 +241,8 @@ def acc_add(acc: Acc, p: LikParams, res: float, sigma: float, axis_w: wp.vec3, j
     return a
 
 
-acc_vec = wp.types.vector(length=36, dtype=wp.float32)
+ACC_BASE = 36
+acc_vec = wp.types.vector(length=ACC_BASE + 7 * MAX_MODES, dtype=wp.float32)
 """An :class:`Acc` as one vector (n_recv, n_ok, Σ|r|, Σ|r||d| (3), last, Σ log-density, Σ min(z², k²), Λ (6: 00 11
 22 01 02 12), b (3), Σ GGᵀ (6), Σ HGᵀ (9, row-major), Σ G r (3)) for the block reduction. Counts are exact in
 float32 up to 2^24 points; ``last`` is the sum of
@@ -257,6 +286,11 @@ def acc_pack(a: Acc) -> acc_vec:
     v[33] = a.info_p[0]
     v[34] = a.info_p[1]
     v[35] = a.info_p[2]
+    for i in range(MAX_MODES):
+        v[ACC_BASE + i] = a.proj[i]
+        for c in range(3):
+            v[ACC_BASE + MAX_MODES + 3 * i + c] = a.proj_h[i, c]
+            v[ACC_BASE + 4 * MAX_MODES + 3 * i + c] = a.proj_g[i, c]
     return v
 
 
@@ -276,6 +310,17 @@ def acc_unpack(v: acc_vec) -> Acc:
     a.lam_pp = wp.mat33(v[18], v[21], v[22], v[21], v[19], v[23], v[22], v[23], v[20])
     a.lam_tp = wp.mat33(v[24], v[25], v[26], v[27], v[28], v[29], v[30], v[31], v[32])
     a.info_p = wp.vec3(v[33], v[34], v[35])
+    proj = modes_vec()
+    proj_h = modes_mat()
+    proj_g = modes_mat()
+    for i in range(MAX_MODES):
+        proj[i] = v[ACC_BASE + i]
+        for c in range(3):
+            proj_h[i, c] = v[ACC_BASE + MAX_MODES + 3 * i + c]
+            proj_g[i, c] = v[ACC_BASE + 4 * MAX_MODES + 3 * i + c]
+    a.proj = proj
+    a.proj_h = proj_h
+    a.proj_g = proj_g
     return a
 
 
@@ -287,13 +332,27 @@ def acc_block_sum(a: Acc) -> Acc:
 
 
 @wp.func
+def modes_lam_info(acc: Acc):
+    """(Λ, b) in float64 with the map-error modes' covariance counted: ``Hᵀ Σ⁻¹ H`` and ``Hᵀ Σ⁻¹ r`` for
+    ``Σ = D^½ (I + U K Uᵀ) D^½`` (``D`` the points' σ², ``U K Uᵀ`` the modes), by Woodbury
+    ``Λ - Σ_i c_i h_i h_iᵀ``, ``b - Σ_i c_i h_i p_i`` (the table's rows carry ``sqrt(c_i)``)."""
+    lam = wp.mat33d(acc.lam)
+    info = wp.vec3d(acc.info)
+    for i in range(MAX_MODES):
+        h = wp.vec3d(wp.float64(acc.proj_h[i, 0]), wp.float64(acc.proj_h[i, 1]), wp.float64(acc.proj_h[i, 2]))
+        lam = lam - wp.outer(h, h)
+        info = info - h * wp.float64(acc.proj[i])
+    return lam, info
+
+
+@wp.func
 def attitude_marginal(acc: Acc, att_cov: wp.mat33) -> float:
     """``0.5 bᵀ A (I + ΛA)⁻¹ b - 0.5 log det(I + AΛ)`` (float64 inside): what integrating the residuals'
     dependence on the attitude error, ``r ≈ H dθ + e`` with ``dθ ~ N(0, A)``, adds to the per-point Gaussian
-    log-likelihood (Woodbury and the determinant lemma; 0 when A = 0)."""
+    log-likelihood (Woodbury and the determinant lemma; 0 when A = 0). Λ and b count the map-error modes
+    (:func:`modes_lam_info`; unchanged without them)."""
     am = wp.mat33d(att_cov)
-    lam = wp.mat33d(acc.lam)
-    info = wp.vec3d(acc.info)
+    lam, info = modes_lam_info(acc)
     m = wp.identity(n=3, dtype=wp.float64) + lam * am
     det = wp.determinant(m)
     if not (det > wp.float64(0.0)):
@@ -321,6 +380,7 @@ def acc_finish(acc: Acc, p: LikParams, att_cov: wp.mat33):
             err = acc.last
     ll = float(0.0)
     nis = float(0.0)
+    sum_sq = acc.sum_sq
     if n_recv > 0:
         n_bad = float(n_recv - n_ok)
         floor = -0.5 * p.k_out * p.k_out
@@ -331,9 +391,13 @@ def acc_finish(acc: Acc, p: LikParams, att_cov: wp.mat33):
                 ll = frac * (-0.5 * err * err / p.r_err) + (1.0 - frac) * floor
         else:
             ll = acc.ll_points + n_bad * point_loglik(p.lik, p.k_out * p.sigma, p.sigma, p.nu)
+            if p.n_modes > 0:  # the map-error modes' share of zᵀz: rᵀΣ⁻¹r = zᵀz - Σ c_i p_i²
+                explained = wp.dot(acc.proj, acc.proj)
+                ll = ll + 0.5 * explained
+                sum_sq = wp.max(sum_sq - explained, 0.0)
             if n_ok > 0:
                 ll = ll + attitude_marginal(acc, att_cov)
-        nis = (acc.sum_sq + n_bad * p.k_out * p.k_out) / float(n_recv)
+        nis = (sum_sq + n_bad * p.k_out * p.k_out) / float(n_recv)
     return err, ll, nis
 
 
@@ -349,16 +413,22 @@ def attitude_information(acc: Acc, p: LikParams):
     """(Λ, b) the Kalman update of the attitude reads, times ``att_scale``: with ``pos_precision ≥ 0`` the part of
     the residuals' information on dθ that the position cannot explain, the Schur complement
     ``Λ - Λ_θp (Λ_pp + π I)⁻¹ Λ_pθ``, ``b - Λ_θp (Λ_pp + π I)⁻¹ b_p`` (float64)."""
-    lam = wp.mat33d(acc.lam)
-    info = wp.vec3d(acc.info)
+    lam, info = modes_lam_info(acc)
     if p.pos_precision >= 0.0:
         lpp = wp.mat33d(acc.lam_pp) + wp.identity(n=3, dtype=wp.float64) * wp.float64(p.pos_precision)
+        ltp = wp.mat33d(acc.lam_tp)
+        info_p = wp.vec3d(acc.info_p)
+        for i in range(MAX_MODES):  # the position's sums through the map-error modes likewise (zero without)
+            h = wp.vec3d(wp.float64(acc.proj_h[i, 0]), wp.float64(acc.proj_h[i, 1]), wp.float64(acc.proj_h[i, 2]))
+            g = wp.vec3d(wp.float64(acc.proj_g[i, 0]), wp.float64(acc.proj_g[i, 1]), wp.float64(acc.proj_g[i, 2]))
+            lpp = lpp - wp.outer(g, g)
+            ltp = ltp - wp.outer(h, g)
+            info_p = info_p - g * wp.float64(acc.proj[i])
         det = wp.determinant(lpp)
         if det > wp.float64(0.0):
-            ltp = wp.mat33d(acc.lam_tp)
             k = ltp * wp.inverse(lpp)
             lam = lam - k * wp.transpose(ltp)
-            info = info - k * wp.vec3d(acc.info_p)
+            info = info - k * info_p
             lam = wp.float64(0.5) * (lam + wp.transpose(lam))
     s = wp.float64(p.att_scale)
     return wp.mat33(lam * s), wp.vec3(info * s)
@@ -407,6 +477,7 @@ def _reduce_loglik(tiled: bool):
         cloud: wp.array2d(dtype=cloud_row),
         att_cov: wp.array(dtype=wp.mat33),
         params: LikParams,
+        modes: wp.array(dtype=modes_vec),
         err_out: wp.array(dtype=wp.float32),
         loglik_out: wp.array(dtype=wp.float32),
         nis_out: wp.array(dtype=wp.float32),
@@ -435,6 +506,8 @@ def _reduce_loglik(tiled: bool):
                 if not wp.isnan(res):
                     jac, jac_pos = ray_jacobians(mat, row, res, normal[t, j])
                     acc = acc_add(acc, params, res, params.sigma, axis_weights(row), jac, jac_pos)
+                    if params.n_modes > 0:
+                        acc = acc_modes(acc, params, modes[j], res, params.sigma, jac, jac_pos)
         if wp.static(tiled):
             acc = acc_block_sum(acc)
         if lane == 0:

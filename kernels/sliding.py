@@ -23,8 +23,10 @@ from warptan.kernels.likelihood import (
     acc_block_sum,
     acc_finish,
     acc_init,
+    acc_modes,
     acc_store,
     cloud_row,
+    modes_vec,
     per_particle_kernels,
     row_dir,
     row_point,
@@ -69,6 +71,7 @@ def _sliding_loglik(tiled: bool):
         cloud: wp.array2d(dtype=cloud_row),
         att_cov: wp.array(dtype=wp.mat33),
         params: LikParams,
+        modes: wp.array(dtype=modes_vec),
         residual_out: wp.array2d(dtype=wp.float32),
         err_out: wp.array(dtype=wp.float32),
         loglik_out: wp.array(dtype=wp.float32),
@@ -105,8 +108,10 @@ def _sliding_loglik(tiled: bool):
                 if not wp.isnan(res):
                     nabla = wp.vec3(grad[0], grad[1], 1.0)
                     sigma = sliding_sigma(params, mat[2, 2], wp.dot(nabla, mat * row_dir(row)))
-                    acc = acc_add(acc, params, res, sigma, ones, sliding_jacobian(mat, c, c_hat, grad),
-                                  nabla * (-mat[2, 2]))  # ∂ĉ_z/∂p = -g_z ∇F
+                    jac = sliding_jacobian(mat, c, c_hat, grad)
+                    acc = acc_add(acc, params, res, sigma, ones, jac, nabla * (-mat[2, 2]))  # ∂ĉ_z/∂p = -g_z ∇F
+                    if params.n_modes > 0:
+                        acc = acc_modes(acc, params, modes[j], res, sigma, jac, nabla * (-mat[2, 2]))
             residual_out[t, j] = res
         if wp.static(tiled):
             acc = acc_block_sum(acc)
@@ -129,6 +134,7 @@ def altimeter_loglik_kernel(
     pos_n: wp.array(dtype=wp.vec3),
     reading: wp.array(dtype=wp.vec4),
     params: LikParams,
+    modes: wp.array(dtype=modes_vec),
     residual_out: wp.array2d(dtype=wp.float32),
     err_out: wp.array(dtype=wp.float32),
     loglik_out: wp.array(dtype=wp.float32),
@@ -155,6 +161,8 @@ def altimeter_loglik_kernel(
         res = r[0] - (alt - grid_height(grid, surface, p[0], p[1]))
         if not wp.isnan(res):
             acc = acc_add(acc, params, res, params.sigma, wp.vec3(1.0, 1.0, 1.0), wp.vec3(), wp.vec3())
+            if params.n_modes > 0:
+                acc = acc_modes(acc, params, modes[0], res, params.sigma, wp.vec3(), wp.vec3())
     residual_out[i, 0] = res
     err, ll, nis = acc_finish(acc, params, wp.mat33())
     if use_baro != 0 and r[2] != 0.0:

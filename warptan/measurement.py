@@ -99,6 +99,9 @@ class Likelihood:
     map_correlation: float = 1.0
     footprint_correlation: float = 1.0
     project_position: bool = True
+    map_error_sigma_m: float = 0.0
+    map_error_corr_m: float = 0.0
+    track_step_m: float = 0.0
 
     def __post_init__(self):
         if self.kind not in LIKELIHOODS:
@@ -117,6 +120,71 @@ class Likelihood:
             value = getattr(self, name)
             if not (np.isfinite(value) and value >= 1):
                 raise FilterError(f"likelihood {name} must be a number ≥ 1, got {value!r}")
+        for name in ("map_error_sigma_m", "map_error_corr_m", "track_step_m"):
+            value = getattr(self, name)
+            if not (np.isfinite(value) and value >= 0):
+                raise FilterError(f"likelihood {name} must be a number ≥ 0, got {value!r}")
+        if self.map_error_sigma_m > 0 and self.map_error_corr_m <= 0:
+            raise FilterError("likelihood map_error_corr_m must be > 0 when map_error_sigma_m is stated, got "
+                              f"{self.map_error_corr_m!r}")
+
+    @property
+    def models_map_error(self) -> bool:
+        """The likelihood marginalises a stated correlated map error (per-point forms only)."""
+        return self.map_error_sigma_m > 0 and self.kind != "paper"
+
+    def error_modes(self, xy: np.ndarray, sensitivity: np.ndarray, sigma_m: float) -> tuple[np.ndarray, dict]:
+        """The map-error mode table of a scan: ``(M, MAX_MODES)`` float32 rows ``sqrt(c_i) u_ji`` and a summary.
+
+        The stated error is a Gaussian random field of RMS ``σ_e = map_error_sigma_m`` and covariance
+        ``σ_e² exp(−(r/L)²)``, ``L = map_error_corr_m``. At the scan's ground points ``x_j`` (``xy``, m, sensor
+        frame horizontal: the covariance depends on distances only) a residual sees ``a_j e(x_j)``
+        (``sensitivity`` a_j: 1 for a height residual, 1/cos of the ray's angle for a range), so the whitened
+        residuals ``z = r/σ`` carry ``(σ_e²/σ²) A R A`` with ``R_jk = exp(−(|x_j − x_k|/L)²)``. Its leading
+        eigenvectors ``u_i`` (eigenvalues λ_i) are the map-error modes (offset, tilts, curvatures, …). A mode's
+        error is shared by the consecutive scans that see the same ground: ``κ_i = Σ_k ρ_i(k s)``, with
+        ``ρ_i(d) = u_iᵀ A R(d) A u_i / λ_i`` the mode's correlation with the scan ``d`` metres further along track
+        (``s = track_step_m``; ``κ_i = 1`` without it). Treating each scan as independent with its modes' variance
+        times ``κ_i`` gives, over the scans that share an error, the information of the exact joint likelihood
+        (a shared error counted once). With ``k_i = κ_i σ_e² λ_i / σ²`` and ``c_i = k_i / (1 + k_i)``, Woodbury
+        gives ``rᵀ Σ⁻¹ r = zᵀ z − Σ_i c_i (u_iᵀ z)²`` and likewise ``Hᵀ Σ⁻¹ H``, ``Hᵀ Σ⁻¹ r`` for the attitude
+        (:func:`warptan.kernels.likelihood.modes_lam_info`). Modes past ``MAX_MODES`` or below 1e-6 of the
+        largest are dropped; ``remainder`` (in the summary) is the share of the error's variance they hold."""
+        from warptan.kernels.likelihood import MAX_MODES
+
+        xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
+        a = np.asarray(sensitivity, dtype=np.float64).reshape(-1)
+        m, length = len(xy), self.map_error_corr_m
+        table = np.zeros((m, MAX_MODES), dtype=np.float32)
+        if not self.models_map_error or m == 0:
+            return table, {"n_modes": 0}
+
+        def cov(shift: float) -> np.ndarray:
+            d = xy[:, None, :] - xy[None, :, :]
+            d[..., 0] -= shift
+            return a[:, None] * np.exp(-np.sum(d * d, axis=2) / (length * length)) * a[None, :]
+
+        lam, vec = np.linalg.eigh(cov(0.0))
+        order = np.argsort(lam)[::-1]
+        lam, vec = np.maximum(lam[order], 0.0), vec[:, order]
+        keep = [i for i in range(min(MAX_MODES, m)) if lam[i] > 1e-6 * lam[0]]
+        lam_k, vec_k = lam[keep], vec[:, keep]
+        sharing = np.ones(len(keep))
+        step = self.track_step_m
+        if step > 0 and keep:
+            total = np.zeros(len(keep))
+            k_max = int(min(20_000, math.ceil(4.0 * length / step) + 1))
+            for k in range(1, k_max + 1):
+                rho = np.einsum("ji,jk,ki->i", vec_k, cov(k * step), vec_k) / lam_k
+                total += rho
+                if np.all(np.abs(rho) < 1e-4):
+                    break
+            sharing = np.maximum(1.0 + 2.0 * total, 1.0)
+        k_i = sharing * self.map_error_sigma_m**2 * lam_k / sigma_m**2
+        c_i = k_i / (1.0 + k_i)
+        table[:, :len(keep)] = (vec_k * np.sqrt(c_i)[None, :]).astype(np.float32)
+        return table, {"n_modes": len(keep), "eigenvalues": lam_k.tolist(), "sharing": sharing.tolist(),
+                       "c": c_i.tolist(), "remainder": float(1.0 - lam_k.sum() / max(lam.sum(), 1e-300))}
 
     def sigma_eff(self, model_mismatch_m: float) -> float:
         """The per-point σ in m: ``sigma_m`` when given, else
@@ -214,6 +282,9 @@ class MeasurementModel:
         self._host: dict[str, np.ndarray] = {}
         self._att_cov: wp.array | None = None
         self._zero_att: wp.array | None = None
+        self._modes: wp.array | None = None
+        self.modes_info: dict = {"n_modes": 0}
+        """The map-error modes in use (:meth:`Likelihood.error_modes`'s summary; built at the first ``stage``)."""
         self.generation = 0
         """Bumped whenever an array or struct that launches hold is replaced (buffers reallocated, the likelihood or
         the bound attitude covariance reassigned): a recorded launch sequence or captured graph of an older
@@ -230,6 +301,8 @@ class MeasurementModel:
         if not isinstance(value, Likelihood):
             raise FilterError(f"likelihood must be a Likelihood, got {type(value).__name__}")
         self._likelihood = value
+        self._modes = None  # rebuilt for the new likelihood at the next stage
+        self.modes_info = {"n_modes": 0}
         self._params = self.params()
         self.generation += 1
 
@@ -268,6 +341,7 @@ class MeasurementModel:
         p.r_err, p.sigma, p.nu, p.k_out = float(lk.r_err), self.sigma_m, float(lk.nu), float(lk.outlier_sigmas)
         p.att_scale = (self.sigma_m / lk.sigma_att(self.surface_mismatch_m())) ** 2
         p.pos_precision = POSITION_PRIOR_PRECISION if lk.project_position else -1.0
+        p.n_modes = int(getattr(self, "modes_info", {}).get("n_modes", 0))
         if lk.sigma_m is None:
             p.sigma_range = float(lk.sensor_sigma_m)
             p.sigma_map = math.sqrt(max(self.sigma_m**2 - lk.sensor_sigma_m**2, 0.0))
@@ -327,7 +401,31 @@ class MeasurementModel:
         out.meta.assign(meta)
         self.n_per = n // b
         self.n_filters = b
+        self._ensure_modes(device)
         return out
+
+    def _ensure_modes(self, device) -> None:
+        """The map-error mode table on ``device`` (built once from the first staged scan's geometry; a one-row
+        zero table without a stated map error)."""
+        m = self._staged.shape[1] if self._staged.ndim == 2 else 1
+        if self._modes is not None and self._modes.device == device and self._modes.shape[0] == m:
+            return
+        from warptan.kernels.likelihood import modes_vec
+
+        table = np.zeros((m, klik.MAX_MODES), dtype=np.float32)
+        info = {"n_modes": 0}
+        if self.likelihood.models_map_error:
+            xy, sens = self._scan_geometry()
+            table, info = self.likelihood.error_modes(xy, sens, self.sigma_m)
+        self._modes = wp.array(table, dtype=modes_vec, device=device)
+        self.modes_info = info
+        self._params.n_modes = int(info["n_modes"])
+        self.generation += 1
+
+    def _scan_geometry(self) -> tuple[np.ndarray, np.ndarray]:
+        """Horizontal ground offsets (M, 2) of the first staged scan's points (sensor frame, level flight) and each
+        residual's sensitivity to a vertical map error (M,)."""
+        return np.zeros((1, 2)), np.ones(1)
 
     def launch(self, pos_n: wp.array, quat_nb: wp.array) -> ModelOutput:
         """Launch the model on the staged measurement (device work only: can be captured in a graph)."""
@@ -358,6 +456,17 @@ class _PointCloudModel(MeasurementModel):
     @staticmethod
     def _staging_buffer(device, b, m):
         return wp.empty((b, m), dtype=klik.cloud_row, device=device)
+
+    def _scan_geometry(self) -> tuple[np.ndarray, np.ndarray]:
+        host = self._host["cloud"][0]
+        d = host[:, klik.CR_DIR:klik.CR_DIR + 3].astype(np.float64)
+        rng = host[:, klik.CR_RANGE].astype(np.float64)
+        ok = (host[:, klik.CR_VALID] != 0) & (d[:, 2] > 0.1)
+        down = np.maximum(d[:, 2], 0.1)
+        agl = float(np.median((rng * d[:, 2])[ok])) if ok.any() else 1.0
+        xy = d[:, :2] / down[:, None] * agl
+        sens = 1.0 / down if self.name == "raycast" else np.ones(len(d))
+        return xy, sens
 
     def _fill(self, items) -> np.ndarray:
         b, m = self._staged.shape
@@ -406,7 +515,7 @@ class RaycastModel(_PointCloudModel):
         kernel, block = klik.reduce_loglik_kernels[device.is_cuda], _block_dim(device)
         launch_rows(kernel, res.shape[0],
                     lambda a, b: ([a or 0, n_per, rows_of(res, a, b), rows_of(quat_nb, a, b), rows_of(nrm, a, b),
-                                   cloud, att, self._params],
+                                   cloud, att, self._params, self._modes],
                                   [rows_of(out.error_m, a, b), rows_of(out.loglik, a, b), rows_of(out.nis, a, b),
                                    rows_of(out.n_valid, a, b), rows_of(out.lam, a, b), rows_of(out.info, a, b)]),
                     device, row_cost=res.shape[1], block_dim=block)
@@ -443,7 +552,7 @@ class SlidingModel(_PointCloudModel):
         kernel, block = kslide.sliding_loglik_kernels[device.is_cuda], _block_dim(device)
         launch_rows(kernel, pos_n.shape[0],
                     lambda a, b: ([a or 0, n_per, grid, surface, rows_of(pos_n, a, b), rows_of(quat_nb, a, b), cloud,
-                                   att, self._params],
+                                   att, self._params, self._modes],
                                   [rows_of(out.residual_m, a, b), rows_of(out.error_m, a, b), rows_of(out.loglik, a, b),
                                    rows_of(out.nis, a, b), rows_of(out.n_valid, a, b), rows_of(out.lam, a, b),
                                    rows_of(out.info, a, b)]),
@@ -499,7 +608,7 @@ class AltimeterModel(MeasurementModel):
     def _launch(self, pos_n, quat_nb, out, device):
         launch(kslide.altimeter_loglik_kernel, dim=pos_n.shape[0],
                   inputs=[self.n_per, self.terrain.grid(device), int(self.surface), int(self.use_baro), pos_n,
-                          self._staged, self._params],
+                          self._staged, self._params, self._modes],
                   outputs=[out.residual_m, out.error_m, out.loglik, out.nis, out.n_valid, out.lam, out.info],
                   device=device)
 

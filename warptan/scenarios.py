@@ -147,6 +147,8 @@ SCHEMA: dict[str, dict[str, tuple[type | tuple, object]]] = {
                     else "must be 'auto' (σ_sensor ⊕ σ_map) or a positive number of metres"),
         "nu": (float, _pos),
         "map_aware": (bool, None),
+        "map_error_rms_m": (float, _upto(1e3, "m")),
+        "map_error_corr_m": (float, _upto(1e6, "m")),
     },
     "filter": {
         "particles": (int, lambda v: None if v >= MIN_PARTICLES else f"must be ≥ {MIN_PARTICLES} (a particle filter "
@@ -187,6 +189,8 @@ SCHEMA: dict[str, dict[str, tuple[type | tuple, object]]] = {
         "seed": (int, lambda v: None if -1 <= v <= MAX_SEED else "must be ≥ 0, or -1 (each run's own seed)"),
     },
 }
+STATED_ACCURACY_DEFAULTS = {"map_error_rms_m": 0.0, "map_error_corr_m": 0.0}
+"""``[likelihood]`` keys a file may leave out: the DEM's stated correlated error (none)."""
 WORLD_DEFAULTS = {f.name: f.default for f in dataclasses.fields(WorldModel)}
 """A scenario without a ``[world]`` table (or without some of its keys) flies these: the world is the map."""
 
@@ -228,6 +232,8 @@ OVERRIDES = {
     "map_bias_m": ("terrain", "map_bias_m"),
     "map_seed": ("terrain", "map_seed"),
     "map_aware": ("likelihood", "map_aware"),
+    "map_error_rms_m": ("likelihood", "map_error_rms_m"),
+    "map_error_corr_m": ("likelihood", "map_error_corr_m"),
     "world_relief_rms_m": ("world", "relief_rms_m"),
     "world_relief_slope": ("world", "relief_slope"),
     "world_error_rms_m": ("world", "error_rms_m"),
@@ -300,6 +306,10 @@ def validate(config: dict, source: str = "scenario") -> list[str]:
         ratio = imu_rate / meas_rate
         if abs(ratio - round(ratio)) > 1e-9 or ratio < 1:
             problems.append(f"sensor.rate_hz = {meas_rate} must divide imu.rate_hz = {imu_rate}")
+        lk = config["likelihood"]
+        if lk["map_error_rms_m"] > 0 and lk["map_error_corr_m"] <= 0:
+            problems.append(f"likelihood.map_error_rms_m = {lk['map_error_rms_m']:g} needs likelihood.map_error_corr_m "
+                            "> 0 (the stated error's correlation length, m)")
         if config["terrain"]["kind"] == "path" and not config["terrain"]["path"]:
             problems.append("terrain.path must be set when terrain.kind = 'path'")
         if config["flight"]["pattern"] != "straight" and config["flight"]["bank_deg"] <= 0:
@@ -415,6 +425,8 @@ def load_config(name_or_path, overrides_from: str = "override", **overrides) -> 
         raise ScenarioError(f"{path}: not valid TOML ({err})") from None
     if isinstance(config.get("world", {}), dict):
         config["world"] = {**WORLD_DEFAULTS, **config.get("world", {})}
+    if isinstance(config.get("likelihood"), dict):  # the DEM's stated accuracy: none unless the file states it
+        config["likelihood"] = {**STATED_ACCURACY_DEFAULTS, **config["likelihood"]}
     problems = []
     for key, value in overrides.items():
         if value is None or key in ("terrain", "paper_rates"):
@@ -737,7 +749,9 @@ def scenario_likelihood(config: dict, the_map: Terrain, truth: Terrain | None = 
         map_sigma = math.hypot(map_sigma, the_map.interpolation_sigma_m(map_sigma))
     return Likelihood(lk["kind"], r_err=lk["r_err_m2"], sigma_m=None if lk["sigma_m"] == "auto" else lk["sigma_m"],
                       nu=lk["nu"], sensor_sigma_m=noise_m, map_sigma_m=map_sigma,
-                      map_correlation=n_corr, footprint_correlation=n_fp)
+                      map_correlation=n_corr, footprint_correlation=n_fp,
+                      map_error_sigma_m=lk["map_error_rms_m"], map_error_corr_m=lk["map_error_corr_m"],
+                      track_step_m=step_m)
 
 
 def prepare(name_or_path, seed: int = 0, terrain=None, *, seeds=None, device=None, batched: bool = False,
