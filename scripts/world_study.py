@@ -100,8 +100,8 @@ def write_markdown(data: dict, out: Path) -> None:
              f"{meta['seeds']} seeds per row over {meta['worlds']} world realisations, {meta['duration_s']:g} s "
              f"flights, device {meta['device']}; sub-post relief `{meta['relief']}`. Converged horizontal RMSE = "
              "hypot(north, east) RMSE after convergence per seed, mean ± 95 % interval; 3σ coverage pooled; "
-             f"σ/RMSE the mean reported σ over the RMSE per axis; lost: horizontal RMSE > {LOST_M:g} m (unflagged: without a "
-             "re-spread).", "",
+             f"σ/RMSE the mean reported σ over the RMSE per axis; lost: horizontal RMSE > {LOST_M:g} m "
+             "(unflagged: without a re-spread).", "",
              "Commands: " + "; ".join(f"`{c}`" for c in meta.get("commands", [])), "",
              "| scenario | terrain | error RMS / corr (m) | estimator | map − world RMS (m) | horizontal RMSE (m) "
              "| RMSE N / E / D (m) | 3σ coverage N / E / D | σ/RMSE N / E / D | > 5 m | lost (unflagged) "
