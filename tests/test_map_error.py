@@ -100,12 +100,15 @@ def test_the_kernels_add_the_modes_share_and_nothing_without_a_statement(scan, n
 
 
 def test_a_stated_error_keeps_s8_honest_over_a_world_with_that_error():
-    """S8 over a world whose map error is 5 m RMS correlated over 1 km (4 seeds, 60 s): the per-point likelihood
-    without the statement claims bounds a fifth of its error; told the DEM's accuracy, its 3σ covers the error."""
+    """S8 over a world whose map error is 5 m RMS correlated over 1 km (4 seeds, 90 s): without the statement the
+    per-point likelihood's 3σ covers under half of its error on some axis (12–65 %); told the DEM's accuracy,
+    over 85 % on each axis and the horizontal RMSE under half. (20 seeds per scenario: scripts/world_study.py.)"""
     from warptan.scenarios import run_scenario_batch
 
-    world = {"world_error_rms_m": 5.0, "world_error_corr_m": 1000.0, "world_seed": 1000, "duration_s": 60.0}
-    told = run_scenario_batch("S8", [0, 1, 2, 3], map_error_rms_m=5.0, map_error_corr_m=1000.0, **world)
-    cov = np.mean([r.summary()["coverage_3sigma"] for r in told], axis=0)
-    rmse = np.sqrt(np.mean([r.rmse_converged ** 2 for r in told], axis=0))
-    assert cov.min() > 0.8 and np.hypot(*rmse[:2]) < 6.0, (cov, rmse)
+    world = {"world_error_rms_m": 5.0, "world_error_corr_m": 1000.0, "world_seed": 1000, "duration_s": 90.0}
+    runs = {told: run_scenario_batch("S8", [0, 1, 2, 3], map_error_rms_m=5.0 if told else 0.0,
+                                     map_error_corr_m=1000.0 if told else 0.0, **world) for told in (False, True)}
+    cov = {k: np.mean([r.summary()["coverage_3sigma"] for r in v], axis=0) for k, v in runs.items()}
+    horiz = {k: np.hypot(*np.sqrt(np.mean([r.rmse_converged ** 2 for r in v], axis=0))[:2]) for k, v in runs.items()}
+    assert cov[False].min() < 0.5 and cov[True].min() > 0.85, cov
+    assert horiz[True] < 0.5 * horiz[False], horiz

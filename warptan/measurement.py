@@ -133,23 +133,25 @@ class Likelihood:
         """The likelihood marginalises a stated correlated map error (per-point forms only)."""
         return self.map_error_sigma_m > 0 and self.kind != "paper"
 
-    def error_modes(self, xy: np.ndarray, sensitivity: np.ndarray, sigma_m: float) -> tuple[np.ndarray, dict]:
+    def error_modes(self, xy: np.ndarray, sensitivity: np.ndarray, sigma_m: float,
+                    along: tuple[float, float] = (1.0, 0.0)) -> tuple[np.ndarray, dict]:
         """The map-error mode table of a scan: ``(M, MAX_MODES)`` float32 rows ``sqrt(c_i) u_ji`` and a summary.
 
         The stated error is a Gaussian random field of RMS ``σ_e = map_error_sigma_m`` and covariance
-        ``σ_e² exp(−(r/L)²)``, ``L = map_error_corr_m``. At the scan's ground points ``x_j`` (``xy``, m, sensor
-        frame horizontal: the covariance depends on distances only) a residual sees ``a_j e(x_j)``
-        (``sensitivity`` a_j: 1 for a height residual, 1/cos of the ray's angle for a range), so the whitened
-        residuals ``z = r/σ`` carry ``(σ_e²/σ²) A R A`` with ``R_jk = exp(−(|x_j − x_k|/L)²)``. Its leading
-        eigenvectors ``u_i`` (eigenvalues λ_i) are the map-error modes (offset, tilts, curvatures, …). A mode's
-        error is shared by the consecutive scans that see the same ground: ``κ_i = Σ_k ρ_i(k s)``, with
-        ``ρ_i(d) = u_iᵀ A R(d) A u_i / λ_i`` the mode's correlation with the scan ``d`` metres further along track
-        (``s = track_step_m``; ``κ_i = 1`` without it). Treating each scan as independent with its modes' variance
-        times ``κ_i`` gives, over the scans that share an error, the information of the exact joint likelihood
-        (a shared error counted once). With ``k_i = κ_i σ_e² λ_i / σ²`` and ``c_i = k_i / (1 + k_i)``, Woodbury
-        gives ``rᵀ Σ⁻¹ r = zᵀ z − Σ_i c_i (u_iᵀ z)²`` and likewise ``Hᵀ Σ⁻¹ H``, ``Hᵀ Σ⁻¹ r`` for the attitude
-        (:func:`warptan.kernels.likelihood.modes_lam_info`). Modes past ``MAX_MODES`` or below 1e-6 of the
-        largest are dropped; ``remainder`` (in the summary) is the share of the error's variance they hold."""
+        ``σ_e² exp(−(r/L)²)``, ``L = map_error_corr_m``. At the scan's ground points ``x_j`` (``xy``: horizontal
+        offsets in the navigation frame, m) a residual sees ``a_j e(x_j)`` (``sensitivity`` a_j: 1 for a height
+        residual, 1/cos of the ray's angle from the vertical for a range), so the whitened residuals ``z = r/σ``
+        carry ``(σ_e²/σ²) A R A`` with ``R_jk = exp(−(|x_j − x_k|/L)²)``. Its leading eigenvectors ``u_i``
+        (eigenvalues λ_i) are the map-error modes (offset, tilts, curvatures, …). A mode's error is shared by the
+        consecutive scans that see the same ground: ``κ_i = Σ_k ρ_i(k s)``, with ``ρ_i(d) = u_iᵀ A R(d) A u_i /
+        λ_i`` the mode's correlation with the scan ``d`` metres further along ``along`` (the flight's horizontal
+        unit vector; ``s = track_step_m``; ``κ_i = 1`` without it; beyond 64 steps the sum is the trapezoid
+        integral ``(1/s) ∫ ρ_i`` over 64 lags up to 4 L). Treating each scan as independent with its modes'
+        variance times ``κ_i`` gives, over the scans that share an error, the information of the exact joint
+        likelihood (a shared error counted once). With ``k_i = κ_i σ_e² λ_i / σ²`` and ``c_i = k_i / (1 + k_i)``,
+        Woodbury gives ``rᵀ Σ⁻¹ r = zᵀ z − Σ_i c_i (u_iᵀ z)²`` and likewise ``Hᵀ Σ⁻¹ H``, ``Hᵀ Σ⁻¹ r`` for the
+        attitude (:func:`warptan.kernels.likelihood.modes_lam_info`). Modes past ``MAX_MODES`` or below 1e-6 of
+        the largest are dropped; ``remainder`` (in the summary) is the share of the error's variance they hold."""
         from warptan.kernels.likelihood import MAX_MODES
 
         xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
@@ -159,9 +161,11 @@ class Likelihood:
         if not self.models_map_error or m == 0:
             return table, {"n_modes": 0}
 
+        direction = np.asarray(along, dtype=np.float64).reshape(2)
+        direction = direction / max(float(np.linalg.norm(direction)), 1e-12)
+
         def cov(shift: float) -> np.ndarray:
-            d = xy[:, None, :] - xy[None, :, :]
-            d[..., 0] -= shift
+            d = xy[:, None, :] - xy[None, :, :] - shift * direction
             return a[:, None] * np.exp(-np.sum(d * d, axis=2) / (length * length)) * a[None, :]
 
         lam, vec = np.linalg.eigh(cov(0.0))
@@ -172,13 +176,14 @@ class Likelihood:
         sharing = np.ones(len(keep))
         step = self.track_step_m
         if step > 0 and keep:
-            total = np.zeros(len(keep))
-            k_max = int(min(20_000, math.ceil(4.0 * length / step) + 1))
-            for k in range(1, k_max + 1):
-                rho = np.einsum("ji,jk,ki->i", vec_k, cov(k * step), vec_k) / lam_k
-                total += rho
-                if np.all(np.abs(rho) < 1e-4):
-                    break
+            k_max = math.ceil(4.0 * length / step)
+            lags = np.arange(1, k_max + 1) * step if k_max <= 64 else np.linspace(step, k_max * step, 64)
+            rho = np.array([np.einsum("ji,jk,ki->i", vec_k, cov(d), vec_k) / lam_k for d in lags])
+            if k_max <= 64:
+                total = rho.sum(axis=0)
+            else:  # Σ_{k≥1} ρ(k s) ≈ (1/s) ∫_s^∞ ρ + ρ(s) / 2 (trapezoid)
+                integral = np.sum(0.5 * (rho[1:] + rho[:-1]) * np.diff(lags)[:, None], axis=0)
+                total = integral / step + 0.5 * rho[0]
             sharing = np.maximum(1.0 + 2.0 * total, 1.0)
         k_i = sharing * self.map_error_sigma_m**2 * lam_k / sigma_m**2
         c_i = k_i / (1.0 + k_i)
@@ -384,8 +389,10 @@ class MeasurementModel:
                                            if isinstance(getattr(out, f.name), wp.array)},
                                    n_received=out.n_received.copy())
 
-    def stage(self, measurement, pos_n: wp.array, quat_nb: wp.array) -> ModelOutput:
-        """Copy the measurement(s) into this model's device buffers for particles of shape ``pos_n``."""
+    def stage(self, measurement, pos_n: wp.array, quat_nb: wp.array, attitude=None) -> ModelOutput:
+        """Copy the measurement(s) into this model's device buffers for particles of shape ``pos_n``. ``attitude``:
+        the platform's attitude quaternion (4,) for the map-error modes' geometry (a stated map error only; default
+        the first particle's ``quat_nb``, which must then hold the poses already)."""
         items = _as_batch(measurement, self.reading_type, self.name)
         device = self._check_poses(pos_n, quat_nb)
         n, b = pos_n.shape[0], len(items)
@@ -401,31 +408,49 @@ class MeasurementModel:
         out.meta.assign(meta)
         self.n_per = n // b
         self.n_filters = b
-        self._ensure_modes(device)
+        self._ensure_modes(device, quat_nb, attitude)
         return out
 
-    def _ensure_modes(self, device) -> None:
-        """The map-error mode table on ``device`` (built once from the first staged scan's geometry; a one-row
-        zero table without a stated map error)."""
+    MODES_REBUILD = 0.25
+    """The map-error mode table is rebuilt when a scan's nominal ground geometry moved by more than this fraction
+    of the footprint's size since it was built (a turn, a climb). Measured (S1, S8, 4 seeds, 5 m / 1 km error):
+    rebuilt at every 5 % the down axis lost its bounds (S8 3σ coverage 43 %), built once the turns did (S1 down
+    71 %); at 25 % 94–100 % on every axis."""
+
+    def _ensure_modes(self, device, quat_nb: wp.array, attitude=None) -> None:
+        """The map-error mode table on ``device``: a zero table without a stated map error; with one, the modes of
+        the current scan's ground geometry (the first filter's scan placed with its first particle's attitude),
+        rebuilt when that geometry moved (:data:`MODES_REBUILD`); the attitude is ``attitude`` when given, else
+        the first particle's. The table keeps its array (a captured graph
+        reads the new values) and ``n_modes`` stays :data:`~warptan.kernels.likelihood.MAX_MODES` (unused
+        columns are zero)."""
         m = self._staged.shape[1] if self._staged.ndim == 2 else 1
-        if self._modes is not None and self._modes.device == device and self._modes.shape[0] == m:
+        fresh = self._modes is None or self._modes.device != device or self._modes.shape[0] != m
+        if fresh:
+            from warptan.kernels.likelihood import modes_vec
+
+            self._modes = wp.zeros(m, dtype=modes_vec, device=device)
+            self._modes_geometry = None
+            self._params.n_modes = klik.MAX_MODES if self.likelihood.models_map_error else 0
+            self.generation += 1
+        if not self.likelihood.models_map_error:
             return
-        from warptan.kernels.likelihood import modes_vec
+        quat = np.asarray(attitude if attitude is not None else quat_nb[:1].numpy()[0], dtype=np.float64).reshape(4)
+        xy, sens, along = self._scan_geometry(quat)
+        old = self._modes_geometry
+        size = max(float(np.ptp(xy, axis=0).max()) if len(xy) > 1 else 0.0, 1.0)
+        if old is not None and old[0].shape == xy.shape and np.abs(old[0] - xy).max() <= self.MODES_REBUILD * size \
+                and np.abs(old[1] - along).max() <= self.MODES_REBUILD:
+            return
+        table, info = self.likelihood.error_modes(xy, sens, self.sigma_m, along)
+        self._modes.assign(table)
+        self._modes_geometry = (xy, along)
+        self.modes_info = {**info, "rebuilds": self.modes_info.get("rebuilds", 0) + 1}
 
-        table = np.zeros((m, klik.MAX_MODES), dtype=np.float32)
-        info = {"n_modes": 0}
-        if self.likelihood.models_map_error:
-            xy, sens = self._scan_geometry()
-            table, info = self.likelihood.error_modes(xy, sens, self.sigma_m)
-        self._modes = wp.array(table, dtype=modes_vec, device=device)
-        self.modes_info = info
-        self._params.n_modes = int(info["n_modes"])
-        self.generation += 1
-
-    def _scan_geometry(self) -> tuple[np.ndarray, np.ndarray]:
-        """Horizontal ground offsets (M, 2) of the first staged scan's points (sensor frame, level flight) and each
-        residual's sensitivity to a vertical map error (M,)."""
-        return np.zeros((1, 2)), np.ones(1)
+    def _scan_geometry(self, quat: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The current scan's horizontal ground offsets (M, 2, navigation frame), each residual's sensitivity to a
+        vertical map error (M,) and the horizontal unit vector of the flight (2,)."""
+        return np.zeros((1, 2)), np.ones(1), _forward(quat)
 
     def launch(self, pos_n: wp.array, quat_nb: wp.array) -> ModelOutput:
         """Launch the model on the staged measurement (device work only: can be captured in a graph)."""
@@ -457,16 +482,21 @@ class _PointCloudModel(MeasurementModel):
     def _staging_buffer(device, b, m):
         return wp.empty((b, m), dtype=klik.cloud_row, device=device)
 
-    def _scan_geometry(self) -> tuple[np.ndarray, np.ndarray]:
+    def _scan_geometry(self, quat: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        from warptan.frames import quat_to_mat
+
         host = self._host["cloud"][0]
-        d = host[:, klik.CR_DIR:klik.CR_DIR + 3].astype(np.float64)
+        rot = quat_to_mat(quat / max(float(np.linalg.norm(quat)), 1e-12))
+        u = host[:, klik.CR_DIR:klik.CR_DIR + 3].astype(np.float64) @ rot.T  # the rays in the navigation frame
         rng = host[:, klik.CR_RANGE].astype(np.float64)
-        ok = (host[:, klik.CR_VALID] != 0) & (d[:, 2] > 0.1)
-        down = np.maximum(d[:, 2], 0.1)
-        agl = float(np.median((rng * d[:, 2])[ok])) if ok.any() else 1.0
-        xy = d[:, :2] / down[:, None] * agl
-        sens = 1.0 / down if self.name == "raycast" else np.ones(len(d))
-        return xy, sens
+        down = np.maximum(u[:, 2], 0.1)
+        ok = (host[:, klik.CR_VALID] != 0) & (u[:, 2] > 0.1) & np.isfinite(rng)
+        agl = float(np.median((rng * u[:, 2])[ok])) if ok.any() else 1.0
+        # the nominal footprint: every ray meets the scan's median ground level (a smooth function of the altitude
+        # and attitude; the points' own ranges moved it with every hill, and the modes with it)
+        xy = (u * (agl / down)[:, None])[:, :2]
+        sens = 1.0 / down if self.name == "raycast" else np.ones(len(u))
+        return xy, sens, _forward(quat)
 
     def _fill(self, items) -> np.ndarray:
         b, m = self._staged.shape
@@ -481,6 +511,15 @@ class _PointCloudModel(MeasurementModel):
         host[:, :, klik.CR_VALID] = ok
         self._staged.assign(host)
         return host[:, :, klik.CR_VALID].sum(axis=1).astype(np.int64)
+
+
+def _forward(quat: np.ndarray) -> np.ndarray:
+    """The horizontal unit vector of the body's x axis (the flight direction in coordinated flight)."""
+    from warptan.frames import quat_to_mat
+
+    x = quat_to_mat(quat / max(float(np.linalg.norm(quat)), 1e-12))[:2, 0]
+    norm = float(np.linalg.norm(x))
+    return x / norm if norm > 1e-6 else np.array([1.0, 0.0])
 
 
 def _block_dim(device) -> int | None:

@@ -833,7 +833,12 @@ class MarginalizedParticleFilter:
         t_enter = time.perf_counter()
         if self.batched and not (isinstance(measurement, (list, tuple)) and len(measurement) == self.n_filters):
             raise FilterError(f"a batch of {self.n_filters} filters needs a list of {self.n_filters} measurements")
-        out = self.model.stage(measurement, self._pos, self._quat)  # validates first: a bad one loses nothing
+        attitude = None
+        if getattr(getattr(self.model, "likelihood", None), "models_map_error", False):
+            # the map-error modes' scan geometry needs the platform's attitude: the nominal of the last interval
+            # (one device-to-host copy of 4 numbers; 0.1 s old at 10 Hz, what the geometry's tolerance allows)
+            attitude = self._nav["quat"].numpy()[0]
+        out = self.model.stage(measurement, self._pos, self._quat, attitude=attitude)  # validates first
         t_staged = time.perf_counter()
         if hasattr(self.model, "bind_attitude_cov"):
             self.model.bind_attitude_cov(self._dev["att_cov"])
