@@ -118,13 +118,67 @@ def write_markdown(data: dict, out: Path) -> None:
     (out / "study.md").write_text("\n".join(lines) + "\n")
 
 
+def plot(data: dict, out: Path) -> list[str]:
+    """``dem_accuracy.png``: converged horizontal RMSE and the smallest per-axis 3σ coverage against the map
+    error's RMS (one correlation length: the most common), per scenario and estimator — how good must the DEM be."""
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ModuleNotFoundError:
+        return []
+    rows = data["rows"]
+    corrs = sorted({r["error_corr_m"] for r in rows if r["error_rms_m"]},
+                   key=lambda c: -sum(r["error_corr_m"] == c for r in rows))
+    if not corrs:
+        return []
+    corr = corrs[0]
+    levels = {}
+    for r in rows:
+        if r["error_corr_m"] in (corr, 0.0):
+            levels.setdefault(r["scenario"], set()).add(r["error_rms_m"])
+    scenarios = sorted((s for s, v in levels.items() if len(v) >= 2), key=lambda s: (-len(levels[s]), s))[:4]
+    if not scenarios:
+        return []
+    fig, axes = plt.subplots(2, len(scenarios), figsize=(4.5 * len(scenarios), 7), squeeze=False)
+    for col, sid in enumerate(scenarios):
+        for estimator, style in zip(ESTIMATORS, ("-o", "--s", ":^"), strict=True):
+            sel = sorted((r for r in rows if r["scenario"] == sid and r["estimator"] == estimator
+                          and r["error_corr_m"] in (corr, 0.0)), key=lambda r: r["error_rms_m"])
+            if len(sel) < 2:
+                continue
+            x = [r["error_rms_m"] for r in sel]
+            axes[0][col].errorbar(x, [r["horizontal_rmse_mean_m"] for r in sel], fmt=style, capsize=3,
+                                  yerr=[r["horizontal_rmse_ci95_m"] for r in sel], label=estimator)
+            axes[1][col].plot(x, [min(r["coverage_3sigma_mean"]) for r in sel], style, label=estimator)
+        axes[0][col].set_title(f"{sid}: map error correlated over {corr:g} m")
+        axes[0][col].set_yscale("log")
+        axes[0][col].set_ylabel("converged horizontal RMSE (m)")
+        axes[1][col].axhline(0.9, color="k", lw=0.8, ls=":")
+        axes[1][col].set_ylim(0, 1.02)
+        axes[1][col].set_ylabel("3σ coverage, worst axis")
+        for ax in axes[:, col]:
+            ax.set_xlabel("map error RMS (m)")
+            ax.grid(True, alpha=0.3)
+        axes[0][col].legend(fontsize=8)
+    fig.suptitle(f"How good must the DEM be? {data['meta']['seeds']} seeds per point, sub-post relief "
+                 f"{data['meta']['relief']}")
+    fig.tight_layout()
+    path = out / "dem_accuracy.png"
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return [str(path)]
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--seeds", type=count_arg, default=20)
     parser.add_argument("--worlds", type=count_arg, default=4, help="world realisations the seeds are split over")
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--out", default="world-study")
-    parser.add_argument("--terrains", nargs="+", default=["rugged"])
+    parser.add_argument("--terrains", nargs="+", default=["rugged"],
+                        help="DEMs the worlds are made from (every scenario flies each, S12 included)")
     parser.add_argument("--scenarios", nargs="+", default=["S7", "S8", "S9"])
     parser.add_argument("--errors", nargs="+", type=number_arg(0.0, False), default=[0.0, 2.0, 5.0, 10.0])
     parser.add_argument("--corrs", nargs="+", type=number_arg(0.0, True), default=[1000.0])
@@ -164,7 +218,8 @@ def main(argv=None) -> int:
               f"σ/RMSE {np.round(result['sigma_over_rmse_mean'], 2)} ({result['wall_s']:.0f} s)", flush=True)
     write_json(path, data)
     write_markdown(data, out)
-    print(f"wrote {path}, {out / 'study.md'}")
+    files = plot(data, out)
+    print(f"wrote {path}, {out / 'study.md'}" + "".join(f", {f}" for f in files))
     return 0
 
 
