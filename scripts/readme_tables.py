@@ -278,10 +278,36 @@ def campaign_block() -> str:
     return "\n".join(lines)
 
 
+def world_block(path: str = "results/world/study.json") -> str:
+    """Worlds that are not the map: per scenario and map error, the three estimators side by side."""
+    data = _load(path)
+    rows = data["rows"]
+    order = ("gaussian", "paper", "stated")
+    names = {"gaussian": "per-point (not told)", "paper": "paper's scalar error", "stated": "told the DEM's accuracy"}
+    keys = sorted({(r["scenario"], r["error_rms_m"], r["error_corr_m"]) for r in rows},
+                  key=lambda k: (_sid_key(k[0]), k[2] != 1000.0, k[1], k[2]))
+    lines = [f"{data['meta']['seeds']} seeds over {data['meta']['worlds']} world realisations per row, "
+             f"{data['meta']['duration_s']:g} s, sub-post relief `{data['meta']['relief']}` on the 90 m rugged tile "
+             "(every scenario, S12 included, flies it); converged horizontal RMSE (m, mean ± 95 % interval) and 3σ "
+             "coverage N / E / D; a dash: not run. Full table: `results/world/study.md`. " + _provenance(path), "",
+             "| scenario | map error RMS / corr (m) | " + " | ".join(names[e] for e in order) + " |",
+             "|---|---|" + "---|" * len(order)]
+    for sid, rms, corr in keys:
+        cells = []
+        for e in order:
+            r = next((r for r in rows if (r["scenario"], r["error_rms_m"], r["error_corr_m"], r["estimator"])
+                      == (sid, rms, corr, e)), None)
+            cells.append("–" if r is None else
+                         f"{r['horizontal_rmse_mean_m']:.1f}±{r['horizontal_rmse_ci95_m']:.1f} "
+                         f"({_pct(r['coverage_3sigma_mean'])})")
+        lines.append(f"| {sid} | {rms:g} / {corr:g} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
 BLOCKS = {"paper": paper_block, "attitude": attitude_block, "paper30": lambda: paper_block("results/paper30"),
           "closed_loop": closed_loop_block, "map_error": map_error_block, "long_flight": long_flight_block,
           "step": step_block, "profile": profile_block, "kernels": kernels_block, "threads": threads_block,
-          "numpy": numpy_block, "batch": batch_block, "campaign": campaign_block}
+          "numpy": numpy_block, "batch": batch_block, "campaign": campaign_block, "world": world_block}
 
 _BLOCK = re.compile(r"<!-- generated:(\w+) -->\n.*?<!-- /generated:\1 -->", re.S)
 _FENCE = re.compile(r"```.*?```", re.S)
