@@ -186,20 +186,39 @@ def main(argv=None) -> int:
                                  + " ".join(argv if argv is not None else sys.argv[1:])]}
     done = {row_key(r) for r in data["rows"]}
     todo = [] if args.report_only else [r for r in plan(args) if row_key(r) not in done]
+
+    def run(row):
+        return run_row(row, args, 7000 + 100 * int(row["map_spacing_m"]) + int(10 * row["map_noise_m"]))
+
+    def describe(row):
+        return (f"{row['scenario']} posts {row['map_spacing_m']:g} m noise {row['map_noise_m']:g} m aware "
+                f"{row['map_aware']}")
+
+    run_rows(todo, run, describe, data, path)
+    finish(data, path, out, write_markdown, plot)
+    return 0
+
+
+def run_rows(todo: list[dict], run, describe, data: dict, path: Path) -> None:
+    """Run each row, append its result to ``data["rows"]`` and rewrite ``path`` after each (a study resumes from
+    there), printing one progress line per row."""
     for k, row in enumerate(todo):
-        seed_base = 7000 + 100 * int(row["map_spacing_m"]) + int(10 * row["map_noise_m"])
-        result = run_row(row, args, seed_base)
+        result = run(row)
         data["rows"].append(result)
         write_json(path, data)
-        print(f"[{k + 1}/{len(todo)}] {row['scenario']} posts {row['map_spacing_m']:g} m noise {row['map_noise_m']:g} "
-              f"m aware {row['map_aware']}: {result['horizontal_rmse_mean_m']:.2f} ± "
-              f"{result['horizontal_rmse_ci95_m']:.2f} m, coverage {np.round(result['coverage_3sigma_mean'], 3)} "
-              f"({result['wall_s']:.0f} s)", flush=True)
+        extra = (f", σ/RMSE {np.round(result['sigma_over_rmse_mean'], 2)}" if "sigma_over_rmse_mean" in result
+                 else "")
+        print(f"[{k + 1}/{len(todo)}] {describe(row)}: {result['horizontal_rmse_mean_m']:.2f} ± "
+              f"{result['horizontal_rmse_ci95_m']:.2f} m, coverage {np.round(result['coverage_3sigma_mean'], 3)}"
+              f"{extra} ({result['wall_s']:.0f} s)", flush=True)
+
+
+def finish(data: dict, path: Path, out: Path, markdown, plots) -> None:
+    """The JSON, the Markdown table and the plots of a study."""
     write_json(path, data)
-    write_markdown(data, out)
-    files = plot(data, out)
+    markdown(data, out)
+    files = plots(data, out)
     print(f"wrote {path}, {out / 'study.md'}" + "".join(f", {f}" for f in files))
-    return 0
 
 
 if __name__ == "__main__":

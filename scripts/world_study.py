@@ -26,9 +26,11 @@ import numpy as np
 import warptan as wt
 from warptan.cli import count_arg, number_arg
 from warptan.meta import run_meta
-from warptan.outputs import write_json
 from warptan.report import ci95
 from warptan.scenarios import run_scenario_batch
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from map_error_study import finish, run_rows
 
 ESTIMATORS = ("gaussian", "paper", "stated")
 LOST_M = 50.0
@@ -208,18 +210,13 @@ def main(argv=None) -> int:
                                  + " ".join(argv if argv is not None else sys.argv[1:])]}
     done = {row_key(r) for r in data["rows"]}
     todo = [r for r in plan(args) if row_key(r) not in done]
-    for k, row in enumerate(todo):
-        result = run_row(row, args)
-        data["rows"].append(result)
-        write_json(path, data)
-        print(f"[{k + 1}/{len(todo)}] {row['scenario']} {row['terrain']} error {row['error_rms_m']:g}/"
-              f"{row['error_corr_m']:g} {row['estimator']}: {result['horizontal_rmse_mean_m']:.2f} ± "
-              f"{result['horizontal_rmse_ci95_m']:.2f} m, coverage {np.round(result['coverage_3sigma_mean'], 2)}, "
-              f"σ/RMSE {np.round(result['sigma_over_rmse_mean'], 2)} ({result['wall_s']:.0f} s)", flush=True)
-    write_json(path, data)
-    write_markdown(data, out)
-    files = plot(data, out)
-    print(f"wrote {path}, {out / 'study.md'}" + "".join(f", {f}" for f in files))
+
+    def describe(row):
+        return (f"{row['scenario']} {row['terrain']} error {row['error_rms_m']:g}/{row['error_corr_m']:g} "
+                f"{row['estimator']}")
+
+    run_rows(todo, lambda row: run_row(row, args), describe, data, path)
+    finish(data, path, out, write_markdown, plot)
     return 0
 
 

@@ -838,7 +838,8 @@ class MarginalizedParticleFilter:
             # the map-error modes' scan geometry needs the platform's attitude: the nominal of the last interval
             # (one device-to-host copy of 4 numbers; 0.1 s old at 10 Hz, what the geometry's tolerance allows)
             attitude = self._nav["quat"].numpy()[0]
-        out = self.model.stage(measurement, self._pos, self._quat, attitude=attitude)  # validates first
+        extra = {} if attitude is None else {"attitude": attitude}  # a model of the user's may not take it
+        out = self.model.stage(measurement, self._pos, self._quat, **extra)  # validates first: nothing moves
         t_staged = time.perf_counter()
         if hasattr(self.model, "bind_attitude_cov"):
             self.model.bind_attitude_cov(self._dev["att_cov"])
