@@ -72,3 +72,22 @@ def test_bench_filter_step_records_stages(tmp_path):
     assert proc.returncode == 0, proc.stderr
     row = json.loads(out.read_text())["results"][0]
     assert row["likelihood"] == "gaussian" and row["tempering_stages_mean"] >= 1 and row["step_ms"] > 0
+
+
+@pytest.mark.slow
+def test_world_study_runs_resumes_and_reports(tmp_path):
+    """`world_study.py` on a tiny plan: rows with the three estimators, meta with the command; a resume adds only the
+    missing rows; the Markdown table names every row."""
+    script, out = str(ROOT / "scripts" / "world_study.py"), tmp_path / "w"
+    base = [sys.executable, script, "--seeds", "2", "--worlds", "2", "--duration-s", "35", "--scenarios", "S8",
+            "--errors", "5", "--out", str(out)]
+    proc = subprocess.run([*base, "--estimators", "gaussian"], capture_output=True, text=True, timeout=600,
+                          cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    proc = subprocess.run([*base, "--resume"], capture_output=True, text=True, timeout=600, cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    data = json.loads((out / "study.json").read_text())
+    assert sorted(r["estimator"] for r in data["rows"]) == ["gaussian", "paper", "stated"]
+    assert all(r["seeds"] == 2 and r["worlds"] == 2 and "world(" in r["world"] for r in data["rows"])
+    assert len(data["meta"]["commands"]) == 2 and "git_commit" in data["meta"]
+    assert (out / "study.md").read_text().count("| S8 |") == 3
