@@ -67,9 +67,10 @@ LIK_STUDENT = wp.constant(2)
 MAX_MODES = 16
 """Most map-error modes a likelihood marginalises (:class:`warptan.measurement.Likelihood`, stated DEM accuracy)."""
 modes_vec = wp.types.vector(length=MAX_MODES, dtype=wp.float32)
-"""One point's row of the map-error mode table: ``sqrt(c_i) u_ji`` for mode i (zero past ``n_modes``)."""
+"""One point's row of the map-error mode table, ``u_ji`` for mode i (zero past the modes in use); the table's last
+row holds the modes' shared variances ``k_i`` (whitened units)."""
 modes_mat = wp.types.matrix(shape=(MAX_MODES, 3), dtype=wp.float32)
-"""Per mode, ``sqrt(c_i) Σ_j u_ji H_j / σ_j``: the attitude Jacobians seen through the modes (rad⁻¹ · m / m)."""
+"""Per mode, ``Σ_j v_ji H_j / σ_j`` (or ``G_j``): the Jacobians seen through the modes."""
 
 cloud_row = wp.types.vector(length=8, dtype=wp.float32)
 """One received point: [c_x, c_y, c_z (m), d_x, d_y, d_z, range (m), ok (1 or 0)] (indices below)."""
@@ -109,7 +110,7 @@ class LikParams:
     pos_precision: float  # prior precision of the position (m⁻²) in the Schur complement; < 0: no projection
     sigma_range: float  # the sensor's range σ, m (the sliding model's per-point σ)
     sigma_map: float  # the vertical map part of σ, m (σ² = sigma_range² + sigma_map² for a nadir point)
-    n_modes: int  # map-error modes marginalised (0: none; the table's rows are sqrt(c_i) u_ji)
+    n_modes: int  # map-error modes marginalised (0: none)
 
 
 @wp.func
@@ -137,9 +138,11 @@ class Acc:
     lam_pp: wp.mat33  # Σ G Gᵀ / σ² (G: the prediction's Jacobian w.r.t. the position, 1)
     lam_tp: wp.mat33  # Σ H Gᵀ / σ², m/rad
     info_p: wp.vec3  # Σ Gᵀ r / σ², 1/m
-    proj: modes_vec  # per map-error mode i: sqrt(c_i) Σ_j u_ji r_j / σ_j
-    proj_h: modes_mat  # per mode: sqrt(c_i) Σ_j u_ji H_j / σ_j
-    proj_g: modes_mat  # per mode: sqrt(c_i) Σ_j u_ji G_j / σ_j
+    proj: modes_vec  # per map-error mode i: p_i = Σ_j v_ji r_j / σ_j (v_ji: the table's row j)
+    proj_h: modes_mat  # per mode: Σ_j v_ji H_j / σ_j
+    proj_g: modes_mat  # per mode: Σ_j v_ji G_j / σ_j
+    mode_n: modes_vec  # per mode: n_i = Σ_j v_ji² over the predicted points (1 when the particle predicts all)
+    mode_k: modes_vec  # per mode: k_i, its shared variance (set from the table, not summed)
 
 
 @wp.func
@@ -161,21 +164,37 @@ def acc_init() -> Acc:
     a.proj = modes_vec()
     a.proj_h = modes_mat()
     a.proj_g = modes_mat()
+    a.mode_n = modes_vec()
+    a.mode_k = modes_vec()
     return a
 
 
 @wp.func
-def acc_modes(acc: Acc, p: LikParams, w: modes_vec, res: float, sigma: float, jac: wp.vec3, jac_pos: wp.vec3) -> Acc:
-    """``acc`` plus one predictable point's projections on the map-error modes (its table row ``w``): the whitened
-    residual ``res / sigma`` and attitude and position Jacobians ``jac / sigma``, ``jac_pos / sigma`` (nothing
-    without modes or for the paper's form)."""
+def acc_modes(acc: Acc, p: LikParams, v: modes_vec, res: float, sigma: float, jac: wp.vec3, jac_pos: wp.vec3) -> Acc:
+    """``acc`` plus one predictable point's projections on the map-error modes (its table row ``v``): the whitened
+    residual ``res / sigma`` and the attitude and position Jacobians over ``sigma`` (nothing without modes or for the
+    paper's form). The rows are the scan's modes for its nominal sensitivities (a range's 1/cos of its angle from
+    the vertical over flat ground): scaling them per particle by a ray's actual slope made them non-orthogonal,
+    and the diagonal Woodbury of :func:`mode_weights` then over-subtracted (Λ indefinite, S7 diverged)."""
     a = acc
     if p.n_modes > 0 and p.lik != LIK_PAPER:
         inv = 1.0 / sigma
-        a.proj = a.proj + w * (res * inv)
-        a.proj_h = a.proj_h + wp.outer(w, jac * inv)
-        a.proj_g = a.proj_g + wp.outer(w, jac_pos * inv)
+        a.proj = a.proj + v * (res * inv)
+        a.proj_h = a.proj_h + wp.outer(v, jac * inv)
+        a.proj_g = a.proj_g + wp.outer(v, jac_pos * inv)
+        a.mode_n = a.mode_n + wp.cw_mul(v, v)
     return a
+
+
+@wp.func
+def mode_weights(acc: Acc) -> modes_vec:
+    """``w_i = k_i / (1 + k_i n_i)``: with the modes ``v_i`` over the points a particle predicts (norms² ``n_i``;
+    orthonormal over the whole scan), Woodbury gives ``(I + Σ k_i v_i v_iᵀ)⁻¹ ≈ I − Σ w_i v_i v_iᵀ`` (exact when
+    the particle predicts every point)."""
+    w = modes_vec()
+    for i in range(MAX_MODES):
+        w[i] = acc.mode_k[i] / (1.0 + acc.mode_k[i] * acc.mode_n[i])
+    return w
 
 
 @wp.func
@@ -242,7 +261,7 @@ def acc_add(acc: Acc, p: LikParams, res: float, sigma: float, axis_w: wp.vec3, j
 
 
 ACC_BASE = 36
-acc_vec = wp.types.vector(length=ACC_BASE + 7 * MAX_MODES, dtype=wp.float32)
+acc_vec = wp.types.vector(length=ACC_BASE + 8 * MAX_MODES, dtype=wp.float32)
 """An :class:`Acc` as one vector (n_recv, n_ok, Σ|r|, Σ|r||d| (3), last, Σ log-density, Σ min(z², k²), Λ (6: 00 11
 22 01 02 12), b (3), Σ GGᵀ (6), Σ HGᵀ (9, row-major), Σ G r (3)) for the block reduction. Counts are exact in
 float32 up to 2^24 points; ``last`` is the sum of
@@ -291,6 +310,7 @@ def acc_pack(a: Acc) -> acc_vec:
         for c in range(3):
             v[ACC_BASE + MAX_MODES + 3 * i + c] = a.proj_h[i, c]
             v[ACC_BASE + 4 * MAX_MODES + 3 * i + c] = a.proj_g[i, c]
+        v[ACC_BASE + 7 * MAX_MODES + i] = a.mode_n[i]
     return v
 
 
@@ -313,14 +333,18 @@ def acc_unpack(v: acc_vec) -> Acc:
     proj = modes_vec()
     proj_h = modes_mat()
     proj_g = modes_mat()
+    mode_n = modes_vec()
     for i in range(MAX_MODES):
         proj[i] = v[ACC_BASE + i]
+        mode_n[i] = v[ACC_BASE + 7 * MAX_MODES + i]
         for c in range(3):
             proj_h[i, c] = v[ACC_BASE + MAX_MODES + 3 * i + c]
             proj_g[i, c] = v[ACC_BASE + 4 * MAX_MODES + 3 * i + c]
     a.proj = proj
     a.proj_h = proj_h
     a.proj_g = proj_g
+    a.mode_n = mode_n
+    a.mode_k = modes_vec()
     return a
 
 
@@ -335,13 +359,15 @@ def acc_block_sum(a: Acc) -> Acc:
 def modes_lam_info(acc: Acc):
     """(Λ, b) in float64 with the map-error modes' covariance counted: ``Hᵀ Σ⁻¹ H`` and ``Hᵀ Σ⁻¹ r`` for
     ``Σ = D^½ (I + U K Uᵀ) D^½`` (``D`` the points' σ², ``U K Uᵀ`` the modes), by Woodbury
-    ``Λ - Σ_i c_i h_i h_iᵀ``, ``b - Σ_i c_i h_i p_i`` (the table's rows carry ``sqrt(c_i)``)."""
+    ``Λ - Σ_i w_i h_i h_iᵀ``, ``b - Σ_i w_i h_i p_i`` (:func:`mode_weights`)."""
     lam = wp.mat33d(acc.lam)
     info = wp.vec3d(acc.info)
+    w = mode_weights(acc)
     for i in range(MAX_MODES):
         h = wp.vec3d(wp.float64(acc.proj_h[i, 0]), wp.float64(acc.proj_h[i, 1]), wp.float64(acc.proj_h[i, 2]))
-        lam = lam - wp.outer(h, h)
-        info = info - h * wp.float64(acc.proj[i])
+        wi = wp.float64(w[i])
+        lam = lam - wp.outer(h, h) * wi
+        info = info - h * (wi * wp.float64(acc.proj[i]))
     return lam, info
 
 
@@ -391,8 +417,8 @@ def acc_finish(acc: Acc, p: LikParams, att_cov: wp.mat33):
                 ll = frac * (-0.5 * err * err / p.r_err) + (1.0 - frac) * floor
         else:
             ll = acc.ll_points + n_bad * point_loglik(p.lik, p.k_out * p.sigma, p.sigma, p.nu)
-            if p.n_modes > 0:  # the map-error modes' share of zᵀz: rᵀΣ⁻¹r = zᵀz - Σ c_i p_i²
-                explained = wp.dot(acc.proj, acc.proj)
+            if p.n_modes > 0:  # the map-error modes' share of zᵀz: rᵀΣ⁻¹r = zᵀz - Σ w_i p_i²
+                explained = wp.dot(wp.cw_mul(mode_weights(acc), acc.proj), acc.proj)
                 ll = ll + 0.5 * explained
                 sum_sq = wp.max(sum_sq - explained, 0.0)
             if n_ok > 0:
@@ -418,12 +444,14 @@ def attitude_information(acc: Acc, p: LikParams):
         lpp = wp.mat33d(acc.lam_pp) + wp.identity(n=3, dtype=wp.float64) * wp.float64(p.pos_precision)
         ltp = wp.mat33d(acc.lam_tp)
         info_p = wp.vec3d(acc.info_p)
+        w = mode_weights(acc)
         for i in range(MAX_MODES):  # the position's sums through the map-error modes likewise (zero without)
             h = wp.vec3d(wp.float64(acc.proj_h[i, 0]), wp.float64(acc.proj_h[i, 1]), wp.float64(acc.proj_h[i, 2]))
             g = wp.vec3d(wp.float64(acc.proj_g[i, 0]), wp.float64(acc.proj_g[i, 1]), wp.float64(acc.proj_g[i, 2]))
-            lpp = lpp - wp.outer(g, g)
-            ltp = ltp - wp.outer(h, g)
-            info_p = info_p - g * wp.float64(acc.proj[i])
+            wi = wp.float64(w[i])
+            lpp = lpp - wp.outer(g, g) * wi
+            ltp = ltp - wp.outer(h, g) * wi
+            info_p = info_p - g * (wi * wp.float64(acc.proj[i]))
         det = wp.determinant(lpp)
         if det > wp.float64(0.0):
             k = ltp * wp.inverse(lpp)
@@ -511,6 +539,8 @@ def _reduce_loglik(tiled: bool):
         if wp.static(tiled):
             acc = acc_block_sum(acc)
         if lane == 0:
+            if params.n_modes > 0:
+                acc.mode_k = modes[residual.shape[1]]
             acc_store(t, acc, params, att_cov[b], err_out, loglik_out, nis_out, n_valid_out, lam_out, info_out)
 
     return reduce_loglik_kernel

@@ -27,14 +27,15 @@ def test_the_modes_hold_the_stated_covariance_and_its_sharing():
     xy = _grid_xy()
     table, info = lk.error_modes(xy, np.ones(len(xy)), 0.5)
     q = info["n_modes"]
-    assert 12 <= q <= 16 and info["remainder"] < 1e-3 and not table[:, q:].any()
+    assert 12 <= q <= 16 and info["remainder"] < 1e-3 and not table[:, q:].any() and table.shape == (101, 16)
     c = np.array(info["c"])
     assert np.all((c > 0) & (c <= 1)) and info["sharing"][0] > info["sharing"][-1] >= 1.0
-    u = table[:, :q] / np.sqrt(c)[None, :]
+    u = table[:-1, :q].astype(np.float64)
+    lam = np.array(info["eigenvalues"])
+    np.testing.assert_allclose(table[-1, :q], np.array(info["sharing"]) * 25.0 * lam / 0.25, rtol=1e-5)  # k_i
     np.testing.assert_allclose(u.T @ u, np.eye(q), atol=1e-4)  # orthonormal modes
     d = np.linalg.norm(xy[:, None] - xy[None], axis=2)
     r = np.exp(-(d / 1000.0) ** 2)
-    lam = np.array(info["eigenvalues"])
     np.testing.assert_allclose(u.T @ r @ u, np.diag(lam), atol=1e-3 * lam[0])
     tiny = lk.error_modes(xy * 1e-3, np.ones(len(xy)), 0.5)[1]
     expected = sum(math.exp(-((k * 10.0 / 1000.0) ** 2)) for k in range(-1000, 1001))
@@ -45,17 +46,17 @@ def test_the_modes_hold_the_stated_covariance_and_its_sharing():
 
 
 def test_the_woodbury_form_equals_the_inverse_of_the_covariance():
-    """zᵀ(I + U K Uᵀ)⁻¹z = zᵀz − Σ c_i (u_iᵀ z)²: what the kernels sum, against a dense float64 solve."""
+    """zᵀ(I + U K Uᵀ)⁻¹z = zᵀz − Σ w_i (u_iᵀ z)², w_i = k_i / (1 + k_i): what the kernels sum for a scan of unit
+    sensitivities, against a dense float64 solve."""
     lk = wt.Likelihood("gaussian", **STATED)
     xy = _grid_xy(agl=900.0)
     table, info = lk.error_modes(xy, 1.0 / np.cos(np.radians(np.linspace(-30, 30, len(xy)))), 0.8)
-    c, q = np.array(info["c"]), info["n_modes"]
-    u = table[:, :q].astype(np.float64) / np.sqrt(c)[None, :]
-    k = c / (1.0 - c)
+    q = info["n_modes"]
+    u, k = table[:-1, :q].astype(np.float64), table[-1, :q].astype(np.float64)
     cov = np.eye(len(xy)) + u @ np.diag(k) @ u.T
     z = np.random.default_rng(0).normal(size=(5, len(xy))) * 3.0
     direct = np.einsum("ij,ij->i", z, np.linalg.solve(cov, z.T).T)
-    woodbury = np.einsum("ij,ij->i", z, z) - ((z @ table[:, :q].astype(np.float64)) ** 2).sum(axis=1)
+    woodbury = np.einsum("ij,ij->i", z, z) - ((z @ u) ** 2 * (k / (1.0 + k))).sum(axis=1)
     np.testing.assert_allclose(woodbury, direct, rtol=1e-4)
 
 
@@ -74,9 +75,9 @@ def scan():
 
 @pytest.mark.parametrize("name", ["raycast", "sliding"])
 def test_the_kernels_add_the_modes_share_and_nothing_without_a_statement(scan, name, device):
-    """The kernel's log-likelihood with modes minus without is 0.5 Σ_i c_i (u_iᵀ z)² of its own residuals
-    (ray casts: one σ for every point); the attitude information stays positive semi-definite; a likelihood without
-    a stated error gives the same bits as before the modes existed (n_modes = 0)."""
+    """The kernel's log-likelihood with modes minus without is 0.5 Σ_i w_i (u_iᵀ z)² of its own residuals, w_i =
+    k_i / (1 + k_i n_i) with n_i = |u_i|² over the points the particle predicts (ray casts: one σ for every point);
+    the attitude information stays positive semi-definite; without a stated error n_modes = 0."""
     dem, cloud, pos, q = scan
     poses = (wp.array(pos, dtype=wp.vec3, device=device), wp.array(np.tile(q, (len(pos), 1)), dtype=wp.vec4,
                                                                      device=device))
@@ -89,9 +90,14 @@ def test_the_kernels_add_the_modes_share_and_nothing_without_a_statement(scan, n
     ev = np.linalg.eigvalsh(b.lam.numpy().astype(np.float64))
     assert ev.min() > -1e-4 * ev.max()
     if name == "raycast":
-        z = np.nan_to_num(b.residual_m.numpy().astype(np.float64) / stated.sigma_m)
+        res = b.residual_m.numpy().astype(np.float64)
+        ok = np.isfinite(res)
+        z = np.where(ok, res, 0.0) / stated.sigma_m
         table = stated._modes.numpy().astype(np.float64)
-        expected = 0.5 * ((z @ table) ** 2).sum(axis=1)
+        u_tab, k = table[:-1], table[-1]
+        p = z @ u_tab
+        n_i = ok.astype(np.float64) @ u_tab**2
+        expected = 0.5 * (k / (1.0 + k * n_i) * p**2).sum(axis=1)
         got = b.loglik.numpy().astype(np.float64) - a.loglik.numpy().astype(np.float64)
         np.testing.assert_allclose(got, expected, rtol=2e-3, atol=2e-3 * np.abs(expected).max())
     else:

@@ -135,7 +135,8 @@ class Likelihood:
 
     def error_modes(self, xy: np.ndarray, sensitivity: np.ndarray, sigma_m: float,
                     along: tuple[float, float] = (1.0, 0.0)) -> tuple[np.ndarray, dict]:
-        """The map-error mode table of a scan: ``(M, MAX_MODES)`` float32 rows ``sqrt(c_i) u_ji`` and a summary.
+        """The map-error mode table of a scan: ``(M + 1, MAX_MODES)`` float32, rows ``u_ji`` and last the modes'
+        shared variances ``k_i``, and a summary.
 
         The stated error is a Gaussian random field of RMS ``σ_e = map_error_sigma_m`` and covariance
         ``σ_e² exp(−(r/L)²)``, ``L = map_error_corr_m``. At the scan's ground points ``x_j`` (``xy``: horizontal
@@ -148,16 +149,18 @@ class Likelihood:
         unit vector; ``s = track_step_m``; ``κ_i = 1`` without it; beyond 64 steps the sum is the trapezoid
         integral ``(1/s) ∫ ρ_i`` over 64 lags up to 4 L). Treating each scan as independent with its modes'
         variance times ``κ_i`` gives, over the scans that share an error, the information of the exact joint
-        likelihood (a shared error counted once). With ``k_i = κ_i σ_e² λ_i / σ²`` and ``c_i = k_i / (1 + k_i)``,
-        Woodbury gives ``rᵀ Σ⁻¹ r = zᵀ z − Σ_i c_i (u_iᵀ z)²`` and likewise ``Hᵀ Σ⁻¹ H``, ``Hᵀ Σ⁻¹ r`` for the
-        attitude (:func:`warptan.kernels.likelihood.modes_lam_info`). Modes past ``MAX_MODES`` or below 1e-6 of
-        the largest are dropped; ``remainder`` (in the summary) is the share of the error's variance they hold."""
+        likelihood (a shared error counted once). With ``k_i = κ_i σ_e² λ_i / σ²``, Woodbury gives ``rᵀ Σ⁻¹ r =
+        zᵀ z − Σ_i w_i (u_iᵀ z)²``, ``w_i = k_i / (1 + k_i n_i)``, and likewise ``Hᵀ Σ⁻¹ H``, ``Hᵀ Σ⁻¹ r`` for the
+        attitude and the position, with ``n_i = |u_i|²`` over the points a particle predicts
+        (:func:`warptan.kernels.likelihood.mode_weights`; ``c_i = k_i / (1 + k_i)`` in the summary is the share of
+        mode i explained when every point is predicted). Modes past ``MAX_MODES`` or below 1e-6 of the largest are
+        dropped; ``remainder`` is the share of the error's variance they hold."""
         from warptan.kernels.likelihood import MAX_MODES
 
         xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
         a = np.asarray(sensitivity, dtype=np.float64).reshape(-1)
         m, length = len(xy), self.map_error_corr_m
-        table = np.zeros((m, MAX_MODES), dtype=np.float32)
+        table = np.zeros((m + 1, MAX_MODES), dtype=np.float32)
         if not self.models_map_error or m == 0:
             return table, {"n_modes": 0}
 
@@ -187,7 +190,8 @@ class Likelihood:
             sharing = np.maximum(1.0 + 2.0 * total, 1.0)
         k_i = sharing * self.map_error_sigma_m**2 * lam_k / sigma_m**2
         c_i = k_i / (1.0 + k_i)
-        table[:, :len(keep)] = (vec_k * np.sqrt(c_i)[None, :]).astype(np.float32)
+        table[:m, :len(keep)] = vec_k.astype(np.float32)
+        table[m, :len(keep)] = k_i.astype(np.float32)
         return table, {"n_modes": len(keep), "eigenvalues": lam_k.tolist(), "sharing": sharing.tolist(),
                        "c": c_i.tolist(), "remainder": float(1.0 - lam_k.sum() / max(lam.sum(), 1e-300))}
 
@@ -425,11 +429,11 @@ class MeasurementModel:
         reads the new values) and ``n_modes`` stays :data:`~warptan.kernels.likelihood.MAX_MODES` (unused
         columns are zero)."""
         m = self._staged.shape[1] if self._staged.ndim == 2 else 1
-        fresh = self._modes is None or self._modes.device != device or self._modes.shape[0] != m
+        fresh = self._modes is None or self._modes.device != device or self._modes.shape[0] != m + 1
         if fresh:
             from warptan.kernels.likelihood import modes_vec
 
-            self._modes = wp.zeros(m, dtype=modes_vec, device=device)
+            self._modes = wp.zeros(m + 1, dtype=modes_vec, device=device)
             self._modes_geometry = None
             self._params.n_modes = klik.MAX_MODES if self.likelihood.models_map_error else 0
             self.generation += 1
