@@ -141,7 +141,6 @@ class Acc:
     proj: modes_vec  # per map-error mode i: p_i = Σ_j v_ji r_j / σ_j (v_ji: the table's row j)
     proj_h: modes_mat  # per mode: Σ_j v_ji H_j / σ_j
     proj_g: modes_mat  # per mode: Σ_j v_ji G_j / σ_j
-    mode_n: modes_vec  # per mode: n_i = Σ_j v_ji² over the predicted points (1 when the particle predicts all)
     mode_k: modes_vec  # per mode: k_i, its shared variance (set from the table, not summed)
 
 
@@ -164,7 +163,6 @@ def acc_init() -> Acc:
     a.proj = modes_vec()
     a.proj_h = modes_mat()
     a.proj_g = modes_mat()
-    a.mode_n = modes_vec()
     a.mode_k = modes_vec()
     return a
 
@@ -182,18 +180,20 @@ def acc_modes(acc: Acc, p: LikParams, v: modes_vec, res: float, sigma: float, ja
         a.proj = a.proj + v * (res * inv)
         a.proj_h = a.proj_h + wp.outer(v, jac * inv)
         a.proj_g = a.proj_g + wp.outer(v, jac_pos * inv)
-        a.mode_n = a.mode_n + wp.cw_mul(v, v)
     return a
 
 
 @wp.func
 def mode_weights(acc: Acc) -> modes_vec:
-    """``w_i = k_i / (1 + k_i n_i)``: with the modes ``v_i`` over the points a particle predicts (norms² ``n_i``;
-    orthonormal over the whole scan), Woodbury gives ``(I + Σ k_i v_i v_iᵀ)⁻¹ ≈ I − Σ w_i v_i v_iᵀ`` (exact when
-    the particle predicts every point)."""
+    """``w_i = k_i / (1 + k_i)``: with the scan's orthonormal modes ``v_i``, Woodbury gives ``(I + Σ k_i v_i
+    v_iᵀ)⁻¹ = I − Σ w_i v_i v_iᵀ``. A particle that predicts only some points keeps these weights: the modes
+    restricted to its points are then not orthonormal, but ``w_i ≤ 1`` keeps ``Σ w_i p_i² ≤ zᵀz`` over its points
+    (a principal block of a projector), so fewer points never score better. Renormalising each mode over the
+    predicted points (``k_i / (1 + k_i |v_i|²)``) broke that bound and S5/S6 diverged onto particles that
+    predict fewer points."""
     w = modes_vec()
     for i in range(MAX_MODES):
-        w[i] = acc.mode_k[i] / (1.0 + acc.mode_k[i] * acc.mode_n[i])
+        w[i] = acc.mode_k[i] / (1.0 + acc.mode_k[i])
     return w
 
 
@@ -261,7 +261,7 @@ def acc_add(acc: Acc, p: LikParams, res: float, sigma: float, axis_w: wp.vec3, j
 
 
 ACC_BASE = 36
-acc_vec = wp.types.vector(length=ACC_BASE + 8 * MAX_MODES, dtype=wp.float32)
+acc_vec = wp.types.vector(length=ACC_BASE + 7 * MAX_MODES, dtype=wp.float32)
 """An :class:`Acc` as one vector (n_recv, n_ok, Σ|r|, Σ|r||d| (3), last, Σ log-density, Σ min(z², k²), Λ (6: 00 11
 22 01 02 12), b (3), Σ GGᵀ (6), Σ HGᵀ (9, row-major), Σ G r (3)) for the block reduction. Counts are exact in
 float32 up to 2^24 points; ``last`` is the sum of
@@ -310,7 +310,6 @@ def acc_pack(a: Acc) -> acc_vec:
         for c in range(3):
             v[ACC_BASE + MAX_MODES + 3 * i + c] = a.proj_h[i, c]
             v[ACC_BASE + 4 * MAX_MODES + 3 * i + c] = a.proj_g[i, c]
-        v[ACC_BASE + 7 * MAX_MODES + i] = a.mode_n[i]
     return v
 
 
@@ -333,17 +332,14 @@ def acc_unpack(v: acc_vec) -> Acc:
     proj = modes_vec()
     proj_h = modes_mat()
     proj_g = modes_mat()
-    mode_n = modes_vec()
     for i in range(MAX_MODES):
         proj[i] = v[ACC_BASE + i]
-        mode_n[i] = v[ACC_BASE + 7 * MAX_MODES + i]
         for c in range(3):
             proj_h[i, c] = v[ACC_BASE + MAX_MODES + 3 * i + c]
             proj_g[i, c] = v[ACC_BASE + 4 * MAX_MODES + 3 * i + c]
     a.proj = proj
     a.proj_h = proj_h
     a.proj_g = proj_g
-    a.mode_n = mode_n
     a.mode_k = modes_vec()
     return a
 

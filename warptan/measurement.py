@@ -150,11 +150,9 @@ class Likelihood:
         integral ``(1/s) ∫ ρ_i`` over 64 lags up to 4 L). Treating each scan as independent with its modes'
         variance times ``κ_i`` gives, over the scans that share an error, the information of the exact joint
         likelihood (a shared error counted once). With ``k_i = κ_i σ_e² λ_i / σ²``, Woodbury gives ``rᵀ Σ⁻¹ r =
-        zᵀ z − Σ_i w_i (u_iᵀ z)²``, ``w_i = k_i / (1 + k_i n_i)``, and likewise ``Hᵀ Σ⁻¹ H``, ``Hᵀ Σ⁻¹ r`` for the
-        attitude and the position, with ``n_i = |u_i|²`` over the points a particle predicts
-        (:func:`warptan.kernels.likelihood.mode_weights`; ``c_i = k_i / (1 + k_i)`` in the summary is the share of
-        mode i explained when every point is predicted). Modes past ``MAX_MODES`` or below 1e-6 of the largest are
-        dropped; ``remainder`` is the share of the error's variance they hold."""
+        zᵀ z − Σ_i c_i (u_iᵀ z)²``, ``c_i = k_i / (1 + k_i)``, and likewise ``Hᵀ Σ⁻¹ H``, ``Hᵀ Σ⁻¹ r`` for the
+        attitude and the position (:func:`warptan.kernels.likelihood.mode_weights`). Modes past ``MAX_MODES`` or
+        below 1e-6 of the largest are dropped; ``remainder`` is the share of the error's variance they hold."""
         from warptan.kernels.likelihood import MAX_MODES
 
         xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
