@@ -118,3 +118,19 @@ def test_a_stated_error_keeps_s8_honest_over_a_world_with_that_error():
     horiz = {k: np.hypot(*np.sqrt(np.mean([r.rmse_converged ** 2 for r in v], axis=0))[:2]) for k, v in runs.items()}
     assert cov[False].min() < 0.5 and cov[True].min() > 0.85, cov
     assert horiz[True] < 0.5 * horiz[False], horiz
+
+
+def test_the_command_line_states_the_accuracy(capsys, tmp_path):
+    """`--map-error-m` needs `--map-error-corr-m`; with both a run over a world with that error writes its runs."""
+    from warptan import cli
+
+    assert cli.main(["run", "S8", "--map-error-m", "5", "--check"]) == 2
+    assert "needs likelihood.map_error_corr_m > 0" in capsys.readouterr().err
+    out = tmp_path / "o"
+    assert cli.main(["run", "S8", "--map-error-m", "5", "--map-error-corr-m", "1000", "--world-error-m", "5",
+                     "--world-error-corr-m", "1000", "--duration-s", "1", "--particles", "32", "--out", str(out),
+                     "--quiet", "--no-plots"]) == 0
+    import json
+
+    run = json.loads((out / "results.json").read_text())["runs"][0]
+    assert run["world"]["model"]["error_rms_m"] == 5.0 and "error 5 m / 1000 m" in run["terrain"]

@@ -160,7 +160,8 @@ def _run(args) -> int:
                  "world_error_rms_m": args.world_error_m, "world_error_corr_m": args.world_error_corr_m,
                  "world_bias_m": args.world_bias_m, "world_clutter_height_m": args.world_clutter_m,
                  "world_clutter_fraction": args.world_clutter_fraction, "world_refine": args.world_refine,
-                 "world_seed": args.world_seed}
+                 "world_seed": args.world_seed, "map_error_rms_m": args.map_error_m,
+                 "map_error_corr_m": args.map_error_corr_m}
     plans = {name: prepare(name, terrain=terrain, seeds=range(seeds), device=args.device, batched=args.batch,
                            **overrides) for name in names}
     ids = [config["id"] for config, _, _ in plans.values()]
@@ -473,6 +474,12 @@ def build_parser() -> argparse.ArgumentParser:
                      help="map error: white noise σ per post, m")
     run.add_argument("--map-bias-m", type=_finite, default=None,
                      help="map error: vertical offset of the map, m")
+    stated = run.add_argument_group("the DEM's stated accuracy", "what the filter is told of its map's correlated "
+                                                                 "error (a published accuracy; not the simulation's)")
+    stated.add_argument("--map-error-m", type=number_arg(0.0, False), default=None,
+                        help="RMS of the map's correlated vertical error, m (likelihood.map_error_rms_m)")
+    stated.add_argument("--map-error-corr-m", type=number_arg(0.0, False), default=None,
+                        help="its correlation length, m (likelihood.map_error_corr_m)")
     world = run.add_argument_group("world", "a world that is not the map: the DEM (or --terrain) becomes the filter's "
                                             "map and the flight sees a world made from it (scenario [world] table)")
     world.add_argument("--world-relief-m", default=None, type=_relief_arg,
