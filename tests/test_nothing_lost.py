@@ -331,12 +331,13 @@ def test_a_run_whose_updates_were_all_skipped_exits_non_zero(capsys, tmp_path):
 
 
 def test_partly_skipped_runs_are_named_in_the_summary(capsys):
-    class Partly:
-        scenario, seed = "S8", 3
+    class Run:  # the prior epoch, then 200 updates: 12 skipped, 3 without a valid received point
+        t_s = np.arange(201.0)
+        skipped = np.r_[False, np.arange(200) < 12]
+        all_points_invalid = np.r_[False, (np.arange(200) >= 12) & (np.arange(200) < 15)]
 
-        @staticmethod
-        def summary():
-            return {"updates": 200, "skipped_updates": 12, "updates_used": 185, "updates_without_points": 3}
+    class Partly:
+        scenario, seed, run = "S8", 3, Run()
 
     assert cli._report_skipped([Partly()]) == 0
     out, _ = capsys.readouterr()

@@ -1,5 +1,6 @@
 """Recorded flights: the flight-log format, replay with recorded timestamps, ROS 2 bags, bad logs."""
 
+import copy
 import dataclasses
 import json
 import subprocess
@@ -214,3 +215,15 @@ def test_bag_missing_topics_is_one_error(simulated, tmp_path):
         read_bag(tmp_path / "bag", config)
     text = str(err.value)
     assert "IMU topic '/imu_raw' is not in the bag" in text and "'/lidar'" in text
+
+
+def test_a_log_written_before_worlds_and_stated_accuracy_replays(simulated):
+    """A log's stored settings without the [world] table and the likelihood's stated-accuracy keys (every log written
+    before them) replay with another likelihood, which rebuilds the likelihood from the stored config."""
+    _, log = simulated["sliding"]
+    old = copy.deepcopy(log.settings)
+    old["config"].pop("world")
+    for key in ("map_error_rms_m", "map_error_corr_m"):
+        old["config"]["likelihood"].pop(key)
+    result = replay(dataclasses.replace(log, settings=old), likelihood="student_t", particles=64)
+    assert np.isfinite(result.run.est_pos).all() and result.config["likelihood"]["map_error_rms_m"] == 0.0

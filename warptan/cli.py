@@ -221,16 +221,17 @@ def _run(args) -> int:
 def _report_skipped(results) -> int:
     """A line for every run in which updates were skipped; 1 (after an error line) when a run used none of its
     updates (it navigated nothing: INS only), else 0."""
+    from warptan.report import update_counts
+
     blind = []
     for r in results:
-        s = r.summary()
+        updates, skipped, used = update_counts(r.run)
         label = f"{r.scenario} seed {r.seed}"
-        if s["updates_used"] == 0 and s["updates"] > 0:
+        if used == 0 and updates > 0:
             blind.append(label)
-        elif s["skipped_updates"] or s["updates_without_points"]:
-            print(f"warptan: note: {label}: {s['updates'] - s['updates_used']} of {s['updates']} updates were not "
-                  f"used ({s['skipped_updates']} skipped: the map could not predict the scan; "
-                  f"{s['updates_without_points']} without a valid measurement)")
+        elif used < updates:
+            print(f"warptan: note: {label}: {updates - used} of {updates} updates were not used ({skipped} skipped: "
+                  f"the map could not predict the scan; {updates - skipped - used} without a valid measurement)")
     if blind:
         print(f"warptan: error: {', '.join(blind)}: every update was skipped (no valid measurement, or the map does "
               "not cover the scans): the run navigated nothing (INS only); results were written, marked "

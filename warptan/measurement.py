@@ -348,7 +348,7 @@ class MeasurementModel:
         p.r_err, p.sigma, p.nu, p.k_out = float(lk.r_err), self.sigma_m, float(lk.nu), float(lk.outlier_sigmas)
         p.att_scale = (self.sigma_m / lk.sigma_att(self.surface_mismatch_m())) ** 2
         p.pos_precision = POSITION_PRIOR_PRECISION if lk.project_position else -1.0
-        p.n_modes = int(getattr(self, "modes_info", {}).get("n_modes", 0))
+        p.n_modes = 0  # set by _ensure_modes when the first scan is staged
         if lk.sigma_m is None:
             p.sigma_range = float(lk.sensor_sigma_m)
             p.sigma_map = math.sqrt(max(self.sigma_m**2 - lk.sensor_sigma_m**2, 0.0))

@@ -837,7 +837,7 @@ class MarginalizedParticleFilter:
         if getattr(getattr(self.model, "likelihood", None), "models_map_error", False):
             # the map-error modes' scan geometry needs the platform's attitude: the nominal of the last interval
             # (one device-to-host copy of 4 numbers; 0.1 s old at 10 Hz, what the geometry's tolerance allows)
-            attitude = self._nav["quat"].numpy()[0]
+            attitude = self._nav["quat"][:1].numpy()[0]
         extra = {} if attitude is None else {"attitude": attitude}  # a model of the user's may not take it
         out = self.model.stage(measurement, self._pos, self._quat, **extra)  # validates first: nothing moves
         t_staged = time.perf_counter()

@@ -377,12 +377,15 @@ def _read_holder(fd: int) -> str:
 
 def _failed_file(tmp: Path | None, err: OSError) -> str | None:
     """The file (relative to the output folder) whose write raised ``err``: the error's own file name when it lies
-    in ``tmp``, else the newest file there (writes are sequential). None when ``tmp`` holds nothing."""
+    in ``tmp``, else (an error that names no file, as a full disk's) the newest file there (writes are
+    sequential). None when ``tmp`` is gone or the error is about a file elsewhere (not a failed write)."""
     if tmp is None or not tmp.is_dir():
         return None
     if err.filename:
-        with contextlib.suppress(ValueError):
+        try:
             return str(Path(os.path.realpath(os.fsdecode(err.filename))).relative_to(os.path.realpath(tmp)))
+        except ValueError:
+            return None
     files = [p for p in tmp.rglob("*") if p.is_file()]
     if not files:
         return "(its first file)"
@@ -398,7 +401,7 @@ def _carry_user_files(target: Path, tmp: Path, listed: set[str]) -> str | None:
     for root, dirs, files in os.walk(target):
         rel_root = Path(root).relative_to(target)
         for name in sorted(dirs):
-            rel = str(rel_root / name) if str(rel_root) != "." else name
+            rel = str(rel_root / name)  # Path(".") / name is name
             if rel in listed_dirs:
                 continue  # a folder the previous run wrote into: walk it
             dirs.remove(name)  # a folder of the user's (or a symlink): carried whole
@@ -407,7 +410,7 @@ def _carry_user_files(target: Path, tmp: Path, listed: set[str]) -> str | None:
             (tmp / rel).parent.mkdir(parents=True, exist_ok=True)
             _link_tree(target / rel, tmp / rel)
         for name in sorted(files):
-            rel = str(rel_root / name) if str(rel_root) != "." else name
+            rel = str(rel_root / name)
             if rel in listed:
                 continue
             if (tmp / rel).exists() or (tmp / rel).is_symlink():

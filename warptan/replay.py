@@ -158,10 +158,10 @@ def replay_config(log: FlightLog, model: str | None = None, backend: str | None 
                   particles: int | None = None, likelihood: str | None = None) -> dict:
     """The scenario-style config of a replay: the one the log was simulated with (settings), else S8's filter and
     likelihood settings with the log's IMU grade, sensor and rates; the keywords override."""
-    from warptan.scenarios import load_config
+    from warptan.scenarios import load_config, with_optional_defaults
 
     stored = log.settings.get("config")
-    config = load_config("S8") if stored is None else copy.deepcopy(stored)
+    config = load_config("S8") if stored is None else with_optional_defaults(copy.deepcopy(stored))
     s = config["sensor"]
     if stored is None:
         config["id"] = "replay"

@@ -49,7 +49,7 @@ from warptan.runner import FilterRun, InitialErrors, run_filter
 from warptan.sensors import Barometer, PointCloudSensor, RadarAltimeter, ScanPattern
 from warptan.terrain import NAMED_TERRAINS, Terrain, TerrainError
 from warptan.trajectory import Orbit, Straight, Trajectory, Turn
-from warptan.world import AUTO, MAX_REFINE, RELIEF_SLOPE_RANGE, World, WorldModel
+from warptan.world import World, WorldModel
 
 try:
     import tomllib
@@ -173,20 +173,17 @@ SCHEMA: dict[str, dict[str, tuple[type | tuple, object]]] = {
         "att_deg": (list, _vec(3, _upto(180.0, "°"))),
     },
     "run": {"seed": (int, lambda v: None if 0 <= v <= MAX_SEED else f"must be in [0, {MAX_SEED}]")},
-    "world": {
-        "relief_rms_m": ((float, str), lambda v: None if v == AUTO or (not isinstance(v, str) and v >= 0)
-                         else "must be 'auto' (extrapolated from the map's spectrum) or a number ≥ 0 (m)"),
-        "relief_slope": ((float, str), lambda v: None if v == AUTO or (
-            not isinstance(v, str) and RELIEF_SLOPE_RANGE[0] <= v <= RELIEF_SLOPE_RANGE[1])
-            else f"must be 'auto' or in [{RELIEF_SLOPE_RANGE[0]:g}, {RELIEF_SLOPE_RANGE[1]:g}]"),
-        "error_rms_m": (float, _upto(1e3, "m")),
-        "error_corr_m": (float, _upto(1e6, "m")),
-        "bias_m": (float, lambda v: None if abs(v) <= 1e4 else "must be within ±10000 m"),
-        "clutter_height_m": (float, _upto(1e3, "m")),
-        "clutter_fraction": (float, lambda v: None if 0 <= v <= 1 else "must be in [0, 1]"),
-        "clutter_patch_m": (float, _pos),
-        "refine": (int, lambda v: None if 1 <= v <= MAX_REFINE else f"must be in [1, {MAX_REFINE}]"),
-        "seed": (int, lambda v: None if -1 <= v <= MAX_SEED else "must be ≥ 0, or -1 (each run's own seed)"),
+    "world": {  # types here; the ranges are WorldModel.problems (one place for files and the API)
+        "relief_rms_m": ((float, str), None),
+        "relief_slope": ((float, str), None),
+        "error_rms_m": (float, None),
+        "error_corr_m": (float, None),
+        "bias_m": (float, None),
+        "clutter_height_m": (float, None),
+        "clutter_fraction": (float, None),
+        "clutter_patch_m": (float, None),
+        "refine": (int, None),
+        "seed": (int, None),
     },
 }
 STATED_ACCURACY_DEFAULTS = {"map_error_rms_m": 0.0, "map_error_corr_m": 0.0}
@@ -301,6 +298,8 @@ def validate(config: dict, source: str = "scenario") -> list[str]:
             msg = check(value) if check else None
             if msg:
                 problems.append(f"{where}{key} = {value!r} {msg}")
+    if isinstance(config.get("world"), dict) and not any(p.startswith("world.") for p in problems):
+        problems += WorldModel.from_config(config["world"]).problems()
     if not problems:
         imu_rate, meas_rate = config["imu"]["rate_hz"], config["sensor"]["rate_hz"]
         ratio = imu_rate / meas_rate
@@ -414,6 +413,17 @@ def scenario_path(name_or_path: str | os.PathLike) -> Path:
     raise ScenarioError(f"unknown scenario {text!r}; use one of {', '.join(SCENARIO_IDS)}, 'all', or a .toml path")
 
 
+def with_optional_defaults(config: dict) -> dict:
+    """``config`` with the keys a scenario may leave out filled in: the ``[world]`` table (the world is the map)
+    and the DEM's stated accuracy in ``[likelihood]`` (none). Configs stored before these existed (flight logs)
+    read the same way."""
+    if isinstance(config.get("world", {}), dict):
+        config["world"] = {**WORLD_DEFAULTS, **config.get("world", {})}
+    if isinstance(config.get("likelihood"), dict):
+        config["likelihood"] = {**STATED_ACCURACY_DEFAULTS, **config["likelihood"]}
+    return config
+
+
 def load_config(name_or_path, overrides_from: str = "override", **overrides) -> dict:
     """Read, override and validate a scenario; raises :class:`ScenarioError` listing every problem. A problem of
     an overridden value names ``overrides_from`` (e.g. the campaign file that set it), not the scenario file."""
@@ -423,10 +433,7 @@ def load_config(name_or_path, overrides_from: str = "override", **overrides) -> 
             config = tomllib.load(f)
     except tomllib.TOMLDecodeError as err:
         raise ScenarioError(f"{path}: not valid TOML ({err})") from None
-    if isinstance(config.get("world", {}), dict):
-        config["world"] = {**WORLD_DEFAULTS, **config.get("world", {})}
-    if isinstance(config.get("likelihood"), dict):  # the DEM's stated accuracy: none unless the file states it
-        config["likelihood"] = {**STATED_ACCURACY_DEFAULTS, **config["likelihood"]}
+    config = with_optional_defaults(config)
     problems = []
     for key, value in overrides.items():
         if value is None or key in ("terrain", "paper_rates"):
@@ -500,9 +507,6 @@ def world_terrain(dem: Terrain, config: dict, seed: int) -> Terrain:
     model = WorldModel.from_config(config["world"])
     if not model.active:
         return dem
-    problems = model.problems((dem.dn, dem.de))
-    if problems:
-        raise ScenarioError(f"scenario {config['id']}: " + "; ".join(problems))
     key = (id(dem), model, seed if model.seed < 0 else None)
     if key not in _WORLD_CACHE:
         if len(_WORLD_CACHE) >= 4:  # worlds are large (refine² × the DEM): keep the last few

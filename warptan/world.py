@@ -53,6 +53,31 @@ MAX_REFINE = 8
 """Most world posts per map post on one axis."""
 
 
+def _number(low: float, high: float, whole: bool = False):
+    """A finite number (a whole one with ``whole``) in [low, high]."""
+    def ok(v):
+        if isinstance(v, bool) or not isinstance(v, int if whole else (int, float)):
+            return False
+        return math.isfinite(v) and low <= v <= high
+    return ok
+
+
+_RULES = {
+    "relief_rms_m": (_number(0.0, 1e3), "must be 'auto' (extrapolated from the map's spectrum) or in [0, 1000] m"),
+    "relief_slope": (_number(*RELIEF_SLOPE_RANGE),
+                     f"must be 'auto' or in [{RELIEF_SLOPE_RANGE[0]:g}, {RELIEF_SLOPE_RANGE[1]:g}]"),
+    "error_rms_m": (_number(0.0, 1e3), "must be in [0, 1000] m"),
+    "error_corr_m": (_number(0.0, 1e6), "must be in [0, 1e+06] m"),
+    "bias_m": (_number(-1e4, 1e4), "must be within ±10000 m"),
+    "clutter_height_m": (_number(0.0, 1e3), "must be in [0, 1000] m"),
+    "clutter_fraction": (_number(0.0, 1.0), "must be in [0, 1]"),
+    "clutter_patch_m": (lambda v: _number(0.0, 1e6)(v) and v > 0, "must be in (0, 1e+06] m"),
+    "refine": (_number(1, MAX_REFINE, whole=True), f"must be a whole number in [1, {MAX_REFINE}]"),
+    "seed": (_number(-1, 2**32 - 1, whole=True), "must be ≥ 0, or -1 (each run's own seed)"),
+}
+"""Per field: (valid?, what it must be). ``"auto"`` is valid where the field allows text (relief)."""
+
+
 @dataclass(frozen=True)
 class WorldModel:
     """How the simulated world differs from the filter's map (see the module's text for the equations)."""
@@ -95,26 +120,17 @@ class WorldModel:
         return cls(**{f.name: table[f.name] for f in dataclasses.fields(cls) if f.name in table})
 
     def problems(self, map_spacing_m: tuple[float, float] | None = None) -> list[str]:
-        """Every problem of the model (empty: usable); with the map's post spacing, also the correlation and patch
-        lengths against it."""
+        """Every problem of the model (empty: usable; the one place its ranges are stated, scenario files
+        included); with the map's post spacing, also the correlation and patch lengths against it."""
         p = []
-        for name in ("error_rms_m", "error_corr_m", "clutter_height_m", "clutter_patch_m"):
+        for name, (ok, rule) in _RULES.items():
             value = getattr(self, name)
-            if not (math.isfinite(value) and value >= 0):
-                p.append(f"world.{name} = {value!r} must be a finite number ≥ 0")
-        if self.relief_rms_m != AUTO and not (math.isfinite(self.relief_rms_m) and self.relief_rms_m >= 0):
-            p.append(f"world.relief_rms_m = {self.relief_rms_m!r} must be 'auto' or a finite number ≥ 0")
-        low, high = RELIEF_SLOPE_RANGE
-        if self.relief_slope != AUTO and not (math.isfinite(self.relief_slope) and low <= self.relief_slope <= high):
-            p.append(f"world.relief_slope = {self.relief_slope!r} must be 'auto' or in [{low:g}, {high:g}]")
-        if not (math.isfinite(self.bias_m) and abs(self.bias_m) <= 1e4):
-            p.append(f"world.bias_m = {self.bias_m!r} must be within ±10000 m")
-        if not (math.isfinite(self.clutter_fraction) and 0.0 <= self.clutter_fraction <= 1.0):
-            p.append(f"world.clutter_fraction = {self.clutter_fraction!r} must be in [0, 1]")
-        if not (isinstance(self.refine, int) and 1 <= self.refine <= MAX_REFINE):
-            p.append(f"world.refine = {self.refine!r} must be a whole number in [1, {MAX_REFINE}]")
-        if not (isinstance(self.seed, int) and self.seed >= -1):
-            p.append(f"world.seed = {self.seed!r} must be ≥ 0, or -1 (each run's own seed)")
+            try:
+                good = value == AUTO if isinstance(value, str) else bool(ok(value))
+            except TypeError:
+                good = False
+            if not good:
+                p.append(f"world.{name} = {value!r} {rule}")
         if map_spacing_m is not None and not p:
             post = max(map_spacing_m)
             if self.error_rms_m and self.error_corr_m < post:
