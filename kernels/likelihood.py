@@ -68,7 +68,7 @@ MAX_MODES = 16
 """Most map-error modes a likelihood marginalises (:class:`warptan.measurement.Likelihood`, stated DEM accuracy)."""
 modes_vec = wp.types.vector(length=MAX_MODES, dtype=wp.float32)
 """One point's row of the map-error mode table, ``u_ji`` for mode i (zero past the modes in use); the table's last
-row holds the modes' shared variances ``k_i`` (whitened units)."""
+row holds the modes' weights ``c_i = k_i / (1 + k_i)`` (:meth:`warptan.measurement.Likelihood.error_modes`)."""
 modes_mat = wp.types.matrix(shape=(MAX_MODES, 3), dtype=wp.float32)
 """Per mode, ``Σ_j v_ji H_j / σ_j`` (or ``G_j``): the Jacobians seen through the modes."""
 
@@ -141,7 +141,7 @@ class Acc:
     proj: modes_vec  # per map-error mode i: p_i = Σ_j v_ji r_j / σ_j (v_ji: the table's row j)
     proj_h: modes_mat  # per mode: Σ_j v_ji H_j / σ_j
     proj_g: modes_mat  # per mode: Σ_j v_ji G_j / σ_j
-    mode_k: modes_vec  # per mode: k_i, its shared variance (set from the table, not summed)
+    mode_w: modes_vec  # per mode: its weight c_i (the table's last row; set after the sums, not summed)
 
 
 @wp.func
@@ -163,19 +163,25 @@ def acc_init() -> Acc:
     a.proj = modes_vec()
     a.proj_h = modes_mat()
     a.proj_g = modes_mat()
-    a.mode_k = modes_vec()
+    a.mode_w = modes_vec()
     return a
 
 
 @wp.func
 def acc_modes(acc: Acc, p: LikParams, v: modes_vec, res: float, sigma: float, jac: wp.vec3, jac_pos: wp.vec3) -> Acc:
-    """``acc`` plus one predictable point's projections on the map-error modes (its table row ``v``): the whitened
-    residual ``res / sigma`` and the attitude and position Jacobians over ``sigma`` (nothing without modes or for the
-    paper's form). The rows are the scan's modes for its nominal sensitivities (a range's 1/cos of its angle from
-    the vertical over flat ground): scaling them per particle by a ray's actual slope made them non-orthogonal,
-    and the diagonal Woodbury of :func:`mode_weights` then over-subtracted (Λ indefinite, S7 diverged)."""
+    """``acc`` plus one predictable point's projections on the map-error modes (its table row ``v``; called only when
+    modes are in use): the whitened residual ``res / sigma`` and the attitude and position Jacobians over ``sigma``
+    (nothing for the paper's form). The rows are the scan's modes for its nominal sensitivities (a range's 1/cos
+    of its angle from the vertical over flat ground): scaling them per particle by a ray's actual slope made them
+    non-orthogonal, and the Woodbury with fixed weights then over-subtracted (Λ indefinite, S7 diverged).
+
+    The weights ``c_i ≤ 1`` are the same for every particle: with the scan's orthonormal modes, Woodbury gives
+    ``(I + Σ k_i u_i u_iᵀ)⁻¹ = I − Σ c_i u_i u_iᵀ``. A particle that predicts only some points keeps them: its
+    modes are then not orthonormal, but ``c_i ≤ 1`` keeps ``Σ c_i p_i² ≤ zᵀz`` over its points (a principal block
+    of a projector), so fewer points never score better. Renormalising each mode over the predicted points
+    (``k_i / (1 + k_i |u_i|²)``) broke that bound: S5/S6 diverged onto particles that predict fewer points."""
     a = acc
-    if p.n_modes > 0 and p.lik != LIK_PAPER:
+    if p.lik != LIK_PAPER:
         inv = 1.0 / sigma
         a.proj = a.proj + v * (res * inv)
         a.proj_h = a.proj_h + wp.outer(v, jac * inv)
@@ -184,17 +190,9 @@ def acc_modes(acc: Acc, p: LikParams, v: modes_vec, res: float, sigma: float, ja
 
 
 @wp.func
-def mode_weights(acc: Acc) -> modes_vec:
-    """``w_i = k_i / (1 + k_i)``: with the scan's orthonormal modes ``v_i``, Woodbury gives ``(I + Σ k_i v_i
-    v_iᵀ)⁻¹ = I − Σ w_i v_i v_iᵀ``. A particle that predicts only some points keeps these weights: the modes
-    restricted to its points are then not orthonormal, but ``w_i ≤ 1`` keeps ``Σ w_i p_i² ≤ zᵀz`` over its points
-    (a principal block of a projector), so fewer points never score better. Renormalising each mode over the
-    predicted points (``k_i / (1 + k_i |v_i|²)``) broke that bound and S5/S6 diverged onto particles that
-    predict fewer points."""
-    w = modes_vec()
-    for i in range(MAX_MODES):
-        w[i] = acc.mode_k[i] / (1.0 + acc.mode_k[i])
-    return w
+def mode_row(m: modes_mat, i: int) -> wp.vec3d:
+    """Row ``i`` of a per-mode matrix in float64."""
+    return wp.vec3d(wp.float64(m[i, 0]), wp.float64(m[i, 1]), wp.float64(m[i, 2]))
 
 
 @wp.func
@@ -305,7 +303,7 @@ def acc_pack(a: Acc) -> acc_vec:
     v[33] = a.info_p[0]
     v[34] = a.info_p[1]
     v[35] = a.info_p[2]
-    for i in range(MAX_MODES):
+    for i in range(MAX_MODES):  # the map-error mode sums (zero without modes)
         v[ACC_BASE + i] = a.proj[i]
         for c in range(3):
             v[ACC_BASE + MAX_MODES + 3 * i + c] = a.proj_h[i, c]
@@ -340,7 +338,7 @@ def acc_unpack(v: acc_vec) -> Acc:
     a.proj = proj
     a.proj_h = proj_h
     a.proj_g = proj_g
-    a.mode_k = modes_vec()
+    a.mode_w = modes_vec()
     return a
 
 
@@ -355,13 +353,12 @@ def acc_block_sum(a: Acc) -> Acc:
 def modes_lam_info(acc: Acc):
     """(Λ, b) in float64 with the map-error modes' covariance counted: ``Hᵀ Σ⁻¹ H`` and ``Hᵀ Σ⁻¹ r`` for
     ``Σ = D^½ (I + U K Uᵀ) D^½`` (``D`` the points' σ², ``U K Uᵀ`` the modes), by Woodbury
-    ``Λ - Σ_i w_i h_i h_iᵀ``, ``b - Σ_i w_i h_i p_i`` (:func:`mode_weights`)."""
+    ``Λ - Σ_i c_i h_i h_iᵀ``, ``b - Σ_i c_i h_i p_i`` (:func:`acc_modes`)."""
     lam = wp.mat33d(acc.lam)
     info = wp.vec3d(acc.info)
-    w = mode_weights(acc)
     for i in range(MAX_MODES):
-        h = wp.vec3d(wp.float64(acc.proj_h[i, 0]), wp.float64(acc.proj_h[i, 1]), wp.float64(acc.proj_h[i, 2]))
-        wi = wp.float64(w[i])
+        h = mode_row(acc.proj_h, i)
+        wi = wp.float64(acc.mode_w[i])
         lam = lam - wp.outer(h, h) * wi
         info = info - h * (wi * wp.float64(acc.proj[i]))
     return lam, info
@@ -413,8 +410,8 @@ def acc_finish(acc: Acc, p: LikParams, att_cov: wp.mat33):
                 ll = frac * (-0.5 * err * err / p.r_err) + (1.0 - frac) * floor
         else:
             ll = acc.ll_points + n_bad * point_loglik(p.lik, p.k_out * p.sigma, p.sigma, p.nu)
-            if p.n_modes > 0:  # the map-error modes' share of zᵀz: rᵀΣ⁻¹r = zᵀz - Σ w_i p_i²
-                explained = wp.dot(wp.cw_mul(mode_weights(acc), acc.proj), acc.proj)
+            if p.n_modes > 0:  # the map-error modes' share of zᵀz: rᵀΣ⁻¹r = zᵀz - Σ c_i p_i²
+                explained = wp.dot(wp.cw_mul(acc.mode_w, acc.proj), acc.proj)
                 ll = ll + 0.5 * explained
                 sum_sq = wp.max(sum_sq - explained, 0.0)
             if n_ok > 0:
@@ -440,11 +437,10 @@ def attitude_information(acc: Acc, p: LikParams):
         lpp = wp.mat33d(acc.lam_pp) + wp.identity(n=3, dtype=wp.float64) * wp.float64(p.pos_precision)
         ltp = wp.mat33d(acc.lam_tp)
         info_p = wp.vec3d(acc.info_p)
-        w = mode_weights(acc)
         for i in range(MAX_MODES):  # the position's sums through the map-error modes likewise (zero without)
-            h = wp.vec3d(wp.float64(acc.proj_h[i, 0]), wp.float64(acc.proj_h[i, 1]), wp.float64(acc.proj_h[i, 2]))
-            g = wp.vec3d(wp.float64(acc.proj_g[i, 0]), wp.float64(acc.proj_g[i, 1]), wp.float64(acc.proj_g[i, 2]))
-            wi = wp.float64(w[i])
+            h = mode_row(acc.proj_h, i)
+            g = mode_row(acc.proj_g, i)
+            wi = wp.float64(acc.mode_w[i])
             lpp = lpp - wp.outer(g, g) * wi
             ltp = ltp - wp.outer(h, g) * wi
             info_p = info_p - g * (wi * wp.float64(acc.proj[i]))
@@ -536,7 +532,7 @@ def _reduce_loglik(tiled: bool):
             acc = acc_block_sum(acc)
         if lane == 0:
             if params.n_modes > 0:
-                acc.mode_k = modes[residual.shape[1]]
+                acc.mode_w = modes[residual.shape[1]]
             acc_store(t, acc, params, att_cov[b], err_out, loglik_out, nis_out, n_valid_out, lam_out, info_out)
 
     return reduce_loglik_kernel

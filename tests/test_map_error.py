@@ -32,7 +32,8 @@ def test_the_modes_hold_the_stated_covariance_and_its_sharing():
     assert np.all((c > 0) & (c <= 1)) and info["sharing"][0] > info["sharing"][-1] >= 1.0
     u = table[:-1, :q].astype(np.float64)
     lam = np.array(info["eigenvalues"])
-    np.testing.assert_allclose(table[-1, :q], np.array(info["sharing"]) * 25.0 * lam / 0.25, rtol=1e-5)  # k_i
+    k = np.array(info["sharing"]) * 25.0 * lam / 0.25  # κ_i σ_e² λ_i / σ²
+    np.testing.assert_allclose(table[-1, :q], k / (1.0 + k), rtol=1e-6)  # the weights c_i
     np.testing.assert_allclose(u.T @ u, np.eye(q), atol=1e-4)  # orthonormal modes
     d = np.linalg.norm(xy[:, None] - xy[None], axis=2)
     r = np.exp(-(d / 1000.0) ** 2)
@@ -46,17 +47,18 @@ def test_the_modes_hold_the_stated_covariance_and_its_sharing():
 
 
 def test_the_woodbury_form_equals_the_inverse_of_the_covariance():
-    """zᵀ(I + U K Uᵀ)⁻¹z = zᵀz − Σ w_i (u_iᵀ z)², w_i = k_i / (1 + k_i): what the kernels sum for a scan of unit
-    sensitivities, against a dense float64 solve."""
+    """zᵀ(I + U K Uᵀ)⁻¹z = zᵀz − Σ c_i (u_iᵀ z)², c_i = k_i / (1 + k_i) from the table: what the kernels sum for a
+    particle that predicts every point, against a dense float64 solve."""
     lk = wt.Likelihood("gaussian", **STATED)
     xy = _grid_xy(agl=900.0)
     table, info = lk.error_modes(xy, 1.0 / np.cos(np.radians(np.linspace(-30, 30, len(xy)))), 0.8)
     q = info["n_modes"]
-    u, k = table[:-1, :q].astype(np.float64), table[-1, :q].astype(np.float64)
+    u, c = table[:-1, :q].astype(np.float64), table[-1, :q].astype(np.float64)
+    k = np.array(info["sharing"]) * 25.0 * np.array(info["eigenvalues"]) / 0.64
     cov = np.eye(len(xy)) + u @ np.diag(k) @ u.T
     z = np.random.default_rng(0).normal(size=(5, len(xy))) * 3.0
     direct = np.einsum("ij,ij->i", z, np.linalg.solve(cov, z.T).T)
-    woodbury = np.einsum("ij,ij->i", z, z) - ((z @ u) ** 2 * (k / (1.0 + k))).sum(axis=1)
+    woodbury = np.einsum("ij,ij->i", z, z) - ((z @ u) ** 2 * c).sum(axis=1)
     np.testing.assert_allclose(woodbury, direct, rtol=1e-4)
 
 
@@ -94,9 +96,9 @@ def test_the_kernels_add_the_modes_share_and_nothing_without_a_statement(scan, n
         ok = np.isfinite(res)
         z = np.where(ok, res, 0.0) / stated.sigma_m
         table = stated._modes.numpy().astype(np.float64)
-        u_tab, k = table[:-1], table[-1]
+        u_tab, c = table[:-1], table[-1]
         p = z @ u_tab
-        expected = 0.5 * (k / (1.0 + k) * p**2).sum(axis=1)
+        expected = 0.5 * (c * p**2).sum(axis=1)
         assert np.all(expected <= 0.5 * (z**2).sum(axis=1) * (1 + 1e-5))
         got = b.loglik.numpy().astype(np.float64) - a.loglik.numpy().astype(np.float64)
         np.testing.assert_allclose(got, expected, rtol=2e-3, atol=2e-3 * np.abs(expected).max())

@@ -136,7 +136,7 @@ class Likelihood:
     def error_modes(self, xy: np.ndarray, sensitivity: np.ndarray, sigma_m: float,
                     along: tuple[float, float] = (1.0, 0.0)) -> tuple[np.ndarray, dict]:
         """The map-error mode table of a scan: ``(M + 1, MAX_MODES)`` float32, rows ``u_ji`` and last the modes'
-        shared variances ``k_i``, and a summary.
+        weights ``c_i``, and a summary.
 
         The stated error is a Gaussian random field of RMS ``σ_e = map_error_sigma_m`` and covariance
         ``σ_e² exp(−(r/L)²)``, ``L = map_error_corr_m``. At the scan's ground points ``x_j`` (``xy``: horizontal
@@ -151,7 +151,7 @@ class Likelihood:
         variance times ``κ_i`` gives, over the scans that share an error, the information of the exact joint
         likelihood (a shared error counted once). With ``k_i = κ_i σ_e² λ_i / σ²``, Woodbury gives ``rᵀ Σ⁻¹ r =
         zᵀ z − Σ_i c_i (u_iᵀ z)²``, ``c_i = k_i / (1 + k_i)``, and likewise ``Hᵀ Σ⁻¹ H``, ``Hᵀ Σ⁻¹ r`` for the
-        attitude and the position (:func:`warptan.kernels.likelihood.mode_weights`). Modes past ``MAX_MODES`` or
+        attitude and the position (:func:`warptan.kernels.likelihood.acc_modes`). Modes past ``MAX_MODES`` or
         below 1e-6 of the largest are dropped; ``remainder`` is the share of the error's variance they hold."""
         from warptan.kernels.likelihood import MAX_MODES
 
@@ -189,7 +189,7 @@ class Likelihood:
         k_i = sharing * self.map_error_sigma_m**2 * lam_k / sigma_m**2
         c_i = k_i / (1.0 + k_i)
         table[:m, :len(keep)] = vec_k.astype(np.float32)
-        table[m, :len(keep)] = k_i.astype(np.float32)
+        table[m, :len(keep)] = c_i.astype(np.float32)
         return table, {"n_modes": len(keep), "eigenvalues": lam_k.tolist(), "sharing": sharing.tolist(),
                        "c": c_i.tolist(), "remainder": float(1.0 - lam_k.sum() / max(lam.sum(), 1e-300))}
 
