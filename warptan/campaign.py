@@ -334,10 +334,10 @@ def make_row(batch: Batch, summaries: list[dict]) -> dict:
         "rmse_converged_m": cm.tolist(), "rmse_converged_ci95_m": ch.tolist(),
         "rmse_m": rm.tolist(), "rmse_ci95_m": rh.tolist(),
         "coverage_3sigma": col("coverage_3sigma").mean(axis=0).tolist(),
-        "skipped_updates": int(sum(s.get("skipped_updates", 0) for s in summaries)),
-        "seeds_without_any_update": [s["seed"] for s in summaries if s.get("updates") and not s.get("updates_used")],
-        "per_seed": [{k: s.get(k) for k in ("seed", "rmse_m", "rmse_converged_m", "coverage_3sigma", "min_ess",
-                                            "respreads", "updates", "skipped_updates", "updates_used")}
+        "skipped_updates": int(sum(s["skipped_updates"] for s in summaries)),
+        "seeds_without_any_update": [s["seed"] for s in summaries if s["updates"] and not s["updates_used"]],
+        "per_seed": [{k: s[k] for k in ("seed", "rmse_m", "rmse_converged_m", "coverage_3sigma", "min_ess",
+                                        "respreads", "updates", "skipped_updates", "updates_used")}
                      for s in summaries],
     }
 

@@ -39,7 +39,8 @@ MAX_SOURCE_POSTS = 4 * MAX_POSTS
 """Largest raster (pixels) read into memory to be reprojected (float64: 1.9 GB); crop a larger file first. A raster
 read at native resolution (metric, north-up, no spacing) becomes the grid: :data:`MAX_POSTS` applies."""
 READ_BYTES_PER_POST = 32
-"""Host memory a read takes per post, about: the band (float32 and its mask), its float64 copy, the flipped grid."""
+"""Host memory a native read takes per post, about: the band (float32 and its mask), its float64 copy, the flipped
+grid — a peak of 20 B/post in NumPy buffers measured with tracemalloc on the 30 m tile — plus GDAL's block cache."""
 
 
 NETWORK_PREFIXES = ("/vsicurl", "/vsis3", "/vsigs", "/vsiaz", "/vsiadls", "/vsioss", "/vsiswift", "/vsihdfs",

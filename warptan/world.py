@@ -200,21 +200,17 @@ class WorldModel:
                      valid_range_m=(-math.inf, math.inf), base=dem, model=self, parts=parts)
 
     def _relief(self, dem: Terrain, shape, spacing, rng) -> tuple[np.ndarray, dict]:
-        """The sub-post relief field and the spectral fit it used."""
-        fit = fit_spectrum(dem)
+        """The sub-post relief field and the spectral fit it used (the DEM's spectrum is fitted only for what is
+        ``"auto"``)."""
+        fit = fit_spectrum(dem) if AUTO in (self.relief_rms_m, self.relief_slope) else {"amplitude": math.nan}
         slope = fit["slope"] if self.relief_slope == AUTO else float(self.relief_slope)
         band = _outside_band(shape, spacing, (dem.dn, dem.de))
-
-        def psd(k):
-            return np.where(band, np.maximum(k, 1e-12) ** (-slope), 0.0)
-
-        unit = _unit_field(shape, spacing, psd, rng, pad_m=0.0)
+        kn, ke = _wavenumbers(shape, spacing)
+        grid_psd = np.where(band, np.maximum(np.hypot(kn[:, None], ke[None, :]), 1e-12) ** (-slope), 0.0)
+        unit = _unit_field(shape, spacing, lambda k: grid_psd, rng, pad_m=0.0)  # unpadded: the grid's own k
         if self.relief_rms_m == AUTO:  # the fitted amplitude over the band the world adds
-            kn, ke = _wavenumbers(shape, spacing)
-            k = np.hypot(kn[:, None], ke[None, :])
             dk = 1.0 / (shape[0] * spacing[0]) / (shape[1] * spacing[1])
-            variance = float(np.sum(fit["amplitude"] * np.where(band, np.maximum(k, 1e-12) ** (-slope), 0.0)) * dk)
-            rms = math.sqrt(max(variance, 0.0))
+            rms = math.sqrt(max(float(fit["amplitude"] * grid_psd.sum() * dk), 0.0))
         else:
             rms = float(self.relief_rms_m)
         return rms * unit, {"slope": slope, "amplitude": fit["amplitude"]}
