@@ -141,7 +141,9 @@ class Acc:
     proj: modes_vec  # per map-error mode i: p_i = Σ_j v_ji r_j / σ_j (v_ji: the table's row j)
     proj_h: modes_mat  # per mode: Σ_j v_ji H_j / σ_j
     proj_g: modes_mat  # per mode: Σ_j v_ji G_j / σ_j
-    mode_w: modes_vec  # per mode: its weight c_i (the table's last row; set after the sums, not summed)
+    mode_w: modes_vec  # per mode: its weight c_i (the table's row M; set after the sums, not summed)
+    mode_w0: modes_vec  # per mode: its one-scan weight c⁰_i for the NIS (row M + 1; set after the sums)
+    sq_modes: float  # Σ z² unclipped over the points the modes see (with modes only)
 
 
 @wp.func
@@ -164,6 +166,8 @@ def acc_init() -> Acc:
     a.proj_h = modes_mat()
     a.proj_g = modes_mat()
     a.mode_w = modes_vec()
+    a.mode_w0 = modes_vec()
+    a.sq_modes = 0.0
     return a
 
 
@@ -184,6 +188,7 @@ def acc_modes(acc: Acc, p: LikParams, v: modes_vec, res: float, sigma: float, ja
     if p.lik != LIK_PAPER:
         inv = 1.0 / sigma
         a.proj = a.proj + v * (res * inv)
+        a.sq_modes = a.sq_modes + (res * inv) * (res * inv)
         a.proj_h = a.proj_h + wp.outer(v, jac * inv)
         a.proj_g = a.proj_g + wp.outer(v, jac_pos * inv)
     return a
@@ -259,7 +264,8 @@ def acc_add(acc: Acc, p: LikParams, res: float, sigma: float, axis_w: wp.vec3, j
 
 
 ACC_BASE = 36
-acc_vec = wp.types.vector(length=ACC_BASE + 7 * MAX_MODES, dtype=wp.float32)
+ACC_LEN = ACC_BASE + 7 * MAX_MODES + 1
+acc_vec = wp.types.vector(length=ACC_LEN, dtype=wp.float32)
 """An :class:`Acc` as one vector (n_recv, n_ok, Σ|r|, Σ|r||d| (3), last, Σ log-density, Σ min(z², k²), Λ (6: 00 11
 22 01 02 12), b (3), Σ GGᵀ (6), Σ HGᵀ (9, row-major), Σ G r (3)) for the block reduction. Counts are exact in
 float32 up to 2^24 points; ``last`` is the sum of
@@ -308,6 +314,7 @@ def acc_pack(a: Acc) -> acc_vec:
         for c in range(3):
             v[ACC_BASE + MAX_MODES + 3 * i + c] = a.proj_h[i, c]
             v[ACC_BASE + 4 * MAX_MODES + 3 * i + c] = a.proj_g[i, c]
+    v[ACC_LEN - 1] = a.sq_modes
     return v
 
 
@@ -339,6 +346,8 @@ def acc_unpack(v: acc_vec) -> Acc:
     a.proj_h = proj_h
     a.proj_g = proj_g
     a.mode_w = modes_vec()
+    a.mode_w0 = modes_vec()
+    a.sq_modes = v[ACC_LEN - 1]
     return a
 
 
@@ -411,9 +420,13 @@ def acc_finish(acc: Acc, p: LikParams, att_cov: wp.mat33):
         else:
             ll = acc.ll_points + n_bad * point_loglik(p.lik, p.k_out * p.sigma, p.sigma, p.nu)
             if p.n_modes > 0:  # the map-error modes' share of zᵀz: rᵀΣ⁻¹r = zᵀz - Σ c_i p_i²
-                explained = wp.dot(wp.cw_mul(acc.mode_w, acc.proj), acc.proj)
-                ll = ll + 0.5 * explained
-                sum_sq = wp.max(sum_sq - explained, 0.0)
+                ll = ll + 0.5 * wp.dot(wp.cw_mul(acc.mode_w, acc.proj), acc.proj)
+                # the NIS judges one scan against the error it states: the Mahalanobis zᵀ(I + K⁰)⁻¹z with the
+                # one-scan weights c⁰_i (not shared along the track: a smooth misfit of tens of metres is not a
+                # 5 m map error, however many scans share the modes), of the unclipped z (the projections are),
+                # and no more than the clipped sum (a gross outlier still counts k_out² at most)
+                mahal = wp.max(acc.sq_modes - wp.dot(wp.cw_mul(acc.mode_w0, acc.proj), acc.proj), 0.0)
+                sum_sq = wp.min(sum_sq, mahal)
             if n_ok > 0:
                 ll = ll + attitude_marginal(acc, att_cov)
         nis = (sum_sq + n_bad * p.k_out * p.k_out) / float(n_recv)
@@ -479,6 +492,28 @@ def ray_jacobians(mat: wp.mat33, row: cloud_row, res: float, s: wp.vec3):
     return t * wp.cross(wp.transpose(mat) * s, row_dir(row)), -s
 
 
+RAY_MAP_GAIN_MAX = wp.constant(1000.0)
+"""Range change per metre of map height a ray's σ counts at a grazing hit (``|∇F · u| ≤ 1e-3``, where the kernel
+stores a zero scaled normal)."""
+
+
+@wp.func
+def ray_sigma(p: LikParams, s: wp.vec3) -> float:
+    """σ of one range residual (m): the range noise and a vertical map error ``δh``, which moves the predicted range
+    by ``s_z δh`` (``s = ∇F / (∇F · u)`` the scaled normal, ``s_z = 1 / (∇F · u)``: 1 at nadir over flat ground,
+    large where the ray meets the slope at a glancing angle): ``σ_j = sqrt(σ_range² + σ_map² s_z²)``. Not capped:
+    the range's Jacobians grow with ``s`` as well (:func:`ray_jacobians`), so a ray along a slope carries no more
+    information than its map error allows (capped like the sliding model's slope factor, a hill seen from a 60°
+    bank gave S5 a 16° pitch error with a 3σ of 0.1° within ten seconds of the first attitude update). Without a
+    map part (σ_map = 0: the map is the world) or with a fixed σ (σ_range = 0) it is the likelihood's own σ."""
+    if p.sigma_map <= 0.0 or p.sigma_range <= 0.0:
+        return p.sigma
+    gain = wp.float32(RAY_MAP_GAIN_MAX)
+    if s[2] != 0.0:
+        gain = wp.min(wp.abs(s[2]), gain)
+    return wp.sqrt(p.sigma_range * p.sigma_range + p.sigma_map * p.sigma_map * gain * gain)
+
+
 def per_particle_kernels(make):
     """``{True: tiled kernel, False: one-thread kernel}`` from ``make(tiled)``: the block-reduced form for CUDA, the
     plain one for the CPU, whose launches :func:`warptan.parallel.launch_rows` splits across threads (Warp's CPU
@@ -524,15 +559,18 @@ def _reduce_loglik(tiled: bool):
             if row[CR_VALID] != 0.0:
                 acc.n_recv = acc.n_recv + 1
                 if not wp.isnan(res):
-                    jac, jac_pos = ray_jacobians(mat, row, res, normal[t, j])
-                    acc = acc_add(acc, params, res, params.sigma, axis_weights(row), jac, jac_pos)
+                    s = normal[t, j]
+                    jac, jac_pos = ray_jacobians(mat, row, res, s)
+                    sigma = ray_sigma(params, s)
+                    acc = acc_add(acc, params, res, sigma, axis_weights(row), jac, jac_pos)
                     if params.n_modes > 0:
-                        acc = acc_modes(acc, params, modes[j], res, params.sigma, jac, jac_pos)
+                        acc = acc_modes(acc, params, modes[j], res, sigma, jac, jac_pos)
         if wp.static(tiled):
             acc = acc_block_sum(acc)
         if lane == 0:
             if params.n_modes > 0:
                 acc.mode_w = modes[residual.shape[1]]
+                acc.mode_w0 = modes[residual.shape[1] + 1]
             acc_store(t, acc, params, att_cov[b], err_out, loglik_out, nis_out, n_valid_out, lam_out, info_out)
 
     return reduce_loglik_kernel

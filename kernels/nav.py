@@ -128,6 +128,7 @@ def nav_interval_kernel(
     q_pos: wp.float64,
     q_rough: wp.float64,
     q_lin: wp.vec4d,
+    q_vel_down: wp.float64,
     imu: wp.array3d(dtype=wp.vec3d),
     pos: wp.array(dtype=wp.vec3d),
     vel: wp.array(dtype=wp.vec3d),
@@ -153,7 +154,8 @@ def nav_interval_kernel(
     ``q_lin`` = diagonal of Q^l per block (dv, dth, dba, dbg); ``q_pos`` = diagonal of Q^n (the position noise
     the Kalman part models, in N_k and L_k); ``q_rough`` = per-step variance of the roughening, added to the
     particles' dp only (``S_dpdp += K q_rough I``: T_k leaves a dp-only noise on dp), so that L_k never reads it
-    as velocity."""
+    as velocity. ``q_vel_down`` is added to the down velocity's Q^l (a map-error offset's change along the track,
+    :meth:`warptan.measurement.Likelihood.offset_process`; 0 without one)."""
     t = wp.tid()
     b = row0 + t
     zero = wp.mat33d()
@@ -224,6 +226,10 @@ def nav_interval_kernel(
             for c in range(4):
                 cov[b, r, c] = cov[b, r, c] - gn * wp.transpose(block_of(c + 1, eye, g0, g1, g2, g3))
             cov[b, r, r] = cov[b, r, r] + (q_lin[r] * scale) * eye
+        if q_vel_down > wp.float64(0.0):
+            dv = cov[b, 0, 0]
+            dv[2, 2] = dv[2, 2] + q_vel_down * scale
+            cov[b, 0, 0] = dv
         for r in range(4):
             cov[b, r, r] = sym_d(cov[b, r, r])
             for c in range(r + 1, 4):

@@ -118,6 +118,7 @@ def _sliding_loglik(tiled: bool):
         if lane == 0:
             if params.n_modes > 0:
                 acc.mode_w = modes[cloud.shape[1]]
+                acc.mode_w0 = modes[cloud.shape[1] + 1]
             acc_store(t, acc, params, att_cov[b], err_out, loglik_out, nis_out, n_valid_out, lam_out, info_out)
 
     return sliding_loglik_kernel
@@ -166,6 +167,7 @@ def altimeter_loglik_kernel(
             if params.n_modes > 0:
                 acc = acc_modes(acc, params, modes[0], res, params.sigma, wp.vec3(), wp.vec3())
                 acc.mode_w = modes[1]
+                acc.mode_w0 = modes[2]
     residual_out[i, 0] = res
     err, ll, nis = acc_finish(acc, params, wp.mat33())
     if use_baro != 0 and r[2] != 0.0:

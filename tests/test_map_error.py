@@ -27,13 +27,14 @@ def test_the_modes_hold_the_stated_covariance_and_its_sharing():
     xy = _grid_xy()
     table, info = lk.error_modes(xy, np.ones(len(xy)), 0.5)
     q = info["n_modes"]
-    assert 12 <= q <= 16 and info["remainder"] < 1e-3 and not table[:, q:].any() and table.shape == (101, 16)
+    assert 12 <= q <= 16 and info["remainder"] < 1e-3 and not table[:, q:].any() and table.shape == (102, 16)
     c = np.array(info["c"])
     assert np.all((c > 0) & (c <= 1)) and info["sharing"][0] > info["sharing"][-1] >= 1.0
-    u = table[:-1, :q].astype(np.float64)
+    u = table[:-2, :q].astype(np.float64)
     lam = np.array(info["eigenvalues"])
     k = np.array(info["sharing"]) * 25.0 * lam / 0.25  # κ_i σ_e² λ_i / σ²
-    np.testing.assert_allclose(table[-1, :q], k / (1.0 + k), rtol=1e-6)  # the weights c_i
+    np.testing.assert_allclose(table[-2, :q], k / (1.0 + k), rtol=1e-6)  # the weights c_i
+    np.testing.assert_allclose(table[-1, :q], 100.0 * lam / (1.0 + 100.0 * lam), rtol=1e-6)  # one scan's c⁰_i
     np.testing.assert_allclose(u.T @ u, np.eye(q), atol=1e-4)  # orthonormal modes
     d = np.linalg.norm(xy[:, None] - xy[None], axis=2)
     r = np.exp(-(d / 1000.0) ** 2)
@@ -46,6 +47,30 @@ def test_the_modes_hold_the_stated_covariance_and_its_sharing():
     assert wt.Likelihood("paper", **STATED).error_modes(xy, np.ones(len(xy)), 0.5)[1]["n_modes"] == 0
 
 
+def test_an_offset_the_altitude_carries_leaves_the_modes():
+    """With ``absorb_offset`` the modes are orthogonal to the offset direction a/|a| (a vertical shift of the
+    aircraft), hold the rest of the covariance, and the summary states the offset's variance σ_e² oᵀ A R A o /
+    |a|²; the filter's side: the offset's variance and the down-velocity noise 4 σ_e² v³ / L³."""
+    lk = wt.Likelihood("gaussian", **STATED)
+    xy = _grid_xy(agl=900.0)
+    a = 1.0 / np.cos(np.radians(np.linspace(-30, 30, len(xy))))
+    table, info = lk.error_modes(xy, a, 0.8, absorb_offset=True)
+    q = info["n_modes"]
+    u = table[:-2, :q].astype(np.float64)
+    o = a / np.linalg.norm(a)
+    assert np.abs(o @ u).max() < 1e-4
+    d = np.linalg.norm(xy[:, None] - xy[None], axis=2)
+    full = a[:, None] * np.exp(-(d / 1000.0) ** 2) * a[None, :]
+    proj = np.eye(len(a)) - np.outer(o, o)
+    np.testing.assert_allclose(u.T @ proj @ full @ proj @ u, np.diag(info["eigenvalues"]),
+                               atol=1e-3 * info["eigenvalues"][0])
+    assert info["offset_var"] == pytest.approx(25.0 * (o @ full @ o) / (a @ a), rel=1e-9)
+    assert 15.0 < info["offset_var"] < 25.0  # most of the error over a 1 km footprint is its offset
+    assert lk.error_modes(xy, a, 0.8)[1]["offset_var"] == 0.0
+    assert lk.offset_process(100.0) == pytest.approx((25.0, 4.0 * 25.0 * 100.0**3 / 1000.0**3))
+    assert wt.Likelihood("gaussian").offset_process(100.0) == (0.0, 0.0)
+
+
 def test_the_woodbury_form_equals_the_inverse_of_the_covariance():
     """zᵀ(I + U K Uᵀ)⁻¹z = zᵀz − Σ c_i (u_iᵀ z)², c_i = k_i / (1 + k_i) from the table: what the kernels sum for a
     particle that predicts every point, against a dense float64 solve."""
@@ -53,7 +78,7 @@ def test_the_woodbury_form_equals_the_inverse_of_the_covariance():
     xy = _grid_xy(agl=900.0)
     table, info = lk.error_modes(xy, 1.0 / np.cos(np.radians(np.linspace(-30, 30, len(xy)))), 0.8)
     q = info["n_modes"]
-    u, c = table[:-1, :q].astype(np.float64), table[-1, :q].astype(np.float64)
+    u, c = table[:-2, :q].astype(np.float64), table[-2, :q].astype(np.float64)
     k = np.array(info["sharing"]) * 25.0 * np.array(info["eigenvalues"]) / 0.64
     cov = np.eye(len(xy)) + u @ np.diag(k) @ u.T
     z = np.random.default_rng(0).normal(size=(5, len(xy))) * 3.0
@@ -96,7 +121,7 @@ def test_the_kernels_add_the_modes_share_and_nothing_without_a_statement(scan, n
         ok = np.isfinite(res)
         z = np.where(ok, res, 0.0) / stated.sigma_m
         table = stated._modes.numpy().astype(np.float64)
-        u_tab, c = table[:-1], table[-1]
+        u_tab, c = table[:-2], table[-2]
         p = z @ u_tab
         expected = 0.5 * (c * p**2).sum(axis=1)
         assert np.all(expected <= 0.5 * (z**2).sum(axis=1) * (1 + 1e-5))
@@ -105,6 +130,67 @@ def test_the_kernels_add_the_modes_share_and_nothing_without_a_statement(scan, n
     else:
         assert np.all(b.loglik.numpy() >= a.loglik.numpy() - 1e-3)  # the modes explain, never penalise
         assert not np.array_equal(b.loglik.numpy(), a.loglik.numpy())
+
+
+def test_a_ray_weighs_by_its_own_map_gain(scan, device):
+    """With a map part in σ (σ_map > 0) each range residual has ``σ_j = sqrt(σ_range² + σ_map² s_z²)``, ``s_z`` the
+    scaled normal's vertical component at the particle's own hit: the kernel's log-likelihood against a float64
+    sum of ``-0.5 (r_j/σ_j)² - log(σ_j/σ)`` (no attitude covariance, no modes); without a map part every ray
+    keeps the likelihood's σ."""
+    dem, cloud, pos, q = scan
+    poses = (wp.array(pos, dtype=wp.vec3, device=device), wp.array(np.tile(q, (len(pos), 1)), dtype=wp.vec4,
+                                                                     device=device))
+    lk = wt.Likelihood("gaussian", sensor_sigma_m=0.5, map_sigma_m=3.0, outlier_sigmas=1e3)
+    model = wt.make_model("raycast", dem, lk)
+    out = model.evaluate(*poses, cloud)
+    p = model.params()
+    res = out.residual_m.numpy().astype(np.float64)
+    s_z = out.normal.numpy()[:, :, 2].astype(np.float64)
+    ok = np.isfinite(res)
+    gain = np.where(s_z != 0.0, np.minimum(np.abs(s_z), 1000.0), 1000.0)
+    sig = np.sqrt(p.sigma_range**2 + p.sigma_map**2 * gain**2)
+    expected = np.where(ok, -0.5 * (np.where(ok, res, 0.0) / sig) ** 2 - np.log(sig / p.sigma), 0.0).sum(axis=1)
+    assert np.abs(s_z[ok] - 1.0).max() > 0.05  # the slopes differ from flat ground
+    np.testing.assert_allclose(out.loglik.numpy(), expected, rtol=1e-4, atol=1e-3)
+    flat = wt.make_model("raycast", dem, wt.Likelihood("gaussian", sensor_sigma_m=0.5, outlier_sigmas=1e3))
+    plain = flat.evaluate(*poses, cloud)
+    r0 = plain.residual_m.numpy().astype(np.float64)
+    np.testing.assert_allclose(plain.loglik.numpy(), np.nansum(-0.5 * (r0 / 0.5) ** 2, axis=1), rtol=1e-4)
+
+
+def test_the_nis_judges_one_scan_against_the_stated_error(device):
+    """With modes the NIS is ``min(Σ min(z², k²), Σ z² − Σ c⁰_i p_i²) / n`` (float64 oracle on the kernel's own
+    residuals and per-ray σ): the one-scan weights c⁰_i, not the shared c_i ≥ c⁰_i, so a smooth misfit larger
+    than the stated error is not explained away as map error; ≈ 1 at the true pose."""
+    dem = wt.Terrain.load("rugged")
+    world = WorldModel(error_rms_m=5.0, error_corr_m=1000.0, seed=1).build(dem)
+    sensor = wt.PointCloudSensor(wt.ScanPattern.grid(10, 10, 30.0), range_sigma_m=0.5)
+    p_true = np.array([0.0, 0.0, -(dem.height_at(0.0, 0.0) + 700.0)])
+    q = np.array([1.0, 0.0, 0.0, 0.0])
+    cloud = sensor.measure_many(world, p_true, q, [np.random.default_rng(0)])[0]
+    far = p_true + np.array([[d, -d, 0.0] for d in (0.0, 10.0, 20.0, 30.0, 40.0)])
+    poses = (wp.array(far, dtype=wp.vec3, device=device), wp.array(np.tile(q, (len(far), 1)), dtype=wp.vec4,
+                                                                     device=device))
+    model = wt.make_model("raycast", dem, wt.Likelihood("gaussian", sensor_sigma_m=0.5, map_sigma_m=2.0, **STATED))
+    out = model.evaluate(*poses, cloud)
+    res = out.residual_m.numpy().astype(np.float64)
+    assert np.isfinite(res).all()
+    p = model.params()
+    s_z = out.normal.numpy()[:, :, 2].astype(np.float64)
+    z = res / np.sqrt(p.sigma_range**2 + p.sigma_map**2 * np.minimum(np.abs(s_z), 1000.0) ** 2)
+    table = model._modes.numpy().astype(np.float64)
+    u_tab, c, c0 = table[:-2], table[-2], table[-1]
+    assert np.all(c0 <= c + 1e-7) and c0.max() > 0
+    p_i = z @ u_tab
+    clipped = np.minimum(z**2, model.likelihood.outlier_sigmas**2).sum(axis=1)
+
+    def nis(w):
+        return np.minimum(clipped, np.maximum((z**2).sum(axis=1) - (w * p_i**2).sum(axis=1), 0.0)) / z.shape[1]
+
+    got = out.nis.numpy().astype(np.float64)
+    np.testing.assert_allclose(got, nis(c0), rtol=2e-3, atol=2e-3)
+    assert got[0] < 2.0 and got[-1] > 5.0 and np.all(np.diff(got) > 0)
+    assert np.all(nis(c)[1:] < got[1:])  # the shared weights would explain more of the misfit away
 
 
 def test_a_stated_error_keeps_s8_honest_over_a_world_with_that_error():

@@ -60,6 +60,7 @@ def test_nav_kernel_matches_python(device, uneven):
     P0 = prior_linear_cov(initial, imu)
     q_n = 0.25 * dt * np.eye(3)
     q_l = process_noise(imu.grade, dt)[3:15, 3:15]
+    q_vel_down = 0.1  # a map-error offset's vertical-velocity noise, m²/s³ (added to Q^l's down velocity)
     d = device
     B = 2
     pos = wp.array([n.pos_n for n in nominals], dtype=wp.vec3d, device=d)
@@ -83,7 +84,7 @@ def test_nav_kernel_matches_python(device, uneven):
     step_col[:, :, 0] = steps.reshape(B, k_steps)
     counts = wp.array(np.full((B, 3), k_steps, dtype=np.int32), dtype=wp.int32, device=d)
     wp.launch(knav.nav_interval_kernel, dim=B,
-              inputs=[0, counts, dt, 0.25 * dt, 0.0, wp.vec4d(qd[0], qd[3], qd[6], qd[9]),
+              inputs=[0, counts, dt, 0.25 * dt, 0.0, wp.vec4d(qd[0], qd[3], qd[6], qd[9]), q_vel_down * dt,
                       wp.array(np.stack([fb, wb, step_col], axis=2), dtype=wp.vec3d, device=d),
                       pos, vel, quat, ba, bg, cov, phi, noise, scratch],
               outputs=[phi_out, chol_out, pose_out, att_cov, p_col], device=d)
@@ -91,7 +92,8 @@ def test_nav_kernel_matches_python(device, uneven):
     phis = _blocks(phi_out.numpy().astype(np.float64))
     chols = _blocks(chol_out.numpy().astype(np.float64))
     for b in range(B):
-        state, P, phi_ref, S_ref = _python_interval(nominals[b], fb[b], wb[b], dt, P0.copy(), q_n, q_l,
+        state, P, phi_ref, S_ref = _python_interval(nominals[b], fb[b], wb[b], dt, P0.copy(), q_n,
+                                                    q_l + np.diag(np.r_[0.0, 0.0, q_vel_down * dt, np.zeros(9)]),
                                                     steps[b * k_steps:(b + 1) * k_steps])
         np.testing.assert_allclose(pos.numpy()[b], state.pos_n, rtol=0, atol=1e-9)
         np.testing.assert_allclose(vel.numpy()[b], state.vel_n, rtol=0, atol=1e-11)

@@ -408,6 +408,15 @@ class MarginalizedParticleFilter:
         self.q_rough = (pos_noise**2) * self.dt
         ql = np.diag(process_noise(self.grade, self.dt))[3:15]
         self._q_lin = wp.vec4d(ql[0], ql[3], ql[6], ql[9])
+        # A stated map error's offset under the scan rides on the particles' altitude (height above the map):
+        # its variance (m²) is added to the reported altitude variance, its change along the track is noise on the
+        # down velocity (Likelihood.offset_process; the fastest filter of a batch sets the noise).
+        self.map_offset_var, q_v = 0.0, 0.0
+        lk = getattr(model, "likelihood", None)
+        if getattr(model, "absorbs_map_offset", False) and hasattr(lk, "offset_process"):
+            speed = max(float(np.linalg.norm(x.vel_n[:2])) for x in nominals)
+            self.map_offset_var, q_v = lk.offset_process(speed)
+        self._q_vel_down = float(q_v) * self.dt
         self.max_stages = int(max_stages)
         self.bandwidth = float(regularize) * (4.0 / (self.n * 5.0)) ** (1.0 / 7.0)
         """Regularisation bandwidth h (Silverman's rule for d = 3 times ``regularize``)."""
@@ -625,9 +634,9 @@ class MarginalizedParticleFilter:
         nav, out = self._nav, self._dev
         phi, noise, scratch = self._scratch
         launch_rows(knav.nav_interval_kernel, self.n_filters,
-                    lambda a, b: ([a or 0, self._ints, self.dt, self.q_pos, self.q_rough, self._q_lin, self._imu,
-                                   nav["pos"], nav["vel"], nav["quat"], nav["ba"], nav["bg"], nav["cov"], phi, noise,
-                                   scratch],
+                    lambda a, b: ([a or 0, self._ints, self.dt, self.q_pos, self.q_rough, self._q_lin,
+                                   self._q_vel_down, self._imu, nav["pos"], nav["vel"], nav["quat"], nav["ba"],
+                                   nav["bg"], nav["cov"], phi, noise, scratch],
                                   [out["phi"], out["chol"], out["pose"], out["att_cov"], out["p_col"]]),
                     self.device, row_cost=4000 * max(self._interval_k, 1))
 
@@ -985,6 +994,7 @@ class MarginalizedParticleFilter:
                 raise FloatingPointError(f"particle moments of filter {b} are not finite (Σw = {total}); this is a bug")
             dp = m[kmpf.MOM_DP:kmpf.MOM_DP + 3] / total
             cov_pos = m[kmpf.MOM_DPDP:kmpf.MOM_DPDP + 9].reshape(3, 3) / total - np.outer(dp, dp)
+            cov_pos[2, 2] += self.map_offset_var
             lin = m[kmpf.MOM_L:kmpf.MOM_L + 12] / total
             spread = m[kmpf.MOM_LL:kmpf.MOM_LL + 144].reshape(12, 12) / total - np.outer(lin, lin)
             s = NavState(*(nominal[k][b] for k in ("pos", "vel", "quat", "ba", "bg")))
