@@ -86,6 +86,13 @@ which ``l | dp`` varies, i.e. ``l | dp`` is taken as locally constant over the k
 regression of l on dp would add 36 cross-moments per filter for a shift of a fraction of a kernel width);
 the shared ``P`` is untouched (the jitter does not inform ``l``).
 
+A stated map error (``Likelihood.map_error_sigma_m``) whose offset under the scan the model's prediction cannot
+tell from the aircraft's altitude (ray casts, sliding, the altimeter without a barometer: ``model.absorbs_map_offset``)
+makes the particles' altitude the height above the map: the offset's variance ``var_b`` is added to the reported
+altitude variance (``map_offset_var``; the estimate's ``cov_pos`` and the runs' σ) and its change along the track is
+process noise on the down velocity, ``q_v = 4 σ_e² v³ / L³`` at the fastest nominal's ground speed at construction
+(:meth:`warptan.measurement.Likelihood.offset_process`).
+
 Integrity (MBARI TRN style): every model returns each particle's normalised squared residual (NIS, mean of
 ``min((r/σ)², k_out²)`` over the received points; ≈ 1 at the true pose); the smallest NIS of any particle — is
 there a hypothesis that explains the scan? — is averaged over the last ``integrity_window`` informative
