@@ -143,7 +143,7 @@ class Acc:
     proj_g: modes_mat  # per mode: Σ_j v_ji G_j / σ_j
     mode_w: modes_vec  # per mode: its weight c_i (the table's row M; set after the sums, not summed)
     mode_w0: modes_vec  # per mode: its one-scan weight c⁰_i for the NIS (row M + 1; set after the sums)
-    sq_modes: float  # Σ z² unclipped over the points the modes see (with modes only)
+    sq_raw: float  # Σ z² unclipped (the NIS's Mahalanobis form)
 
 
 @wp.func
@@ -167,7 +167,7 @@ def acc_init() -> Acc:
     a.proj_g = modes_mat()
     a.mode_w = modes_vec()
     a.mode_w0 = modes_vec()
-    a.sq_modes = 0.0
+    a.sq_raw = 0.0
     return a
 
 
@@ -188,7 +188,6 @@ def acc_modes(acc: Acc, p: LikParams, v: modes_vec, res: float, sigma: float, ja
     if p.lik != LIK_PAPER:
         inv = 1.0 / sigma
         a.proj = a.proj + v * (res * inv)
-        a.sq_modes = a.sq_modes + (res * inv) * (res * inv)
         a.proj_h = a.proj_h + wp.outer(v, jac * inv)
         a.proj_g = a.proj_g + wp.outer(v, jac_pos * inv)
     return a
@@ -254,6 +253,7 @@ def acc_add(acc: Acc, p: LikParams, res: float, sigma: float, axis_w: wp.vec3, j
     a.sum_axes = a.sum_axes + r * axis_w
     a.last = res
     a.sum_sq = a.sum_sq + z2c
+    a.sq_raw = a.sq_raw + (res / sigma) * (res / sigma)
     a.ll_points = (a.ll_points + ll) - log_ratio
     a.lam = a.lam + lam
     a.info = a.info + info
@@ -314,7 +314,7 @@ def acc_pack(a: Acc) -> acc_vec:
         for c in range(3):
             v[ACC_BASE + MAX_MODES + 3 * i + c] = a.proj_h[i, c]
             v[ACC_BASE + 4 * MAX_MODES + 3 * i + c] = a.proj_g[i, c]
-    v[ACC_LEN - 1] = a.sq_modes
+    v[ACC_LEN - 1] = a.sq_raw
     return v
 
 
@@ -347,7 +347,7 @@ def acc_unpack(v: acc_vec) -> Acc:
     a.proj_g = proj_g
     a.mode_w = modes_vec()
     a.mode_w0 = modes_vec()
-    a.sq_modes = v[ACC_LEN - 1]
+    a.sq_raw = v[ACC_LEN - 1]
     return a
 
 
@@ -359,18 +359,35 @@ def acc_block_sum(a: Acc) -> Acc:
 
 
 @wp.func
-def modes_lam_info(acc: Acc):
+def modes_lam_info_w(acc: Acc, w: modes_vec):
     """(Λ, b) in float64 with the map-error modes' covariance counted: ``Hᵀ Σ⁻¹ H`` and ``Hᵀ Σ⁻¹ r`` for
     ``Σ = D^½ (I + U K Uᵀ) D^½`` (``D`` the points' σ², ``U K Uᵀ`` the modes), by Woodbury
-    ``Λ - Σ_i c_i h_i h_iᵀ``, ``b - Σ_i c_i h_i p_i`` (:func:`acc_modes`)."""
+    ``Λ - Σ_i c_i h_i h_iᵀ``, ``b - Σ_i c_i h_i p_i`` (:func:`acc_modes`), ``c = w``."""
     lam = wp.mat33d(acc.lam)
     info = wp.vec3d(acc.info)
     for i in range(MAX_MODES):
         h = mode_row(acc.proj_h, i)
-        wi = wp.float64(acc.mode_w[i])
+        wi = wp.float64(w[i])
         lam = lam - wp.outer(h, h) * wi
         info = info - h * (wi * wp.float64(acc.proj[i]))
     return lam, info
+
+
+@wp.func
+def modes_lam_info(acc: Acc):
+    """:func:`modes_lam_info_w` with the modes' shared weights ``c_i``."""
+    return modes_lam_info_w(acc, acc.mode_w)
+
+
+@wp.func
+def attitude_explained(lam: wp.mat33d, info: wp.vec3d, att_cov: wp.mat33) -> float:
+    """``bᵀ A (I + ΛA)⁻¹ b`` (0 when A = 0 or the matrix is singular): the part of the whitened ``zᵀz`` an attitude
+    error ``dθ ~ N(0, A)`` explains (``zᵀ(I + H̃ A H̃ᵀ)⁻¹z = zᵀz − bᵀ A (I + ΛA)⁻¹ b``, Woodbury)."""
+    am = wp.mat33d(att_cov)
+    m = wp.identity(n=3, dtype=wp.float64) + lam * am
+    if not (wp.determinant(m) > wp.float64(0.0)):
+        return 0.0
+    return float(wp.dot(info, am * (wp.inverse(m) * info)))
 
 
 @wp.func
@@ -419,16 +436,20 @@ def acc_finish(acc: Acc, p: LikParams, att_cov: wp.mat33):
                 ll = frac * (-0.5 * err * err / p.r_err) + (1.0 - frac) * floor
         else:
             ll = acc.ll_points + n_bad * point_loglik(p.lik, p.k_out * p.sigma, p.sigma, p.nu)
+            # the NIS asks whether this particle, with an attitude within the Kalman's uncertainty A and a map error
+            # as stated, explains the scan: the Mahalanobis zᵀ(I + U K⁰ Uᵀ + H̃ A H̃ᵀ)⁻¹z of the unclipped z, with
+            # the modes' one-scan weights c⁰_i (not shared along the track: a smooth misfit of tens of metres is
+            # not a 5 m map error, however many scans share the modes), and no more than the clipped sum (a gross
+            # outlier counts k_out² at most)
+            mahal = acc.sq_raw
             if p.n_modes > 0:  # the map-error modes' share of zᵀz: rᵀΣ⁻¹r = zᵀz - Σ c_i p_i²
                 ll = ll + 0.5 * wp.dot(wp.cw_mul(acc.mode_w, acc.proj), acc.proj)
-                # the NIS judges one scan against the error it states: the Mahalanobis zᵀ(I + K⁰)⁻¹z with the
-                # one-scan weights c⁰_i (not shared along the track: a smooth misfit of tens of metres is not a
-                # 5 m map error, however many scans share the modes), of the unclipped z (the projections are),
-                # and no more than the clipped sum (a gross outlier still counts k_out² at most)
-                mahal = wp.max(acc.sq_modes - wp.dot(wp.cw_mul(acc.mode_w0, acc.proj), acc.proj), 0.0)
-                sum_sq = wp.min(sum_sq, mahal)
+                mahal = mahal - wp.dot(wp.cw_mul(acc.mode_w0, acc.proj), acc.proj)
             if n_ok > 0:
                 ll = ll + attitude_marginal(acc, att_cov)
+                lam0, info0 = modes_lam_info_w(acc, acc.mode_w0)
+                mahal = mahal - attitude_explained(lam0, info0, att_cov)
+            sum_sq = wp.min(sum_sq, wp.max(mahal, 0.0))
         nis = (sum_sq + n_bad * p.k_out * p.k_out) / float(n_recv)
     return err, ll, nis
 

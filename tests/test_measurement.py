@@ -339,7 +339,8 @@ def test_attitude_marginal_matches_numpy(device):
     residuals r_j of the sliding model with their per-point σ_j (:func:`_sliding_sigma_reference`), Jacobians H_j
     w.r.t. dθ by central finite differences of the same model (q ⊗ Exp(dθ); the marginal is even in the sign of
     H), ``Σ (-0.5 r²/σ_j² - log(σ_j/σ)) + 0.5 bᵀ A (I + ΛA)⁻¹ b - 0.5 log det(I + AΛ)``; A = 0 (no attitude
-    covariance bound) gives the plain sum."""
+    covariance bound) gives the plain sum. The NIS is the same marginal's Mahalanobis form, ``min(Σ min(z², k²), Σ z²
+    − bᵀ A (I + ΛA)⁻¹ b) / n``: a particle whose attitude error lies within A is not judged lost for it."""
     from warptan.frames import quat_exp, quat_mul
 
     terrain = wt.Terrain.synthetic("rugged", size_m=4000.0, spacing=30.0, seed=6)
@@ -359,8 +360,9 @@ def test_attitude_marginal_matches_numpy(device):
         return points[:, 2] - c_hat[:, 2]
 
     expected = {}
+    k2 = model.likelihood.outlier_sigmas**2
     for label, a in (("zero", np.zeros((3, 3))), ("prior", att)):
-        ll = []
+        ll, nis = [], []
         for p, qq in zip(poses, quats, strict=True):
             r = residuals(p, qq)
             sig = _sliding_sigma_reference(terrain, [p], [qq], points, sigma)[0]
@@ -370,12 +372,19 @@ def test_attitude_marginal_matches_numpy(device):
             m = np.eye(3) + lam @ a
             ll.append(np.sum(-0.5 * (r / sig) ** 2 - np.log(sig / sigma)) + 0.5 * b @ a @ np.linalg.solve(m, b)
                       - 0.5 * np.log(np.linalg.det(m)))
+            z2 = (r / sig) ** 2
+            nis.append(min(np.minimum(z2, k2).sum(), max(z2.sum() - b @ a @ np.linalg.solve(m, b), 0.0)) / len(r))
         expected[label] = np.array(ll)
         cov = wp.array(a[None].astype(np.float32), dtype=wp.mat33, device=device)
         model.bind_attitude_cov(cov if label == "prior" else None)
-        got = model.evaluate(*_poses(poses, quats, device), cloud).loglik.numpy()
-        np.testing.assert_allclose(got, expected[label], rtol=2e-3, atol=0.05)
+        out = model.evaluate(*_poses(poses, quats, device), cloud)
+        np.testing.assert_allclose(out.loglik.numpy(), expected[label], rtol=2e-3, atol=0.05)
+        np.testing.assert_allclose(out.nis.numpy(), nis, rtol=5e-3, atol=5e-3)
+        expected[label + " nis"] = np.array(nis)
     assert np.abs(expected["prior"] - expected["zero"]).min() > 1.0  # the attitude term is not negligible here
+    # the attitude explains part of the misfit (particles whose misfit the clipped sum caps keep it)
+    assert np.all(expected["prior nis"] <= expected["zero nis"]) and np.sum(
+        expected["prior nis"] < expected["zero nis"] - 0.5) >= 4
 
 
 @pytest.mark.parametrize(("kwargs", "message"), [
