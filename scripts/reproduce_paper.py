@@ -22,7 +22,7 @@ from warptan import claims
 from warptan.cli import count_arg, number_arg
 from warptan.measurement import LIKELIHOODS
 from warptan.meta import run_meta
-from warptan.outputs import write_json
+from warptan.outputs import OutputError, OutputFolder, write_json
 from warptan.report import write_outputs
 from warptan.scenarios import SCENARIO_IDS, prepare, run_scenario, run_scenario_batch
 
@@ -52,6 +52,11 @@ def main(argv=None) -> int:
                              "OUT)")
     args = parser.parse_args(argv)
     if args.likelihoods:
+        try:  # OUT holds one folder per likelihood: made before any work (a missing OUT used to fail after it)
+            Path(args.out).mkdir(parents=True, exist_ok=True)
+        except OSError as err:
+            print(f"reproduce_paper: error: --out {args.out}: {err.strerror or err}", file=sys.stderr)
+            return 2
         rows = {}
         for kind in args.likelihoods:
             code = run_one(args, Path(args.out) / kind, kind)
@@ -90,8 +95,8 @@ def write_side_by_side(rows: dict, out: Path, args) -> None:
                 cells += ["", ""]
                 continue
             m, h = e["rmse_converged_mean_m"], e["rmse_converged_ci95_m"]
-            cells.append(" / ".join(f"{a:.2f}±{b:.2f}" for a, b in zip(m, h, strict=True)))
-            cells.append(" / ".join(f"{100 * c:.0f}%" for c in e["coverage_3sigma_mean"]))
+            cells.append(" / ".join("–" if a is None else f"{a:.2f}±{b:.2f}" for a, b in zip(m, h, strict=True)))
+            cells.append(" / ".join("–" if c is None else f"{100 * c:.0f}%" for c in e["coverage_3sigma_mean"]))
         lines.append("| " + " | ".join(cells) + " |")
     (out / "likelihoods.md").write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
@@ -107,7 +112,8 @@ def run_one(args, out: Path, likelihood: str | None) -> int:
         wt.resolve_device(args.device)
         for sid in args.scenarios:
             prepare(sid, terrain=args.terrain, **overrides)
-    except (ValueError, FileNotFoundError) as err:
+        folder = OutputFolder(out)  # checked (and locked) before the work, not after it
+    except (ValueError, FileNotFoundError, OutputError) as err:
         print(f"reproduce_paper: error: {err}", file=sys.stderr)
         return 2
     try:
@@ -135,7 +141,7 @@ def run_one(args, out: Path, likelihood: str | None) -> int:
                 no_baro.setdefault(sid, []).append(r)
             else:
                 results.append(r)
-    written = write_outputs(results, out, terrains, plots=not args.no_plots)
+    written = write_outputs(results, folder, terrains, plots=not args.no_plots)
     if no_baro:
         write_outputs([r for runs in no_baro.values() for r in runs], out / "no_baro", terrains,
                       plots=not args.no_plots)

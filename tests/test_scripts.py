@@ -91,3 +91,19 @@ def test_world_study_runs_resumes_and_reports(tmp_path):
     assert all(r["seeds"] == 2 and r["worlds"] == 2 and "world(" in r["world"] for r in data["rows"])
     assert len(data["meta"]["commands"]) == 2 and "git_commit" in data["meta"]
     assert (out / "study.md").read_text().count("| S8 |") == 3
+
+
+def test_reproduce_paper_checks_its_output_before_the_work(tmp_path):
+    """`reproduce_paper.py`: an --out whose parent is missing is one error line before any run (exit 2); with
+    --likelihoods a missing OUT is made (it used to fail after the whole run), and a run shorter than the
+    convergence time writes dashes, not a traceback."""
+    script = str(ROOT / "scripts" / "reproduce_paper.py")
+    proc = subprocess.run([sys.executable, script, "--seeds", "1", "--scenarios", "S8", "--no-plots",
+                           "--out", str(tmp_path / "missing" / "out")], capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 2 and "its parent folder" in proc.stderr and "Traceback" not in proc.stderr
+    out = tmp_path / "new" / "x"
+    proc = subprocess.run([sys.executable, script, "--seeds", "1", "--scenarios", "S8", "--duration-s", "5",
+                           "--no-baro-runs", "--no-plots", "--likelihoods", "paper", "--out", str(out)],
+                          capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    assert (out / "paper" / "results.json").exists() and "| S8 |" in (out / "likelihoods.md").read_text()
