@@ -190,3 +190,21 @@ def test_every_artifact_names_its_provenance():
         assert not missing, (path, missing)
         if any(d.startswith("cuda") for d in meta["devices"]):
             assert meta["gpu"]["names"] and meta["gpu"]["driver"], path
+
+
+def test_a_run_whose_bounds_stay_wide_declares_itself_unconverged():
+    """``declared_unconverged``: the RMS over the converged epochs of the larger horizontal 3σ against 50 m (the
+    down axis does not count); a run that ended before the convergence time is not flagged."""
+    from types import SimpleNamespace
+
+    from warptan.report import UNCONVERGED_3SIGMA_M, declared_unconverged
+
+    t = np.arange(0.0, 120.0, 0.1)
+    sig = np.tile([3.0, 4.0, 500.0], (len(t), 1))
+    run = SimpleNamespace(t_s=t, sigma3_pos=sig)
+    assert UNCONVERGED_3SIGMA_M == 50.0 and not declared_unconverged(run, 30.0)
+    sig[t >= 30.0, 1] = 60.0
+    assert declared_unconverged(run, 30.0)
+    sig[t >= 30.0, 1] = 4.0
+    sig[t < 30.0, 0] = 1e4  # before convergence it does not count
+    assert not declared_unconverged(run, 30.0) and not declared_unconverged(run, 200.0)

@@ -336,8 +336,10 @@ def make_row(batch: Batch, summaries: list[dict]) -> dict:
         "coverage_3sigma": col("coverage_3sigma").mean(axis=0).tolist(),
         "skipped_updates": int(sum(s["skipped_updates"] for s in summaries)),
         "seeds_without_any_update": [s["seed"] for s in summaries if s["updates"] and not s["updates_used"]],
+        "seeds_declared_unconverged": [s["seed"] for s in summaries if s["declared_unconverged"]],
         "per_seed": [{k: s[k] for k in ("seed", "rmse_m", "rmse_converged_m", "coverage_3sigma", "min_ess",
-                                        "respreads", "updates", "skipped_updates", "updates_used")}
+                                        "respreads", "declared_unconverged", "updates", "skipped_updates",
+                                        "updates_used")}
                      for s in summaries],
     }
 

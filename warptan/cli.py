@@ -221,12 +221,15 @@ def _run(args) -> int:
 def _report_skipped(results) -> int:
     """A line for every run in which updates were skipped; 1 (after an error line) when a run used none of its
     updates (it navigated nothing: INS only), else 0."""
-    from warptan.report import update_counts
+    from warptan.report import UNCONVERGED_3SIGMA_M, declared_unconverged, update_counts
 
     blind = []
     for r in results:
         updates, skipped, used = update_counts(r.run)
         label = f"{r.scenario} seed {r.seed}"
+        if declared_unconverged(r.run, r.config["filter"]["converged_after_s"]):
+            print(f"warptan: note: {label}: unconverged: its horizontal 3σ after convergence exceeds "
+                  f"{UNCONVERGED_3SIGMA_M:g} m (declared_unconverged in results.json)")
         if used == 0 and updates > 0:
             blind.append(label)
         elif used < updates:

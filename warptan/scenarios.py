@@ -676,7 +676,7 @@ class ScenarioResult:
 
     def summary(self) -> dict:
         """JSON-ready numbers of this run."""
-        from warptan.report import update_counts
+        from warptan.report import declared_unconverged, update_counts
 
         r = self.run
         updates, skipped, used = update_counts(r)
@@ -690,6 +690,7 @@ class ScenarioResult:
             "coverage_3sigma": r.coverage(self.config["filter"]["converged_after_s"]).tolist(),
             "min_ess": float(r.ess[1:].min()) if len(r.ess) > 1 else float(r.ess[0]),
             "resamplings": int(r.resampled.sum()), "respreads": int(r.respread.sum()),
+            "declared_unconverged": declared_unconverged(r, self.config["filter"]["converged_after_s"]),
             "updates": updates, "skipped_updates": skipped, "updates_used": used,
             "updates_without_points": updates - skipped - used,
             "max_tempering_stages": int(r.stages.max()),
