@@ -87,14 +87,19 @@ def test_the_woodbury_form_equals_the_inverse_of_the_covariance():
     np.testing.assert_allclose(woodbury, direct, rtol=1e-4)
 
 
-@pytest.fixture(scope="module")
-def scan():
+def _scan_over_a_world():
+    """(DEM, a 10×10 scan of a world with a 5 m / 1 km map error, the true position, the level attitude)."""
     dem = wt.Terrain.load("rugged")
     world = WorldModel(error_rms_m=5.0, error_corr_m=1000.0, seed=1).build(dem)
     sensor = wt.PointCloudSensor(wt.ScanPattern.grid(10, 10, 30.0), range_sigma_m=0.5)
     p_true = np.array([0.0, 0.0, -(dem.height_at(0.0, 0.0) + 700.0)])
     q = np.array([1.0, 0.0, 0.0, 0.0])
-    cloud = sensor.measure_many(world, p_true, q, [np.random.default_rng(0)])[0]
+    return dem, sensor.measure_many(world, p_true, q, [np.random.default_rng(0)])[0], p_true, q
+
+
+@pytest.fixture(scope="module")
+def scan():
+    dem, cloud, p_true, q = _scan_over_a_world()
     rng = np.random.default_rng(1)
     pos = p_true + np.c_[rng.normal(0, 30, 64), rng.normal(0, 30, 64), rng.normal(0, 5, 64)]
     return dem, cloud, pos, q
@@ -162,12 +167,7 @@ def test_the_nis_judges_one_scan_against_the_stated_error(device):
     """With modes the NIS is ``min(Σ min(z², k²), Σ z² − Σ c⁰_i p_i²) / n`` (float64 oracle on the kernel's own
     residuals and per-ray σ): the one-scan weights c⁰_i, not the shared c_i ≥ c⁰_i, so a smooth misfit larger
     than the stated error is not explained away as map error; ≈ 1 at the true pose."""
-    dem = wt.Terrain.load("rugged")
-    world = WorldModel(error_rms_m=5.0, error_corr_m=1000.0, seed=1).build(dem)
-    sensor = wt.PointCloudSensor(wt.ScanPattern.grid(10, 10, 30.0), range_sigma_m=0.5)
-    p_true = np.array([0.0, 0.0, -(dem.height_at(0.0, 0.0) + 700.0)])
-    q = np.array([1.0, 0.0, 0.0, 0.0])
-    cloud = sensor.measure_many(world, p_true, q, [np.random.default_rng(0)])[0]
+    dem, cloud, p_true, q = _scan_over_a_world()
     far = p_true + np.array([[d, -d, 0.0] for d in (0.0, 10.0, 20.0, 30.0, 40.0)])
     poses = (wp.array(far, dtype=wp.vec3, device=device), wp.array(np.tile(q, (len(far), 1)), dtype=wp.vec4,
                                                                      device=device))
