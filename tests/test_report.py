@@ -208,3 +208,19 @@ def test_a_run_whose_bounds_stay_wide_declares_itself_unconverged():
     sig[t >= 30.0, 1] = 4.0
     sig[t < 30.0, 0] = 1e4  # before convergence it does not count
     assert not declared_unconverged(run, 30.0) and not declared_unconverged(run, 200.0)
+
+
+def test_warptan_run_notes_an_unconverged_run(capsys):
+    """The command line names a run that declared itself unconverged (and no other)."""
+    from types import SimpleNamespace
+
+    from warptan import cli
+
+    t = np.arange(0.0, 60.0, 0.1)
+    wide = SimpleNamespace(t_s=t, sigma3_pos=np.tile([300.0, 200.0, 5.0], (len(t), 1)))
+    narrow = SimpleNamespace(t_s=t, sigma3_pos=np.tile([3.0, 2.0, 5.0], (len(t), 1)))
+    config = {"filter": {"converged_after_s": 30.0}}
+    cli._report_unconverged([SimpleNamespace(scenario="S9", seed=4, run=wide, config=config),
+                             SimpleNamespace(scenario="S8", seed=1, run=narrow, config=config)])
+    out = capsys.readouterr().out
+    assert "S9 seed 4: unconverged" in out and "S8" not in out

@@ -215,21 +215,29 @@ def _run(args) -> int:
     if not written["plots"] and not args.no_plots:
         print("plots skipped: matplotlib is not installed (pip install 'warptan[plot]')")
     print("wrote " + ", ".join(written["files"]))
+    _report_unconverged(results)
     return _report_skipped(results)
+
+
+def _report_unconverged(results) -> None:
+    """A note for every run that declared itself unconverged (:func:`warptan.report.declared_unconverged`)."""
+    from warptan.report import UNCONVERGED_3SIGMA_M, declared_unconverged
+
+    for r in results:
+        if declared_unconverged(r.run, r.config["filter"]["converged_after_s"]):
+            print(f"warptan: note: {r.scenario} seed {r.seed}: unconverged: its horizontal 3σ after convergence "
+                  f"exceeds {UNCONVERGED_3SIGMA_M:g} m (declared_unconverged in results.json)")
 
 
 def _report_skipped(results) -> int:
     """A line for every run in which updates were skipped; 1 (after an error line) when a run used none of its
     updates (it navigated nothing: INS only), else 0."""
-    from warptan.report import UNCONVERGED_3SIGMA_M, declared_unconverged, update_counts
+    from warptan.report import update_counts
 
     blind = []
     for r in results:
         updates, skipped, used = update_counts(r.run)
         label = f"{r.scenario} seed {r.seed}"
-        if declared_unconverged(r.run, r.config["filter"]["converged_after_s"]):
-            print(f"warptan: note: {label}: unconverged: its horizontal 3σ after convergence exceeds "
-                  f"{UNCONVERGED_3SIGMA_M:g} m (declared_unconverged in results.json)")
         if used == 0 and updates > 0:
             blind.append(label)
         elif used < updates:
@@ -356,6 +364,7 @@ def _replay(args) -> int:
     if not log.has_truth:
         print("(the log has no truth: errors are undefined; results.json holds the estimate and its 3σ)")
     print("wrote " + ", ".join(written["files"]))
+    _report_unconverged([result])
     return _report_skipped([result])
 
 
