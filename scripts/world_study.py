@@ -99,9 +99,13 @@ def run_row(row: dict, args) -> dict:
 
 def write_markdown(data: dict, out: Path) -> None:
     meta, rows = data["meta"], data["rows"]
+    reliefs = sorted({str(r["relief"]) for r in rows})
+    sweep = len(reliefs) > 1  # a relief column when the rows differ in it
+    relief = "per row (RMS, m)" if sweep else f"`{reliefs[0]}`" if reliefs else "–"
     lines = ["# Honest on real maps: worlds that are not the map", "",
              f"{meta['seeds']} seeds per row over {meta['worlds']} world realisations, {meta['duration_s']:g} s "
-             f"flights, device {meta['device']}; sub-post relief `{meta['relief']}`. Converged horizontal RMSE = "
+             f"flights, device {meta['device']}; sub-post relief "
+             f"{relief}. Converged horizontal RMSE = "
              "hypot(north, east) RMSE after convergence per seed, mean ± 95 % interval; 3σ coverage pooled; "
              f"σ/RMSE the mean reported σ over the RMSE per axis; lost: horizontal RMSE > {LOST_M:g} m "
              "(unflagged: without a re-spread, and not declared unconverged: its horizontal 3σ after convergence under "
@@ -110,12 +114,16 @@ def write_markdown(data: dict, out: Path) -> None:
              "| scenario | terrain | error RMS / corr (m) | estimator | map − world RMS (m) | horizontal RMSE (m) "
              "| RMSE N / E / D (m) | 3σ coverage N / E / D | σ/RMSE N / E / D | > 5 m | lost (unflagged) "
              "| re-spreads |", "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    if sweep:
+        lines[-2] = lines[-2].replace("| estimator |", "| relief (m) | estimator |")
+        lines[-1] += "---|"
     for r in sorted(rows, key=lambda r: (r["terrain"], r["scenario"], r["error_rms_m"], r["error_corr_m"],
-                                          ESTIMATORS.index(r["estimator"]))):
+                                          str(r["relief"]), ESTIMATORS.index(r["estimator"]))):
         rm = " / ".join(f"{v:.2f}" for v in r["rmse_converged_mean_m"])
         cv = " / ".join(f"{100 * v:.0f}%" for v in r["coverage_3sigma_mean"])
         sr = " / ".join("–" if v is None or not np.isfinite(v) else f"{v:.2f}" for v in r["sigma_over_rmse_mean"])
         lines.append(f"| {r['scenario']} | {r['terrain']} | {r['error_rms_m']:g} / {r['error_corr_m']:g} | "
+                     f"{str(r['relief']) + ' | ' if sweep else ''}"
                      f"{r['estimator']} | {r['map_minus_world_rms_m']:.2f} | {r['horizontal_rmse_mean_m']:.2f} ± "
                      f"{r['horizontal_rmse_ci95_m']:.2f} | {rm} | {cv} | {sr} | {r['seeds_over_5m']} | "
                      f"{r['seeds_lost']} ({r['seeds_lost_unflagged']}) | {r['respreads']} |")
