@@ -67,8 +67,9 @@ LIK_STUDENT = wp.constant(2)
 MAX_MODES = 16
 """Most map-error modes a likelihood marginalises (:class:`warptan.measurement.Likelihood`, stated DEM accuracy)."""
 modes_vec = wp.types.vector(length=MAX_MODES, dtype=wp.float32)
-"""One point's row of the map-error mode table, ``u_ji`` for mode i (zero past the modes in use); the table's last
-row holds the modes' weights ``c_i = k_i / (1 + k_i)`` (:meth:`warptan.measurement.Likelihood.error_modes`)."""
+"""One point's row of the map-error mode table, ``u_ji`` for mode i (zero past the modes in use); after the M points'
+rows, the modes' weights ``c_i = k_i / (1 + k_i)`` and their one-scan weights ``c⁰_i`` for the NIS
+(:meth:`warptan.measurement.Likelihood.error_modes`)."""
 modes_mat = wp.types.matrix(shape=(MAX_MODES, 3), dtype=wp.float32)
 """Per mode, ``Σ_j v_ji H_j / σ_j`` (or ``G_j``): the Jacobians seen through the modes."""
 
@@ -359,13 +360,14 @@ def acc_block_sum(a: Acc) -> Acc:
 
 
 @wp.func
-def modes_lam_info_w(acc: Acc, w: modes_vec):
+def modes_lam_info_w(acc: Acc, w: modes_vec, n_modes: int):
     """(Λ, b) in float64 with the map-error modes' covariance counted: ``Hᵀ Σ⁻¹ H`` and ``Hᵀ Σ⁻¹ r`` for
     ``Σ = D^½ (I + U K Uᵀ) D^½`` (``D`` the points' σ², ``U K Uᵀ`` the modes), by Woodbury
-    ``Λ - Σ_i c_i h_i h_iᵀ``, ``b - Σ_i c_i h_i p_i`` (:func:`acc_modes`), ``c = w``."""
+    ``Λ - Σ_i c_i h_i h_iᵀ``, ``b - Σ_i c_i h_i p_i`` (:func:`acc_modes`), ``c = w`` over the first ``n_modes``
+    (0: Λ and b as summed)."""
     lam = wp.mat33d(acc.lam)
     info = wp.vec3d(acc.info)
-    for i in range(MAX_MODES):
+    for i in range(n_modes):
         h = mode_row(acc.proj_h, i)
         wi = wp.float64(w[i])
         lam = lam - wp.outer(h, h) * wi
@@ -374,36 +376,24 @@ def modes_lam_info_w(acc: Acc, w: modes_vec):
 
 
 @wp.func
-def modes_lam_info(acc: Acc):
+def modes_lam_info(acc: Acc, p: LikParams):
     """:func:`modes_lam_info_w` with the modes' shared weights ``c_i``."""
-    return modes_lam_info_w(acc, acc.mode_w)
+    return modes_lam_info_w(acc, acc.mode_w, p.n_modes)
 
 
 @wp.func
-def attitude_explained(lam: wp.mat33d, info: wp.vec3d, att_cov: wp.mat33) -> float:
-    """``bᵀ A (I + ΛA)⁻¹ b`` (0 when A = 0 or the matrix is singular): the part of the whitened ``zᵀz`` an attitude
-    error ``dθ ~ N(0, A)`` explains (``zᵀ(I + H̃ A H̃ᵀ)⁻¹z = zᵀz − bᵀ A (I + ΛA)⁻¹ b``, Woodbury)."""
+def attitude_quadratic(lam: wp.mat33d, info: wp.vec3d, att_cov: wp.mat33):
+    """``(bᵀ A (I + ΛA)⁻¹ b, det(I + AΛ))`` in float64, ``(0, 0)`` when the determinant is not positive. Integrating
+    the residuals' dependence on the attitude error, ``r ≈ H dθ + e`` with ``dθ ~ N(0, A)``, adds ``0.5 bᵀ A (I +
+    ΛA)⁻¹ b - 0.5 log det(I + AΛ)`` to the per-point Gaussian log-likelihood (Woodbury and the determinant lemma;
+    0 when A = 0), and the quadratic is the part of the whitened ``zᵀz`` the attitude explains (``zᵀ(I + H̃ A
+    H̃ᵀ)⁻¹z = zᵀz − bᵀ A (I + ΛA)⁻¹ b``)."""
     am = wp.mat33d(att_cov)
-    m = wp.identity(n=3, dtype=wp.float64) + lam * am
-    if not (wp.determinant(m) > wp.float64(0.0)):
-        return 0.0
-    return float(wp.dot(info, am * (wp.inverse(m) * info)))
-
-
-@wp.func
-def attitude_marginal(acc: Acc, att_cov: wp.mat33) -> float:
-    """``0.5 bᵀ A (I + ΛA)⁻¹ b - 0.5 log det(I + AΛ)`` (float64 inside): what integrating the residuals'
-    dependence on the attitude error, ``r ≈ H dθ + e`` with ``dθ ~ N(0, A)``, adds to the per-point Gaussian
-    log-likelihood (Woodbury and the determinant lemma; 0 when A = 0). Λ and b count the map-error modes
-    (:func:`modes_lam_info`; unchanged without them)."""
-    am = wp.mat33d(att_cov)
-    lam, info = modes_lam_info(acc)
     m = wp.identity(n=3, dtype=wp.float64) + lam * am
     det = wp.determinant(m)
     if not (det > wp.float64(0.0)):
-        return 0.0
-    x = wp.inverse(m) * info
-    return float(wp.float64(0.5) * wp.dot(info, am * x) - wp.float64(0.5) * wp.log(det))
+        return wp.float64(0.0), wp.float64(0.0)
+    return wp.dot(info, am * (wp.inverse(m) * info)), det
 
 
 @wp.func
@@ -445,10 +435,15 @@ def acc_finish(acc: Acc, p: LikParams, att_cov: wp.mat33):
             if p.n_modes > 0:  # the map-error modes' share of zᵀz: rᵀΣ⁻¹r = zᵀz - Σ c_i p_i²
                 ll = ll + 0.5 * wp.dot(wp.cw_mul(acc.mode_w, acc.proj), acc.proj)
                 mahal = mahal - wp.dot(wp.cw_mul(acc.mode_w0, acc.proj), acc.proj)
-            if n_ok > 0:
-                ll = ll + attitude_marginal(acc, att_cov)
-                lam0, info0 = modes_lam_info_w(acc, acc.mode_w0)
-                mahal = mahal - attitude_explained(lam0, info0, att_cov)
+            if n_ok > 0:  # the attitude marginal (Λ and b through the modes; unchanged without them)
+                lam, info = modes_lam_info(acc, p)
+                quad, det = attitude_quadratic(lam, info, att_cov)
+                if det > wp.float64(0.0):
+                    ll = ll + float(wp.float64(0.5) * quad - wp.float64(0.5) * wp.log(det))
+                if p.n_modes > 0:  # the NIS's one-scan weights
+                    lam0, info0 = modes_lam_info_w(acc, acc.mode_w0, p.n_modes)
+                    quad, det = attitude_quadratic(lam0, info0, att_cov)
+                mahal = mahal - float(quad)
             sum_sq = wp.min(sum_sq, wp.max(mahal, 0.0))
         nis = (sum_sq + n_bad * p.k_out * p.k_out) / float(n_recv)
     return err, ll, nis
@@ -466,12 +461,12 @@ def attitude_information(acc: Acc, p: LikParams):
     """(Λ, b) the Kalman update of the attitude reads, times ``att_scale``: with ``pos_precision ≥ 0`` the part of
     the residuals' information on dθ that the position cannot explain, the Schur complement
     ``Λ - Λ_θp (Λ_pp + π I)⁻¹ Λ_pθ``, ``b - Λ_θp (Λ_pp + π I)⁻¹ b_p`` (float64)."""
-    lam, info = modes_lam_info(acc)
+    lam, info = modes_lam_info(acc, p)
     if p.pos_precision >= 0.0:
         lpp = wp.mat33d(acc.lam_pp) + wp.identity(n=3, dtype=wp.float64) * wp.float64(p.pos_precision)
         ltp = wp.mat33d(acc.lam_tp)
         info_p = wp.vec3d(acc.info_p)
-        for i in range(MAX_MODES):  # the position's sums through the map-error modes likewise (zero without)
+        for i in range(p.n_modes):  # the position's sums through the map-error modes likewise
             h = mode_row(acc.proj_h, i)
             g = mode_row(acc.proj_g, i)
             wi = wp.float64(acc.mode_w[i])

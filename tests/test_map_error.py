@@ -222,3 +222,40 @@ def test_the_command_line_states_the_accuracy(capsys, tmp_path):
 
     run = json.loads((out / "results.json").read_text())["runs"][0]
     assert run["world"]["model"]["error_rms_m"] == 5.0 and "error 5 m / 1000 m" in run["terrain"]
+
+
+def test_the_filter_reports_the_offset_it_carries():
+    """With a stated map error and a model whose prediction moves with the altitude, the filter adds the offset's
+    variance σ_e² to the reported altitude variance (its estimate's ``cov_pos`` and the runs' σ) and the
+    offset's change along the track to the down velocity's process noise (P grows faster there, by at most
+    q_v t);
+    without a statement, or with a barometer-referenced altimeter, nothing changes."""
+    from warptan.imu import ImuModel
+    from warptan.mpf import MarginalizedParticleFilter
+    from warptan.runner import InitialErrors, initial_nominal, prior_linear_cov
+    from warptan.trajectory import Straight, Trajectory
+
+    dem = wt.Terrain.load("rugged")
+    truth = Trajectory.build([Straight(2.0)], 100.0, [0.0, 0.0, -(dem.height_at(0.0, 0.0) + 700.0)], rate_hz=100.0)
+    imu = ImuModel("navigation", 100.0, seed=0)
+    initial = InitialErrors()
+    nominal = initial_nominal(truth.state(0), initial, np.random.default_rng(0))
+    p0 = prior_linear_cov(initial, imu)
+
+    def make(model):
+        return MarginalizedParticleFilter(model, nominal, imu.grade, 100.0, np.asarray(initial.pos_m) ** 2, p0,
+                                          n_particles=50, seed=0)
+
+    stated = wt.Likelihood("gaussian", sensor_sigma_m=0.5, **STATED)
+    plain, told = make(wt.make_model("sliding", dem)), make(wt.make_model("sliding", dem, stated))
+    baro = make(wt.make_model("altimeter", dem, stated))
+    assert told.map_offset_var == 25.0 and plain.map_offset_var == baro.map_offset_var == 0.0
+    np.testing.assert_allclose(told.estimate().cov_pos - plain.estimate().cov_pos, np.diag([0.0, 0.0, 25.0]),
+                               atol=1e-9)
+    for mpf in (plain, told):
+        for k in range(50):
+            mpf.predict(truth.f_b[k], truth.w_b[k])
+    grown = np.diag(told.P - plain.P)
+    q_v = stated.offset_process(100.0)[1]
+    # q_v over 0.5 s, less what the particles' moves tell the Kalman part of it (the Riccati itself: test_nav.py)
+    assert 0.5 * q_v * 0.5 < grown[2] < q_v * 0.5 and np.abs(np.delete(grown, 2)).max() < 1e-2 * grown[2]

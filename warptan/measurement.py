@@ -182,19 +182,19 @@ class Likelihood:
         direction = np.asarray(along, dtype=np.float64).reshape(2)
         direction = direction / max(float(np.linalg.norm(direction)), 1e-12)
 
-        project = np.eye(m)
-        offset_var = 0.0
+        def full(shift: float) -> np.ndarray:  # A R(shift) A
+            d = xy[:, None, :] - xy[None, :, :] - shift * direction
+            return a[:, None] * np.exp(-np.sum(d * d, axis=2) / (length * length)) * a[None, :]
+
+        project, offset_var = None, 0.0
         if absorb_offset:
             o = a / max(float(np.linalg.norm(a)), 1e-300)
-            project -= np.outer(o, o)
+            project = np.eye(m) - np.outer(o, o)
+            offset_var = self.map_error_sigma_m**2 * float(o @ full(0.0) @ o) / float(a @ a)
 
-        def cov(shift: float, full: bool = False) -> np.ndarray:
-            d = xy[:, None, :] - xy[None, :, :] - shift * direction
-            c = a[:, None] * np.exp(-np.sum(d * d, axis=2) / (length * length)) * a[None, :]
-            return c if full or not absorb_offset else project @ c @ project
+        def cov(shift: float) -> np.ndarray:
+            return full(shift) if project is None else project @ full(shift) @ project
 
-        if absorb_offset:
-            offset_var = self.map_error_sigma_m**2 * float(o @ cov(0.0, full=True) @ o) / float(a @ a)
         lam, vec = np.linalg.eigh(cov(0.0))
         order = np.argsort(lam)[::-1]
         lam, vec = np.maximum(lam[order], 0.0), vec[:, order]
@@ -212,9 +212,9 @@ class Likelihood:
                 integral = np.sum(0.5 * (rho[1:] + rho[:-1]) * np.diff(lags)[:, None], axis=0)
                 total = integral / step + 0.5 * rho[0]
             sharing = np.maximum(1.0 + 2.0 * total, 1.0)
-        k_i = sharing * self.map_error_sigma_m**2 * lam_k / sigma_m**2
+        k_one = self.map_error_sigma_m**2 * lam_k / sigma_m**2  # k⁰_i: one scan's
+        k_i = sharing * k_one
         c_i = k_i / (1.0 + k_i)
-        k_one = self.map_error_sigma_m**2 * lam_k / sigma_m**2
         table[:m, :len(keep)] = vec_k.astype(np.float32)
         table[m, :len(keep)] = c_i.astype(np.float32)
         table[m + 1, :len(keep)] = (k_one / (1.0 + k_one)).astype(np.float32)
@@ -541,13 +541,6 @@ class _PointCloudModel(MeasurementModel):
     @staticmethod
     def _staging_buffer(device, b, m):
         return wp.empty((b, m), dtype=klik.cloud_row, device=device)
-
-    @property
-    def absorbs_map_offset(self) -> bool:
-        """The prediction moves with the particle's altitude, so a map-error offset over the scan is a vertical
-        shift the particles carry (:meth:`Likelihood.error_modes`' ``absorb_offset``): ray casts and the sliding
-        grid; the altimeter only without a barometer."""
-        return True
 
     def _scan_geometry(self, quat: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         from warptan.frames import quat_to_mat
