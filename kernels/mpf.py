@@ -17,7 +17,7 @@ can be captured in a graph.
 import warp as wp
 
 from warptan.kernels.frames import quat_exp_wxyz, quat_log_wxyz, quat_mul_wxyz
-from warptan.kernels.likelihood import META_FLOOR, META_RECEIVED
+from warptan.kernels.likelihood import MAX_MODES, META_FLOOR, META_RECEIVED, MODE_K0, MODE_RHO, mode_prior, modes_vec
 from warptan.kernels.nav import block_of, quat_mul_exp_d, skew_d
 
 wp.set_module_options({"enable_backward": False})
@@ -836,6 +836,74 @@ def copy_particles_kernel(dp_in: wp.array(dtype=wp.vec3), lin_in: wp.array(dtype
     dp_out[i] = dp_in[i]
     lin_out[i] = lin_in[i]
     logw_out[i] = logw_in[i]
+
+
+@wp.kernel
+def gather_modes_kernel(ancestors: wp.array(dtype=wp.int32), mean_in: wp.array(dtype=modes_vec),
+                        post_in: wp.array(dtype=modes_vec), mean_out: wp.array(dtype=modes_vec),
+                        post_out: wp.array(dtype=modes_vec)):
+    """Slot i takes its ancestor's map-error mode amplitudes: the prior it was weighted with and its posterior (the
+    map error under a hypothesis belongs to the hypothesis)."""
+    i = wp.tid()
+    a = ancestors[i]
+    mean_out[i] = mean_in[a]
+    post_out[i] = post_in[a]
+
+
+@wp.kernel
+def copy_modes_kernel(mean_in: wp.array(dtype=modes_vec), post_in: wp.array(dtype=modes_vec),
+                      mean_out: wp.array(dtype=modes_vec), post_out: wp.array(dtype=modes_vec)):
+    i = wp.tid()
+    mean_out[i] = mean_in[i]
+    post_out[i] = post_in[i]
+
+
+@wp.kernel
+def modes_finalize_kernel(
+    n_per: int,
+    m: int,
+    table: wp.array(dtype=modes_vec),
+    stats: wp.array2d(dtype=wp.float64),
+    post: wp.array(dtype=modes_vec),
+    var: wp.array(dtype=modes_vec),
+    mean: wp.array(dtype=modes_vec),
+):
+    """After an update (and a re-spread): each particle's map-error mode amplitudes for the next scan. Applied: the
+    model's ``ρ_i q_i`` (:func:`warptan.kernels.likelihood.mode_post`); skipped: the prediction alone (``μ ← ρ T
+    μ``); re-spread: zero. Before :func:`modes_variance_kernel` (it reads the filter's variances unchanged)."""
+    i = wp.tid()
+    b = i // n_per
+    if stats[b, ST_RESPREAD] != wp.float64(0.0):
+        mean[i] = modes_vec()
+    elif stats[b, ST_SKIP] != wp.float64(0.0):
+        mu, pv = mode_prior(table, m, mean[i], var[b])
+        mean[i] = wp.cw_mul(table[m + MODE_RHO], mu)
+    else:
+        mean[i] = post[i]
+
+
+@wp.kernel
+def modes_variance_kernel(m: int, table: wp.array(dtype=modes_vec), stats: wp.array2d(dtype=wp.float64),
+                          var: wp.array(dtype=modes_vec)):
+    """Filter b's variances of its mode amplitudes for the next scan: applied, ``P_i ← ρ_i² P⁻_i / (1 + P⁻_i) + (1 −
+    ρ_i²) k⁰_i`` (the Kalman update of independent modes of unit noise, then a first-order step along the track);
+    skipped, the step alone; re-spread (or none yet and skipped): none (negative: the next scan starts from the
+    one-scan prior ``k⁰``)."""
+    b = wp.tid()
+    skipped = stats[b, ST_SKIP] != wp.float64(0.0)
+    if stats[b, ST_RESPREAD] != wp.float64(0.0) or (skipped and var[b][0] < 0.0):
+        var[b] = modes_vec(-1.0)
+        return
+    rho = table[m + MODE_RHO]
+    k0 = table[m + MODE_K0]
+    mu, pv = mode_prior(table, m, modes_vec(), var[b])
+    v = modes_vec()
+    for k in range(MAX_MODES):
+        after = pv[k]
+        if not skipped:
+            after = pv[k] / (1.0 + pv[k])
+        v[k] = rho[k] * rho[k] * after + (1.0 - rho[k] * rho[k]) * k0[k]
+    var[b] = v
 
 
 @wp.kernel

@@ -24,8 +24,10 @@ from warptan.kernels.likelihood import (
     acc_finish,
     acc_init,
     acc_modes,
+    acc_set_modes,
     acc_store,
     cloud_row,
+    mode_post,
     modes_vec,
     per_particle_kernels,
     row_dir,
@@ -72,6 +74,8 @@ def _sliding_loglik(tiled: bool):
         att_cov: wp.array(dtype=wp.mat33),
         params: LikParams,
         modes: wp.array(dtype=modes_vec),
+        mode_mean: wp.array(dtype=modes_vec),
+        mode_var: wp.array(dtype=modes_vec),
         residual_out: wp.array2d(dtype=wp.float32),
         err_out: wp.array(dtype=wp.float32),
         loglik_out: wp.array(dtype=wp.float32),
@@ -79,10 +83,12 @@ def _sliding_loglik(tiled: bool):
         n_valid_out: wp.array(dtype=wp.int32),
         lam_out: wp.array(dtype=wp.mat33),
         info_out: wp.array(dtype=wp.vec3),
+        post_out: wp.array(dtype=modes_vec),
     ):
         """Particle ``t`` (one block, or one thread): residuals ``c_j,z - c^_ij,z`` (m) of the received points,
         error, log-likelihood (marginalised over the filter's attitude covariance ``att_cov[b]`` for the per-point
-        forms), NIS, and the attitude information Λ, b of the residuals (:mod:`warptan.kernels.likelihood`)."""
+        forms), NIS, the attitude information Λ, b of the residuals and the map-error mode amplitudes for the next
+        scan (:mod:`warptan.kernels.likelihood`)."""
         if wp.static(tiled):
             t, lane = wp.tid()
             stride = wp.block_dim()
@@ -117,8 +123,8 @@ def _sliding_loglik(tiled: bool):
             acc = acc_block_sum(acc)
         if lane == 0:
             if params.n_modes > 0:
-                acc.mode_w = modes[cloud.shape[1]]
-                acc.mode_w0 = modes[cloud.shape[1] + 1]
+                acc = acc_set_modes(acc, modes, cloud.shape[1], mode_mean[t], mode_var[b])
+                post_out[t] = mode_post(acc, modes, cloud.shape[1])
             acc_store(t, acc, params, att_cov[b], err_out, loglik_out, nis_out, n_valid_out, lam_out, info_out)
 
     return sliding_loglik_kernel
@@ -138,6 +144,8 @@ def altimeter_loglik_kernel(
     reading: wp.array(dtype=wp.vec4),
     params: LikParams,
     modes: wp.array(dtype=modes_vec),
+    mode_mean: wp.array(dtype=modes_vec),
+    mode_var: wp.array(dtype=modes_vec),
     residual_out: wp.array2d(dtype=wp.float32),
     err_out: wp.array(dtype=wp.float32),
     loglik_out: wp.array(dtype=wp.float32),
@@ -145,6 +153,7 @@ def altimeter_loglik_kernel(
     n_valid_out: wp.array(dtype=wp.int32),
     lam_out: wp.array(dtype=wp.mat33),
     info_out: wp.array(dtype=wp.vec3),
+    post_out: wp.array(dtype=modes_vec),
 ):
     """One thread per particle; ``reading[b] = [range a, h_baro, valid, 1/σ_baro²]``: residual
     ``a - (h_baro - h(p_i,x, p_i,y))`` in m (without a barometer, ``use_baro == 0``, the particle's own altitude
@@ -166,8 +175,9 @@ def altimeter_loglik_kernel(
             acc = acc_add(acc, params, res, params.sigma, wp.vec3(1.0, 1.0, 1.0), wp.vec3(), wp.vec3())
             if params.n_modes > 0:
                 acc = acc_modes(acc, params, modes[0], res, params.sigma, wp.vec3(), wp.vec3())
-                acc.mode_w = modes[1]
-                acc.mode_w0 = modes[2]
+    if params.n_modes > 0:
+        acc = acc_set_modes(acc, modes, 1, mode_mean[i], mode_var[b])
+        post_out[i] = mode_post(acc, modes, 1)
     residual_out[i, 0] = res
     err, ll, nis = acc_finish(acc, params, wp.mat33())
     if use_baro != 0 and r[2] != 0.0:

@@ -9,6 +9,7 @@ import pytest
 import warp as wp
 
 import warptan as wt
+from warptan.kernels import likelihood as klik
 from warptan.world import WorldModel
 
 STATED = {"map_error_sigma_m": 5.0, "map_error_corr_m": 1000.0, "track_step_m": 10.0}
@@ -21,20 +22,23 @@ def _grid_xy(n=10, half_deg=30.0, agl=650.0):
 
 
 def test_the_modes_hold_the_stated_covariance_and_its_sharing():
-    """U diag(k) Uᵀ reproduces κ-weighted (σ_e²/σ²) R on the scan to its dropped remainder; a tiny footprint's
-    offset mode is shared by Σ_k exp(−(k s / L)²) ≈ √π L / s scans."""
+    """U diag(k⁰) Uᵀ reproduces (σ_e²/σ²) R on the scan to its dropped remainder; a tiny footprint's offset mode is
+    shared by Σ_k exp(−(k s / L)²) ≈ √π L / s scans, and its first-order correlation from scan to scan is
+    ρ = (κ − 1)/(κ + 1) (the same number of independent scans); the basis change rows start as the identity."""
     lk = wt.Likelihood("gaussian", **STATED)
     xy = _grid_xy()
     table, info = lk.error_modes(xy, np.ones(len(xy)), 0.5)
-    q = info["n_modes"]
-    assert 12 <= q <= 16 and info["remainder"] < 1e-3 and not table[:, q:].any() and table.shape == (102, 16)
-    c = np.array(info["c"])
-    assert np.all((c > 0) & (c <= 1)) and info["sharing"][0] > info["sharing"][-1] >= 1.0
-    u = table[:-2, :q].astype(np.float64)
+    q, m = info["n_modes"], len(xy)
+    assert 12 <= q <= 16 and info["remainder"] < 1e-3 and table.shape == (m + klik.MODE_EXTRA_ROWS, 16)
+    assert not table[:m + klik.MODE_T, q:].any()
+    np.testing.assert_array_equal(table[m + klik.MODE_T:], np.eye(16))
+    kappa = np.array(info["sharing"])
+    assert info["sharing"][0] > info["sharing"][-1] >= 1.0
+    u = table[:m, :q].astype(np.float64)
     lam = np.array(info["eigenvalues"])
-    k = np.array(info["sharing"]) * 25.0 * lam / 0.25  # κ_i σ_e² λ_i / σ²
-    np.testing.assert_allclose(table[-2, :q], k / (1.0 + k), rtol=1e-6)  # the weights c_i
-    np.testing.assert_allclose(table[-1, :q], 100.0 * lam / (1.0 + 100.0 * lam), rtol=1e-6)  # one scan's c⁰_i
+    np.testing.assert_allclose(table[m + klik.MODE_K0, :q], 100.0 * lam, rtol=1e-6)  # σ_e² λ_i / σ²
+    np.testing.assert_allclose(table[m + klik.MODE_C0, :q], 100.0 * lam / (1.0 + 100.0 * lam), rtol=1e-6)
+    np.testing.assert_allclose(table[m + klik.MODE_RHO, :q], (kappa - 1) / (kappa + 1), rtol=1e-6)
     np.testing.assert_allclose(u.T @ u, np.eye(q), atol=1e-4)  # orthonormal modes
     d = np.linalg.norm(xy[:, None] - xy[None], axis=2)
     r = np.exp(-(d / 1000.0) ** 2)
@@ -43,6 +47,8 @@ def test_the_modes_hold_the_stated_covariance_and_its_sharing():
     expected = sum(math.exp(-((k * 10.0 / 1000.0) ** 2)) for k in range(-1000, 1001))
     assert tiny["sharing"][0] == pytest.approx(expected, rel=1e-3)
     assert expected == pytest.approx(math.sqrt(math.pi) * 100.0, rel=1e-3)
+    rho = tiny["rho"][0]  # an AR(1) of this ρ holds as many independent scans: Σ_k ρ^|k| = (1 + ρ)/(1 − ρ) = κ
+    assert (1 + rho) / (1 - rho) == pytest.approx(tiny["sharing"][0], rel=1e-6)
     assert wt.Likelihood("gaussian").error_modes(xy, np.ones(len(xy)), 0.5)[1]["n_modes"] == 0
     assert wt.Likelihood("paper", **STATED).error_modes(xy, np.ones(len(xy)), 0.5)[1]["n_modes"] == 0
 
@@ -56,7 +62,7 @@ def test_an_offset_the_altitude_carries_leaves_the_modes():
     a = 1.0 / np.cos(np.radians(np.linspace(-30, 30, len(xy))))
     table, info = lk.error_modes(xy, a, 0.8, absorb_offset=True)
     q = info["n_modes"]
-    u = table[:-2, :q].astype(np.float64)
+    u = table[:len(xy), :q].astype(np.float64)
     o = a / np.linalg.norm(a)
     assert np.abs(o @ u).max() < 1e-4
     d = np.linalg.norm(xy[:, None] - xy[None], axis=2)
@@ -72,19 +78,23 @@ def test_an_offset_the_altitude_carries_leaves_the_modes():
 
 
 def test_the_woodbury_form_equals_the_inverse_of_the_covariance():
-    """zᵀ(I + U K Uᵀ)⁻¹z = zᵀz − Σ c_i (u_iᵀ z)², c_i = k_i / (1 + k_i) from the table: what the kernels sum for a
-    particle that predicts every point, against a dense float64 solve."""
+    """(z − Uμ)ᵀ(I + U P Uᵀ)⁻¹(z − Uμ) = zᵀz − Σ_i [p_i² − (1 − c_i)(p_i − μ_i)²], p = Uᵀz, c_i = P_i / (1 + P_i):
+    what the kernels sum for a particle that predicts every point, against a dense float64 solve (μ = 0, P = k⁰:
+    one scan's prior; and a prior a filter carries)."""
     lk = wt.Likelihood("gaussian", **STATED)
     xy = _grid_xy(agl=900.0)
     table, info = lk.error_modes(xy, 1.0 / np.cos(np.radians(np.linspace(-30, 30, len(xy)))), 0.8)
-    q = info["n_modes"]
-    u, c = table[:-2, :q].astype(np.float64), table[-2, :q].astype(np.float64)
-    k = np.array(info["sharing"]) * 25.0 * np.array(info["eigenvalues"]) / 0.64
-    cov = np.eye(len(xy)) + u @ np.diag(k) @ u.T
-    z = np.random.default_rng(0).normal(size=(5, len(xy))) * 3.0
-    direct = np.einsum("ij,ij->i", z, np.linalg.solve(cov, z.T).T)
-    woodbury = np.einsum("ij,ij->i", z, z) - ((z @ u) ** 2 * c).sum(axis=1)
-    np.testing.assert_allclose(woodbury, direct, rtol=1e-4)
+    q, m = info["n_modes"], len(xy)
+    u, k0 = table[:m, :q].astype(np.float64), table[m + klik.MODE_K0, :q].astype(np.float64)
+    rng = np.random.default_rng(0)
+    z = rng.normal(size=(5, len(xy))) * 3.0
+    for mu, var in ((np.zeros(q), k0), (rng.normal(size=q) * 4.0, k0 * rng.uniform(0.01, 1.0, q))):
+        cov = np.eye(len(xy)) + u @ np.diag(var) @ u.T
+        r = z - mu @ u.T
+        direct = np.einsum("ij,ij->i", r, np.linalg.solve(cov, r.T).T)
+        p, c = z @ u, var / (1.0 + var)
+        woodbury = np.einsum("ij,ij->i", z, z) - (p**2 - (1.0 - c) * (p - mu) ** 2).sum(axis=1)
+        np.testing.assert_allclose(woodbury, direct, rtol=1e-4)
 
 
 def _scan_over_a_world():
@@ -95,6 +105,33 @@ def _scan_over_a_world():
     p_true = np.array([0.0, 0.0, -(dem.height_at(0.0, 0.0) + 700.0)])
     q = np.array([1.0, 0.0, 0.0, 0.0])
     return dem, sensor.measure_many(world, p_true, q, [np.random.default_rng(0)])[0], p_true, q
+
+
+def _ray_sigmas(model, out, cloud):
+    """σ_j of every (particle, ray) as :func:`warptan.kernels.likelihood.ray_sigma` has it, float64 (level
+    attitude: a ray's down component is its sensor-frame one)."""
+    p = model.params()
+    s_z = out.normal.numpy()[:, :, 2].astype(np.float64)
+    gain = np.where(s_z != 0.0, np.minimum(np.abs(s_z), 1000.0), 1000.0)
+    var = p.sigma_range**2 + p.sigma_map**2 * gain**2
+    if p.sigma_err > 0:
+        var = var + p.sigma_err**2 * (gain - 1.0 / np.maximum(np.asarray(cloud.dirs_s)[:, 2], 0.1)) ** 2
+    if p.sigma_range <= 0 or (p.sigma_map <= 0 and p.sigma_err <= 0):
+        return np.full(s_z.shape, p.sigma)
+    return np.sqrt(var)
+
+
+def _points_minus_plain(model, out, cloud, plain_res):
+    """(whitened residuals z_j = r_j/σ_j, the per-point log-likelihood with σ_j minus the plain one with σ) of a
+    ray-cast particle set, float64."""
+    sig = _ray_sigmas(model, out, cloud)
+    res = out.residual_m.numpy().astype(np.float64)
+    ok = np.isfinite(res)
+    z = np.where(ok, res, 0.0) / sig
+    sigma = model.params().sigma
+    points = np.where(ok, -0.5 * z**2 - np.log(sig / sigma), 0.0).sum(axis=1)
+    plain = np.where(ok, -0.5 * (np.where(ok, plain_res, 0.0) / sigma) ** 2, 0.0).sum(axis=1)
+    return z, points - plain
 
 
 @pytest.fixture(scope="module")
@@ -122,19 +159,53 @@ def test_the_kernels_add_the_modes_share_and_nothing_without_a_statement(scan, n
     ev = np.linalg.eigvalsh(b.lam.numpy().astype(np.float64))
     assert ev.min() > -1e-4 * ev.max()
     if name == "raycast":
-        res = b.residual_m.numpy().astype(np.float64)
-        ok = np.isfinite(res)
-        z = np.where(ok, res, 0.0) / stated.sigma_m
+        z, points = _points_minus_plain(stated, b, cloud, a.residual_m.numpy().astype(np.float64))
         table = stated._modes.numpy().astype(np.float64)
-        u_tab, c = table[:-2], table[-2]
+        m = z.shape[1]
+        u_tab, c = table[:m], table[m + klik.MODE_C0]
         p = z @ u_tab
-        expected = 0.5 * (c * p**2).sum(axis=1)
+        expected = 0.5 * (c * p**2).sum(axis=1)  # no prior bound: one scan's
         assert np.all(expected <= 0.5 * (z**2).sum(axis=1) * (1 + 1e-5))
-        got = b.loglik.numpy().astype(np.float64) - a.loglik.numpy().astype(np.float64)
+        got = b.loglik.numpy().astype(np.float64) - a.loglik.numpy().astype(np.float64) - points
         np.testing.assert_allclose(got, expected, rtol=2e-3, atol=2e-3 * np.abs(expected).max())
     else:
         assert np.all(b.loglik.numpy() >= a.loglik.numpy() - 1e-3)  # the modes explain, never penalise
         assert not np.array_equal(b.loglik.numpy(), a.loglik.numpy())
+
+
+def test_the_kernels_weigh_by_the_modes_prior_and_carry_it_to_the_next_scan(scan, device):
+    """With a prior bound (a filter's mode amplitudes μ per particle, variances P per filter), the log-likelihood
+    minus the plain one is 0.5 Σ_i [p_i² − (1 − c_i)(p_i − μ_i)²], c_i = P_i / (1 + P_i), and ``mode_post`` is
+    ρ_i (μ_i + c_i (p_i − μ_i)) (the Kalman update of each mode, then its step along the track), against NumPy;
+    a negative variance is the one-scan prior (0, k⁰)."""
+    dem, cloud, pos, q = scan
+    poses = (wp.array(pos, dtype=wp.vec3, device=device), wp.array(np.tile(q, (len(pos), 1)), dtype=wp.vec4,
+                                                                     device=device))
+    plain = wt.make_model("raycast", dem, wt.Likelihood("gaussian", sensor_sigma_m=0.5))
+    stated = wt.make_model("raycast", dem, wt.Likelihood("gaussian", sensor_sigma_m=0.5, **STATED))
+    a = plain.evaluate(*poses, cloud)
+    stated.evaluate(*poses, cloud)  # builds the table
+    m = a.residual_m.shape[1]
+    table = stated.mode_table.numpy().astype(np.float64)
+    n_modes = stated.modes_info["n_modes"]
+    rng = np.random.default_rng(2)
+    mu = np.zeros((len(pos), 16))
+    mu[:, :n_modes] = rng.normal(size=(len(pos), n_modes)) * 3.0
+    var = np.zeros(16)
+    var[:n_modes] = table[m + klik.MODE_K0, :n_modes] * rng.uniform(0.01, 1.0, n_modes)
+    for prior_var in (var, -np.ones(16)):
+        stated.bind_mode_state(wp.array(mu, dtype=klik.modes_vec, device=device),
+                               wp.array(prior_var[None], dtype=klik.modes_vec, device=device))
+        b = stated.evaluate(*poses, cloud)
+        z, points = _points_minus_plain(stated, b, cloud, a.residual_m.numpy().astype(np.float64))
+        p = z @ table[:m]
+        mean, v = (mu, prior_var) if prior_var[0] >= 0 else (np.zeros_like(mu), table[m + klik.MODE_K0])
+        c = v / (1.0 + v)
+        expected = 0.5 * (p**2 - (1.0 - c) * (p - mean) ** 2).sum(axis=1)
+        got = b.loglik.numpy().astype(np.float64) - a.loglik.numpy().astype(np.float64) - points
+        np.testing.assert_allclose(got, expected, rtol=2e-3, atol=2e-3 * np.abs(expected).max())
+        post = table[m + klik.MODE_RHO] * (mean + c * (p - mean))
+        np.testing.assert_allclose(b.mode_post.numpy(), post, rtol=1e-3, atol=1e-3 * np.abs(post).max())
 
 
 def test_a_ray_weighs_by_its_own_map_gain(scan, device):
@@ -152,8 +223,7 @@ def test_a_ray_weighs_by_its_own_map_gain(scan, device):
     res = out.residual_m.numpy().astype(np.float64)
     s_z = out.normal.numpy()[:, :, 2].astype(np.float64)
     ok = np.isfinite(res)
-    gain = np.where(s_z != 0.0, np.minimum(np.abs(s_z), 1000.0), 1000.0)
-    sig = np.sqrt(p.sigma_range**2 + p.sigma_map**2 * gain**2)
+    sig = _ray_sigmas(model, out, cloud)
     expected = np.where(ok, -0.5 * (np.where(ok, res, 0.0) / sig) ** 2 - np.log(sig / p.sigma), 0.0).sum(axis=1)
     assert np.abs(s_z[ok] - 1.0).max() > 0.05  # the slopes differ from flat ground
     np.testing.assert_allclose(out.loglik.numpy(), expected, rtol=1e-4, atol=1e-3)
@@ -177,9 +247,14 @@ def test_the_nis_judges_one_scan_against_the_stated_error(device):
     assert np.isfinite(res).all()
     p = model.params()
     s_z = out.normal.numpy()[:, :, 2].astype(np.float64)
-    z = res / np.sqrt(p.sigma_range**2 + p.sigma_map**2 * np.minimum(np.abs(s_z), 1000.0) ** 2)
+    z = res / _ray_sigmas(model, out, cloud)
     table = model._modes.numpy().astype(np.float64)
-    u_tab, c, c0 = table[:-2], table[-2], table[-1]
+    m = res.shape[1]
+    u_tab, c0 = table[:m], table[m + klik.MODE_C0]
+    kappa = np.zeros(16)
+    kappa[:model.modes_info["n_modes"]] = model.modes_info["sharing"]
+    k = kappa * table[m + klik.MODE_K0]
+    c = k / (1.0 + k)  # the weights of a prior κ times wider (the error shared by κ scans)
     assert np.all(c0 <= c + 1e-7) and c0.max() > 0
     p_i = z @ u_tab
     clipped = np.minimum(z**2, model.likelihood.outlier_sigmas**2).sum(axis=1)
@@ -243,7 +318,7 @@ def test_the_filter_reports_the_offset_it_carries():
     p0 = prior_linear_cov(initial, imu)
 
     def make(model):
-        return MarginalizedParticleFilter(model, nominal, imu.grade, 100.0, np.asarray(initial.pos_m) ** 2, p0,
+        return MarginalizedParticleFilter(model, nominal, imu.grade, 100.0, np.asarray(initial.pos_m), p0,
                                           n_particles=50, seed=0)
 
     stated = wt.Likelihood("gaussian", sensor_sigma_m=0.5, **STATED)
@@ -259,3 +334,45 @@ def test_the_filter_reports_the_offset_it_carries():
     q_v = stated.offset_process(100.0)[1]
     # q_v over 0.5 s, less what the particles' moves tell the Kalman part of it (the Riccati itself: test_nav.py)
     assert 0.5 * q_v * 0.5 < grown[2] < q_v * 0.5 and np.abs(np.delete(grown, 2)).max() < 1e-2 * grown[2]
+
+
+def test_the_filter_carries_the_mode_amplitudes_from_scan_to_scan():
+    """The filter keeps each particle's mode amplitudes (the model's ``mode_post`` of its ancestor, resampled with
+    it) and each filter's variances along the recursion ``P ← ρ² P⁻/(1 + P⁻) + (1 − ρ²) k⁰`` from ``P⁻ = k⁰`` at
+    the first scan (NumPy, float64; the table's basis change is the identity while the scan's geometry holds)."""
+    from warptan.imu import ImuModel
+    from warptan.mpf import MarginalizedParticleFilter
+    from warptan.runner import InitialErrors, initial_nominal, prior_linear_cov
+    from warptan.trajectory import Straight, Trajectory
+
+    dem = wt.Terrain.load("rugged")
+    world = WorldModel(error_rms_m=5.0, error_corr_m=1000.0, seed=1).build(dem)
+    truth = Trajectory.build([Straight(1.0)], 100.0, [0.0, 0.0, -(dem.height_at(0.0, 0.0) + 700.0)], rate_hz=100.0)
+    imu = ImuModel("navigation", 100.0, seed=0)
+    initial = InitialErrors()
+    nominal = initial_nominal(truth.state(0), initial, np.random.default_rng(0))
+    model = wt.make_model("sliding", dem, wt.Likelihood("gaussian", sensor_sigma_m=0.5, **STATED), surface=True)
+    mpf = MarginalizedParticleFilter(model, nominal, imu.grade, 100.0, np.asarray(initial.pos_m),
+                                     prior_linear_cov(initial, imu), n_particles=64, seed=0)
+    sensor = wt.PointCloudSensor(wt.ScanPattern.grid(10, 10, 30.0), range_sigma_m=0.5)
+    rng = np.random.default_rng(3)
+    assert np.all(mpf._mode_var.numpy() < 0)  # no prior before the first scan
+    expected = None
+    for k in range(0, 100, 10):
+        for i in range(k, k + 10):
+            mpf.predict(truth.f_b[i], truth.w_b[i])
+        s = truth.state(k + 10)
+        info = mpf.update(sensor.measure_many(world, s.pos_n, s.quat_nb, [rng])[0])
+        table = model.mode_table.numpy().astype(np.float64)
+        m = table.shape[0] - klik.MODE_EXTRA_ROWS
+        np.testing.assert_array_equal(table[m + klik.MODE_T:], np.eye(16))
+        k0, rho = table[m + klik.MODE_K0], table[m + klik.MODE_RHO]
+        prior = k0 if expected is None else expected
+        expected = rho**2 * prior / (1.0 + prior) if not info.skipped else rho**2 * prior
+        expected = expected + (1.0 - rho**2) * k0
+        np.testing.assert_allclose(mpf._mode_var.numpy()[0], expected, rtol=1e-4, atol=1e-6 * k0.max())
+        np.testing.assert_array_equal(mpf._mode_mean.numpy(), model._out.mode_post.numpy())
+    n_modes = model.modes_info["n_modes"]
+    assert model.modes_info["rebuilds"] == 1 and np.all(expected[:n_modes] <= k0[:n_modes] * (1 + 1e-6))
+    assert expected[0] < 0.1 * k0[0]  # the leading (smoothest) mode is known to a tenth of its one-scan variance
+    assert np.abs(mpf._mode_mean.numpy()[:, :n_modes]).max() > 0

@@ -135,29 +135,39 @@ class Likelihood:
 
     def error_modes(self, xy: np.ndarray, sensitivity: np.ndarray, sigma_m: float,
                     along: tuple[float, float] = (1.0, 0.0), absorb_offset: bool = False) -> tuple[np.ndarray, dict]:
-        """The map-error mode table of a scan: ``(M + 2, MAX_MODES)`` float32, rows ``u_ji``, then the modes'
-        weights ``c_i``, then their one-scan weights ``c⁰_i`` (``κ_i = 1``, for the NIS), and a summary.
+        """The map-error mode table of a scan: ``(M + MODE_EXTRA_ROWS, MAX_MODES)`` float32 (rows named in
+        :mod:`warptan.kernels.likelihood`): the modes ``u_ji``, then per mode its one-scan variance ``k⁰_i``, its
+        one-scan weight ``c⁰_i`` (the NIS), its scan-to-scan correlation ``ρ_i``, its κ-shared weight ``c_i`` (the
+        attitude's information) and the basis change ``T`` from the previous table (identity here; the model fills it
+        when it rebuilds), and a summary.
 
         The stated error is a Gaussian random field of RMS ``σ_e = map_error_sigma_m`` and covariance
         ``σ_e² exp(−(r/L)²)``, ``L = map_error_corr_m``. At the scan's ground points ``x_j`` (``xy``: horizontal
         offsets in the navigation frame, m) a residual sees ``a_j e(x_j)`` (``sensitivity`` a_j: 1 for a height
         residual, 1/cos of the ray's angle from the vertical for a range), so the whitened residuals ``z = r/σ``
         carry ``(σ_e²/σ²) A R A`` with ``R_jk = exp(−(|x_j − x_k|/L)²)``. Its leading eigenvectors ``u_i``
-        (eigenvalues λ_i) are the map-error modes (offset, tilts, curvatures, …). A mode's error is shared by the
+        (eigenvalues λ_i) are the map-error modes (offset, tilts, curvatures, …), ``z = Σ_i α_i u_i + n`` with
+        amplitudes ``α_i`` of variance ``k⁰_i = σ_e² λ_i / σ²`` in one scan. A mode's error is shared by the
         consecutive scans that see the same ground: ``κ_i = Σ_k ρ_i(k s)``, with ``ρ_i(d) = u_iᵀ A R(d) A u_i /
         λ_i`` the mode's correlation with the scan ``d`` metres further along ``along`` (the flight's horizontal
         unit vector; ``s = track_step_m``; ``κ_i = 1`` without it; beyond 64 steps the sum is the trapezoid
-        integral ``(1/s) ∫ ρ_i`` over 64 lags up to 4 L). Treating each scan as independent with its modes'
-        variance times ``κ_i`` gives, over the scans that share an error, the information of the exact joint
-        likelihood (a shared error counted once). With ``k_i = κ_i σ_e² λ_i / σ²``, Woodbury gives ``rᵀ Σ⁻¹ r =
-        zᵀ z − Σ_i c_i (u_iᵀ z)²``, ``c_i = k_i / (1 + k_i)``, and likewise ``Hᵀ Σ⁻¹ H``, ``Hᵀ Σ⁻¹ r`` for the
-        attitude and the position (:func:`warptan.kernels.likelihood.acc_modes`). The integrity monitor's NIS
-        judges one scan against the error as stated (``c⁰_i = k⁰_i / (1 + k⁰_i)``, ``k⁰_i = σ_e² λ_i / σ²``): the
-        shared variance ``κ_i σ_e² λ_i`` makes the weights lenient on one scan by design (the scans that share
-        the error are counted once), and a particle tens of metres off over smooth ground then fits each scan's
-        smooth misfit into the modes (S2 with a tactical IMU: 130 m off with a best-particle NIS of 0.00 and no
-        re-spread). Modes past ``MAX_MODES`` or
-        below 1e-6 of the largest are dropped; ``remainder`` is the share of the error's variance they hold.
+        integral ``(1/s) ∫ ρ_i`` over 64 lags up to 4 L).
+
+        The filter carries the amplitudes (Rao–Blackwellised: a mean per particle, a variance per filter; the map
+        error under a hypothesis belongs to the hypothesis) from scan to scan as first-order processes of
+        correlation ``ρ_i = (κ_i − 1)/(κ_i + 1)`` per scan, which holds the same number of independent scans
+        (``Σ_k ρ^|k| = κ_i``) as the field. A particle's weight is then the exact predictive density of its scan
+        given what its earlier scans said about the error under it: with prior ``(μ_i, P_i)`` and ``p_i = u_iᵀ
+        z``, ``(z − Uμ)ᵀ(I + U P Uᵀ)⁻¹(z − Uμ) = zᵀz − Σ_i [p_i² − (1 − c_i)(p_i − μ_i)²]``, ``c_i = P_i / (1 +
+        P_i)``, and the amplitudes' posterior ``μ_i + c_i (p_i − μ_i)`` (:func:`warptan.kernels.likelihood.
+        acc_set_modes`). A particle tens of metres off fits each scan's smooth misfit into the modes only once:
+        the next scans must agree with the amplitudes it claimed. The earlier form, each scan independent with its
+        modes' variance times κ_i (the same information on average), let such a particle explain a new misfit in
+        every scan: S2 (tactical IMU, 5 m / 1 km world, 4 seeds) ran away to 102 ± 132 m; with the amplitudes
+        carried, 5.0 ± 5.4 m. The integrity monitor's NIS judges one scan against the error as stated (weights
+        ``c⁰_i``, μ = 0): whatever a filter believes about the error, a misfit larger than it is not a 5 m map
+        error. Modes past ``MAX_MODES`` or below 1e-6 of the largest are dropped; ``remainder`` is the share of
+        the error's variance they hold.
 
         ``absorb_offset`` (a model whose prediction moves with the particle's altitude: ray casts, the sliding
         grid, the altimeter without a barometer): the map error's offset over the scan, ``A e = o (oᵀ A e) + P A
@@ -170,12 +180,13 @@ class Likelihood:
         S2 (tactical IMU, 5 m / 1 km error, seed 0) the altitude ran away by 750 m with a 3σ of 3 m. The
         filter's side of it (the offset's change along the track as vertical-velocity noise, its variance added to
         the reported altitude variance) is :meth:`offset_process`."""
-        from warptan.kernels.likelihood import MAX_MODES
+        from warptan.kernels.likelihood import MAX_MODES, MODE_C0, MODE_CS, MODE_EXTRA_ROWS, MODE_K0, MODE_RHO, MODE_T
 
         xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
         a = np.asarray(sensitivity, dtype=np.float64).reshape(-1)
         m, length = len(xy), self.map_error_corr_m
-        table = np.zeros((m + 2, MAX_MODES), dtype=np.float32)
+        table = np.zeros((m + MODE_EXTRA_ROWS, MAX_MODES), dtype=np.float32)
+        table[m + MODE_T:] = np.eye(MAX_MODES, dtype=np.float32)
         if not self.models_map_error or m == 0:
             return table, {"n_modes": 0}
 
@@ -213,14 +224,16 @@ class Likelihood:
                 total = integral / step + 0.5 * rho[0]
             sharing = np.maximum(1.0 + 2.0 * total, 1.0)
         k_one = self.map_error_sigma_m**2 * lam_k / sigma_m**2  # k⁰_i: one scan's
-        k_i = sharing * k_one
-        c_i = k_i / (1.0 + k_i)
+        rho = (sharing - 1.0) / (sharing + 1.0)
         table[:m, :len(keep)] = vec_k.astype(np.float32)
-        table[m, :len(keep)] = c_i.astype(np.float32)
-        table[m + 1, :len(keep)] = (k_one / (1.0 + k_one)).astype(np.float32)
+        table[m + MODE_K0, :len(keep)] = k_one.astype(np.float32)
+        table[m + MODE_C0, :len(keep)] = (k_one / (1.0 + k_one)).astype(np.float32)
+        table[m + MODE_RHO, :len(keep)] = rho.astype(np.float32)
+        k_shared = sharing * k_one
+        table[m + MODE_CS, :len(keep)] = (k_shared / (1.0 + k_shared)).astype(np.float32)
         return table, {"n_modes": len(keep), "eigenvalues": lam_k.tolist(), "sharing": sharing.tolist(),
-                       "c": c_i.tolist(), "remainder": float(1.0 - lam_k.sum() / max(lam.sum(), 1e-300)),
-                       "offset_var": offset_var}
+                       "k0": k_one.tolist(), "rho": rho.tolist(),
+                       "remainder": float(1.0 - lam_k.sum() / max(lam.sum(), 1e-300)), "offset_var": offset_var}
 
     def offset_process(self, speed_mps: float) -> tuple[float, float]:
         """What the filter adds for a map-error offset its particles' altitude carries (``absorb_offset`` of
@@ -283,6 +296,9 @@ class ModelOutput:
     normal: wp.array | None = None
     """(N, M) vec3 scaled surface normal ``∇F / (∇F · u)`` at each ray's hit, 1/1 (ray casts): the predicted range's
     derivatives w.r.t. dθ and the position follow from it (:func:`warptan.kernels.likelihood.ray_jacobians`)."""
+    mode_post: wp.array | None = None
+    """(N,) modes_vec the particles' map-error mode amplitudes after this scan, predicted to the next (whitened, in
+    the modes of the table in use; zero without a stated map error): the filter keeps them as the next prior."""
     n_received: np.ndarray = field(default_factory=lambda: np.zeros(1, dtype=np.int64))
     """(B,) valid received points per filter (host; known without a sync)."""
 
@@ -338,6 +354,10 @@ class MeasurementModel:
         self._att_cov: wp.array | None = None
         self._zero_att: wp.array | None = None
         self._modes: wp.array | None = None
+        self._modes_host: np.ndarray | None = None
+        self._mode_mean: wp.array | None = None
+        self._mode_var: wp.array | None = None
+        self._no_modes: tuple[wp.array, wp.array] | None = None
         self.modes_info: dict = {"n_modes": 0}
         """The map-error modes in use (:meth:`Likelihood.error_modes`'s summary; built at the first ``stage``)."""
         self.generation = 0
@@ -397,6 +417,7 @@ class MeasurementModel:
         p.att_scale = (self.sigma_m / lk.sigma_att(self.surface_mismatch_m())) ** 2
         p.pos_precision = POSITION_PRIOR_PRECISION if lk.project_position else -1.0
         p.n_modes = 0  # set by _ensure_modes when the first scan is staged
+        p.sigma_err = float(lk.map_error_sigma_m) if lk.models_map_error else 0.0
         if lk.sigma_m is None:
             p.sigma_range = float(lk.sensor_sigma_m)
             p.sigma_map = math.sqrt(max(self.sigma_m**2 - lk.sensor_sigma_m**2, 0.0))
@@ -419,6 +440,7 @@ class MeasurementModel:
                 info=wp.zeros(n, dtype=wp.vec3, device=device),
                 n_received=np.zeros(b, dtype=np.int64),
                 normal=wp.empty((n, m), dtype=wp.vec3, device=device) if self.name == "raycast" else None,
+                mode_post=wp.zeros(n, dtype=klik.modes_vec, device=device),
             )
             self._staged = self._staging_buffer(device, b, m)
             self.generation += 1
@@ -478,11 +500,11 @@ class MeasurementModel:
         reads the new values) and ``n_modes`` stays :data:`~warptan.kernels.likelihood.MAX_MODES` (unused
         columns are zero)."""
         m = self._staged.shape[1] if self._staged.ndim == 2 else 1
-        fresh = self._modes is None or self._modes.device != device or self._modes.shape[0] != m + 2
+        rows = m + klik.MODE_EXTRA_ROWS
+        fresh = self._modes is None or self._modes.device != device or self._modes.shape[0] != rows
         if fresh:
-            from warptan.kernels.likelihood import modes_vec
-
-            self._modes = wp.zeros(m + 2, dtype=modes_vec, device=device)
+            self._modes = wp.zeros(rows, dtype=klik.modes_vec, device=device)
+            self._modes_host = None
             self._modes_geometry = None
             self._params.n_modes = klik.MAX_MODES if self.likelihood.models_map_error else 0
             self.generation += 1
@@ -490,15 +512,47 @@ class MeasurementModel:
             return
         quat = np.asarray(attitude if attitude is not None else quat_nb[:1].numpy()[0], dtype=np.float64).reshape(4)
         xy, sens, along = self._scan_geometry(quat)
-        old = self._modes_geometry
+        old, host = self._modes_geometry, self._modes_host
         size = max(float(np.ptp(xy, axis=0).max()) if len(xy) > 1 else 0.0, 1.0)
         if old is not None and old[0].shape == xy.shape and np.abs(old[0] - xy).max() <= self.MODES_REBUILD * size \
                 and np.abs(old[1] - along).max() <= self.MODES_REBUILD:
+            if not np.array_equal(host[m + klik.MODE_T:], np.eye(klik.MAX_MODES)):  # the basis change applied once
+                host[m + klik.MODE_T:] = np.eye(klik.MAX_MODES, dtype=np.float32)
+                self._modes.assign(host)
             return
         table, info = self.likelihood.error_modes(xy, sens, self.sigma_m, along, self.absorbs_map_offset)
+        if host is not None:  # T = U_newᵀ U_old: the stored amplitudes carried into the new modes
+            table[m + klik.MODE_T:] = table[:m].T @ host[:m]
         self._modes.assign(table)
+        self._modes_host = table
         self._modes_geometry = (xy, along)
         self.modes_info = {**info, "rebuilds": self.modes_info.get("rebuilds", 0) + 1}
+
+    @property
+    def mode_table(self) -> wp.array | None:
+        """The map-error mode table the launches read (None before the first ``stage``; see :meth:`_ensure_modes`):
+        the filter's end of an update reads its ρ, k⁰ and basis change rows."""
+        return self._modes
+
+    def bind_mode_state(self, mean: wp.array | None, var: wp.array | None) -> None:
+        """Use ``mean`` ((N,) modes_vec: each particle's map-error mode amplitudes, whitened, predicted to this scan)
+        and ``var`` ((B,) modes_vec: each filter's variances of them; negative: none yet) as the modes' prior,
+        kept by their owner (the filter, which stores the launches' ``mode_post`` after an update); None (the
+        default) is the one-scan prior (zero mean, variance ``k⁰``) for every scan."""
+        if mean is not self._mode_mean or var is not self._mode_var:
+            self._mode_mean, self._mode_var = mean, var
+            self.generation += 1
+
+    def _mode_state(self, device, n: int, b: int) -> tuple[wp.array, wp.array]:
+        mean, var = self._mode_mean, self._mode_var
+        if mean is not None and var is not None and mean.shape == (n,) and var.shape == (b,) and mean.device == device:
+            return mean, var
+        d = self._no_modes
+        if d is None or d[0].shape != (n,) or d[1].shape != (b,) or d[0].device != device:
+            d = self._no_modes = (wp.zeros(n, dtype=klik.modes_vec, device=device),
+                                  wp.full(b, klik.modes_vec(-1.0), dtype=klik.modes_vec, device=device))
+            self.generation += 1
+        return d
 
     @property
     def absorbs_map_offset(self) -> bool:
@@ -607,6 +661,7 @@ class RaycastModel(_PointCloudModel):
         lead = self.caster.launch_args(self.terrain, device)
         res, nrm, cloud, n_per = out.residual_m, out.normal, self._staged, self.n_per
         att = self._attitude_cov(device, self.n_filters)
+        mean, var = self._mode_state(device, res.shape[0], self.n_filters)
         launch_rows(kray.raycast_residual_kernel, res.shape[0],
                     lambda a, b: ([*lead, a or 0, n_per, rows_of(pos_n, a, b), rows_of(quat_nb, a, b), cloud],
                                   [rows_of(res, a, b), rows_of(nrm, a, b)]),
@@ -614,9 +669,10 @@ class RaycastModel(_PointCloudModel):
         kernel, block = klik.reduce_loglik_kernels[device.is_cuda], _block_dim(device)
         launch_rows(kernel, res.shape[0],
                     lambda a, b: ([a or 0, n_per, rows_of(res, a, b), rows_of(quat_nb, a, b), rows_of(nrm, a, b),
-                                   cloud, att, self._params, self._modes],
+                                   cloud, att, self._params, self._modes, rows_of(mean, a, b), var],
                                   [rows_of(out.error_m, a, b), rows_of(out.loglik, a, b), rows_of(out.nis, a, b),
-                                   rows_of(out.n_valid, a, b), rows_of(out.lam, a, b), rows_of(out.info, a, b)]),
+                                   rows_of(out.n_valid, a, b), rows_of(out.lam, a, b), rows_of(out.info, a, b),
+                                   rows_of(out.mode_post, a, b)]),
                     device, row_cost=res.shape[1], block_dim=block)
 
 
@@ -648,13 +704,14 @@ class SlidingModel(_PointCloudModel):
     def _launch(self, pos_n, quat_nb, out, device):
         grid, surface, cloud, n_per = self.terrain.grid(device), int(self.surface), self._staged, self.n_per
         att = self._attitude_cov(device, self.n_filters)
+        mean, var = self._mode_state(device, pos_n.shape[0], self.n_filters)
         kernel, block = kslide.sliding_loglik_kernels[device.is_cuda], _block_dim(device)
         launch_rows(kernel, pos_n.shape[0],
                     lambda a, b: ([a or 0, n_per, grid, surface, rows_of(pos_n, a, b), rows_of(quat_nb, a, b), cloud,
-                                   att, self._params, self._modes],
+                                   att, self._params, self._modes, rows_of(mean, a, b), var],
                                   [rows_of(out.residual_m, a, b), rows_of(out.error_m, a, b), rows_of(out.loglik, a, b),
                                    rows_of(out.nis, a, b), rows_of(out.n_valid, a, b), rows_of(out.lam, a, b),
-                                   rows_of(out.info, a, b)]),
+                                   rows_of(out.info, a, b), rows_of(out.mode_post, a, b)]),
                     device, row_cost=3 * cloud.shape[1], block_dim=block)
 
 
@@ -709,10 +766,12 @@ class AltimeterModel(MeasurementModel):
         return valid.astype(np.int64)
 
     def _launch(self, pos_n, quat_nb, out, device):
+        mean, var = self._mode_state(device, pos_n.shape[0], self.n_filters)
         launch(kslide.altimeter_loglik_kernel, dim=pos_n.shape[0],
                   inputs=[self.n_per, self.terrain.grid(device), int(self.surface), int(self.use_baro), pos_n,
-                          self._staged, self._params, self._modes],
-                  outputs=[out.residual_m, out.error_m, out.loglik, out.nis, out.n_valid, out.lam, out.info],
+                          self._staged, self._params, self._modes, mean, var],
+                  outputs=[out.residual_m, out.error_m, out.loglik, out.nis, out.n_valid, out.lam, out.info,
+                           out.mode_post],
                   device=device)
 
 

@@ -121,6 +121,7 @@ from warptan.device import resolve_device
 from warptan.frames import quat_exp, quat_mul
 from warptan.imu import ImuGrade, check_rate, imu_grade
 from warptan.ins import NavState, process_noise
+from warptan.kernels import likelihood as klik
 from warptan.kernels import mpf as kmpf
 from warptan.kernels import nav as knav
 from warptan.parallel import Recorder, launch, launch_rows, rows_of
@@ -502,6 +503,12 @@ class MarginalizedParticleFilter:
                                    wp.empty(nt, dtype=wp.float32, device=d))
         self._spare = ParticleState(wp.empty_like(self.state.dp), wp.empty_like(self.state.lin),
                                     wp.empty_like(self.state.logw))
+        # map-error mode amplitudes (a stated map error: warptan.kernels.likelihood.mode_prior): per particle the
+        # prior mean for the next scan, per filter the variances (negative: none yet); spares for resampling
+        self._mode_mean = wp.zeros(nt, dtype=klik.modes_vec, device=d)
+        self._mode_var = wp.full(b, klik.modes_vec(-1.0), dtype=klik.modes_vec, device=d)
+        self._mode_spare = (wp.empty(nt, dtype=klik.modes_vec, device=d), wp.empty(nt, dtype=klik.modes_vec, device=d))
+        self._out = None
         self._pos = wp.empty(nt, dtype=wp.vec3, device=d)
         self._quat = wp.empty(nt, dtype=wp.vec4, device=d)
         self._chunk_max = wp.empty((b, kmpf.N_CHUNKS), dtype=wp.float32, device=d)
@@ -749,6 +756,27 @@ class MarginalizedParticleFilter:
                   st.dp, st.lin, st.logw], outputs=[sp.dp, sp.lin, sp.logw], device=d)
         launch(kmpf.copy_particles_kernel, dim=b * n, inputs=[sp.dp, sp.lin, sp.logw],
                   outputs=[st.dp, st.lin, st.logw], device=d)
+        if self._mode_table() is not None:
+            post, spare = self._out.mode_post, self._mode_spare
+            launch(kmpf.gather_modes_kernel, dim=b * n, inputs=[self._ancestors, self._mode_mean, post],
+                   outputs=list(spare), device=d)
+            launch(kmpf.copy_modes_kernel, dim=b * n, inputs=list(spare), outputs=[self._mode_mean, post], device=d)
+
+    def _mode_table(self) -> wp.array | None:
+        """The model's map-error mode table when its likelihood states a map error (else None: no mode state)."""
+        table = getattr(self.model, "mode_table", None)
+        return table if table is not None and self.model.likelihood.models_map_error else None
+
+    def _launch_modes(self) -> None:
+        """The particles' map-error mode prior for the next scan (after the integrity monitor's re-spread)."""
+        table = self._mode_table()
+        if table is None:
+            return
+        d, b, m = self.device, self.n_filters, table.shape[0] - klik.MODE_EXTRA_ROWS
+        launch(kmpf.modes_finalize_kernel, dim=b * self.n,
+               inputs=[self.n, m, table, self._stats, self._out.mode_post, self._mode_var], outputs=[self._mode_mean],
+               device=d)
+        launch(kmpf.modes_variance_kernel, dim=b, inputs=[m, table, self._stats], outputs=[self._mode_var], device=d)
 
     def _launch_integrity(self) -> None:
         d, b, n, st = self.device, self.n_filters, self.n, self.state
@@ -836,6 +864,7 @@ class MarginalizedParticleFilter:
 
     def _launch_tail(self) -> None:
         self._launch_integrity()
+        self._launch_modes()
         self._launch_record()
 
     def update(self, measurement, sync: bool = True):
@@ -859,6 +888,9 @@ class MarginalizedParticleFilter:
         t_staged = time.perf_counter()
         if hasattr(self.model, "bind_attitude_cov"):
             self.model.bind_attitude_cov(self._dev["att_cov"])
+        if hasattr(self.model, "bind_mode_state"):
+            self.model.bind_mode_state(self._mode_mean, self._mode_var)
+        self._out = out
         self._ensure_history()
         self._stage_interval()
         self.last_n_received = np.array(out.n_received)
