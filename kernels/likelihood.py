@@ -542,14 +542,16 @@ def attitude_information(acc: Acc, p: LikParams):
     the residuals' information on dθ that the position cannot explain, the Schur complement
     ``Λ - Λ_θp (Λ_pp + π I)⁻¹ Λ_pθ``, ``b - Λ_θp (Λ_pp + π I)⁻¹ b_p`` (float64).
 
-    With map-error modes the attitude reads the scan through the modes' κ-shared weights (``c_i = κ_i k⁰_i / (1 +
-    κ_i k⁰_i)``, μ = 0), not through the particle's mode amplitudes that weigh it: the Kalman update of dθ and the
-    amplitudes' update are made apart (no cross-covariance), so reading the amplitudes' memory would count a tilt of
-    the map error twice, once in the amplitudes and once in the attitude. Measured (S5 and S8 over a 5 m / 1 km
-    world, 2 seeds, CPU): with the amplitudes' gains the attitude's 3σ covered 0–50 % of its error (S5 RMSE
-    7.7 m over 4 seeds); with the κ-shared weights S5 3.7 / 2.4–3.2 m; projecting every mode out of the
-    attitude's information (no scan information on a mode's pattern) left the tactical IMU of S2 without the
-    attitude it needs: 250 m over 4 seeds."""
+    With map-error modes the attitude reads the scan through the modes' one-scan weights (``c⁰_i``, μ = 0), not
+    through the particle's mode amplitudes that weigh it: the Kalman update of dθ and the amplitudes' update are
+    made apart (no cross-covariance), so reading the amplitudes' memory counts a tilt of the map error twice, once
+    in the amplitudes and once in the attitude. Measured (20 seeds, 5 m / 1 km worlds, H100, ``results/world``):
+    with the amplitudes' gains S1–S8 gave 3.3–7.7 m (S2 7.7 m, S5 7.6 m at 33/54 % coverage); with the one-scan
+    weights 3.1–6.4 m (S2 4.7, S5 6.4 m) but S7/S8's east axis covered 68/60 % instead of 84/82 %; κ-shared
+    weights let S2 run away (72 ± 59 m, 4 seeds, CPU), and projecting every mode out of the attitude's
+    information left S2's tactical IMU without the attitude it needs (250 m, 4 seeds). The attitude stays
+    overconfident under a stated map error (S5: 3σ of 0.03–0.05° against RMS errors of 0.03–0.1°), the open cause of the
+    horizontal bounds' shortfall (see CHANGELOG)."""
     w = acc.mode_w0
     q = wp.cw_mul(w, acc.proj)
     lam, info = modes_lam_info_w(acc, w, q, p.n_modes)
@@ -615,8 +617,7 @@ def ray_sigma(p: LikParams, s: wp.vec3, u_down: float) -> float:
     correlated error (σ_e, ``sigma_err``) is held by the map-error modes with each ray's nominal sensitivity
     ``1/u_z`` (``u_down``: the ray's down component, at least 0.1; :meth:`warptan.measurement.Likelihood.error_modes`);
     what the ray's own gain adds or lacks, ``(s_z − 1/u_z) e``, the modes cannot hold, and it is counted here as
-    the ray's own: ``+ σ_e² (s_z − 1/u_z)²`` (S5, 60° bank at a hill, 2 seeds: converged RMSE 7.7 → 3.7 m
-    with the attitude change of :func:`attitude_information`). Without a map part (σ_map = 0 and no stated
+    the ray's own: ``+ σ_e² (s_z − 1/u_z)²``. Without a map part (σ_map = 0 and no stated
     error: the map is the world) or with a fixed σ (σ_range = 0) it is the likelihood's own σ."""
     if p.sigma_range <= 0.0 or (p.sigma_map <= 0.0 and p.sigma_err <= 0.0):
         return p.sigma

@@ -876,7 +876,7 @@ def modes_finalize_kernel(
     if stats[b, ST_RESPREAD] != wp.float64(0.0):
         mean[i] = modes_vec()
     elif stats[b, ST_SKIP] != wp.float64(0.0):
-        mu, pv = mode_prior(table, m, mean[i], var[b])
+        mu, _pv = mode_prior(table, m, mean[i], var[b])
         mean[i] = wp.cw_mul(table[m + MODE_RHO], mu)
     else:
         mean[i] = post[i]
@@ -896,7 +896,7 @@ def modes_variance_kernel(m: int, table: wp.array(dtype=modes_vec), stats: wp.ar
         return
     rho = table[m + MODE_RHO]
     k0 = table[m + MODE_K0]
-    mu, pv = mode_prior(table, m, modes_vec(), var[b])
+    _mu, pv = mode_prior(table, m, modes_vec(), var[b])
     v = modes_vec()
     for k in range(MAX_MODES):
         after = pv[k]

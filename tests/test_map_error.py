@@ -245,8 +245,6 @@ def test_the_nis_judges_one_scan_against_the_stated_error(device):
     out = model.evaluate(*poses, cloud)
     res = out.residual_m.numpy().astype(np.float64)
     assert np.isfinite(res).all()
-    p = model.params()
-    s_z = out.normal.numpy()[:, :, 2].astype(np.float64)
     z = res / _ray_sigmas(model, out, cloud)
     table = model._modes.numpy().astype(np.float64)
     m = res.shape[1]
