@@ -166,8 +166,8 @@ class Likelihood:
         every scan: S2 (tactical IMU, 5 m / 1 km worlds, 20 seeds, ``results/world``) ran away to 86 m mean and
         S5 to 168 m; with the amplitudes carried, 4.7 ± 0.7 m and 6.4 ± 1.0 m. The integrity monitor's NIS
         judges one scan against the error as stated (weights ``c⁰_i``, μ = 0): whatever a filter believes about
-        the error, a misfit larger than it is not a 5 m map error. Modes past ``MAX_MODES`` or below 1e-6 of the largest are dropped; ``remainder`` is the share of
-        the error's variance they hold.
+        the error, a misfit larger than it is not a 5 m map error. Modes past ``MAX_MODES`` or below 1e-6 of the
+        largest are dropped; ``remainder`` is the share of the error's variance they hold.
 
         ``absorb_offset`` (a model whose prediction moves with the particle's altitude: ray casts, the sliding
         grid, the altimeter without a barometer): the map error's offset over the scan, ``A e = o (oᵀ A e) + P A
