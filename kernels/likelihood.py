@@ -68,7 +68,8 @@ MAX_MODES = 16
 """Most map-error modes a likelihood marginalises (:class:`warptan.measurement.Likelihood`, stated DEM accuracy)."""
 modes_vec = wp.types.vector(length=MAX_MODES, dtype=wp.float32)
 """One point's row of the map-error mode table, ``u_ji`` for mode i (zero past the modes in use); after the M points'
-rows (at ``M + MODE_*``) the modes' one-scan prior variances ``k⁰_i``, their one-scan weights ``c⁰_i`` for the NIS,
+rows (at ``M + MODE_*``) the modes' one-scan prior variances ``k⁰_i``, their one-scan weights ``c⁰_i`` (the NIS and
+the attitude's information),
 their along-track correlations ``ρ_i`` and the basis change ``T`` (``MAX_MODES`` rows) from the previous table's modes
 (:meth:`warptan.measurement.Likelihood.error_modes`); also a particle's mode amplitudes (whitened) and a filter's
 variances of them."""
@@ -78,12 +79,9 @@ MODE_C0 = 1
 """Row ``M + MODE_C0``: ``c⁰_i = k⁰_i / (1 + k⁰_i)``, the NIS's one-scan weights."""
 MODE_RHO = 2
 """Row ``M + MODE_RHO``: ``ρ_i``, a mode amplitude's correlation from one scan to the next (first-order model)."""
-MODE_CS = 3
-"""Row ``M + MODE_CS``: ``c_i = κ_i k⁰_i / (1 + κ_i k⁰_i)``, the weights of an error shared by κ_i consecutive scans
-(what the attitude's information reads)."""
-MODE_T = 4
+MODE_T = 3
 """Rows ``M + MODE_T + i``: the new mode i's coefficients on the previous table's modes (identity when the table was
-not rebuilt since the last scan)."""
+not rebuilt since the last scan, zero when there was none: nothing to carry)."""
 MODE_EXTRA_ROWS = MODE_T + MAX_MODES
 """Rows of the mode table after the M points' rows."""
 modes_mat = wp.types.matrix(shape=(MAX_MODES, 3), dtype=wp.float32)
@@ -163,7 +161,6 @@ class Acc:
     mode_q: modes_vec  # per mode: the amplitude's posterior mean q_i = μ_i + c_i (p_i − μ_i) (likewise)
     mode_mu: modes_vec  # per mode: the amplitude's prior mean μ_i (likewise)
     mode_w0: modes_vec  # per mode: its one-scan weight c⁰_i for the NIS (likewise)
-    mode_ws: modes_vec  # per mode: its κ-shared weight for the attitude (likewise)
     sq_raw: float  # Σ z² unclipped (the NIS's Mahalanobis form)
 
 
@@ -190,7 +187,6 @@ def acc_init() -> Acc:
     a.mode_q = modes_vec()
     a.mode_mu = modes_vec()
     a.mode_w0 = modes_vec()
-    a.mode_ws = modes_vec()
     a.sq_raw = 0.0
     return a
 
@@ -373,7 +369,6 @@ def acc_unpack(v: acc_vec) -> Acc:
     a.mode_q = modes_vec()
     a.mode_mu = modes_vec()
     a.mode_w0 = modes_vec()
-    a.mode_ws = modes_vec()
     a.sq_raw = v[ACC_LEN - 1]
     return a
 
@@ -429,7 +424,6 @@ def acc_set_modes(acc: Acc, table: wp.array(dtype=modes_vec), m: int, mean: mode
     a.mode_mu = mu
     a.mode_q = mu + wp.cw_mul(w, a.proj - mu)
     a.mode_w0 = table[m + MODE_C0]
-    a.mode_ws = table[m + MODE_CS]
     return a
 
 
@@ -458,6 +452,12 @@ def modes_lam_info_w(acc: Acc, w: modes_vec, q: modes_vec, n_modes: int):
 def modes_lam_info(acc: Acc, p: LikParams):
     """:func:`modes_lam_info_w` with the modes' gains and posterior means."""
     return modes_lam_info_w(acc, acc.mode_w, acc.mode_q, p.n_modes)
+
+
+@wp.func
+def modes_lam_info_one_scan(acc: Acc, p: LikParams):
+    """:func:`modes_lam_info_w` with the modes' one-scan weights ``c⁰_i`` and no prior mean (the NIS, the attitude)."""
+    return modes_lam_info_w(acc, acc.mode_w0, wp.cw_mul(acc.mode_w0, acc.proj), p.n_modes)
 
 
 @wp.func
@@ -521,7 +521,7 @@ def acc_finish(acc: Acc, p: LikParams, att_cov: wp.mat33):
                 if det > wp.float64(0.0):
                     ll = ll + float(wp.float64(0.5) * quad - wp.float64(0.5) * wp.log(det))
                 if p.n_modes > 0:  # the NIS's one-scan weights
-                    lam0, info0 = modes_lam_info_w(acc, acc.mode_w0, wp.cw_mul(acc.mode_w0, acc.proj), p.n_modes)
+                    lam0, info0 = modes_lam_info_one_scan(acc, p)
                     quad, det = attitude_quadratic(lam0, info0, att_cov)
                 mahal = mahal - float(quad)
             sum_sq = wp.min(sum_sq, wp.max(mahal, 0.0))
@@ -550,11 +550,9 @@ def attitude_information(acc: Acc, p: LikParams):
     weights 3.1–6.4 m (S2 4.7, S5 6.4 m) but S7/S8's east axis covered 68/60 % instead of 84/82 %; κ-shared
     weights let S2 run away (72 ± 59 m, 4 seeds, CPU), and projecting every mode out of the attitude's
     information left S2's tactical IMU without the attitude it needs (250 m, 4 seeds). The attitude stays
-    overconfident under a stated map error (S5: 3σ of 0.03–0.05° against RMS errors of 0.03–0.1°), the open cause of the
-    horizontal bounds' shortfall (see CHANGELOG)."""
-    w = acc.mode_w0
-    q = wp.cw_mul(w, acc.proj)
-    lam, info = modes_lam_info_w(acc, w, q, p.n_modes)
+    overconfident under a stated map error (S5: 3σ of 0.03–0.05° against RMS errors of 0.03–0.1°), the open cause
+    of the horizontal bounds' shortfall (see CHANGELOG)."""
+    lam, info = modes_lam_info_one_scan(acc, p)
     if p.pos_precision >= 0.0:
         lpp = wp.mat33d(acc.lam_pp) + wp.identity(n=3, dtype=wp.float64) * wp.float64(p.pos_precision)
         ltp = wp.mat33d(acc.lam_tp)
@@ -562,10 +560,10 @@ def attitude_information(acc: Acc, p: LikParams):
         for i in range(p.n_modes):  # the position's sums through the map-error modes likewise
             h = mode_row(acc.proj_h, i)
             g = mode_row(acc.proj_g, i)
-            wi = wp.float64(w[i])
+            wi = wp.float64(acc.mode_w0[i])
             lpp = lpp - wp.outer(g, g) * wi
             ltp = ltp - wp.outer(h, g) * wi
-            info_p = info_p - g * wp.float64(q[i])
+            info_p = info_p - g * (wi * wp.float64(acc.proj[i]))
         det = wp.determinant(lpp)
         if det > wp.float64(0.0):
             k = ltp * wp.inverse(lpp)

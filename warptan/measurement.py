@@ -137,9 +137,9 @@ class Likelihood:
                     along: tuple[float, float] = (1.0, 0.0), absorb_offset: bool = False) -> tuple[np.ndarray, dict]:
         """The map-error mode table of a scan: ``(M + MODE_EXTRA_ROWS, MAX_MODES)`` float32 (rows named in
         :mod:`warptan.kernels.likelihood`): the modes ``u_ji``, then per mode its one-scan variance ``k⁰_i``, its
-        one-scan weight ``c⁰_i`` (the NIS), its scan-to-scan correlation ``ρ_i``, its κ-shared weight ``c_i`` (the
-        attitude's information) and the basis change ``T`` from the previous table (identity here; the model fills it
-        when it rebuilds), and a summary.
+        one-scan weight ``c⁰_i`` (the NIS and the attitude's information), its scan-to-scan correlation ``ρ_i`` and
+        the basis change ``T`` from the previous table (identity here; the model fills it when it rebuilds), and a
+        summary.
 
         The stated error is a Gaussian random field of RMS ``σ_e = map_error_sigma_m`` and covariance
         ``σ_e² exp(−(r/L)²)``, ``L = map_error_corr_m``. At the scan's ground points ``x_j`` (``xy``: horizontal
@@ -180,7 +180,7 @@ class Likelihood:
         S2 (tactical IMU, 5 m / 1 km error, seed 0) the altitude ran away by 750 m with a 3σ of 3 m. The
         filter's side of it (the offset's change along the track as vertical-velocity noise, its variance added to
         the reported altitude variance) is :meth:`offset_process`."""
-        from warptan.kernels.likelihood import MAX_MODES, MODE_C0, MODE_CS, MODE_EXTRA_ROWS, MODE_K0, MODE_RHO, MODE_T
+        from warptan.kernels.likelihood import MAX_MODES, MODE_C0, MODE_EXTRA_ROWS, MODE_K0, MODE_RHO, MODE_T
 
         xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
         a = np.asarray(sensitivity, dtype=np.float64).reshape(-1)
@@ -229,8 +229,6 @@ class Likelihood:
         table[m + MODE_K0, :len(keep)] = k_one.astype(np.float32)
         table[m + MODE_C0, :len(keep)] = (k_one / (1.0 + k_one)).astype(np.float32)
         table[m + MODE_RHO, :len(keep)] = rho.astype(np.float32)
-        k_shared = sharing * k_one
-        table[m + MODE_CS, :len(keep)] = (k_shared / (1.0 + k_shared)).astype(np.float32)
         return table, {"n_modes": len(keep), "eigenvalues": lam_k.tolist(), "sharing": sharing.tolist(),
                        "k0": k_one.tolist(), "rho": rho.tolist(),
                        "remainder": float(1.0 - lam_k.sum() / max(lam.sum(), 1e-300)), "offset_var": offset_var}
@@ -521,8 +519,9 @@ class MeasurementModel:
                 self._modes.assign(host)
             return
         table, info = self.likelihood.error_modes(xy, sens, self.sigma_m, along, self.absorbs_map_offset)
-        if host is not None:  # T = U_newᵀ U_old: the stored amplitudes carried into the new modes
-            table[m + klik.MODE_T:] = table[:m].T @ host[:m]
+        # T = U_newᵀ U_old carries the stored amplitudes into the new modes; a first table (or one for a new
+        # likelihood) carries nothing: T = 0 gives the one-scan prior whatever a filter stored
+        table[m + klik.MODE_T:] = 0.0 if host is None else table[:m].T @ host[:m]
         self._modes.assign(table)
         self._modes_host = table
         self._modes_geometry = (xy, along)
