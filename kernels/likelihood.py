@@ -68,18 +68,20 @@ MAX_MODES = 16
 """Most map-error modes a likelihood marginalises (:class:`warptan.measurement.Likelihood`, stated DEM accuracy)."""
 modes_vec = wp.types.vector(length=MAX_MODES, dtype=wp.float32)
 """One point's row of the map-error mode table, ``u_ji`` for mode i (zero past the modes in use); after the M points'
-rows (at ``M + MODE_*``) the modes' one-scan prior variances ``k⁰_i``, their one-scan weights ``c⁰_i`` (the NIS and
-the attitude's information),
-their along-track correlations ``ρ_i`` and the basis change ``T`` (``MAX_MODES`` rows) from the previous table's modes
-(:meth:`warptan.measurement.Likelihood.error_modes`); also a particle's mode amplitudes (whitened) and a filter's
-variances of them."""
+rows (at ``M + MODE_*``) the modes' one-scan prior variances ``k⁰_i``, their one-scan weights ``c⁰_i`` (the NIS),
+their along-track correlations ``ρ_i``, the attitude information's weights ``cᵃ_i`` and the basis change ``T``
+(``MAX_MODES`` rows) from the previous table's modes (:meth:`warptan.measurement.Likelihood.error_modes`); also a
+particle's mode amplitudes (whitened) and a filter's variances of them."""
 MODE_K0 = 0
 """Row ``M + MODE_K0`` of the mode table: ``k⁰_i = σ_e² λ_i / σ²``, a mode's variance in one scan (whitened)."""
 MODE_C0 = 1
 """Row ``M + MODE_C0``: ``c⁰_i = k⁰_i / (1 + k⁰_i)``, the NIS's one-scan weights."""
 MODE_RHO = 2
 """Row ``M + MODE_RHO``: ``ρ_i``, a mode amplitude's correlation from one scan to the next (first-order model)."""
-MODE_T = 3
+MODE_CA = 3
+"""Row ``M + MODE_CA``: ``cᵃ_i = κ_i k⁰_i / (1 + κ_i k⁰_i)``, the attitude information's weights (a mode's error
+counted once per κ_i scans that share it; :func:`attitude_information`)."""
+MODE_T = 4
 """Rows ``M + MODE_T + i``: the new mode i's coefficients on the previous table's modes (identity when the table was
 not rebuilt since the last scan, zero when there was none: nothing to carry)."""
 MODE_EXTRA_ROWS = MODE_T + MAX_MODES
@@ -161,6 +163,7 @@ class Acc:
     mode_q: modes_vec  # per mode: the amplitude's posterior mean q_i = μ_i + c_i (p_i − μ_i) (likewise)
     mode_mu: modes_vec  # per mode: the amplitude's prior mean μ_i (likewise)
     mode_w0: modes_vec  # per mode: its one-scan weight c⁰_i for the NIS (likewise)
+    mode_wa: modes_vec  # per mode: the attitude information's weight (likewise)
     sq_raw: float  # Σ z² unclipped (the NIS's Mahalanobis form)
 
 
@@ -187,6 +190,7 @@ def acc_init() -> Acc:
     a.mode_q = modes_vec()
     a.mode_mu = modes_vec()
     a.mode_w0 = modes_vec()
+    a.mode_wa = modes_vec()
     a.sq_raw = 0.0
     return a
 
@@ -369,6 +373,7 @@ def acc_unpack(v: acc_vec) -> Acc:
     a.mode_q = modes_vec()
     a.mode_mu = modes_vec()
     a.mode_w0 = modes_vec()
+    a.mode_wa = modes_vec()
     a.sq_raw = v[ACC_LEN - 1]
     return a
 
@@ -424,6 +429,7 @@ def acc_set_modes(acc: Acc, table: wp.array(dtype=modes_vec), m: int, mean: mode
     a.mode_mu = mu
     a.mode_q = mu + wp.cw_mul(w, a.proj - mu)
     a.mode_w0 = table[m + MODE_C0]
+    a.mode_wa = table[m + MODE_CA]
     return a
 
 
@@ -542,17 +548,20 @@ def attitude_information(acc: Acc, p: LikParams):
     the residuals' information on dθ that the position cannot explain, the Schur complement
     ``Λ - Λ_θp (Λ_pp + π I)⁻¹ Λ_pθ``, ``b - Λ_θp (Λ_pp + π I)⁻¹ b_p`` (float64).
 
-    With map-error modes the attitude reads the scan through the modes' one-scan weights (``c⁰_i``, μ = 0), not
-    through the particle's mode amplitudes that weigh it: the Kalman update of dθ and the amplitudes' update are
-    made apart (no cross-covariance), so reading the amplitudes' memory counts a tilt of the map error twice, once
-    in the amplitudes and once in the attitude. Measured (20 seeds, 5 m / 1 km worlds, H100, ``results/world``):
-    with the amplitudes' gains S1–S8 gave 3.3–7.7 m (S2 7.7 m, S5 7.6 m at 33/54 % coverage); with the one-scan
-    weights 3.1–6.4 m (S2 4.7, S5 6.4 m) but S7/S8's east axis covered 68/60 % instead of 84/82 %; κ-shared
-    weights let S2 run away (72 ± 59 m, 4 seeds, CPU), and projecting every mode out of the attitude's
-    information left S2's tactical IMU without the attitude it needs (250 m, 4 seeds). The attitude stays
-    overconfident under a stated map error (S5: 3σ of 0.03–0.05° against RMS errors of 0.03–0.1°), the open cause
-    of the horizontal bounds' shortfall (see CHANGELOG)."""
-    lam, info = modes_lam_info_one_scan(acc, p)
+    With map-error modes the attitude reads the scan through the modes with the weights ``cᵃ_i = κ_i k⁰_i / (1 +
+    κ_i k⁰_i)`` (``MODE_CA``), μ = 0: the Kalman update of dθ is made apart from the amplitudes' (no
+    cross-covariance), and a mode's error is shared by the κ_i consecutive scans that see the same ground, so each
+    scan may read only about 1/κ_i of what one scan alone would say through it (κ_i scans then hold what one
+    independent patch holds: a map tilt read κ_i times as independent is the tilt read as the attitude with a 3σ
+    √κ_i too small). Measured (5 m / 1 km worlds, CPU): with the one-scan weights ``c⁰_i`` S8 over the world of
+    seed 1003 kept the roll 10 σ off and the east velocity 2.2 m/s off at 17 σ (east 3σ coverage 4–15 %, 6.0–6.6
+    m); with ``cᵃ`` 0.4–1.3 σ and 93–96 % (2.0–2.3 m). It needs the fix's wander in the Kalman part's position
+    noise (:meth:`warptan.measurement.Likelihood.fix_process`): without it S2's velocity ran away. Before
+    (``results/world`` at 4397e95, 20 seeds, H100): the one-scan weights gave S7/S8 east coverage 68/60 %, the
+    amplitudes' gains S2 7.7 m and S5 7.6 m, projecting every mode out of the attitude's information 250 m on S2
+    (the tactical IMU needs the attitude).
+    """
+    lam, info = modes_lam_info_w(acc, acc.mode_wa, wp.cw_mul(acc.mode_wa, acc.proj), p.n_modes)
     if p.pos_precision >= 0.0:
         lpp = wp.mat33d(acc.lam_pp) + wp.identity(n=3, dtype=wp.float64) * wp.float64(p.pos_precision)
         ltp = wp.mat33d(acc.lam_tp)
@@ -560,7 +569,7 @@ def attitude_information(acc: Acc, p: LikParams):
         for i in range(p.n_modes):  # the position's sums through the map-error modes likewise
             h = mode_row(acc.proj_h, i)
             g = mode_row(acc.proj_g, i)
-            wi = wp.float64(acc.mode_w0[i])
+            wi = wp.float64(acc.mode_wa[i])
             lpp = lpp - wp.outer(g, g) * wi
             ltp = ltp - wp.outer(h, g) * wi
             info_p = info_p - g * (wi * wp.float64(acc.proj[i]))

@@ -39,6 +39,8 @@ def test_the_modes_hold_the_stated_covariance_and_its_sharing():
     np.testing.assert_allclose(table[m + klik.MODE_K0, :q], 100.0 * lam, rtol=1e-6)  # σ_e² λ_i / σ²
     np.testing.assert_allclose(table[m + klik.MODE_C0, :q], 100.0 * lam / (1.0 + 100.0 * lam), rtol=1e-6)
     np.testing.assert_allclose(table[m + klik.MODE_RHO, :q], (kappa - 1) / (kappa + 1), rtol=1e-6)
+    k_shared = kappa * 100.0 * lam  # the attitude's weights: each mode's error read once per κ scans
+    np.testing.assert_allclose(table[m + klik.MODE_CA, :q], k_shared / (1.0 + k_shared), rtol=1e-6)
     np.testing.assert_allclose(u.T @ u, np.eye(q), atol=1e-4)  # orthonormal modes
     d = np.linalg.norm(xy[:, None] - xy[None], axis=2)
     r = np.exp(-(d / 1000.0) ** 2)
@@ -301,8 +303,9 @@ def test_the_filter_reports_the_offset_it_carries():
     """With a stated map error and a model whose prediction moves with the altitude, the filter adds the offset's
     variance σ_e² to the reported altitude variance (its estimate's ``cov_pos`` and the runs' σ) and the
     offset's change along the track to the down velocity's process noise (P grows faster there, by at most
-    q_v t);
-    without a statement, or with a barometer-referenced altimeter, nothing changes."""
+    q_v t); a point-cloud model's fix wanders along the track with the error: ``2 σ_e² v / L`` more position
+    noise in the Kalman part (not an altimeter's). Without a statement, or with a barometer-referenced altimeter,
+    nothing changes."""
     from warptan.imu import ImuModel
     from warptan.mpf import MarginalizedParticleFilter
     from warptan.runner import InitialErrors, initial_nominal, prior_linear_cov
@@ -315,13 +318,16 @@ def test_the_filter_reports_the_offset_it_carries():
     nominal = initial_nominal(truth.state(0), initial, np.random.default_rng(0))
     p0 = prior_linear_cov(initial, imu)
 
-    def make(model):
+    def make(model, kalman_pos_noise=0.5):
         return MarginalizedParticleFilter(model, nominal, imu.grade, 100.0, np.asarray(initial.pos_m), p0,
-                                          n_particles=50, seed=0)
+                                          n_particles=50, seed=0, kalman_pos_noise=kalman_pos_noise)
 
     stated = wt.Likelihood("gaussian", sensor_sigma_m=0.5, **STATED)
-    plain, told = make(wt.make_model("sliding", dem)), make(wt.make_model("sliding", dem, stated))
-    baro = make(wt.make_model("altimeter", dem, stated))
+    assert stated.fix_process(100.0) == 2.0 * 25.0 * 100.0 / 1000.0 and wt.Likelihood("gaussian").fix_process(1.0) == 0
+    fix = stated.fix_process(np.linalg.norm(nominal.vel_n[:2]))  # at the nominal's ground speed
+    told, baro = make(wt.make_model("sliding", dem, stated)), make(wt.make_model("altimeter", dem, stated))
+    plain = make(wt.make_model("sliding", dem), kalman_pos_noise=np.sqrt(0.25 + fix))  # the same Q^n
+    np.testing.assert_allclose([told.q_pos, baro.q_pos], [plain.q_pos, 0.25 * 0.01], rtol=1e-12)
     assert told.map_offset_var == 25.0 and plain.map_offset_var == baro.map_offset_var == 0.0
     np.testing.assert_allclose(told.estimate().cov_pos - plain.estimate().cov_pos, np.diag([0.0, 0.0, 25.0]),
                                atol=1e-9)

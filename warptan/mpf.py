@@ -91,7 +91,9 @@ tell from the aircraft's altitude (ray casts, sliding, the altimeter without a b
 makes the particles' altitude the height above the map: the offset's variance ``var_b`` is added to the reported
 altitude variance (``map_offset_var``; the estimate's ``cov_pos`` and the runs' σ) and its change along the track is
 process noise on the down velocity, ``q_v = 4 σ_e² v³ / L³`` at the fastest nominal's ground speed at construction
-(:meth:`warptan.measurement.Likelihood.offset_process`).
+(:meth:`warptan.measurement.Likelihood.offset_process`). A point-cloud model's fix of the horizontal position
+wanders along the track with the error: ``Q^n`` grows by ``2 σ_e² v / L`` (:meth:`warptan.measurement.Likelihood.
+fix_process`), or the Kalman part reads the wander as velocity.
 
 Integrity (MBARI TRN style): every model returns each particle's normalised squared residual (NIS, mean of
 ``min((r/σ)², k_out²)`` over the received points; ≈ 1 at the true pose); the smallest NIS of any particle — is
@@ -419,12 +421,16 @@ class MarginalizedParticleFilter:
         # A stated map error's offset under the scan rides on the particles' altitude (height above the map):
         # its variance (m²) is added to the reported altitude variance, its change along the track is noise on the
         # down velocity (Likelihood.offset_process; the fastest filter of a batch sets the noise).
+        # The wander of a scan's fix along the track under a stated map error is position noise of the Kalman
+        # part (Likelihood.fix_process).
         self.map_offset_var, q_v = 0.0, 0.0
         lk = getattr(model, "likelihood", None)
+        speed = max(float(np.linalg.norm(x.vel_n[:2])) for x in nominals)
         if getattr(model, "absorbs_map_offset", False) and hasattr(lk, "offset_process"):
-            speed = max(float(np.linalg.norm(x.vel_n[:2])) for x in nominals)
             self.map_offset_var, q_v = lk.offset_process(speed)
         self._q_vel_down = float(q_v) * self.dt
+        if getattr(model, "fixes_per_scan", False) and hasattr(lk, "fix_process"):
+            self.q_pos += lk.fix_process(speed) * self.dt
         self.max_stages = int(max_stages)
         self.bandwidth = float(regularize) * (4.0 / (self.n * 5.0)) ** (1.0 / 7.0)
         """Regularisation bandwidth h (Silverman's rule for d = 3 times ``regularize``)."""
