@@ -418,8 +418,8 @@ def mode_prior(table: wp.array(dtype=modes_vec), m: int, mean: modes_vec, var: m
 @wp.func
 def acc_set_modes(acc: Acc, table: wp.array(dtype=modes_vec), m: int, mean: modes_vec, var: modes_vec) -> Acc:
     """``acc`` (its sums complete) with its map-error modes' prior and posterior (:func:`mode_prior`): the gains
-    ``c_i = P⁻_i / (1 + P⁻_i)``, the prior means μ_i, the posterior means ``q_i = μ_i + c_i (p_i − μ_i)`` and the
-    one-scan weights ``c⁰_i``."""
+    ``c_i = P⁻_i / (1 + P⁻_i)``, the prior means μ_i, the posterior means ``q_i = μ_i + c_i (p_i − μ_i)``, the
+    one-scan weights ``c⁰_i`` and the attitude's ``cᵃ_i``."""
     a = acc
     mu, pv = mode_prior(table, m, mean, var)
     w = modes_vec()
@@ -462,7 +462,7 @@ def modes_lam_info(acc: Acc, p: LikParams):
 
 @wp.func
 def modes_lam_info_one_scan(acc: Acc, p: LikParams):
-    """:func:`modes_lam_info_w` with the modes' one-scan weights ``c⁰_i`` and no prior mean (the NIS, the attitude)."""
+    """:func:`modes_lam_info_w` with the modes' one-scan weights ``c⁰_i`` and no prior mean (the NIS)."""
     return modes_lam_info_w(acc, acc.mode_w0, wp.cw_mul(acc.mode_w0, acc.proj), p.n_modes)
 
 

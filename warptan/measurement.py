@@ -137,9 +137,9 @@ class Likelihood:
                     along: tuple[float, float] = (1.0, 0.0), absorb_offset: bool = False) -> tuple[np.ndarray, dict]:
         """The map-error mode table of a scan: ``(M + MODE_EXTRA_ROWS, MAX_MODES)`` float32 (rows named in
         :mod:`warptan.kernels.likelihood`): the modes ``u_ji``, then per mode its one-scan variance ``k⁰_i``, its
-        one-scan weight ``c⁰_i`` (the NIS and the attitude's information), its scan-to-scan correlation ``ρ_i`` and
-        the basis change ``T`` from the previous table (identity here; the model fills it when it rebuilds), and a
-        summary.
+        one-scan weight ``c⁰_i`` (the NIS), its scan-to-scan correlation ``ρ_i``, the attitude information's weight
+        ``cᵃ_i = κ_i k⁰_i / (1 + κ_i k⁰_i)`` (each mode read once per κ_i scans that share it) and the basis change
+        ``T`` from the previous table (identity here; the model fills it when it rebuilds), and a summary.
 
         The stated error is a Gaussian random field of RMS ``σ_e = map_error_sigma_m`` and covariance
         ``σ_e² exp(−(r/L)²)``, ``L = map_error_corr_m``. At the scan's ground points ``x_j`` (``xy``: horizontal
