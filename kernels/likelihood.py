@@ -461,9 +461,10 @@ def modes_lam_info(acc: Acc, p: LikParams):
 
 
 @wp.func
-def modes_lam_info_one_scan(acc: Acc, p: LikParams):
-    """:func:`modes_lam_info_w` with the modes' one-scan weights ``c⁰_i`` and no prior mean (the NIS)."""
-    return modes_lam_info_w(acc, acc.mode_w0, wp.cw_mul(acc.mode_w0, acc.proj), p.n_modes)
+def modes_lam_info_fixed(acc: Acc, w: modes_vec, p: LikParams):
+    """:func:`modes_lam_info_w` with fixed weights ``w`` and no prior mean: the one-scan ``c⁰_i`` (the NIS), the
+    attitude's ``cᵃ_i`` (:func:`attitude_information`)."""
+    return modes_lam_info_w(acc, w, wp.cw_mul(w, acc.proj), p.n_modes)
 
 
 @wp.func
@@ -527,7 +528,7 @@ def acc_finish(acc: Acc, p: LikParams, att_cov: wp.mat33):
                 if det > wp.float64(0.0):
                     ll = ll + float(wp.float64(0.5) * quad - wp.float64(0.5) * wp.log(det))
                 if p.n_modes > 0:  # the NIS's one-scan weights
-                    lam0, info0 = modes_lam_info_one_scan(acc, p)
+                    lam0, info0 = modes_lam_info_fixed(acc, acc.mode_w0, p)
                     quad, det = attitude_quadratic(lam0, info0, att_cov)
                 mahal = mahal - float(quad)
             sum_sq = wp.min(sum_sq, wp.max(mahal, 0.0))
@@ -561,7 +562,7 @@ def attitude_information(acc: Acc, p: LikParams):
     amplitudes' gains S2 7.7 m and S5 7.6 m, projecting every mode out of the attitude's information 250 m on S2
     (the tactical IMU needs the attitude).
     """
-    lam, info = modes_lam_info_w(acc, acc.mode_wa, wp.cw_mul(acc.mode_wa, acc.proj), p.n_modes)
+    lam, info = modes_lam_info_fixed(acc, acc.mode_wa, p)
     if p.pos_precision >= 0.0:
         lpp = wp.mat33d(acc.lam_pp) + wp.identity(n=3, dtype=wp.float64) * wp.float64(p.pos_precision)
         ltp = wp.mat33d(acc.lam_tp)
