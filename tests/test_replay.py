@@ -144,19 +144,6 @@ def test_all_problems_at_once_and_not_a_log(tmp_path):
         read_log(tmp_path / "other.h5")
 
 
-def test_replay_refuses_a_dem_that_does_not_cover_the_flight(simulated, tmp_path):
-    """The S8 flight (on the 44 km rugged tile) over a 300 m synthetic DEM: one error, nothing written."""
-    _, log = simulated["sliding"]
-    path = write_log(log, tmp_path / "flight.h5")
-    out = tmp_path / "out"
-    proc = subprocess.run([sys.executable, "-m", "warptan", "replay", str(path), "--terrain",
-                           "synthetic:rugged,size_m=300", "--out", str(out), "--quiet"],
-                          capture_output=True, text=True, timeout=300, cwd=tmp_path)
-    assert proc.returncode == 2
-    assert "leaves the DEM" in proc.stderr and "Traceback" not in proc.stderr
-    assert not out.exists()
-
-
 def test_predict_refuses_a_bad_step():
     from warptan.ins import NavState
     from warptan.measurement import make_model

@@ -354,10 +354,13 @@ def _replay(args) -> int:
         bar.set_description(f"replay {log.name}")
         result = replay(log, args.terrain, model=args.model, backend=args.backend, particles=args.particles,
                         likelihood=args.likelihood, seed=args.seed, device=args.device,
-                        progress=lambda k, n: bar.update(1))
+                        progress=lambda k, n: bar.update(1), allow_gaps=args.allow_gaps)
     dropped = result.run.info.get("dropped_measurements", 0)
     if dropped:
         print(f"warptan: note: {dropped} measurement(s) outside the IMU's time span were not used")
+    if result.run.info.get("gaps_allowed"):
+        print(f"warptan: note: --allow-gaps: {result.run.info['track_points_over_nodata']} track point(s) over nodata; "
+              "the updates there were skipped (skipped_updates in results.json)")
     written = write_outputs([result], out, {result.scenario: result.truth_terrain}, plots=not args.no_plots,
                             trajectories=True, title=f"warptan replay of {log.name}")
     print(written["table"])
@@ -540,6 +543,8 @@ def build_parser() -> argparse.ArgumentParser:
     rep.add_argument("--device", default="cpu", help="Warp device (cpu, cuda:0)")
     rep.add_argument("--out", default=None, help="output folder (default warptan-replay)")
     rep.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
+    rep.add_argument("--allow-gaps", action="store_true",
+                     help="fly through nodata under the track (its updates skipped and counted) instead of refusing")
     rep.add_argument("--quiet", action="store_true", help="no progress bar")
     bag = rep.add_argument_group("ROS 2 bags", "topics and mounting (a TOML file, or these flags)")
     bag.add_argument("--bag-config", default=None, help="TOML with topics, mounting, initial σ, IMU grade")

@@ -1,11 +1,15 @@
-"""The warptan flight log: a recorded flight in one HDF5 file that ``warptan replay`` filters (format version 1).
+"""The warptan flight log: a recorded flight in one HDF5 file that ``warptan replay`` filters (format version 2).
 
 Why HDF5 (h5py): a flight is a few long time series of different rates and shapes — IMU samples (K, 3), scans
 (S, M) with their directions, altimeter and barometer readings — plus metadata. HDF5 holds them in one file as
 named, typed, chunked arrays with units as attributes, is read natively by MATLAB (``h5read``), Python, Julia and C,
 and needs no table flattening (Parquet would store a scan as M columns or a list column). The layout::
 
-    /                    format = "warptan-flight-log", version = 1, name
+    /                    format = "warptan-flight-log", version = 2, name
+    /frame               attrs kind = "geodetic": origin_lat_deg, origin_lon_deg (WGS84), origin_height_m (height of
+                         the NED origin above the vertical datum), vertical_datum (its name; "" = not stated) — the
+                         map frame tied to the Earth (:class:`~warptan.geoframe.GeoFrame`); or kind = "dem-grid": the
+                         frame is the grid of the DEM named in /dem and nothing else (a generated terrain)
     /imu                 t (K,) s; f_b (K, 3) m/s² specific force; w_b (K, 3) rad/s body rate — body frame FRD;
                          attrs rate_hz (nominal rate), grade (IMU grade name), t_end (end of the last sample's step)
     /scans   (optional)  t (S,) s; dirs_s (S, M, 3) unit directions, sensor frame FRD; ranges_m (S, M);
@@ -22,9 +26,13 @@ and needs no table flattening (Parquet would store a scan as M columns or a list
     /settings (optional) attrs json: the filter settings of the run that wrote the log (replay defaults)
 
 Conventions: times in seconds on one clock. IMU sample k (``f_b[k]``, ``w_b[k]``) is held over its step
-``[t[k], t[k+1])`` (the last one until ``t_end``): the zero-order hold warptan's own INS integrates. Map frame:
-north/east in metres on the DEM's grid (:meth:`warptan.terrain.Terrain.latlon_to_ne` converts latitude/longitude),
-down = −altitude above the DEM's vertical datum. Point-cloud mounting: a point ``c_s = r d_s`` in the sensor frame is
+``[t[k], t[k+1])`` (the last one until ``t_end``): the zero-order hold warptan's own INS integrates. Map frame
+(version 2, kind geodetic): north/east in metres of the transverse Mercator (WGS84, scale 1) centred on the frame's
+origin — north is true north at the origin — and down = ``origin_height_m`` − height above the vertical datum
+(:mod:`warptan.geoframe`; ``warptan replay`` converts positions, velocities and attitudes into the frame of whichever
+DEM covers the flight). Kind dem-grid, and every version 1 log: north/east in metres on the named DEM's grid, down =
+−altitude above its datum (such a log flies only over its own DEM; version 1 is still read, with a warning when
+replayed over another DEM). Point-cloud mounting: a point ``c_s = r d_s`` in the sensor frame is
 ``R(quat_bs) c_s + lever_b`` in the body frame; the altimeter's range is taken as vertical from the body origin.
 
 :func:`read_log` validates the whole file and lists every problem it finds at once (:class:`LogError`);
@@ -41,10 +49,13 @@ from pathlib import Path
 import numpy as np
 
 from warptan.checks import FilterError
+from warptan.geoframe import GeoFrame
 from warptan.imu import IMU_GRADES, imu_grade
 
 FORMAT = "warptan-flight-log"
-VERSION = 1
+VERSION = 2
+READABLE_VERSIONS = (1, 2)
+FRAME_KINDS = ("geodetic", "dem-grid")
 MAX_GAP_S = 1.0
 """Longest gap between consecutive IMU samples a log may have, s (a longer one is lost data)."""
 UNIT_TOL = 1e-6
@@ -99,6 +110,10 @@ class FlightLog:
     dem_crs: str = ""
     settings: dict = field(default_factory=dict)
     name: str = "flight"
+    frame: GeoFrame | None = None
+    """The map frame on the Earth; None: the grid of the DEM named in ``dem_reference`` (kind dem-grid)."""
+    version: int = VERSION
+    """The format version the log was read from (1: the frame is its DEM's grid, no frame group)."""
 
     @property
     def has_truth(self) -> bool:
@@ -185,6 +200,8 @@ def _unit_quats(name: str, q: np.ndarray, problems: list[str]) -> None:
 
 def _problems(log: FlightLog) -> list[str]:
     p: list[str] = []
+    if log.frame is not None:
+        p.extend(log.frame.problems())
     if log.imu_grade not in IMU_GRADES:
         p.append(f"imu.grade {log.imu_grade!r} is not a grade warptan knows ({', '.join(IMU_GRADES)})")
     if not (np.isfinite(log.imu_rate_hz) and log.imu_rate_hz > 0):
@@ -302,6 +319,29 @@ _UNITS = {"t": "s", "f_b": "m/s^2 (specific force, body FRD)", "w_b": "rad/s (bo
           "gyro_bias": "rad/s", "sigma": "pos m (3), vel m/s (3), att rad (3), accel bias m/s^2 (3), gyro bias "
                                          "rad/s (3)", "valid": "bool"}
 _REQUIRED = ("imu", "initial", "mounting")
+_FRAME_KEYS = ("origin_lat_deg", "origin_lon_deg", "origin_height_m", "vertical_datum")
+
+
+def _read_frame(attrs, source: str) -> GeoFrame | None:
+    """The /frame group's frame (None for kind dem-grid); a :class:`LogError` names what is missing or wrong."""
+    def text(v):
+        return v.decode() if isinstance(v, bytes) else str(v)
+
+    kind = text(attrs.get("kind", ""))
+    if kind not in FRAME_KINDS:
+        raise LogError(source, [f"frame.kind = {kind!r} is not one of {', '.join(FRAME_KINDS)}"])
+    if kind == "dem-grid":
+        return None
+    missing = [f"frame.{k} is missing" for k in _FRAME_KEYS if k not in attrs]
+    if missing:
+        raise LogError(source, missing)
+    values = []
+    for key in _FRAME_KEYS[:3]:
+        try:
+            values.append(float(attrs[key]))
+        except (TypeError, ValueError):
+            raise LogError(source, [f"frame.{key} = {attrs[key]!r} is not a number"]) from None
+    return GeoFrame(*values, text(attrs["vertical_datum"]))
 
 
 def write_log(log: FlightLog, path: str | os.PathLike) -> Path:
@@ -330,6 +370,11 @@ def write_log(log: FlightLog, path: str | os.PathLike) -> Path:
                 if group in f or group == "dem":
                     g = f.require_group(group)
                     g.attrs[key] = getattr(log, attr)
+            frame = f.create_group("frame")
+            frame.attrs["kind"] = "dem-grid" if log.frame is None else "geodetic"
+            if log.frame is not None:
+                for key in _FRAME_KEYS:
+                    frame.attrs[key] = getattr(log.frame, key)
             if log.settings:
                 f.create_group("settings").attrs["json"] = json.dumps(log.settings, sort_keys=True)
         os.replace(tmp, path)
@@ -357,12 +402,15 @@ def read_log(path: str | os.PathLike) -> FlightLog:
             raise LogError(source, [f"not a warptan flight log (attribute format = {f.attrs.get('format')!r}, "
                                     f"expected {FORMAT!r})"])
         version = int(f.attrs.get("version", -1))
-        if version != VERSION:
-            raise LogError(source, [f"format version {version} is not one this warptan reads ({VERSION})"])
-        problems = [f"group /{g} is missing" for g in _REQUIRED if g not in f]
+        if version not in READABLE_VERSIONS:
+            raise LogError(source, [f"format version {version} is not one this warptan reads "
+                                    f"({', '.join(map(str, READABLE_VERSIONS))})"])
+        problems = [f"group /{g} is missing" for g in _REQUIRED + (("frame",) if version >= 2 else ()) if g not in f]
         if problems:
             raise LogError(source, problems)
-        kw: dict = {"name": str(f.attrs.get("name", path.stem))}
+        kw: dict = {"name": str(f.attrs.get("name", path.stem)), "version": version}
+        if version >= 2:
+            kw["frame"] = _read_frame(f["frame"].attrs, source)
         for group, items in _LAYOUT.items():
             if group not in f:
                 continue

@@ -28,6 +28,7 @@ import numpy as np
 from warptan.checks import FilterError, check_seed
 from warptan.flightlog import MAX_GAP_S, FlightLog, LogError
 from warptan.frames import quat_to_mat
+from warptan.geoframe import FrameChange, GeoFrame, corners, frame_change
 from warptan.imu import imu_grade
 from warptan.ins import Ins, NavState
 from warptan.measurement import Likelihood
@@ -41,10 +42,15 @@ SNAP = 1e-6
 
 # ---------------------------------------------------------------------- simulation -> log
 def logs_from_record(record: dict, flight, config: dict, likelihood: Likelihood, total_seeds: list[int],
-                     seeds: list[int], terrain_spec: str) -> list[FlightLog]:
+                     seeds: list[int], terrain_spec: str, terrain=None) -> list[FlightLog]:
     """One :class:`FlightLog` per seed of a simulated batch (``run_filter(record=...)``): the IMU samples, scans or
-    altimeter/barometer readings the filter received, the truth, the prior and the run's settings."""
+    altimeter/barometer readings the filter received, the truth, the prior and the run's settings. With a
+    georeferenced ``terrain`` (the DEM the flight is over) the log's frame is the geodetic frame at the DEM's NED
+    origin (:class:`~warptan.geoframe.GeoFrame`; positions, velocities and attitudes converted into it when the DEM's
+    grid is not that tangent frame, e.g. a UTM DEM); without one, the DEM's grid (kind dem-grid)."""
     ie, s = config["initial_error"], config["sensor"]
+    geo = GeoFrame.of_terrain(terrain) if terrain is not None else None
+    change = None if geo is None else frame_change(terrain, geo, corners(flight.pos_n))
     k_total = record["f"].shape[0]
     t_imu = np.asarray(flight.t_s[:k_total], dtype=np.float64)
     t_meas = np.asarray(flight.t_s[np.array(record["epochs"])], dtype=np.float64)
@@ -67,7 +73,7 @@ def logs_from_record(record: dict, flight, config: dict, likelihood: Likelihood,
                       scan_valid=np.isfinite(ranges), range_sigma_m=s["range_sigma_m"])
         settings = {"config": config, "likelihood": dataclasses.asdict(likelihood), "seed": int(total),
                     "scenario_seed": int(seed), "terrain_spec": terrain_spec}
-        logs.append(FlightLog(
+        log = FlightLog(
             imu_t=t_imu, imu_f=record["f"][:, b], imu_w=record["w"][:, b], imu_rate_hz=float(flight.rate_hz),
             imu_grade=str(config["imu"]["grade"]), t_end=float(flight.t_s[k_total]), init_t=float(t_imu[0]),
             init_pos=nominal0.pos_n, init_vel=nominal0.vel_n, init_quat=nominal0.quat_nb,
@@ -76,8 +82,24 @@ def logs_from_record(record: dict, flight, config: dict, likelihood: Likelihood,
             truth_t=np.asarray(flight.t_s[:k_total + 1], dtype=np.float64), truth_pos=flight.pos_n[:k_total + 1],
             truth_vel=flight.vel_n[:k_total + 1], truth_quat=flight.quat_nb[:k_total + 1],
             truth_accel_bias=bias[:, 0:3], truth_gyro_bias=bias[:, 3:6],
-            dem_reference=terrain_spec, settings=settings, name=f"{config['id']}_seed{seed}", **kw))
+            dem_reference=terrain_spec, settings=settings, name=f"{config['id']}_seed{seed}", **kw)
+        logs.append(log if change is None else convert_log(log, change, frame=geo))
     return logs
+
+
+def convert_log(log: FlightLog, change: FrameChange, frame: GeoFrame | None = None) -> FlightLog:
+    """``log`` with its initial state and truth moved by ``change`` (positions point by point, velocities and
+    attitudes turned; :mod:`warptan.geoframe`) and its frame set to ``frame``; the sensors' body-frame data are
+    unchanged. The identity change returns the same arrays' values (the same bits)."""
+    kw: dict = {"frame": frame}
+    if not change.identity:
+        p0 = log.init_pos[None]
+        kw.update(init_pos=change.positions(p0)[0], init_vel=change.vectors(p0, log.init_vel[None])[0],
+                  init_quat=change.attitudes(p0, log.init_quat[None])[0])
+        if log.has_truth:
+            kw.update(truth_pos=change.positions(log.truth_pos), truth_vel=change.vectors(log.truth_pos, log.truth_vel),
+                      truth_quat=change.attitudes(log.truth_pos, log.truth_quat))
+    return dataclasses.replace(log, **kw)
 
 
 # ---------------------------------------------------------------------- timeline
@@ -199,17 +221,24 @@ def replay_config(log: FlightLog, model: str | None = None, backend: str | None 
     return config
 
 
-def _likelihood(log: FlightLog, config: dict, the_map) -> Likelihood:
+def _likelihood(log: FlightLog, config: dict, the_map, own: bool = True) -> Likelihood:
     """The log's stored likelihood when the model and likelihood are the ones it was simulated with, else the
     scenarios' calibration (:func:`~warptan.scenarios.scenario_likelihood`) with the scan footprint measured from
-    the log: the along-track extent of its directions at their median range."""
+    the log: the along-track extent of its directions at their median range. Over a DEM other than the log's own
+    (``own`` False; another crop or projection is another grid of posts) the stored map σ also counts the map's
+    interpolation error at its posts, as ``likelihood.map_aware`` does for a map whose grid is not the world's
+    (:meth:`~warptan.terrain.Terrain.interpolation_sigma_m`)."""
     from warptan.scenarios import scenario_likelihood
 
     stored, stored_config = log.settings.get("likelihood"), log.settings.get("config")
     if stored is not None and stored_config is not None and all(
             stored_config[group][key] == config[group][key] for group, key in (("sensor", "model"),
                                                                              ("likelihood", "kind"))):
-        return Likelihood(**stored)
+        lik = Likelihood(**stored)
+        if not own and config["likelihood"]["map_aware"]:
+            lik = dataclasses.replace(lik, map_sigma_m=math.hypot(lik.map_sigma_m,
+                                                                  the_map.interpolation_sigma_m(lik.map_sigma_m)))
+        return lik
     footprint = None
     if config["sensor"]["model"] != "altimeter":
         valid = log.scan_valid
@@ -219,22 +248,80 @@ def _likelihood(log: FlightLog, config: dict, the_map) -> Likelihood:
     return scenario_likelihood(config, the_map, None, footprint_m=footprint)
 
 
-def check_coverage(log: FlightLog, terrain, ins_pos: np.ndarray) -> None:
-    """A :class:`LogError` when the DEM does not cover the flight: the initial position and the truth (without
-    truth: the INS-only track at the updates)."""
+def check_coverage(log: FlightLog, terrain, ins_pos: np.ndarray, allow_gaps: bool = False) -> int:
+    """A :class:`LogError` when the DEM does not cover the flight — the initial position and the truth (without
+    truth: the INS-only track at the updates) leave it (both extents named, in latitude/longitude when the DEM has a
+    CRS), or pass over nodata (unless ``allow_gaps``: then the updates over gaps are skipped and counted). Returns
+    the number of track points over nodata."""
+    from warptan.geoframe import latlon_extent
+    from warptan.scenarios import track_problem
+
     tracks = [("initial.pos_n", np.array([log.imu_t[0]]), log.init_pos[None]),
               ("truth.pos_n", log.truth_t, log.truth_pos) if log.has_truth else ("INS-only track", None, ins_pos)]
-    problems = []
+    source = f"flight log {log.name}"
+    geo = bool(getattr(terrain, "crs_wkt", None))
     for name, t, pos in tracks:
         inside = terrain.contains(pos[:, 0], pos[:, 1])
         if not inside.all():
             i = int(np.argmax(~inside))
             when = f" at t = {t[i]:.2f} s" if t is not None else f" (epoch {i})"
-            problems.append(f"{name} leaves the DEM {terrain.name}{when}: north {pos[i, 0]:.1f} m, east "
-                            f"{pos[i, 1]:.1f} m (DEM north {terrain.bounds_ne[0]:.0f} … {terrain.bounds_ne[1]:.0f}, "
-                            f"east {terrain.bounds_ne[2]:.0f} … {terrain.bounds_ne[3]:.0f} m)")
-    if problems:
-        raise LogError(f"flight log {log.name}", problems)
+            n0, n1, e0, e1 = terrain.bounds_ne
+            if geo:
+                box = np.array([[n0, e0], [n0, e1], [n1, e0], [n1, e1]])
+                flight = np.vstack([p[:, :2] for _, _, p in tracks])
+                raise LogError(source, [f"the DEM {terrain.name} does not contain the flight: the flight ("
+                                        f"{latlon_extent(terrain, flight)}) against the DEM ("
+                                        f"{latlon_extent(terrain, box)}); {name} leaves it first{when}"])
+            raise LogError(source, [f"{name} leaves the DEM {terrain.name}{when}: north {pos[i, 0]:.1f} m, east "
+                                    f"{pos[i, 1]:.1f} m (DEM north {n0:.0f} … {n1:.0f}, east {e0:.0f} … {e1:.0f} m)"])
+    pos = tracks[1][2]
+    over = int(np.isnan(terrain.height_at(pos[:, 0], pos[:, 1])).sum())
+    if over and not allow_gaps:
+        raise LogError(source, [f"{track_problem(terrain, pos[:, :2], 0.0, f'DEM {terrain.name}')}; --allow-gaps "
+                                "(replay(..., allow_gaps=True)) flies through them: the updates over gaps are skipped "
+                                "and counted"])
+    return over
+
+
+def own_terrain(log: FlightLog, terrain) -> bool:
+    """``terrain`` (None, a name, path, spec or Terrain) is the DEM the log names."""
+    if terrain is None:
+        return True
+    name = getattr(terrain, "name", None) or str(terrain)
+    return name in {log.settings.get("terrain_spec"), log.dem_reference} - {None, ""}
+
+
+def place_log(log: FlightLog, terrain, own: bool) -> tuple[FlightLog, dict]:
+    """``log`` in the frame of ``terrain`` (its own DEM when ``own``): a geodetic frame is converted into the DEM's
+    (:func:`convert_log`); a DEM-grid frame (version 1, or kind dem-grid) is the DEM's own grid. Returns the placed
+    log and what was done (for ``run.info``). A :class:`LogError` when the two cannot be related: a DEM without a
+    CRS under a geodetic frame (unless it is the log's own), another DEM under a dem-grid frame of version 2."""
+    import warnings
+
+    source = f"flight log {log.name}"
+    if log.frame is None:
+        if own:
+            return log, {"frame": "dem-grid"}
+        if log.version >= 2:
+            raise LogError(source, [f"its frame is the grid of the DEM {log.dem_reference!r} (frame kind dem-grid, "
+                                    f"no position on the Earth): it cannot be placed on {terrain.name}; replay it over "
+                                    "its own DEM"])
+        warnings.warn(f"{source}: a version 1 log's frame is the grid of its DEM {log.dem_reference!r}; replayed over "
+                      f"{terrain.name} as if that grid were this DEM's (write the log again as version 2 to tie it to "
+                      "the Earth)", UserWarning, stacklevel=3)
+        return log, {"frame": "dem-grid (version 1, over another DEM)"}
+    if not getattr(terrain, "crs_wkt", None):
+        if own:
+            return log, {"frame": "geodetic, own DEM without CRS"}
+        raise LogError(source, [f"the DEM {terrain.name} has no CRS: it cannot be related to the log's frame (origin "
+                                f"lat {log.frame.origin_lat_deg:.6f}°, lon {log.frame.origin_lon_deg:.6f}°); give a "
+                                "georeferenced DEM"])
+    probe = log.truth_pos if log.has_truth else log.init_pos[None]
+    change = frame_change(log.frame, terrain, corners(probe), dz=log.frame.origin_height_m)
+    info = {"frame": "geodetic", "frame_identity": change.identity,
+            "frame_turn_deg": float(np.degrees(change.angles(corners(probe))[0][-1])),
+            "frame_scale_ppm": change.scale_ppm(corners(probe))}
+    return convert_log(log, change, frame=log.frame), info
 
 
 def replay_terrain(log: FlightLog, config: dict, terrain=None):
@@ -249,7 +336,7 @@ def replay_terrain(log: FlightLog, config: dict, terrain=None):
 
 def replay(log: FlightLog, terrain=None, *, model: str | None = None, backend: str | None = None,
            particles: int | None = None, likelihood: str | None = None, seed: int | None = None, device="cpu",
-           progress=None):
+           progress=None, allow_gaps: bool = False):
     """Filter a recorded flight; returns a :class:`~warptan.scenarios.ScenarioResult` (errors NaN without truth).
 
     Args:
@@ -260,12 +347,19 @@ def replay(log: FlightLog, terrain=None, *, model: str | None = None, backend: s
         seed: The filter's seed (default the log's, else 0).
         device: Warp device.
         progress: Optional callable(k, n) per update.
+        allow_gaps: Fly through nodata under the track (its updates are skipped and counted) instead of refusing.
+
+    The log is placed in the DEM's frame first (:func:`place_log`: a geodetic frame converted, any DEM that covers
+    the flight); a DEM that does not contain the flight, nodata under the track, or a frame the DEM cannot be
+    related to is a :class:`~warptan.flightlog.LogError` before any filtering.
     """
     from warptan.scenarios import ScenarioResult, filter_kwargs, map_terrain, scenario_model
 
     log.validate(f"flight log {log.name}")
     config = replay_config(log, model, backend, particles, likelihood)
     truth_terrain = replay_terrain(log, config, terrain)
+    own = own_terrain(log, terrain)
+    log, placed = place_log(log, truth_terrain, own)
     filter_seed = check_seed(log.settings.get("seed", 0) if seed is None else seed)
     the_map = map_terrain(truth_terrain, config, filter_seed) if "config" in log.settings else truth_terrain
     s = config["sensor"]
@@ -280,8 +374,8 @@ def replay(log: FlightLog, terrain=None, *, model: str | None = None, backend: s
     nominal0 = NavState(log.init_pos, log.init_vel, log.init_quat, log.init_accel_bias, log.init_gyro_bias)
     ins = Ins(nominal0, log.imu_rate_hz).run(log.imu_f[sample], log.imu_w[sample], dt=dts)["pos_n"]
     ins_at = ins[np.r_[0, ends]]
-    check_coverage(log, truth_terrain, ins_at)
-    lik = _likelihood(log, config, the_map)
+    over_gaps = check_coverage(log, truth_terrain, ins_at, allow_gaps)
+    lik = _likelihood(log, config, the_map, own)
     mpf_model = scenario_model(config, the_map, lik)
     sig = log.init_sigma
     mpf = MarginalizedParticleFilter(mpf_model, nominal0, imu_grade(log.imu_grade), log.imu_rate_hz, sig[0:3],
@@ -316,7 +410,8 @@ def replay(log: FlightLog, terrain=None, *, model: str | None = None, backend: s
             bias = [_at(log.truth_t, np.hstack([log.truth_accel_bias, log.truth_gyro_bias]), epoch_t)]
     run = collect_runs(mpf, epoch_t, truth, bias, [ins_at], prior, received, update_time, predict_time, False,
                        {"imu_steps": len(sample), "meas_rate_hz": s["rate_hz"],
-                        "dropped_measurements": int((~used).sum()), "log": log.name})
+                        "dropped_measurements": int((~used).sum()), "log": log.name, **placed,
+                        **({"gaps_allowed": True, "track_points_over_nodata": over_gaps} if allow_gaps else {})})
     wall = time.perf_counter() - t_start
     return ScenarioResult(scenario=config["id"], seed=int(log.settings.get("scenario_seed", filter_seed)),
                           device=run.device, terrain=truth_terrain.name, config=config, run=run, wall_s=wall,

@@ -10,7 +10,8 @@ Topics (names in :class:`BagConfig`, a small TOML or the command line):
 * ``sensor_msgs/FluidPressure``: the barometer, Pa, turned into altitude by the ICAO standard atmosphere
   (``h = 44330.77 (1 - (p / 101325)^0.190263)`` m);
 * ``nav_msgs/Odometry`` (optional truth): pose of the body (``child_frame_id``, FLU) in an ENU map frame whose
-  east/north axes are the DEM's; twist in the body frame (REP 103/105).
+  east/north axes are the log's map frame (the geodetic frame of the TOML's ``frame_*`` keys, else the
+  DEM's grid); twist in the body frame (REP 103/105).
 
 Frames: ROS uses FLU bodies and ENU worlds, warptan FRD and NED. Vectors in a body or sensor frame change by
 ``C = diag(1, -1, -1)`` (FLU ↔ FRD); map positions by ``(x, y, z)_ENU → (y, x, -z)_NED``; attitudes by
@@ -40,6 +41,7 @@ except ModuleNotFoundError:  # Python 3.10
 
 from warptan.flightlog import FlightLog, LogError
 from warptan.frames import mat_to_quat, quat_to_mat
+from warptan.geoframe import GeoFrame
 
 FLU_FRD = np.diag([1.0, -1.0, -1.0])
 """Vectors in a FLU frame to the same body's FRD frame (and back: it is its own inverse)."""
@@ -79,7 +81,9 @@ class BagConfig:
     """What a bag needs beside its messages. Attributes: topic names, the IMU grade and nominal rate (0: the median
     sample rate), the mounting (ROS convention), the initial state (NED, warptan convention; None: the first
     odometry message) and its σ (15: pos m, vel m/s, attitude rad, accel bias m/s², gyro bias rad/s), sensor σ,
-    the DEM, and optional filter settings (JSON)."""
+    the DEM, the map frame on the Earth (``frame_origin_lat_deg``, ``frame_origin_lon_deg``, ``frame_origin_height_m``,
+    ``frame_vertical_datum``: :class:`~warptan.geoframe.GeoFrame`; without a latitude the ENU frame is the DEM's
+    grid) and optional filter settings (JSON)."""
 
     imu: str = "/imu"
     cloud: str = "/points"
@@ -100,7 +104,18 @@ class BagConfig:
     altimeter_sigma_m: float = 1.0
     baro_sigma_m: float = 1.0
     dem: str = ""
+    frame_origin_lat_deg: float | None = None
+    frame_origin_lon_deg: float | None = None
+    frame_origin_height_m: float = 0.0
+    frame_vertical_datum: str = ""
     settings_json: str = ""
+
+    @property
+    def frame(self) -> GeoFrame | None:
+        if self.frame_origin_lat_deg is None and self.frame_origin_lon_deg is None:
+            return None
+        return GeoFrame(self.frame_origin_lat_deg, self.frame_origin_lon_deg, self.frame_origin_height_m,
+                        self.frame_vertical_datum)
 
     @classmethod
     def load(cls, path) -> BagConfig:
@@ -169,6 +184,11 @@ def write_bag(log: FlightLog, path) -> Path:
                     initial_vel_n=tuple(log.init_vel), initial_quat_nb=tuple(log.init_quat),
                     initial_sigma=tuple(log.init_sigma), range_sigma_m=log.range_sigma_m,
                     altimeter_sigma_m=log.altimeter_sigma_m, baro_sigma_m=log.baro_sigma_m, dem=log.dem_reference,
+                    **({} if log.frame is None else {
+                        "frame_origin_lat_deg": log.frame.origin_lat_deg,
+                        "frame_origin_lon_deg": log.frame.origin_lon_deg,
+                        "frame_origin_height_m": log.frame.origin_height_m,
+                        "frame_vertical_datum": log.frame.vertical_datum}),
                     settings_json=json.dumps(log.settings, sort_keys=True) if log.settings else "")
 
     def header(t, frame):
@@ -373,5 +393,5 @@ def read_bag(path, config: BagConfig | None = None) -> FlightLog:
                     range_sigma_m=config.range_sigma_m, altimeter_sigma_m=config.altimeter_sigma_m,
                     baro_sigma_m=config.baro_sigma_m, mount_quat=_mount_from_ros(config.mount_quat_xyzw),
                     mount_lever=FLU_FRD @ np.array(config.mount_lever_m, dtype=np.float64), dem_reference=config.dem,
-                    settings=settings, name=folder.name, **kw)
+                    frame=config.frame, settings=settings, name=folder.name, **kw)
     return log.validate(source)

@@ -877,7 +877,7 @@ def run_scenario_batch(name_or_path, seeds, device="cpu", progress=None, export_
         from warptan.replay import logs_from_record
 
         export_logs.extend(logs_from_record(record, flight, config, likelihood, total_seeds, seeds,
-                                            terrain_spec(config, terrain)))
+                                            terrain_spec(config, terrain), truth_terrain))
     return [ScenarioResult(scenario=config["id"], seed=seed, device=run.device, terrain=truth_terrain.name,
                            config=config, run=run, wall_s=wall, truth_terrain=truth_terrain, map=the_map.name,
                            map_sigma_m=likelihood.map_sigma_m)
