@@ -11,6 +11,7 @@ import signal
 import sys
 import threading
 import warnings
+from pathlib import Path
 
 DEFAULT_TERRAIN = "synthetic:rugged"
 
@@ -378,6 +379,36 @@ def _bag_folder(path: str) -> str | None:
     return None
 
 
+def _log_import(args) -> int:
+    from warptan.flightlog import LogError, write_log
+    from warptan.logcsv import read_tables
+
+    out = Path(args.out)
+    if out.exists():
+        raise LogError(f"--out {out}", ["exists; remove it or choose another name"])
+    log = read_tables(args.layout)
+    write_log(log, out)
+    f = log.frame
+    print(f"wrote {out}: {len(log.imu_t)} IMU samples, {len(log.scan_t) if log.has_scans else 0} scans, "
+          f"{len(log.alt_t) if log.has_altimeter else 0} altimeter readings; frame origin lat {f.origin_lat_deg:.6f}°, "
+          f"lon {f.origin_lon_deg:.6f}° (datum {f.vertical_datum or 'not stated'})")
+    return 0
+
+
+def _log_export(args) -> int:
+    from warptan.flightlog import read_log
+    from warptan.logcsv import write_tables
+
+    out = Path(args.out)
+    if out.exists() and any(out.iterdir()):
+        from warptan.flightlog import LogError
+
+        raise LogError(f"--out {out}", ["is not empty; choose a new folder"])
+    layout = write_tables(read_log(args.log), out)
+    print(f"wrote {layout} and its tables in {out}")
+    return 0
+
+
 def _load_flight(args):
     """The LOG argument: a warptan flight log (.h5) or a ROS 2 bag (folder, .db3 or .mcap)."""
     from warptan.flightlog import read_log
@@ -555,6 +586,18 @@ def build_parser() -> argparse.ArgumentParser:
     bag.add_argument("--odom-topic", default=None, help="nav_msgs/Odometry truth topic (default /truth)")
     bag.add_argument("--imu-grade", default=None, help="IMU grade (default navigation)")
     rep.set_defaults(func=_replay)
+
+    logp = sub.add_parser("log", help="flight logs from tables of what a vehicle records, and back")
+    lsub = logp.add_subparsers(dest="log_command", required=True)
+    imp = lsub.add_parser("import", help="CSV tables described by a layout TOML (GPS lat/lon/height, IMU, scans or "
+                                         "altimeter, baro) → a flight log (see warptan.logcsv)")
+    imp.add_argument("layout", help="the layout .toml (warptan log export writes an example)")
+    imp.add_argument("--out", required=True, help="the flight log to write (.h5)")
+    imp.set_defaults(func=_log_import)
+    exp = lsub.add_parser("export", help="a flight log (with truth and a geodetic frame) → CSV tables and layout.toml")
+    exp.add_argument("log", help="a warptan flight log (.h5)")
+    exp.add_argument("--out", required=True, help="a new folder for the tables")
+    exp.set_defaults(func=_log_export)
 
     camp = sub.add_parser("campaign", help="parameter sweeps × seeds × scenarios, in-process or on a Ray cluster",
                           description="Run a campaign file (scenarios, seeds, [overrides], [sweep]): one batch per "

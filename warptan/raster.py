@@ -172,7 +172,8 @@ def tmerc_crs(lat_deg: float, lon_deg: float):
 
 
 def read_raster(path: str | os.PathLike, spacing: float | None = None,
-                frame: tuple[str, tuple[float, float]] | None = None, *, allow_network: bool = False,
+                frame: tuple[str, tuple[float, float]] | None = None, *, band: int | None = None,
+                allow_network: bool = False,
                 allow_raw_vrt: bool = False) -> RasterGrid:
     """Read band 1 of a DEM file into a :class:`RasterGrid`.
 
@@ -199,7 +200,7 @@ def read_raster(path: str | os.PathLike, spacing: float | None = None,
             raise FileNotFoundError(f"DEM file not found: {path}")
         if os.path.isdir(path):
             raise TerrainError(f"{path}: is a directory, not a DEM file")
-    return _read(path, spacing, frame, allow_raw_vrt, allow_network)
+    return _read(path, spacing, frame, allow_raw_vrt, allow_network, band)
 
 
 def _gdal_errors() -> tuple[type[Exception], ...]:
@@ -212,7 +213,7 @@ def _gdal_errors() -> tuple[type[Exception], ...]:
     return (RasterioError, CPLE_BaseError)
 
 
-def _read(path: str, spacing, frame, allow_raw_vrt: bool, allow_network: bool) -> RasterGrid:
+def _read(path: str, spacing, frame, allow_raw_vrt: bool, allow_network: bool, band: int | None = None) -> RasterGrid:
     import rasterio
 
     errors = _gdal_errors()
@@ -231,12 +232,12 @@ def _read(path: str, spacing, frame, allow_raw_vrt: bool, allow_network: bool) -
 
     try:
         with rasterio.Env(**env):
-            return _read_open(path, spacing, frame, opener, errors)
+            return _read_open(path, spacing, frame, opener, errors, band)
     except errors as err:
         raise TerrainError(f"{path}: GDAL cannot use this raster ({err})") from None
 
 
-def _read_open(path: str, spacing, frame, opener, errors) -> RasterGrid:
+def _read_open(path: str, spacing, frame, opener, errors, band: int | None = None) -> RasterGrid:
     try:
         src = opener(path)
     except errors as err:
@@ -244,6 +245,7 @@ def _read_open(path: str, spacing, frame, opener, errors) -> RasterGrid:
     with src:
         if src.count < 1:
             raise TerrainError(f"{path}: raster has no bands")
+        band = _band(src, band, path)
         truncated = _truncation(src, path)
         if truncated:
             raise TerrainError(truncated)
@@ -265,10 +267,10 @@ def _read_open(path: str, spacing, frame, opener, errors) -> RasterGrid:
                                f"of memory but {have / 1e9:.2g} GB is available; crop it first (gdal_translate "
                                "-projwin)")
         try:
-            band = src.read(1, masked=True)
+            heights = src.read(band, masked=True)
         except errors as err:
-            raise TerrainError(f"{path}: cannot read band 1 ({err})") from None
-        data = np.ma.filled(band.astype(np.float64), np.nan)
+            raise TerrainError(f"{path}: cannot read band {band} ({err})") from None
+        data = np.ma.filled(heights.astype(np.float64), np.nan)
         data[~np.isfinite(data)] = np.nan
         if not np.isfinite(data).any():
             raise TerrainError(f"{path}: every post is nodata (nodata value {src.nodata})")
@@ -286,6 +288,21 @@ def _read_open(path: str, spacing, frame, opener, errors) -> RasterGrid:
     if frame is None and metric and north_up and spacing is None:
         return _native_grid(data, crs, transform, path)
     return _reprojected_grid(data, crs, transform, bounds, spacing, path, frame)
+
+
+def _band(src, band: int | None, path: str) -> int:
+    """The band to read: ``band`` (1-based, checked), else the only one; a raster of several bands without ``band``
+    is an error naming them (a DEM is one band; an RGB rendering or a stack of products is not one to guess)."""
+    names = ", ".join(f"{i} ({src.descriptions[i - 1] or src.colorinterp[i - 1].name})"
+                      for i in range(1, src.count + 1))
+    if band is None:
+        if src.count > 1:
+            raise TerrainError(f"{path}: raster has {src.count} bands ({names}); say which holds the heights: "
+                               f"'{path}#band=N' as a terrain spec, Terrain.from_raster(path, band=N)")
+        return 1
+    if isinstance(band, bool) or not isinstance(band, (int, np.integer)) or not 1 <= band <= src.count:
+        raise TerrainError(f"{path}: band {band!r} does not exist; the raster has {src.count} band(s) ({names})")
+    return int(band)
 
 
 def _truncation(src, path: str) -> str | None:

@@ -150,7 +150,7 @@ class Terrain:
     @classmethod
     def from_raster(cls, path: str | os.PathLike, spacing: float | None = None, onto: Terrain | None = None, *,
                     valid_range_m: tuple[float, float] = PLAUSIBLE_HEIGHTS_M, allow_network: bool = False,
-                    allow_raw_vrt: bool = False) -> Terrain:
+                    allow_raw_vrt: bool = False, band: int | None = None) -> Terrain:
         """Load a DEM file (DTED, SRTM .hgt, GeoTIFF, a VRT of them; see :mod:`warptan.raster` for the projection).
 
         Args:
@@ -160,6 +160,7 @@ class Terrain:
                 that terrain's CRS and origin (a map of the same ground from another source).
             valid_range_m: Plausible heights; posts outside are nodata (with a warning).
             allow_network, allow_raw_vrt: Allow a DEM (or VRT source) read over the network, a VRT raw band.
+            band: The band holding the heights (1-based); required for a raster of several bands.
         """
         frame = None
         if onto is not None:
@@ -167,7 +168,7 @@ class Terrain:
                 raise TerrainError(f"{path}: cannot be placed onto {onto.name}, which has no geographic reference "
                                    "(a generated or array terrain)")
             frame = (onto.crs_wkt, onto.origin_xy)
-        grid = read_raster(path, spacing, frame, allow_network=allow_network, allow_raw_vrt=allow_raw_vrt)
+        grid = read_raster(path, spacing, frame, band=band, allow_network=allow_network, allow_raw_vrt=allow_raw_vrt)
         return cls(
             grid.heights_m, grid.n0, grid.e0, grid.dn, grid.de, crs_wkt=grid.crs_wkt, origin_xy=grid.origin_xy,
             name=os.fspath(path), description=grid.description, valid_range_m=valid_range_m,
@@ -221,8 +222,10 @@ class Terrain:
     def load(cls, spec: str | os.PathLike, spacing: float | None = None, **raster_options) -> Terrain:
         """Load from a name of :data:`NAMED_TERRAINS` (``rugged``, ``rugged30``, ``flat``: real DEMs shipped with the
         package), a file (raster or ``.npz`` saved by :meth:`save_npz`) or a ``synthetic:KIND[,key=value...]``
-        spec (keys ``size_m``, ``spacing``, ``seed``), e.g. ``synthetic:rugged,size_m=10000,seed=3``.
-        ``raster_options`` (``valid_range_m``, ``allow_network``, ``allow_raw_vrt``) go to :meth:`from_raster`."""
+        spec (keys ``size_m``, ``spacing``, ``seed``), e.g. ``synthetic:rugged,size_m=10000,seed=3``; a raster of
+        several bands as ``FILE#band=N``.
+        ``raster_options`` (``valid_range_m``, ``allow_network``, ``allow_raw_vrt``, ``band``) go to
+        :meth:`from_raster`."""
         if not isinstance(spec, (str, os.PathLike)):
             raise TerrainError(f"a terrain is a name ({', '.join(NAMED_TERRAINS)}), a DEM path or a 'synthetic:KIND' "
                                f"spec, got {type(spec).__name__} {spec!r}")
@@ -249,6 +252,13 @@ class Terrain:
             return cls.synthetic(kind, **kwargs)
         if text.endswith(".npz"):
             return cls.from_npz(text)
+        head, sep, value = text.rpartition("#band=")
+        if sep:
+            try:
+                raster_options["band"] = int(value)
+            except ValueError:
+                raise TerrainError(f"{text}: band needs a whole number, got {value!r}") from None
+            text = head
         return cls.from_raster(text, spacing=spacing, **raster_options)
 
     # ------------------------------------------------------------------ persistence
