@@ -182,3 +182,69 @@ def test_a_dem_grid_log_flies_only_over_its_own_dem(s8):
             pass  # the flat tile need not contain the rugged flight's grid coordinates
     assert any("version 1 log's frame is the grid of its DEM" in str(w.message) for w in caught)
     assert isinstance(log, FlightLog)
+
+
+def test_geodetic_tables_round_trip_replays_as_the_run(s8, tmp_path):
+    """run → log → CSV tables (latitude/longitude/height, true-north attitude) → import → replay: the same IMU,
+    scans and initial state (to 1e-6 m / 1e-12), and the same estimate within the filter's noise."""
+    from warptan.logcsv import read_tables, write_tables
+
+    result, log = s8
+    back = read_tables(write_tables(log, tmp_path / "tables"))
+    np.testing.assert_array_equal(back.imu_f, log.imu_f)
+    np.testing.assert_allclose(back.scan_ranges, log.scan_ranges, rtol=1e-12)
+    assert back.frame != log.frame  # the tangent frame at the first fix
+    again = replay(back)
+    np.testing.assert_allclose(again.run.truth_pos, result.run.truth_pos, atol=1e-6)
+    np.testing.assert_allclose(again.run.ins_pos, result.run.ins_pos, atol=1e-6)
+    np.testing.assert_allclose(again.run.est_pos, result.run.est_pos, atol=1.0)
+
+
+@pytest.mark.parametrize("edit, expect", [
+    (("gps.csv", "lat", "91.5"), "gps latitude must be within ±90°"),
+    (("gps.csv", "header", "t,latitude,lon"), "missing column(s) 'lat'"),
+    (("layout.toml", "units", 'units = {t = "fortnights"}'), "unit 'fortnights' of t does not parse"),
+    (("imu.csv", "backwards", None), "times go backwards at row 4"),
+    (("layout.toml", "unknown", "colour = 3"), "unknown key 'colour'"),
+])
+def test_bad_tables_are_one_clear_error(s8, edit, expect, tmp_path):
+    from warptan.logcsv import read_tables, write_tables
+
+    _, log = s8
+    layout = write_tables(log, tmp_path / "tables")
+    file, what, value = edit
+    path = tmp_path / "tables" / file
+    lines = path.read_text().splitlines()
+    if what == "lat":
+        row = lines[3].split(",")
+        row[1] = value
+        lines[3] = ",".join(row)
+    elif what == "header":
+        lines[0] = lines[0].replace("t,lat,lon", value)
+    elif what == "units":
+        at = lines.index("[imu]")
+        lines[at + 2] = value
+    elif what == "backwards":
+        lines[2], lines[3] = lines[3], lines[2]
+    else:
+        lines.insert(0, value)
+    path.write_text("\n".join(lines) + "\n")
+    with pytest.raises(LogError) as err:
+        read_tables(layout)
+    assert expect in str(err.value)
+
+
+def test_a_multi_band_raster_names_its_bands(tmp_path):
+    with rasterio.open(named_terrain_file("rugged")) as src:
+        data, prof = src.read(1), src.profile
+    prof.update(count=3)
+    with rasterio.open(tmp_path / "rgb.tif", "w", **prof) as dst:
+        for i in (1, 2, 3):
+            dst.write(data, i)
+    from warptan.raster import TerrainError
+
+    with pytest.raises(TerrainError, match="raster has 3 bands"):
+        Terrain.load(str(tmp_path / "rgb.tif"))
+    assert Terrain.load(f"{tmp_path / 'rgb.tif'}#band=2").shape == Terrain.load("rugged").shape
+    with pytest.raises(TerrainError, match="band 5 does not exist"):
+        Terrain.load(f"{tmp_path / 'rgb.tif'}#band=5")
