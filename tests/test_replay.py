@@ -183,6 +183,7 @@ def test_exported_bag_replays_to_the_same_result(simulated, tmp_path):
     result, log = simulated["sliding"]
     write_bag(log, tmp_path / "bag")
     back = read_bag(tmp_path / "bag")
+    assert back.frame == log.frame and back.frame is not None  # the geodetic frame through warptan.toml
     np.testing.assert_allclose(back.imu_f, log.imu_f, rtol=0, atol=0)
     np.testing.assert_allclose(back.scan_ranges, log.scan_ranges, rtol=1e-14)
     np.testing.assert_allclose(back.truth_pos, log.truth_pos, rtol=0, atol=1e-9)
