@@ -57,14 +57,6 @@ class GeoFrame:
             p.append(f"frame.vertical_datum must be text, got {self.vertical_datum!r}")
         return p
 
-    def check(self, source: str = "frame") -> GeoFrame:
-        from warptan.checks import FilterError
-
-        found = self.problems()
-        if found:
-            raise FilterError(f"{source}: " + "; ".join(found))
-        return self
-
     @property
     def crs_wkt(self) -> str:
         """The frame's horizontal CRS (transverse Mercator centred on the origin) as WKT."""
