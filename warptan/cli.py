@@ -396,13 +396,11 @@ def _log_import(args) -> int:
 
 
 def _log_export(args) -> int:
-    from warptan.flightlog import read_log
+    from warptan.flightlog import LogError, read_log
     from warptan.logcsv import write_tables
 
     out = Path(args.out)
     if out.exists() and any(out.iterdir()):
-        from warptan.flightlog import LogError
-
         raise LogError(f"--out {out}", ["is not empty; choose a new folder"])
     layout = write_tables(read_log(args.log), out)
     print(f"wrote {layout} and its tables in {out}")

@@ -125,10 +125,7 @@ class FrameChange:
         vec = np.asarray(vec, dtype=np.float64)
         if self.identity:
             return vec.copy()
-        a, _ = self.angles(pos)
-        v = vec.reshape(-1, 3)
-        c, s = np.cos(a), np.sin(a)
-        return np.column_stack([c * v[:, 0] - s * v[:, 1], s * v[:, 0] + c * v[:, 1], v[:, 2]]).reshape(vec.shape)
+        return turn_vectors(self.angles(pos)[0], vec)
 
     def attitudes(self, pos: np.ndarray, quat_nb: np.ndarray) -> np.ndarray:
         """Body-to-NED quaternions at ``pos`` as body-to-target-NED: ``q_z(angle) ⊗ q_nb``."""
@@ -144,6 +141,15 @@ class FrameChange:
         """The largest |scale − 1| over ``pos``, parts per million (what the change neglects)."""
         _, k = self.angles(pos)
         return float(np.max(np.abs(k - 1.0)) * 1e6) if len(k) else 0.0
+
+
+def turn_vectors(angle, vec) -> np.ndarray:
+    """NED vectors (K, 3) turned by ``angle`` (rad, scalar or (K,)) about down: north (1, 0, 0) becomes
+    (cos a, sin a, 0)."""
+    vec = np.asarray(vec, dtype=np.float64)
+    v = vec.reshape(-1, 3)
+    c, s = np.cos(angle), np.sin(angle)
+    return np.column_stack([c * v[:, 0] - s * v[:, 1], s * v[:, 0] + c * v[:, 1], v[:, 2]]).reshape(vec.shape)
 
 
 def frame_change(source, target, probe: np.ndarray, dz: float = 0.0) -> FrameChange:

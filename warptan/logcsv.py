@@ -42,7 +42,7 @@ import numpy as np
 
 from warptan.flightlog import FlightLog, LogError
 from warptan.frames import euler_to_quat, quat_to_euler
-from warptan.geoframe import GeoFrame
+from warptan.geoframe import GeoFrame, turn_vectors
 
 try:
     import tomllib
@@ -60,7 +60,7 @@ UNITS = {
 """Units a layout may state, per quantity: factor to SI (angles: to radians, then degrees where warptan keeps
 degrees)."""
 
-TABLES = {  # table: {column key: quantity}, required keys first, then optional ones after a None
+TABLES = {  # table: {required column key: quantity}; OPTIONAL_COLUMNS holds the optional ones
     "imu": {"t": "time", "fx": "accel", "fy": "accel", "fz": "accel", "wx": "rate", "wy": "rate", "wz": "rate"},
     "gps": {"t": "time", "lat": "angle", "lon": "angle", "height": "length", "roll": "angle", "pitch": "angle",
             "yaw": "angle"},
@@ -126,9 +126,7 @@ def from_geodetic(*, imu_t, imu_f, imu_w, imu_grade: str, gps_t, lat_deg, lon_de
     if vel_ned is None:
         vel = np.gradient(pos, gps_t, axis=0) if np.all(np.diff(gps_t) > 0) else np.full_like(pos, np.nan)
     else:
-        v = np.asarray(vel_ned, dtype=np.float64).reshape(-1, 3)
-        c, s = np.cos(turn), np.sin(turn)
-        vel = np.column_stack([c * v[:, 0] - s * v[:, 1], s * v[:, 0] + c * v[:, 1], v[:, 2]])
+        vel = turn_vectors(turn, np.asarray(vel_ned, dtype=np.float64).reshape(-1, 3))
     imu_t = np.asarray(imu_t, dtype=np.float64).reshape(-1)
     steps = np.diff(imu_t)
     rate = float(imu_rate_hz) if imu_rate_hz else (1.0 / float(np.median(steps)) if len(steps) else math.nan)
@@ -160,10 +158,8 @@ def from_geodetic(*, imu_t, imu_f, imu_w, imu_grade: str, gps_t, lat_deg, lon_de
         la, lo = np.array([float(i["lat_deg"])]), np.array([float(i["lon_deg"])])
         n0, e0 = frame.latlon_to_ne(la, lo)
         t = _north_turn(frame, la, lo)[0]
-        v = np.asarray(i["vel_ned"], dtype=np.float64)
         init = {"init_pos": np.array([n0[0], e0[0], frame.origin_height_m - float(i["height_m"])]),
-                "init_vel": np.array([math.cos(t) * v[0] - math.sin(t) * v[1], math.sin(t) * v[0] + math.cos(t) * v[1],
-                                      v[2]]),
+                "init_vel": turn_vectors(t, np.asarray(i["vel_ned"], dtype=np.float64)),
                 "init_quat": euler_to_quat(float(i["roll_rad"]), float(i["pitch_rad"]), float(i["yaw_rad"]) + t),
                 "init_accel_bias": np.asarray(i.get("accel_bias", np.zeros(3)), dtype=np.float64),
                 "init_gyro_bias": np.asarray(i.get("gyro_bias", np.zeros(3)), dtype=np.float64)}
@@ -188,7 +184,7 @@ def _north_turn(frame, lat, lon) -> np.ndarray:
 
 
 # ---------------------------------------------------------------------- tables
-def _read_csv(path: Path, table: str, spec: dict, source: str, problems: list[str]) -> dict | None:
+def _read_csv(path: Path, table: str, spec: dict, problems: list[str]) -> dict | None:
     """The table's columns in SI units (angles in rad), keyed by column key; None after recording problems."""
     keys = {**TABLES[table], **OPTIONAL_COLUMNS.get(table, {})}
     names = spec.get("columns", {})
@@ -271,7 +267,7 @@ def read_tables(layout: str | os.PathLike) -> FlightLog:
         problems.append("neither [scans] nor [altimeter]: nothing to navigate with")
     if problems:
         raise LogError(source, problems)
-    data = {t: _read_csv(path, t, spec[t], source, problems) for t in TABLES if t in spec}
+    data = {t: _read_csv(path, t, spec[t], problems) for t in TABLES if t in spec}
     if problems:
         raise LogError(source, problems)
     imu, gps = data["imu"], data["gps"]
@@ -331,9 +327,7 @@ def write_tables(log: FlightLog, folder: str | os.PathLike) -> Path:
     lat, lon = frame.ne_to_latlon(log.truth_pos[:, 0], log.truth_pos[:, 1])
     turn = _north_turn(frame, lat, lon)
     euler = quat_to_euler(log.truth_quat)
-    c, s = np.cos(-turn), np.sin(-turn)
-    v = log.truth_vel
-    vel = np.column_stack([c * v[:, 0] - s * v[:, 1], s * v[:, 0] + c * v[:, 1], v[:, 2]])
+    vel = turn_vectors(-turn, log.truth_vel)
     gps = np.column_stack([log.truth_t, lat, lon, frame.origin_height_m - log.truth_pos[:, 2],
                            np.degrees(euler[:, 0]), np.degrees(euler[:, 1]), np.degrees(euler[:, 2] - turn), vel])
     np.savetxt(folder / "gps.csv", gps, delimiter=",", fmt=fmt, comments="",
@@ -343,8 +337,6 @@ def write_tables(log: FlightLog, folder: str | os.PathLike) -> Path:
     la0, lo0 = frame.ne_to_latlon(log.init_pos[:1], log.init_pos[1:2])
     t0 = float(_north_turn(frame, la0, lo0)[0])
     e0 = quat_to_euler(log.init_quat[None])[0]
-    c0, s0 = math.cos(-t0), math.sin(-t0)
-    v0 = log.init_vel
     lines = [f"name = {_q(log.name)}", f"dem = {_q(log.dem_reference)}",
              f"vertical_datum = {_q(frame.vertical_datum)}", f"imu_grade = {_q(log.imu_grade)}",
              f"imu_rate_hz = {log.imu_rate_hz!r}", f"initial_sigma = {_a(log.init_sigma)}",
@@ -357,7 +349,7 @@ def write_tables(log: FlightLog, folder: str | os.PathLike) -> Path:
              f"height_m = {frame.origin_height_m - float(log.init_pos[2])!r}",
              f"roll_deg = {math.degrees(e0[0])!r}", f"pitch_deg = {math.degrees(e0[1])!r}",
              f"yaw_deg = {math.degrees(e0[2] - t0)!r}",
-             f"vel_ned = {_a([c0 * v0[0] - s0 * v0[1], s0 * v0[0] + c0 * v0[1], v0[2]])}",
+             f"vel_ned = {_a(turn_vectors(-t0, log.init_vel))}",
              f"accel_bias = {_a(log.init_accel_bias)}", f"gyro_bias = {_a(log.init_gyro_bias)}",
              "", "[imu]", 'file = "imu.csv"', 'units = {t = "s", fx = "m/s^2", wx = "rad/s"}',
              "", "[gps]", 'file = "gps.csv"',

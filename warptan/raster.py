@@ -175,7 +175,7 @@ def read_raster(path: str | os.PathLike, spacing: float | None = None,
                 frame: tuple[str, tuple[float, float]] | None = None, *, band: int | None = None,
                 allow_network: bool = False,
                 allow_raw_vrt: bool = False) -> RasterGrid:
-    """Read band 1 of a DEM file into a :class:`RasterGrid`.
+    """Read a DEM file's heights (its one band, or ``band`` of several) into a :class:`RasterGrid`.
 
     Args:
         path: DTED (.dt0/.dt1/.dt2), SRTM (.hgt), GeoTIFF or any single-band raster GDAL reads.
@@ -184,13 +184,15 @@ def read_raster(path: str | os.PathLike, spacing: float | None = None,
             CRS with that NED origin, so that two DEMs of the same ground share one frame (a map that is not the
             world); None: a projected north-up raster keeps its own grid, anything else is reprojected to a
             transverse Mercator centred on it.
+        band: The band holding the heights (1-based); required for a raster of several bands (without it, an error
+            naming them).
         allow_network: Allow a path, or VRT sources, that read over the network.
         allow_raw_vrt: Allow a VRT with a ``VRTRawRasterBand`` (raw bytes of another file read as heights).
 
     Raises:
         FileNotFoundError: ``path`` does not exist.
         TerrainError: not a raster, no CRS, all nodata, a degenerate geotransform, a refused reference, a bad
-            spacing, or a grid too large.
+            spacing, a grid too large, or several bands and no (or no such) ``band``.
     """
     spacing = check_spacing(spacing)
     path = os.fspath(path)

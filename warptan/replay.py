@@ -316,11 +316,11 @@ def place_log(log: FlightLog, terrain, own: bool) -> tuple[FlightLog, dict]:
         raise LogError(source, [f"the DEM {terrain.name} has no CRS: it cannot be related to the log's frame (origin "
                                 f"lat {log.frame.origin_lat_deg:.6f}°, lon {log.frame.origin_lon_deg:.6f}°); give a "
                                 "georeferenced DEM"])
-    probe = log.truth_pos if log.has_truth else log.init_pos[None]
-    change = frame_change(log.frame, terrain, corners(probe), dz=log.frame.origin_height_m)
+    box = corners(log.truth_pos if log.has_truth else log.init_pos[None])
+    change = frame_change(log.frame, terrain, box, dz=log.frame.origin_height_m)
     info = {"frame": "geodetic", "frame_identity": change.identity,
-            "frame_turn_deg": float(np.degrees(change.angles(corners(probe))[0][-1])),
-            "frame_scale_ppm": change.scale_ppm(corners(probe))}
+            "frame_turn_deg": float(np.degrees(change.angles(box)[0][-1])),  # at the box's centre
+            "frame_scale_ppm": change.scale_ppm(box)}
     return convert_log(log, change, frame=log.frame), info
 
 
