@@ -27,6 +27,7 @@ from warptan.kernels.likelihood import (
     acc_set_modes,
     acc_store,
     cloud_row,
+    gross_miss,
     mode_post,
     modes_vec,
     per_particle_kernels,
@@ -114,10 +115,14 @@ def _sliding_loglik(tiled: bool):
                 if not wp.isnan(res):
                     nabla = wp.vec3(grad[0], grad[1], 1.0)
                     sigma = sliding_sigma(params, mat[2, 2], wp.dot(nabla, mat * row_dir(row)))
-                    jac = sliding_jacobian(mat, c, c_hat, grad)
-                    acc = acc_add(acc, params, res, sigma, ones, jac, nabla * (-mat[2, 2]))  # ∂ĉ_z/∂p = -g_z ∇F
-                    if params.n_modes > 0:
-                        acc = acc_modes(acc, params, modes[j], res, sigma, jac, nabla * (-mat[2, 2]))
+                    if gross_miss(params, res, sigma, 1.0):
+                        acc.n_gated = acc.n_gated + 1
+                    else:
+                        jac = sliding_jacobian(mat, c, c_hat, grad)
+                        jac_pos = nabla * (-mat[2, 2])  # ∂ĉ_z/∂p = -g_z ∇F
+                        acc = acc_add(acc, params, res, sigma, ones, jac, jac_pos)
+                        if params.n_modes > 0:
+                            acc = acc_modes(acc, params, modes[j], res, sigma, jac, jac_pos)
             residual_out[t, j] = res
         if wp.static(tiled):
             acc = acc_block_sum(acc)

@@ -2,6 +2,7 @@
 float64 oracles (the covariance they represent, the Woodbury form the kernels sum, the along-track sharing of a
 footprint much smaller than the correlation length), and the default path unchanged."""
 
+import dataclasses
 import math
 
 import numpy as np
@@ -123,16 +124,30 @@ def _ray_sigmas(model, out, cloud):
     return np.sqrt(var)
 
 
+def _gated(model, out, cloud, sig):
+    """The rays :func:`warptan.kernels.likelihood.gross_miss` drops for each particle (a stated error only):
+    ``|r_j| > k_out sqrt(σ_j² + (σ_e / max(u_z, 0.1))²)`` (level attitude)."""
+    res = out.residual_m.numpy().astype(np.float64)
+    p = model.params()
+    if p.sigma_err <= 0:
+        return np.zeros(res.shape, dtype=bool)
+    e = p.sigma_err / np.maximum(np.asarray(cloud.dirs_s)[:, 2], 0.1)
+    return np.isfinite(res) & (res**2 > p.k_out**2 * (sig**2 + e**2))
+
+
 def _points_minus_plain(model, out, cloud, plain_res):
-    """(whitened residuals z_j = r_j/σ_j, the per-point log-likelihood with σ_j minus the plain one with σ) of a
-    ray-cast particle set, float64."""
+    """(whitened residuals z_j = r_j/σ_j, zero for a gated ray; the per-point log-likelihood with σ_j, a gated ray
+    at the floor -k_out²/2, minus the plain one with σ) of a ray-cast particle set, float64."""
     sig = _ray_sigmas(model, out, cloud)
     res = out.residual_m.numpy().astype(np.float64)
-    ok = np.isfinite(res)
+    gated = _gated(model, out, cloud, sig)
+    ok = np.isfinite(res) & ~gated
     z = np.where(ok, res, 0.0) / sig
     sigma = model.params().sigma
     points = np.where(ok, -0.5 * z**2 - np.log(sig / sigma), 0.0).sum(axis=1)
-    plain = np.where(ok, -0.5 * (np.where(ok, plain_res, 0.0) / sigma) ** 2, 0.0).sum(axis=1)
+    points = points - 0.5 * model.params().k_out**2 * gated.sum(axis=1)
+    fine = np.isfinite(plain_res)
+    plain = np.where(fine, -0.5 * (np.where(fine, plain_res, 0.0) / sigma) ** 2, 0.0).sum(axis=1)
     return z, points - plain
 
 
@@ -173,6 +188,35 @@ def test_the_kernels_add_the_modes_share_and_nothing_without_a_statement(scan, n
     else:
         assert np.all(b.loglik.numpy() >= a.loglik.numpy() - 1e-3)  # the modes explain, never penalise
         assert not np.array_equal(b.loglik.numpy(), a.loglik.numpy())
+
+
+def test_a_gross_miss_scores_as_a_point_the_particle_cannot_predict(scan, device):
+    """Under a stated error a range residual beyond ``k_out sqrt(σ_j² + (σ_e/u_z)²)`` (a ray that met another
+    surface: here one ray 400 m long, as if it cleared a ridge the world has) scores the floor ``-k_out²/2`` and
+    adds nothing to the modes: the kernel's log-likelihood against the float64 oracle; the ray still counts as
+    predicted (``n_valid``: an update is skipped only when the map does not cover the scan) and as a ``k_out`` σ
+    misfit in the NIS; without a statement the Gaussian keeps it (hundreds of nats)."""
+    dem, cloud, pos, q = scan
+    bad = dataclasses.replace(cloud, ranges_m=cloud.ranges_m.copy())
+    bad.ranges_m[37] += 400.0
+    poses = (wp.array(pos, dtype=wp.vec3, device=device), wp.array(np.tile(q, (len(pos), 1)), dtype=wp.vec4,
+                                                                     device=device))
+    plain = wt.make_model("raycast", dem, wt.Likelihood("gaussian", sensor_sigma_m=0.5))
+    stated = wt.make_model("raycast", dem, wt.Likelihood("gaussian", sensor_sigma_m=0.5, **STATED))
+    a, b = plain.evaluate(*poses, bad), stated.evaluate(*poses, bad)
+    res = b.residual_m.numpy().astype(np.float64)
+    gated = _gated(stated, b, bad, _ray_sigmas(stated, b, bad))
+    assert gated[:, 37].all() and np.isfinite(res[:, 37]).all()
+    np.testing.assert_array_equal(b.n_valid.numpy(), np.isfinite(res).sum(axis=1))
+    z, points = _points_minus_plain(stated, b, bad, a.residual_m.numpy().astype(np.float64))
+    table = stated._modes.numpy().astype(np.float64)
+    p = z @ table[:z.shape[1]]
+    expected = 0.5 * (table[z.shape[1] + klik.MODE_C0] * p**2).sum(axis=1)
+    got = b.loglik.numpy().astype(np.float64) - a.loglik.numpy().astype(np.float64) - points
+    np.testing.assert_allclose(got, expected, rtol=2e-3, atol=2e-3 * np.abs(expected).max())
+    assert np.all(b.nis.numpy() * res.shape[1] >= gated.sum(axis=1) * stated.likelihood.outlier_sigmas**2 - 1e-3)
+    clean = plain.evaluate(*poses, cloud).loglik.numpy()
+    assert np.all(a.loglik.numpy() < clean - 100.0)  # the plain Gaussian pays for the 400 m ray in full
 
 
 def test_the_kernels_weigh_by_the_modes_prior_and_carry_it_to_the_next_scan(scan, device):
