@@ -58,9 +58,10 @@ class Likelihood:
         r_err: Variance of the paper's scalar error, m².
         sigma_m: Per-point residual scale σ, m; None = calibrated (:meth:`sigma_eff`).
         nu: Student-t degrees of freedom.
-        outlier_sigmas: A point the particle cannot predict (off the map, nodata, no hit) scores as a
-            residual of this many σ (per point); the paper form blends its score with ``-0.5 outlier_sigmas²``
-            by the fraction of unpredictable points.
+        outlier_sigmas: A point the particle cannot predict (off the map, nodata, no hit; under a stated map
+            error also a residual the stated error cannot make, :func:`warptan.kernels.likelihood.gross_miss`)
+            scores as a residual of this many σ (per point); the paper form blends its score with
+            ``-0.5 outlier_sigmas²`` by the fraction of unpredictable points.
         sensor_sigma_m: Noise of one measured residual, m (range noise; the altimeter's noise).
         map_sigma_m: Known error of the map, m, added to the model's own surface mismatch (calibrated σ only).
         map_correlation: Consecutive updates over which a point sees the same map error (≥ 1): a moving scan
