@@ -620,6 +620,14 @@ stores a zero scaled normal)."""
 
 
 @wp.func
+def ray_nominal_gain(u_down: float) -> float:
+    """A range's change per metre of vertical map error over flat ground, ``1/u_z`` (``u_down``: the ray's down
+    component, at least 0.1): the sensitivity the map-error modes use (:meth:`warptan.measurement.Likelihood.
+    error_modes` with the model's ``_scan_geometry``)."""
+    return 1.0 / wp.max(u_down, 0.1)
+
+
+@wp.func
 def ray_sigma(p: LikParams, s: wp.vec3, u_down: float) -> float:
     """σ of one range residual (m): the range noise and a vertical map error ``δh``, which moves the predicted range
     by ``s_z δh`` (``s = ∇F / (∇F · u)`` the scaled normal, ``s_z = 1 / (∇F · u)``: 1 at nadir over flat ground,
@@ -639,7 +647,7 @@ def ray_sigma(p: LikParams, s: wp.vec3, u_down: float) -> float:
         gain = wp.min(wp.abs(s[2]), gain)
     var = p.sigma_range * p.sigma_range + p.sigma_map * p.sigma_map * gain * gain
     if p.sigma_err > 0.0:
-        excess = gain - 1.0 / wp.max(u_down, 0.1)
+        excess = gain - ray_nominal_gain(u_down)
         var = var + p.sigma_err * p.sigma_err * excess * excess
     return wp.sqrt(var)
 
@@ -662,6 +670,22 @@ def gross_miss(p: LikParams, res: float, sigma: float, gain: float) -> bool:
         return False
     e = p.sigma_err * gain
     return res * res > p.k_out * p.k_out * (sigma * sigma + e * e)
+
+
+@wp.func
+def acc_point(acc: Acc, p: LikParams, modes: wp.array(dtype=modes_vec), j: int, res: float, sigma: float,
+              gain: float, axis_w: wp.vec3, jac: wp.vec3, jac_pos: wp.vec3) -> Acc:
+    """``acc`` plus point ``j`` of a point cloud that the particle predicts: counted as a gross miss
+    (:func:`gross_miss`, ``gain`` its map-error sensitivity), else its sums (:func:`acc_add`) and, with modes, its
+    projections on them (:func:`acc_modes`, the table's row ``j``)."""
+    a = acc
+    if gross_miss(p, res, sigma, gain):
+        a.n_gated = a.n_gated + 1
+    else:
+        a = acc_add(a, p, res, sigma, axis_w, jac, jac_pos)
+        if p.n_modes > 0:
+            a = acc_modes(a, p, modes[j], res, sigma, jac, jac_pos)
+    return a
 
 
 def per_particle_kernels(make):
@@ -717,12 +741,8 @@ def _reduce_loglik(tiled: bool):
                     jac, jac_pos = ray_jacobians(mat, row, res, s)
                     u_down = (mat * row_dir(row))[2]
                     sigma = ray_sigma(params, s, u_down)
-                    if gross_miss(params, res, sigma, 1.0 / wp.max(u_down, 0.1)):
-                        acc.n_gated = acc.n_gated + 1
-                    else:
-                        acc = acc_add(acc, params, res, sigma, axis_weights(row), jac, jac_pos)
-                        if params.n_modes > 0:
-                            acc = acc_modes(acc, params, modes[j], res, sigma, jac, jac_pos)
+                    acc = acc_point(acc, params, modes, j, res, sigma, ray_nominal_gain(u_down), axis_weights(row),
+                                    jac, jac_pos)
         if wp.static(tiled):
             acc = acc_block_sum(acc)
         if lane == 0:

@@ -24,10 +24,10 @@ from warptan.kernels.likelihood import (
     acc_finish,
     acc_init,
     acc_modes,
+    acc_point,
     acc_set_modes,
     acc_store,
     cloud_row,
-    gross_miss,
     mode_post,
     modes_vec,
     per_particle_kernels,
@@ -115,14 +115,9 @@ def _sliding_loglik(tiled: bool):
                 if not wp.isnan(res):
                     nabla = wp.vec3(grad[0], grad[1], 1.0)
                     sigma = sliding_sigma(params, mat[2, 2], wp.dot(nabla, mat * row_dir(row)))
-                    if gross_miss(params, res, sigma, 1.0):
-                        acc.n_gated = acc.n_gated + 1
-                    else:
-                        jac = sliding_jacobian(mat, c, c_hat, grad)
-                        jac_pos = nabla * (-mat[2, 2])  # ∂ĉ_z/∂p = -g_z ∇F
-                        acc = acc_add(acc, params, res, sigma, ones, jac, jac_pos)
-                        if params.n_modes > 0:
-                            acc = acc_modes(acc, params, modes[j], res, sigma, jac, jac_pos)
+                    jac = sliding_jacobian(mat, c, c_hat, grad)
+                    acc = acc_point(acc, params, modes, j, res, sigma, 1.0, ones, jac,
+                                    nabla * (-mat[2, 2]))  # ∂ĉ_z/∂p = -g_z ∇F
             residual_out[t, j] = res
         if wp.static(tiled):
             acc = acc_block_sum(acc)

@@ -233,6 +233,24 @@ def test_bad_tables_are_one_clear_error(s8, edit, expect, tmp_path):
     assert expect in str(err.value)
 
 
+def test_tables_without_a_prior_take_the_scenarios_prior_for_their_grade(s8, tmp_path):
+    """A layout without ``initial_sigma`` gets the scenarios' prior with its IMU grade's turn-on biases
+    (:func:`warptan.runner.prior_sigma`): a tactical IMU's bias σ, not the navigation grade's."""
+    from warptan.imu import IMU_GRADES
+    from warptan.logcsv import read_tables, write_tables
+    from warptan.runner import InitialErrors, prior_sigma
+
+    _, log = s8
+    layout = write_tables(log, tmp_path / "tables")
+    lines = [line for line in layout.read_text().splitlines() if not line.startswith("initial_sigma")]
+    lines = [line.replace(f'imu_grade = "{log.imu_grade}"', 'imu_grade = "tactical"') for line in lines]
+    layout.write_text("\n".join(lines) + "\n")
+    back = read_tables(layout)
+    assert back.imu_grade == "tactical"
+    np.testing.assert_array_equal(back.init_sigma, prior_sigma(InitialErrors(), IMU_GRADES["tactical"]))
+    assert back.init_sigma[9] > prior_sigma(InitialErrors(), IMU_GRADES["navigation"])[9]
+
+
 def test_a_multi_band_raster_names_its_bands(tmp_path):
     with rasterio.open(named_terrain_file("rugged")) as src:
         data, prof = src.read(1), src.profile

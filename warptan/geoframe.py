@@ -26,7 +26,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from warptan.frames import quat_mul
+from warptan.frames import quat_exp, quat_mul
 
 IDENTITY_TOL_M = 1e-6
 """A change whose positions move by less than this (m) over the flight is the identity (the DEM's frame is the log's:
@@ -133,8 +133,7 @@ class FrameChange:
         if self.identity:
             return quat_nb.copy()
         a, _ = self.angles(pos)
-        turn = np.column_stack([np.cos(a / 2), np.zeros_like(a), np.zeros_like(a), np.sin(a / 2)])
-        q = quat_mul(turn, quat_nb.reshape(-1, 4))
+        q = quat_mul(quat_exp(np.outer(a, (0.0, 0.0, 1.0))), quat_nb.reshape(-1, 4))
         return (q / np.linalg.norm(q, axis=1, keepdims=True)).reshape(quat_nb.shape)
 
     def scale_ppm(self, pos: np.ndarray) -> float:

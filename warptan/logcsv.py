@@ -10,7 +10,7 @@ layout (a worked example to start from). The layout::
     dem = "my_dem.tif"             # optional: the DEM the flight is over (the log's dem.reference)
     vertical_datum = "EGM96"       # the datum the heights are above ("" = not stated; the DEM's must be the same)
     imu_grade = "navigation"       # a grade warptan knows (warptan.imu.IMU_GRADES)
-    initial_sigma = [...]          # optional: 15 σ of the initial error (default: S8's prior)
+    initial_sigma = [...]          # optional: 15 σ of the initial error (default: the scenarios' prior for the grade)
     range_sigma_m = 0.5            # optional sensor σ (also altimeter_sigma_m, baro_sigma_m)
     mount_quat_bs = [1, 0, 0, 0]   # optional: sensor to body [w, x, y, z], FRD; mount_lever_b = [x, y, z] m
     settings_json = "{...}"        # optional: filter settings (a log's /settings), as warptan log export writes
@@ -43,6 +43,8 @@ import numpy as np
 from warptan.flightlog import FlightLog, LogError
 from warptan.frames import euler_to_quat, quat_to_euler
 from warptan.geoframe import GeoFrame, turn_vectors
+from warptan.imu import IMU_GRADES
+from warptan.runner import InitialErrors, prior_sigma
 
 try:
     import tomllib
@@ -74,16 +76,12 @@ LAYOUT_KEYS = {"name", "dem", "vertical_datum", "imu_grade", "imu_rate_hz", "ini
                *TABLES}
 INITIAL_KEYS = ("lat_deg", "lon_deg", "height_m", "roll_deg", "pitch_deg", "yaw_deg", "vel_ned", "accel_bias",
                 "gyro_bias")
-DEFAULT_SIGMA = (100.0, 100.0, 20.0, 0.5, 0.5, 0.5, math.radians(0.1), math.radians(0.1), math.radians(0.5),
-                 9.80665e-4, 9.80665e-4, 9.80665e-4, math.radians(0.01 / 3600.0), math.radians(0.01 / 3600.0),
-                 math.radians(0.01 / 3600.0))
-"""S8's prior: 100/100/20 m, 0.5 m/s, 0.1/0.1/0.5°, 100 µg, 0.01 °/h (navigation grade's turn-on bias)."""
 
 
 # ---------------------------------------------------------------------- API
 def from_geodetic(*, imu_t, imu_f, imu_w, imu_grade: str, gps_t, lat_deg, lon_deg, height_m, roll_rad, pitch_rad,
                   yaw_rad, vel_ned=None, imu_rate_hz: float | None = None, t_end: float | None = None,
-                  init_sigma=DEFAULT_SIGMA, scan_t=None, scan_points_s=None, alt_t=None, alt_range=None,
+                  init_sigma=None, scan_t=None, scan_points_s=None, alt_t=None, alt_range=None,
                   baro_t=None, baro_alt=None, range_sigma_m: float = 0.5, altimeter_sigma_m: float = 1.0,
                   baro_sigma_m: float = 1.0, mount_quat=(1.0, 0.0, 0.0, 0.0), mount_lever=(0.0, 0.0, 0.0),
                   vertical_datum: str = "", frame: GeoFrame | None = None, dem_reference: str = "",
@@ -168,11 +166,22 @@ def from_geodetic(*, imu_t, imu_f, imu_w, imu_grade: str, gps_t, lat_deg, lon_de
         imu_rate_hz=rate, imu_grade=str(imu_grade),
         t_end=float(t_end) if t_end is not None else float(imu_t[-1] + 1.0 / rate) if len(imu_t) else math.nan,
         init_t=float(imu_t[0]) if len(imu_t) else math.nan, **init,
-        init_sigma=np.asarray(init_sigma, dtype=np.float64), truth_t=gps_t, truth_pos=pos, truth_vel=vel,
+        init_sigma=_initial_sigma(init_sigma, imu_grade), truth_t=gps_t, truth_pos=pos, truth_vel=vel,
         truth_quat=quat, mount_quat=np.asarray(mount_quat, dtype=np.float64),
         mount_lever=np.asarray(mount_lever, dtype=np.float64), dem_reference=dem_reference, frame=frame, name=name,
         settings=dict(settings or {}), **kw)
     return log.validate(source)
+
+
+def _initial_sigma(init_sigma, grade: str) -> np.ndarray:
+    """``init_sigma`` as floats, or (None) the scenarios' prior (:class:`~warptan.runner.InitialErrors`: 100/100/20 m,
+    0.5 m/s, 0.1/0.1/0.5°) with the grade's turn-on biases (NaN for a grade warptan does not know: the log's
+    validation names the grade)."""
+    if init_sigma is not None:
+        return np.asarray(init_sigma, dtype=np.float64)
+    if grade not in IMU_GRADES:
+        return np.full(15, np.nan)
+    return prior_sigma(InitialErrors(), IMU_GRADES[grade])
 
 
 def _north_turn(frame, lat, lon) -> np.ndarray:
@@ -309,7 +318,7 @@ def read_tables(layout: str | os.PathLike) -> FlightLog:
         imu_w=np.column_stack([imu["wx"], imu["wy"], imu["wz"]]), imu_grade=spec.get("imu_grade", "navigation"),
         gps_t=gps["t"], lat_deg=np.degrees(gps["lat"]), lon_deg=np.degrees(gps["lon"]), height_m=gps["height"],
         roll_rad=gps["roll"], pitch_rad=gps["pitch"], yaw_rad=gps["yaw"], vel_ned=vel,
-        init_sigma=spec.get("initial_sigma", DEFAULT_SIGMA), mount_quat=spec.get("mount_quat_bs", (1.0, 0, 0, 0)),
+        init_sigma=spec.get("initial_sigma"), mount_quat=spec.get("mount_quat_bs", (1.0, 0, 0, 0)),
         mount_lever=spec.get("mount_lever_b", (0.0, 0, 0)), vertical_datum=str(spec.get("vertical_datum", "")),
         dem_reference=str(spec.get("dem", "")), name=str(spec.get("name", path.stem)), settings=settings, **kw)
 

@@ -33,7 +33,7 @@ from warptan.imu import imu_grade
 from warptan.ins import Ins, NavState
 from warptan.measurement import Likelihood
 from warptan.mpf import MIN_PARTICLES, MarginalizedParticleFilter
-from warptan.runner import InitialErrors, collect_runs, prior_linear_sigma
+from warptan.runner import InitialErrors, collect_runs, prior_sigma
 from warptan.sensors import AltimeterReading, PointCloud
 
 SNAP = 1e-6
@@ -54,9 +54,8 @@ def logs_from_record(record: dict, flight, config: dict, likelihood: Likelihood,
     k_total = record["f"].shape[0]
     t_imu = np.asarray(flight.t_s[:k_total], dtype=np.float64)
     t_meas = np.asarray(flight.t_s[np.array(record["epochs"])], dtype=np.float64)
-    sigma = np.r_[np.asarray(ie["pos_m"], dtype=np.float64),
-                  prior_linear_sigma(InitialErrors(tuple(ie["pos_m"]), ie["vel_mps"], tuple(ie["att_deg"])),
-                                     imu_grade(config["imu"]["grade"]))]
+    sigma = prior_sigma(InitialErrors(tuple(ie["pos_m"]), ie["vel_mps"], tuple(ie["att_deg"])),
+                        imu_grade(config["imu"]["grade"]))
     logs = []
     for b, (total, seed) in enumerate(zip(total_seeds, seeds, strict=True)):
         nominal0 = record["nominal0"][b]

@@ -29,7 +29,7 @@ from __future__ import annotations
 
 import json
 import math
-from dataclasses import dataclass, replace
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -184,11 +184,7 @@ def write_bag(log: FlightLog, path) -> Path:
                     initial_vel_n=tuple(log.init_vel), initial_quat_nb=tuple(log.init_quat),
                     initial_sigma=tuple(log.init_sigma), range_sigma_m=log.range_sigma_m,
                     altimeter_sigma_m=log.altimeter_sigma_m, baro_sigma_m=log.baro_sigma_m, dem=log.dem_reference,
-                    **({} if log.frame is None else {
-                        "frame_origin_lat_deg": log.frame.origin_lat_deg,
-                        "frame_origin_lon_deg": log.frame.origin_lon_deg,
-                        "frame_origin_height_m": log.frame.origin_height_m,
-                        "frame_vertical_datum": log.frame.vertical_datum}),
+                    **({} if log.frame is None else {f"frame_{k}": v for k, v in asdict(log.frame).items()}),
                     settings_json=json.dumps(log.settings, sort_keys=True) if log.settings else "")
 
     def header(t, frame):

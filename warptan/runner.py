@@ -123,6 +123,12 @@ def prior_linear_sigma(errors: InitialErrors, grade) -> np.ndarray:
                            np.full(3, grade.gyro_bias)])
 
 
+def prior_sigma(errors: InitialErrors, grade) -> np.ndarray:
+    """(15,) prior σ of [dp, dv, dth, dba, dbg]: the position σ, then :func:`prior_linear_sigma` (a flight log's
+    ``initial.sigma``)."""
+    return np.r_[np.asarray(errors.pos_m, dtype=np.float64), prior_linear_sigma(errors, grade)]
+
+
 def prior_linear_cov(errors: InitialErrors, imu: ImuModel) -> np.ndarray:
     """P0 of [dv, dth, dba, dbg] (diagonal, :func:`prior_linear_sigma` squared)."""
     return np.diag(prior_linear_sigma(errors, imu.grade) ** 2)
