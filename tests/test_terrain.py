@@ -461,3 +461,16 @@ def test_raster_onto_another_terrains_frame(tmp_path):
     np.testing.assert_allclose(again.height_at(n, e), world.height_at(n, e), atol=0.01)
     with pytest.raises(TerrainError, match="no geographic reference"):
         Terrain.from_raster(named_terrain_file("rugged30"), onto=Terrain.synthetic("flat", size_m=2000.0))
+
+
+def test_a_replaced_terrain_samples_its_own_heights_not_the_cached_grid_of_the_original():
+    """``dataclasses.replace(terrain, heights_m=...)`` is a new map: its device samples are its heights, not the grid
+    the original had already uploaded (the cache was an init field and was copied with the rest)."""
+    import dataclasses
+
+    flat = Terrain.from_grid(np.zeros((20, 20)), 30.0)
+    north, east = wp.array([150.0], dtype=wp.float32), wp.array([150.0], dtype=wp.float32)
+    assert flat.sample(north, east).numpy()[0] == 0.0  # uploads the grid
+    raised = dataclasses.replace(flat, heights_m=np.full((20, 20), 40.0))
+    assert raised.sample(north, east).numpy()[0] == pytest.approx(40.0)
+    assert flat.sample(north, east).numpy()[0] == 0.0

@@ -101,7 +101,8 @@ class Terrain:
     """One line on the source and the processing."""
     valid_range_m: tuple[float, float] = PLAUSIBLE_HEIGHTS_M
     """Heights outside ``[low, high]`` m are nodata (with a :class:`TerrainWarning`); :data:`PLAUSIBLE_HEIGHTS_M`."""
-    _device_cache: dict = field(default_factory=dict, repr=False)
+    _device_cache: dict = field(default_factory=dict, repr=False, init=False)
+    # not an __init__ field: dataclasses.replace(terrain, heights_m=...) must not share the old grid's device copies
 
     def __post_init__(self):
         try:
