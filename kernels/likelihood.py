@@ -166,6 +166,8 @@ class Acc:
     mode_wa: modes_vec  # per mode: the attitude information's weight (likewise)
     sq_raw: float  # Σ z² unclipped (the NIS's Mahalanobis form)
     n_gated: int  # of the predictable points, those dropped as gross misses (:func:`gross_miss`; not in n_ok)
+    gated_ll: float  # Σ over the gross misses of their log-density (:func:`acc_gated`)
+    gated_sq: float  # Σ over the gross misses of their min(z², k_out²) (:func:`acc_gated`)
 
 
 @wp.func
@@ -194,6 +196,8 @@ def acc_init() -> Acc:
     a.mode_wa = modes_vec()
     a.sq_raw = 0.0
     a.n_gated = 0
+    a.gated_ll = 0.0
+    a.gated_sq = 0.0
     return a
 
 
@@ -290,10 +294,11 @@ def acc_add(acc: Acc, p: LikParams, res: float, sigma: float, axis_w: wp.vec3, j
 
 
 ACC_BASE = 36
-ACC_LEN = ACC_BASE + 7 * MAX_MODES + 2
+ACC_LEN = ACC_BASE + 7 * MAX_MODES + 4
 acc_vec = wp.types.vector(length=ACC_LEN, dtype=wp.float32)
 """An :class:`Acc` as one vector (n_recv, n_ok, Σ|r|, Σ|r||d| (3), last, Σ log-density, Σ min(z², k²), Λ (6: 00 11
-22 01 02 12), b (3), Σ GGᵀ (6), Σ HGᵀ (9, row-major), Σ G r (3), the mode sums, gross misses, Σ z²) for the block
+22 01 02 12), b (3), Σ GGᵀ (6), Σ HGᵀ (9, row-major), Σ G r (3), the mode sums, the gross misses' log-density
+and min(z², k²), gross misses, Σ z²) for the block
 reduction. Counts are exact in
 float32 up to 2^24 points; ``last`` is the sum of
 the lanes' last residuals, the residual itself for the one-point measurement that uses it."""
@@ -341,6 +346,8 @@ def acc_pack(a: Acc) -> acc_vec:
         for c in range(3):
             v[ACC_BASE + MAX_MODES + 3 * i + c] = a.proj_h[i, c]
             v[ACC_BASE + 4 * MAX_MODES + 3 * i + c] = a.proj_g[i, c]
+    v[ACC_LEN - 4] = a.gated_ll
+    v[ACC_LEN - 3] = a.gated_sq
     v[ACC_LEN - 2] = float(a.n_gated)
     v[ACC_LEN - 1] = a.sq_raw
     return v
@@ -378,6 +385,8 @@ def acc_unpack(v: acc_vec) -> Acc:
     a.mode_mu = modes_vec()
     a.mode_w0 = modes_vec()
     a.mode_wa = modes_vec()
+    a.gated_ll = v[ACC_LEN - 4]
+    a.gated_sq = v[ACC_LEN - 3]
     a.n_gated = int(v[ACC_LEN - 2])
     a.sq_raw = v[ACC_LEN - 1]
     return a
@@ -515,8 +524,9 @@ def acc_finish(acc: Acc, p: LikParams, att_cov: wp.mat33):
             if n_ok > 0:
                 frac = float(n_ok) / float(n_recv)
                 ll = frac * (-0.5 * err * err / p.r_err) + (1.0 - frac) * floor
-        else:
-            ll = acc.ll_points + n_bad * point_loglik(p.lik, p.k_out * p.sigma, p.sigma, p.nu)
+        else:  # a gross miss scores its point's height above the map (:func:`acc_gated`), the rest the floor
+            n_floor = n_bad - float(acc.n_gated)
+            ll = acc.ll_points + n_floor * point_loglik(p.lik, p.k_out * p.sigma, p.sigma, p.nu) + acc.gated_ll
             # the NIS asks whether this particle, with an attitude within the Kalman's uncertainty A and a map error
             # as stated, explains the scan: the Mahalanobis zᵀ(I + U K⁰ Uᵀ + H̃ A H̃ᵀ)⁻¹z of the unclipped z, with
             # the modes' one-scan weights c⁰_i (not shared along the track: a smooth misfit of tens of metres is
@@ -537,6 +547,7 @@ def acc_finish(acc: Acc, p: LikParams, att_cov: wp.mat33):
                     quad, det = attitude_quadratic(lam0, info0, att_cov)
                 mahal = mahal - float(quad)
             sum_sq = wp.min(sum_sq, wp.max(mahal, 0.0))
+            sum_sq = sum_sq + acc.gated_sq - float(acc.n_gated) * p.k_out * p.k_out
         nis = (sum_sq + n_bad * p.k_out * p.k_out) / float(n_recv)
     return err, ll, nis
 
@@ -673,14 +684,39 @@ def gross_miss(p: LikParams, res: float, sigma: float, gain: float) -> bool:
 
 
 @wp.func
+def acc_gated(acc: Acc, p: LikParams, vertical: float, gain: float) -> Acc:
+    """``acc`` plus a gross miss (:func:`gross_miss`) of a ray whose received point, placed with the particle's pose,
+    lies ``vertical`` m above the map's surface (NaN: unknown, a sliding height). The ray met another surface in the
+    world than in the map, so its range says nothing a Gaussian can use; but its point lies on the world's surface,
+    which the map holds within the stated error: it scores ``min(z_v, k_out)`` σ with ``z_v = vertical / σ_v``,
+    ``σ_v² = σ_e² + σ_map² + (σ_range / gain)²`` (the stated and the map's own vertical errors and the range noise
+    along the ray's vertical, ``gain = 1/u_z``), at most the floor of a point the particle cannot predict. With
+    the floor alone, a particle was paid for explaining the rays that grazed a ridge the world holds a few metres
+    higher than the map: at the true pose such a ray passes over the map's ridge (a residual of −1.5 km), a
+    particle 25 m off meets it (−50 to −100 m, within the gate), and three such rays gave that particle 12 nats
+    (S5, world 1003, t = 50 s). The point's height above the map is near zero at either pose."""
+    a = acc
+    a.n_gated = a.n_gated + 1
+    zc = p.k_out
+    if not wp.isnan(vertical):
+        var = p.sigma_err * p.sigma_err + p.sigma_map * p.sigma_map
+        var = var + (p.sigma_range / gain) * (p.sigma_range / gain)
+        zc = wp.min(wp.abs(vertical) / wp.sqrt(wp.max(var, 1.0e-12)), p.k_out)
+    a.gated_ll = a.gated_ll + point_loglik(p.lik, zc * p.sigma, p.sigma, p.nu)
+    a.gated_sq = a.gated_sq + zc * zc
+    return a
+
+
+@wp.func
 def acc_point(acc: Acc, p: LikParams, modes: wp.array(dtype=modes_vec), j: int, res: float, sigma: float,
-              gain: float, axis_w: wp.vec3, jac: wp.vec3, jac_pos: wp.vec3) -> Acc:
-    """``acc`` plus point ``j`` of a point cloud that the particle predicts: counted as a gross miss
-    (:func:`gross_miss`, ``gain`` its map-error sensitivity), else its sums (:func:`acc_add`) and, with modes, its
-    projections on them (:func:`acc_modes`, the table's row ``j``)."""
+              gain: float, vertical: float, axis_w: wp.vec3, jac: wp.vec3, jac_pos: wp.vec3) -> Acc:
+    """``acc`` plus point ``j`` of a point cloud that the particle predicts: a gross miss (:func:`gross_miss`,
+    ``gain`` its map-error sensitivity) scores its point's height above the map, ``vertical`` (:func:`acc_gated`),
+    else its sums (:func:`acc_add`) and, with modes, its projections on them (:func:`acc_modes`, the table's row
+    ``j``)."""
     a = acc
     if gross_miss(p, res, sigma, gain):
-        a.n_gated = a.n_gated + 1
+        a = acc_gated(a, p, vertical, gain)
     else:
         a = acc_add(a, p, res, sigma, axis_w, jac, jac_pos)
         if p.n_modes > 0:
@@ -703,6 +739,7 @@ def _reduce_loglik(tiled: bool):
         residual: wp.array2d(dtype=wp.float32),
         quat_nb: wp.array(dtype=wp.vec4),
         normal: wp.array2d(dtype=wp.vec3),
+        vertical: wp.array2d(dtype=wp.float32),
         cloud: wp.array2d(dtype=cloud_row),
         att_cov: wp.array(dtype=wp.mat33),
         params: LikParams,
@@ -719,7 +756,8 @@ def _reduce_loglik(tiled: bool):
     ):
         """Particle ``t`` (global index ``row0 + t``; one block, or one thread): paper error (m), log-likelihood,
         normalised squared residual, usable points, attitude information Λ and b, map-error mode amplitudes for the
-        next scan; ``normal[t, j]`` is the scaled surface normal at the hit (:func:`ray_jacobians`), ``att_cov[b]``
+        next scan; ``normal[t, j]`` is the scaled surface normal at the hit (:func:`ray_jacobians`), ``vertical[t,
+        j]`` the received point's height above the map (:func:`acc_gated`), ``att_cov[b]``
         the filter's attitude covariance, ``mode_mean[t]`` / ``mode_var[b]`` the modes' stored prior."""
         if wp.static(tiled):
             t, lane = wp.tid()
@@ -741,8 +779,8 @@ def _reduce_loglik(tiled: bool):
                     jac, jac_pos = ray_jacobians(mat, row, res, s)
                     u_down = (mat * row_dir(row))[2]
                     sigma = ray_sigma(params, s, u_down)
-                    acc = acc_point(acc, params, modes, j, res, sigma, ray_nominal_gain(u_down), axis_weights(row),
-                                    jac, jac_pos)
+                    acc = acc_point(acc, params, modes, j, res, sigma, ray_nominal_gain(u_down), vertical[t, j],
+                                    axis_weights(row), jac, jac_pos)
         if wp.static(tiled):
             acc = acc_block_sum(acc)
         if lane == 0:

@@ -116,7 +116,7 @@ def _sliding_loglik(tiled: bool):
                     nabla = wp.vec3(grad[0], grad[1], 1.0)
                     sigma = sliding_sigma(params, mat[2, 2], wp.dot(nabla, mat * row_dir(row)))
                     jac = sliding_jacobian(mat, c, c_hat, grad)
-                    acc = acc_point(acc, params, modes, j, res, sigma, 1.0, ones, jac,
+                    acc = acc_point(acc, params, modes, j, res, sigma, 1.0, wp.nan, ones, jac,
                                     nabla * (-mat[2, 2]))  # ∂ĉ_z/∂p = -g_z ∇F
             residual_out[t, j] = res
         if wp.static(tiled):

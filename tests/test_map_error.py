@@ -135,9 +135,24 @@ def _gated(model, out, cloud, sig):
     return np.isfinite(res) & (res**2 > p.k_out**2 * (sig**2 + e**2))
 
 
-def _points_minus_plain(model, out, cloud, plain_res):
+def _gated_scores(model, cloud, pos, gated):
+    """Per (particle, ray) the ``min(z_v, k_out)`` a gross miss scores (:func:`warptan.kernels.likelihood.acc_gated`):
+    the received point placed with the particle's (level) pose, its height above the map's triangulated surface
+    over ``σ_v = sqrt(σ_e² + σ_map² + (σ_range max(u_z, 0.1))²)``; ``k_out`` where it is off the map. NaN elsewhere."""
+    p = model.params()
+    d = np.asarray(cloud.dirs_s, dtype=np.float64)
+    q = np.asarray(pos, dtype=np.float64)[:, None, :] + np.asarray(cloud.ranges_m, dtype=np.float64)[None, :, None] * d
+    with np.errstate(invalid="ignore"):
+        v = -q[..., 2] - model.terrain.surface_height_at(q[..., 0].ravel(), q[..., 1].ravel()).reshape(q.shape[:2])
+    sigma_v = np.sqrt(p.sigma_err**2 + p.sigma_map**2 + (p.sigma_range * np.maximum(d[:, 2], 0.1)) ** 2)
+    zc = np.where(np.isfinite(v), np.minimum(np.abs(v) / sigma_v, p.k_out), p.k_out)
+    return np.where(gated, zc, np.nan)
+
+
+def _points_minus_plain(model, out, cloud, plain_res, pos):
     """(whitened residuals z_j = r_j/σ_j, zero for a gated ray; the per-point log-likelihood with σ_j, a gated ray
-    at the floor -k_out²/2, minus the plain one with σ) of a ray-cast particle set, float64."""
+    scoring its point's height above the map (:func:`_gated_scores`), minus the plain one with σ) of a ray-cast
+    particle set, float64."""
     sig = _ray_sigmas(model, out, cloud)
     res = out.residual_m.numpy().astype(np.float64)
     gated = _gated(model, out, cloud, sig)
@@ -145,7 +160,7 @@ def _points_minus_plain(model, out, cloud, plain_res):
     z = np.where(ok, res, 0.0) / sig
     sigma = model.params().sigma
     points = np.where(ok, -0.5 * z**2 - np.log(sig / sigma), 0.0).sum(axis=1)
-    points = points - 0.5 * model.params().k_out**2 * gated.sum(axis=1)
+    points = points - 0.5 * np.nansum(_gated_scores(model, cloud, pos, gated) ** 2, axis=1)
     fine = np.isfinite(plain_res)
     plain = np.where(fine, -0.5 * (np.where(fine, plain_res, 0.0) / sigma) ** 2, 0.0).sum(axis=1)
     return z, points - plain
@@ -176,7 +191,7 @@ def test_the_kernels_add_the_modes_share_and_nothing_without_a_statement(scan, n
     ev = np.linalg.eigvalsh(b.lam.numpy().astype(np.float64))
     assert ev.min() > -1e-4 * ev.max()
     if name == "raycast":
-        z, points = _points_minus_plain(stated, b, cloud, a.residual_m.numpy().astype(np.float64))
+        z, points = _points_minus_plain(stated, b, cloud, a.residual_m.numpy().astype(np.float64), pos)
         table = stated._modes.numpy().astype(np.float64)
         m = z.shape[1]
         u_tab, c = table[:m], table[m + klik.MODE_C0]
@@ -208,7 +223,7 @@ def test_a_gross_miss_scores_as_a_point_the_particle_cannot_predict(scan, device
     gated = _gated(stated, b, bad, _ray_sigmas(stated, b, bad))
     assert gated[:, 37].all() and np.isfinite(res[:, 37]).all()
     np.testing.assert_array_equal(b.n_valid.numpy(), np.isfinite(res).sum(axis=1))
-    z, points = _points_minus_plain(stated, b, bad, a.residual_m.numpy().astype(np.float64))
+    z, points = _points_minus_plain(stated, b, bad, a.residual_m.numpy().astype(np.float64), pos)
     table = stated._modes.numpy().astype(np.float64)
     p = z @ table[:z.shape[1]]
     expected = 0.5 * (table[z.shape[1] + klik.MODE_C0] * p**2).sum(axis=1)
@@ -217,6 +232,42 @@ def test_a_gross_miss_scores_as_a_point_the_particle_cannot_predict(scan, device
     assert np.all(b.nis.numpy() * res.shape[1] >= gated.sum(axis=1) * stated.likelihood.outlier_sigmas**2 - 1e-3)
     clean = plain.evaluate(*poses, cloud).loglik.numpy()
     assert np.all(a.loglik.numpy() < clean - 100.0)  # the plain Gaussian pays for the 400 m ray in full
+
+
+def test_a_ray_that_met_a_surface_the_world_lacks_scores_its_point_s_height_above_the_map(scan, device):
+    """A block 300 m high in the map that the world lacks, on the path of the scan's outer rays: a particle's ray
+    that meets it is a gross miss whose received point (on the world's ground beyond the block) lies within the
+    stated error of the map's surface, and it scores ``min(z_v, k_out)`` of that height (far less than the floor);
+    a point that falls on the block itself scores the floor. Kernel against the float64 oracle (log-likelihood and
+    NIS), both cases present."""
+    dem, cloud, pos, q = scan
+    heights = dem.heights_m.copy()
+    north = dem.n0 + np.arange(heights.shape[0]) * dem.dn
+    east = dem.e0 + np.arange(heights.shape[1]) * dem.de
+    nn, ee = np.meshgrid(north, east, indexing="ij")
+    block = (nn > 150.0) & (nn < 300.0) & (ee > 150.0) & (ee < 300.0)
+    heights[block] += 300.0
+    blocked = dataclasses.replace(dem, heights_m=heights)
+    poses = (wp.array(pos, dtype=wp.vec3, device=device), wp.array(np.tile(q, (len(pos), 1)), dtype=wp.vec4,
+                                                                     device=device))
+    plain = wt.make_model("raycast", blocked, wt.Likelihood("gaussian", sensor_sigma_m=0.5))
+    stated = wt.make_model("raycast", blocked, wt.Likelihood("gaussian", sensor_sigma_m=0.5, **STATED))
+    a, b = plain.evaluate(*poses, cloud), stated.evaluate(*poses, cloud)
+    gated = _gated(stated, b, cloud, _ray_sigmas(stated, b, cloud))
+    scores = _gated_scores(stated, cloud, pos, gated)
+    k_out = stated.likelihood.outlier_sigmas
+    assert np.sum(scores < 2.0) >= 10 and np.sum(scores == k_out) >= 10  # both kinds of gross miss, many times
+    z, points = _points_minus_plain(stated, b, cloud, a.residual_m.numpy().astype(np.float64), pos)
+    table = stated._modes.numpy().astype(np.float64)
+    m = z.shape[1]
+    expected = 0.5 * (table[m + klik.MODE_C0] * (z @ table[:m]) ** 2).sum(axis=1)
+    got = b.loglik.numpy().astype(np.float64) - a.loglik.numpy().astype(np.float64) - points
+    np.testing.assert_allclose(got, expected, rtol=2e-3, atol=2e-3 * np.abs(expected).max())
+    lost = (~np.isfinite(b.residual_m.numpy()) & cloud.valid).sum(axis=1) * k_out**2  # unpredictable: k_out²
+    nis = b.nis.numpy().astype(np.float64) * cloud.valid.sum()
+    top = np.minimum(z**2, k_out**2).sum(axis=1) + np.nansum(scores**2, axis=1) + lost
+    assert np.all(nis <= top + 1e-2 * m)  # the NIS counts a gross miss as its point's z_v², not k_out²
+    assert np.all(nis >= np.nansum(scores**2, axis=1) + lost - 1e-2 * m)
 
 
 def test_the_kernels_weigh_by_the_modes_prior_and_carry_it_to_the_next_scan(scan, device):
@@ -243,7 +294,7 @@ def test_the_kernels_weigh_by_the_modes_prior_and_carry_it_to_the_next_scan(scan
         stated.bind_mode_state(wp.array(mu, dtype=klik.modes_vec, device=device),
                                wp.array(prior_var[None], dtype=klik.modes_vec, device=device))
         b = stated.evaluate(*poses, cloud)
-        z, points = _points_minus_plain(stated, b, cloud, a.residual_m.numpy().astype(np.float64))
+        z, points = _points_minus_plain(stated, b, cloud, a.residual_m.numpy().astype(np.float64), pos)
         p = z @ table[:m]
         mean, v = (mu, prior_var) if prior_var[0] >= 0 else (np.zeros_like(mu), table[m + klik.MODE_K0])
         c = v / (1.0 + v)

@@ -314,6 +314,9 @@ class ModelOutput:
     normal: wp.array | None = None
     """(N, M) vec3 scaled surface normal ``∇F / (∇F · u)`` at each ray's hit, 1/1 (ray casts): the predicted range's
     derivatives w.r.t. dθ and the position follow from it (:func:`warptan.kernels.likelihood.ray_jacobians`)."""
+    vertical_m: wp.array | None = None
+    """(N, M) float32 each received point's height above the map's surface, placed with the particle's pose (m, NaN
+    where invalid; ray casts): what a gross miss scores (:func:`warptan.kernels.likelihood.acc_gated`)."""
     mode_post: wp.array | None = None
     """(N,) modes_vec the particles' map-error mode amplitudes after this scan, predicted to the next (whitened, in
     the modes of the table in use; zero without a stated map error): the filter keeps them as the next prior."""
@@ -461,6 +464,7 @@ class MeasurementModel:
                 info=wp.zeros(n, dtype=wp.vec3, device=device),
                 n_received=np.zeros(b, dtype=np.int64),
                 normal=wp.empty((n, m), dtype=wp.vec3, device=device) if self.name == "raycast" else None,
+                vertical_m=wp.empty((n, m), dtype=wp.float32, device=device) if self.name == "raycast" else None,
                 mode_post=wp.zeros(n, dtype=klik.modes_vec, device=device),
             )
             self._staged = self._staging_buffer(device, b, m)
@@ -683,17 +687,18 @@ class RaycastModel(_PointCloudModel):
 
     def _launch(self, pos_n, quat_nb, out, device):
         lead = self.caster.launch_args(self.terrain, device)
-        res, nrm, cloud, n_per = out.residual_m, out.normal, self._staged, self.n_per
+        res, nrm, vert, cloud, n_per = out.residual_m, out.normal, out.vertical_m, self._staged, self.n_per
         att = self._attitude_cov(device, self.n_filters)
         mean, var = self._mode_state(device, res.shape[0], self.n_filters)
         launch_rows(kray.raycast_residual_kernel, res.shape[0],
                     lambda a, b: ([*lead, a or 0, n_per, rows_of(pos_n, a, b), rows_of(quat_nb, a, b), cloud],
-                                  [rows_of(res, a, b), rows_of(nrm, a, b)]),
+                                  [rows_of(res, a, b), rows_of(nrm, a, b), rows_of(vert, a, b)]),
                     device, cols=res.shape[1], row_cost=20)
         kernel, block = klik.reduce_loglik_kernels[device.is_cuda], _block_dim(device)
         launch_rows(kernel, res.shape[0],
                     lambda a, b: ([a or 0, n_per, rows_of(res, a, b), rows_of(quat_nb, a, b), rows_of(nrm, a, b),
-                                   cloud, att, self._params, self._modes, rows_of(mean, a, b), var],
+                                   rows_of(vert, a, b), cloud, att, self._params, self._modes, rows_of(mean, a, b),
+                                   var],
                                   [rows_of(out.error_m, a, b), rows_of(out.loglik, a, b), rows_of(out.nis, a, b),
                                    rows_of(out.n_valid, a, b), rows_of(out.lam, a, b), rows_of(out.info, a, b),
                                    rows_of(out.mode_post, a, b)]),
