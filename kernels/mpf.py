@@ -100,7 +100,7 @@ H_STAGES = wp.constant(15)  # tempering stages applied
 H_NIS = wp.constant(16)  # smallest normalised squared residual of any particle (best hypothesis)
 H_NIS_AVG = wp.constant(17)  # its window mean (the integrity statistic)
 H_SKIPPED = wp.constant(18)  # 1: the update carried no usable information and changed nothing
-H_APPLIED = wp.constant(19)  # exponent of the likelihood applied (1 unless skipped or capped)
+H_APPLIED = wp.constant(19)  # exponent of the likelihood applied (1 unless skipped, capped or revisited)
 H_NIS_POST = wp.constant(20)  # posterior-weighted normalised squared residual
 H_MEAN_L = wp.constant(21)  # 12 values: weighted mean of the Kalman means l after the update
 H_VAR_L = wp.constant(33)  # 12 values: weighted variance of the Kalman means (their spread; P is on the host)
@@ -235,12 +235,13 @@ def particle_poses_kernel(
 
 
 @wp.kernel
-def begin_update_kernel(stats: wp.array2d(dtype=wp.float64)):
-    """One thread per filter: the whole log-likelihood (exponent 1) is still to apply; counters reset."""
+def begin_update_kernel(exponent: wp.array(dtype=wp.float32), stats: wp.array2d(dtype=wp.float64)):
+    """One thread per filter: the log-likelihood's exponent ``exponent[b]`` (1, or less over ground whose map error
+    the filter has read before: :class:`warptan.measurement.RevisitMemory`) is still to apply; counters reset."""
     b = wp.tid()
     for k in range(N_STATS):
         stats[b, k] = wp.float64(0.0)
-    stats[b, ST_REMAIN] = wp.float64(1.0)
+    stats[b, ST_REMAIN] = wp.float64(exponent[b])
 
 
 @wp.kernel

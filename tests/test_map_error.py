@@ -477,3 +477,33 @@ def test_the_filter_carries_the_mode_amplitudes_from_scan_to_scan():
     assert model.modes_info["rebuilds"] == 1 and np.all(expected[:n_modes] <= k0[:n_modes] * (1 + 1e-6))
     assert expected[0] < 0.1 * k0[0]  # the leading (smoothest) mode is known to a tenth of its one-scan variance
     assert np.abs(mpf._mode_mean.numpy()[:, :n_modes]).max() > 0
+
+
+def test_ground_read_again_after_the_modes_forgot_it_weighs_less():
+    """:class:`warptan.measurement.RevisitMemory`: a straight flight keeps exponent 1 (its older scans are far
+    behind: ≥ 0.98), an orbit of 600 m radius inside one correlation length is discounted once its earlier passes
+    are older than κ scans, to ``(1 + C)⁻²`` of the NumPy sum over every earlier scan (C = Σ_k exp(−d_k²/L²) / κ,
+    the scans older than κ; the memory keeps every κ/16-th); the first κ updates are exactly 1."""
+    from warptan.measurement import RevisitMemory
+
+    lk = wt.Likelihood("gaussian", sensor_sigma_m=0.5, **STATED)
+    kappa = lk.point_sharing()
+    assert kappa == pytest.approx(math.sqrt(math.pi) * 1000.0 / 10.0, rel=1e-3)
+    steps = np.arange(1200)
+    straight = np.c_[steps * 10.0, np.zeros_like(steps, dtype=float)]
+    angle = steps * 10.0 / 600.0
+    orbit = 600.0 * np.c_[np.cos(angle), np.sin(angle)]
+    for track, low in ((straight, 0.98), (orbit, None)):
+        memory = RevisitMemory(lk, 2)
+        got = np.array([memory.exponents(np.stack([x, x + 5.0]))[0] for x in track])
+        assert np.all(got[:math.ceil(kappa)] == 1.0)
+        mem = math.ceil(kappa)
+        d2 = np.sum((track[:, None] - track[None]) ** 2, axis=2)
+        older = np.arange(1200)[None, :] <= np.arange(1200)[:, None] - mem
+        passes = np.where(older, np.exp(-d2 / 1000.0**2), 0.0).sum(axis=1) / kappa
+        expected = 1.0 / (1.0 + passes) ** 2
+        if low is not None:
+            assert got.min() >= low
+        else:
+            assert got[-1] < 0.15  # three orbits on: the same error read a fourth time
+        np.testing.assert_allclose(got, expected, atol=0.03)

@@ -272,6 +272,16 @@ class Likelihood:
             return 0.0
         return 2.0 * self.map_error_sigma_m**2 * max(float(speed_mps), 0.0) / self.map_error_corr_m
 
+    def point_sharing(self) -> float:
+        """Consecutive scans of a straight pass that read the stated error under one ground point: ``κ = 1 + 2
+        Σ_k exp(−(k s / L)²)`` over the track step ``s`` (``track_step_m``; ≈ √π L / s); 1 without a step or a
+        stated error."""
+        step, length = self.track_step_m, self.map_error_corr_m
+        if not self.models_map_error or step <= 0:
+            return 1.0
+        k = np.arange(1, math.ceil(4.0 * length / step) + 1)
+        return float(1.0 + 2.0 * np.exp(-((k * step / length) ** 2)).sum())
+
     def sigma_eff(self, model_mismatch_m: float) -> float:
         """The per-point σ in m: ``sigma_m`` when given, else
         ``sqrt(sensor² + map_correlation · (map² + model_mismatch²))`` (at least 1 cm)."""
@@ -284,6 +294,49 @@ class Likelihood:
         """The per-point σ of the attitude information in m (see ``footprint_correlation``)."""
         extra = max(self.footprint_correlation - self.map_correlation, 0.0)
         return math.sqrt(self.sigma_eff(model_mismatch_m) ** 2 + extra * (self.map_sigma_m**2 + model_mismatch_m**2))
+
+
+class RevisitMemory:
+    """The log-likelihood's exponent of each filter's next update over ground whose map error it has read before.
+
+    The map-error modes carry their amplitudes from scan to scan as first-order processes (:meth:`Likelihood.
+    error_modes`): they remember an error for about the scans of one straight pass over it, ``κ`` of
+    :meth:`Likelihood.point_sharing` (177 at 10 m per scan and L = 1 km). Ground read again after that (an orbit,
+    a racetrack, a return leg) is the same error read anew, and without a discount each pass over it counts that
+    one error once more: its bias on the position is taken for information. With the earlier passes over this
+    ground ``C = (1/κ) Σ_k exp(−|x − x_k|² / L²)`` (the scans ``k`` older than ``κ`` scans, ``x`` the scan's ground
+    point; one straight pass through ``x`` makes ``C ≈ 1``), the update applies the exponent ``(1 + C)⁻²``: a
+    second pass over a patch weighs a quarter, a third a ninth (what a pass adds besides the shared error, the
+    sensor's noise and the ground seen from another side, is small beside it; an error shared in full would make
+    it 0). Measured (S5 and S6, 60° bank, an orbit of 37 s inside one correlation length; 5 m / 1 km world of
+    seed 1003, seeds 15–16, CPU; north 3σ coverage, σ/RMSE north): without it 79/78 %, 0.40 (S5) and 88/85 %, 0.50
+    (S6); ``(1 + C)⁻¹`` 81/83 %, 0.45 and 92/90 %, 0.55; ``(1 + C)⁻²`` 92/90 %, 0.55 and 96/94 %, 0.62, the RMSE
+    not worse (S5 6.5/6.9 → 5.7/6.3 m). A straight flight's older scans are 1.8 km behind: C < 0.01, an exponent
+    ≥ 0.98. The positions are kept every ``κ/16`` scans (each standing for that many): the host work of an update is
+    O(flight length / κ) per filter, never O(particles)."""
+
+    def __init__(self, likelihood: Likelihood, n_filters: int):
+        self.likelihood = likelihood
+        self.kappa = likelihood.point_sharing()
+        self.stride = max(1, int(self.kappa // 16))
+        self.n_filters = int(n_filters)
+        self.count = 0  # updates seen
+        self._kept: list[np.ndarray] = []  # (B, 2) ground points, one per stride updates
+
+    def exponents(self, ground: np.ndarray) -> np.ndarray:
+        """The exponents (B,) of the update whose ground points are ``ground`` (B, 2, m, navigation frame), which
+        it then remembers."""
+        ground = np.asarray(ground, dtype=np.float64).reshape(self.n_filters, 2)
+        old = (self.count - math.ceil(self.kappa)) // self.stride  # kept points older than κ scans: [0, old]
+        passes = np.zeros(self.n_filters)
+        if old >= 0 and self.kappa > 1:
+            kept = np.stack(self._kept[:old + 1])  # (K, B, 2)
+            d2 = np.sum((kept - ground[None]) ** 2, axis=2)
+            passes = self.stride * np.exp(-d2 / self.likelihood.map_error_corr_m**2).sum(axis=0) / self.kappa
+        if self.count % self.stride == 0:
+            self._kept.append(ground.copy())
+        self.count += 1
+        return 1.0 / (1.0 + passes) ** 2
 
 
 @dataclass
@@ -379,6 +432,9 @@ class MeasurementModel:
         self._zero_att: wp.array | None = None
         self._modes: wp.array | None = None
         self._modes_host: np.ndarray | None = None
+        self.footprint_centre = np.zeros(2)
+        """Mean horizontal offset (m, navigation frame) of the scan's nominal ground points from the aircraft (the
+        last scan under a stated map error; :class:`RevisitMemory` reads it)."""
         self._mode_mean: wp.array | None = None
         self._mode_var: wp.array | None = None
         self._no_modes: tuple[wp.array, wp.array] | None = None
@@ -537,6 +593,7 @@ class MeasurementModel:
             return
         quat = np.asarray(attitude if attitude is not None else quat_nb[:1].numpy()[0], dtype=np.float64).reshape(4)
         xy, sens, along = self._scan_geometry(quat)
+        self.footprint_centre = xy.mean(axis=0)  # where the scan reads the map, from the aircraft (m)
         old, host = self._modes_geometry, self._modes_host
         size = max(float(np.ptp(xy, axis=0).max()) if len(xy) > 1 else 0.0, 1.0)
         if old is not None and old[0].shape == xy.shape and np.abs(old[0] - xy).max() <= self.MODES_REBUILD * size \

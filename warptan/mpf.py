@@ -126,6 +126,7 @@ from warptan.ins import NavState, process_noise
 from warptan.kernels import likelihood as klik
 from warptan.kernels import mpf as kmpf
 from warptan.kernels import nav as knav
+from warptan.measurement import RevisitMemory
 from warptan.parallel import Recorder, launch, launch_rows, rows_of
 
 SCHEMES = {"systematic": 0, "stratified": 1, "multinomial": 2}
@@ -529,6 +530,8 @@ class MarginalizedParticleFilter:
         self._more_stages = wp.zeros(1, dtype=wp.int32, device=d)
         self._cdf_sums = wp.empty((b, kmpf.N_CHUNKS), dtype=wp.float64, device=d)
         self._stats = wp.zeros((b, kmpf.N_STATS), dtype=wp.float64, device=d)
+        self._exponent = wp.ones(b, dtype=wp.float32, device=d)  # per update (RevisitMemory)
+        self._revisits = None
         self._moments_partial = wp.empty((b, kmpf.N_MOMENT_CHUNKS, kmpf.N_MOMENTS), dtype=wp.float64, device=d)
         self._moments = wp.empty((b, kmpf.N_MOMENTS), dtype=wp.float64, device=d)
         self._cdf = wp.empty(nt, dtype=wp.float32, device=d)
@@ -852,7 +855,8 @@ class MarginalizedParticleFilter:
             self.model.launch(self._pos, self._quat)
 
     def _launch_weigh(self, out, stage: int) -> None:
-        launch(kmpf.begin_update_kernel, dim=self.n_filters, outputs=[self._stats], device=self.device)
+        launch(kmpf.begin_update_kernel, dim=self.n_filters, inputs=[self._exponent], outputs=[self._stats],
+               device=self.device)
         self._launch_stage(out, stage)
 
     def _extra_stage(self, out, stage: int) -> None:
@@ -885,12 +889,18 @@ class MarginalizedParticleFilter:
         if self.batched and not (isinstance(measurement, (list, tuple)) and len(measurement) == self.n_filters):
             raise FilterError(f"a batch of {self.n_filters} filters needs a list of {self.n_filters} measurements")
         attitude = None
-        if getattr(getattr(self.model, "likelihood", None), "models_map_error", False):
+        likelihood = getattr(self.model, "likelihood", None)
+        if getattr(likelihood, "models_map_error", False):
             # the map-error modes' scan geometry needs the platform's attitude: the nominal of the last interval
             # (one device-to-host copy of 4 numbers; 0.1 s old at 10 Hz, what the geometry's tolerance allows)
             attitude = self._nav["quat"][:1].numpy()[0]
         extra = {} if attitude is None else {"attitude": attitude}  # a model of the user's may not take it
         out = self.model.stage(measurement, self._pos, self._quat, **extra)  # validates first: nothing moves
+        if attitude is not None:  # ground read again after the modes forgot it: B positions to the host
+            if self._revisits is None or self._revisits.likelihood is not likelihood:
+                self._revisits = RevisitMemory(likelihood, self.n_filters)
+            ground = self._nav["pos"].numpy()[:, :2] + getattr(self.model, "footprint_centre", np.zeros(2))
+            self._exponent.assign(self._revisits.exponents(ground).astype(np.float32))
         t_staged = time.perf_counter()
         if hasattr(self.model, "bind_attitude_cov"):
             self.model.bind_attitude_cov(self._dev["att_cov"])
