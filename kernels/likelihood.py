@@ -673,10 +673,11 @@ def gross_miss(p: LikParams, res: float, sigma: float, gain: float) -> bool:
     under the map's posts shadows it at a glancing angle): its size, tens to hundreds of metres, is not a
     Gaussian error, and the Gaussian gave the one or two such rays of a scan the whole weight (S5, the 60° bank
     whose rays reach the horizon, 5 m / 1 km world of seed 1003, seed 15, CPU: the particles jumped 25–30 m
-    north at the same place of every orbit with a 3σ of 2–6 m, 3σ coverage N/E 49/72 %; gated 75/92 %, and without
-    the world's sub-post relief 81/85 → 87/92 %; ``results/world``, 20 seeds: 21.8 → 7.3 m, no seed lost). It
-    scores as a point the particle cannot predict (``k_out`` σ) and adds nothing to the attitude's information or
-    the modes."""
+    north at the same place of every orbit with a 3σ of 2–6 m, 3σ coverage N/E 49/72 %; gated 75/92 %;
+    ``results/world``, 20 seeds: 21.8 → 7.3 m, no seed lost; a world without the sub-post relief, 81/85 → 87/92 %,
+    is another error field too: the world draws its error after its relief from one generator). It scores its
+    point's height above the map (:func:`acc_gated`, at most the floor of a point the particle cannot predict) and
+    adds nothing to the attitude's information or the modes."""
     if p.lik == LIK_PAPER or p.sigma_err <= 0.0:
         return False
     e = p.sigma_err * gain
