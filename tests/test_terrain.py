@@ -474,3 +474,11 @@ def test_a_replaced_terrain_samples_its_own_heights_not_the_cached_grid_of_the_o
     raised = dataclasses.replace(flat, heights_m=np.full((20, 20), 40.0))
     assert raised.sample(north, east).numpy()[0] == pytest.approx(40.0)
     assert flat.sample(north, east).numpy()[0] == 0.0
+
+
+def test_the_slope_correlation_length_of_sinusoidal_ridges():
+    """Ridges ``h = 50 sin(2π north / λ)``: the slope's autocorrelation is ``cos(2π lag / λ)``, below 1/e from
+    ``lag = λ acos(1/e) / 2π`` (λ = 2 km: 381 m, to a post); the east axis, without slope, says nothing."""
+    north = np.arange(400) * 30.0
+    ridges = Terrain.from_grid(np.tile(50.0 * np.sin(2 * np.pi * north / 2000.0)[:, None], (1, 300)), 30.0)
+    assert ridges.slope_correlation_m == pytest.approx(2000.0 * np.arccos(1 / np.e) / (2 * np.pi), abs=31.0)

@@ -756,7 +756,7 @@ def scenario_likelihood(config: dict, the_map: Terrain, truth: Terrain | None = 
                       nu=lk["nu"], sensor_sigma_m=noise_m, map_sigma_m=map_sigma,
                       map_correlation=n_corr, footprint_correlation=n_fp,
                       map_error_sigma_m=lk["map_error_rms_m"], map_error_corr_m=lk["map_error_corr_m"],
-                      track_step_m=step_m)
+                      track_step_m=step_m, fix_corr_m=the_map.slope_correlation_m if lk["map_error_rms_m"] > 0 else 0.0)
 
 
 def prepare(name_or_path, seed: int = 0, terrain=None, *, seeds=None, device=None, batched: bool = False,
