@@ -272,8 +272,9 @@ class Likelihood:
         (:func:`warptan.kernels.likelihood.attitude_information`) and without this noise the velocity ran away
         (3–10 m/s error at 17–52 σ, 27–140 m); with ``ℓ = L`` 3.4/2.5 m at 96/98 % coverage. With the slope's
         length (the 90 m rugged tile's 260 m, 4× the density; world 1003, seeds 15–16): north/east 3σ coverage
-        84/84 → 96/98 %, σ/RMSE 0.51/0.48 → 0.70/0.69, RMSE 6.5 → 6.4 m; a quarter of the density (ℓ = 4L) gave
-        66/73 %. Only for models whose one scan fixes the position
+        84/84 → 96/98 %, σ/RMSE 0.51/0.48 → 0.70/0.70, RMSE 6.5 → 6.2 m; ℓ = 4L (a quarter of the density with
+        L) gave 66/73 %; ``results/world`` (20 seeds): S2 σ/RMSE 0.64/0.74 → 0.86/0.96. Only for models whose one scan
+        fixes the position
         (``MeasurementModel.fixes_per_scan``: point clouds): an altimeter's fix builds up over many scans, and with
         this noise S9/S12 (20 seeds, H100) went from 19 m mean to 177/187 m (a seed 2.8 km off, flagged). 0
         without a stated map error."""
