@@ -781,7 +781,10 @@ def _reduce_loglik(tiled: bool):
                     jac, jac_pos = ray_jacobians(mat, row, res, s)
                     u_down = (mat * row_dir(row))[2]
                     sigma = ray_sigma(params, s, u_down)
-                    acc = acc_point(acc, params, modes, j, res, sigma, ray_nominal_gain(u_down), vertical[t, j],
+                    vert = float(wp.nan)
+                    if params.sigma_err > 0.0:  # read only where a gross miss can be scored (acc_gated)
+                        vert = vertical[t, j]
+                    acc = acc_point(acc, params, modes, j, res, sigma, ray_nominal_gain(u_down), vert,
                                     axis_weights(row), jac, jac_pos)
         if wp.static(tiled):
             acc = acc_block_sum(acc)

@@ -305,6 +305,7 @@ def raycast_residual_kernel(
     cloud: wp.array2d(dtype=cloud_row),
     residual_out: wp.array2d(dtype=wp.float32),
     normal_out: wp.array2d(dtype=wp.vec3),
+    want_vertical: int,
     vertical_out: wp.array2d(dtype=wp.float32),
 ):
     """One thread per (particle i, point j): range residual ``r_j - t_ij`` (m); NaN where either is invalid.
@@ -314,16 +315,18 @@ def raycast_residual_kernel(
     Also what the range's derivatives need: with the surface ``F = z + h(n, e) = 0``, ``∇F = (h_n, h_e, 1)`` at the
     hit and ``u = R d``, the scaled normal ``s = ∇F / (∇F · u)`` (zero at a grazing hit), from which
     :func:`warptan.kernels.likelihood.ray_jacobians` forms ``∂t/∂dθ = t (Rᵀs) × d`` (SPEC §6b) and ``∂t/∂p = -s``.
-    And the received point's height above the map's surface, ``-q_z - h(q_n, q_e)`` with ``q = p + r_j d`` (m; NaN
-    where the point is invalid or off the map): what a ray that met another surface still says
-    (:func:`warptan.kernels.likelihood.acc_gated`).
+    With ``want_vertical`` (a stated map error) also the received point's height above the map's surface, ``-q_z -
+    h(q_n, q_e)`` with ``q = p + r_j d`` (m; NaN where the point is invalid or off the map): what a ray that met
+    another surface still says (:func:`warptan.kernels.likelihood.acc_gated`); otherwise ``vertical_out`` is not
+    written (nothing reads it).
     """
     i, j = wp.tid()
     row = cloud[(row0 + i) // n_per, j]
     normal_out[i, j] = wp.vec3()
     if row[CR_VALID] == 0.0:
         residual_out[i, j] = wp.nan
-        vertical_out[i, j] = wp.nan
+        if want_vertical != 0:
+            vertical_out[i, j] = wp.nan
         return
     mat = quat_to_mat_wxyz(quat_nb[i])
     d_s = row_dir(row)
@@ -331,8 +334,9 @@ def raycast_residual_kernel(
     p = pos_n[i]
     t = cast_ray(grid, mesh, backend, p, d, step_m, n_bisect)
     residual_out[i, j] = row[CR_RANGE] - t
-    q = p + row[CR_RANGE] * d
-    vertical_out[i, j] = -q[2] - grid_surface(grid, q[0], q[1])
+    if want_vertical != 0:
+        q = p + row[CR_RANGE] * d
+        vertical_out[i, j] = -q[2] - grid_surface(grid, q[0], q[1])
     if not wp.isnan(t):
         hit = p + t * d
         grad = grid_gradient(grid, 1, hit[0], hit[1])

@@ -332,7 +332,7 @@ class RevisitMemory:
         self.stride = max(1, int(self.kappa // 16))
         self.n_filters = int(n_filters)
         self.count = 0  # updates seen
-        self._kept: list[np.ndarray] = []  # (B, 2) ground points, one per stride updates
+        self._kept = np.zeros((0, self.n_filters, 2))  # (K, B, 2) ground points, one per stride updates
 
     def exponents(self, ground: np.ndarray) -> np.ndarray:
         """The exponents (B,) of the update whose ground points are ``ground`` (B, 2, m, navigation frame), which
@@ -341,11 +341,10 @@ class RevisitMemory:
         old = (self.count - math.ceil(self.kappa)) // self.stride  # kept points older than κ scans: [0, old]
         passes = np.zeros(self.n_filters)
         if old >= 0 and self.kappa > 1:
-            kept = np.stack(self._kept[:old + 1])  # (K, B, 2)
-            d2 = np.sum((kept - ground[None]) ** 2, axis=2)
+            d2 = np.sum((self._kept[:old + 1] - ground[None]) ** 2, axis=2)
             passes = self.stride * np.exp(-d2 / self.likelihood.map_error_corr_m**2).sum(axis=0) / self.kappa
-        if self.count % self.stride == 0:
-            self._kept.append(ground.copy())
+        if self.count % self.stride == 0:  # a copy per kept point: O(K) every κ/16 updates
+            self._kept = np.concatenate([self._kept, ground[None]])
         self.count += 1
         return 1.0 / (1.0 + passes) ** 2
 
@@ -760,7 +759,8 @@ class RaycastModel(_PointCloudModel):
         mean, var = self._mode_state(device, res.shape[0], self.n_filters)
         launch_rows(kray.raycast_residual_kernel, res.shape[0],
                     lambda a, b: ([*lead, a or 0, n_per, rows_of(pos_n, a, b), rows_of(quat_nb, a, b), cloud],
-                                  [rows_of(res, a, b), rows_of(nrm, a, b), rows_of(vert, a, b)]),
+                                  [rows_of(res, a, b), rows_of(nrm, a, b), int(self._params.sigma_err > 0),
+                                   rows_of(vert, a, b)]),
                     device, cols=res.shape[1], row_cost=20)
         kernel, block = klik.reduce_loglik_kernels[device.is_cuda], _block_dim(device)
         launch_rows(kernel, res.shape[0],

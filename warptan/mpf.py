@@ -92,8 +92,10 @@ makes the particles' altitude the height above the map: the offset's variance ``
 altitude variance (``map_offset_var``; the estimate's ``cov_pos`` and the runs' σ) and its change along the track is
 process noise on the down velocity, ``q_v = 4 σ_e² v³ / L³`` at the fastest nominal's ground speed at construction
 (:meth:`warptan.measurement.Likelihood.offset_process`). A point-cloud model's fix of the horizontal position
-wanders along the track with the error: ``Q^n`` grows by ``2 σ_e² v / L`` (:meth:`warptan.measurement.Likelihood.
-fix_process`), or the Kalman part reads the wander as velocity.
+wanders along the track with the error: ``Q^n`` grows by ``2 σ_e² v / ℓ``, ℓ the shorter of L and the terrain slope's
+correlation length (:meth:`warptan.measurement.Likelihood.fix_process`), or the Kalman part reads the wander as
+velocity. Ground read again after the map-error modes forgot it weighs less: each update's exponent starts at
+``(1 + C)⁻²`` instead of 1 (:class:`warptan.measurement.RevisitMemory`).
 
 Integrity (MBARI TRN style): every model returns each particle's normalised squared residual (NIS, mean of
 ``min((r/σ)², k_out²)`` over the received points; ≈ 1 at the true pose); the smallest NIS of any particle — is
