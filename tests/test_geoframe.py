@@ -22,7 +22,8 @@ rasterio = pytest.importorskip("rasterio")
 @pytest.fixture(scope="module")
 def dems(tmp_path_factory):
     """Copies of the package's rugged tile (geographic, SRTM3): shifted 3° east, with a nodata hole in the middle,
-    projected to UTM 32N at 60 m, and a window of that UTM grid (the same posts, another origin)."""
+    cut by 40 posts on its west and north sides, projected to UTM 32N at 60 m, and a window of that UTM grid (the
+    same posts, another origin)."""
     from rasterio.warp import Resampling, calculate_default_transform, reproject
     from rasterio.windows import Window
 
@@ -39,6 +40,10 @@ def dems(tmp_path_factory):
         hole[r0 - 30:r0 + 30, c0 - 30:c0 + 30] = -32768.0
         with rasterio.open(folder / "hole.tif", "w", **prof) as dst:
             dst.write(hole, 1)
+        cut = dict(prof, width=src.width - 40, height=src.height - 40,
+                   transform=t * rasterio.Affine.translation(40, 40))
+        with rasterio.open(folder / "crop.tif", "w", **cut) as dst:
+            dst.write(data[40:, 40:], 1)
         tr, w, h = calculate_default_transform(src.crs, "EPSG:32632", src.width, src.height, *src.bounds,
                                                resolution=60)
         utm = np.full((h, w), -32768.0, np.float32)
@@ -51,7 +56,7 @@ def dems(tmp_path_factory):
         with rasterio.open(folder / "utm_crop.tif", "w", **dict(uprof, width=win.width, height=win.height,
                                                                  transform=rasterio.windows.transform(win, tr))) as d:
             d.write(utm[30:30 + win.height, 50:50 + win.width], 1)
-    for name in ("shifted", "hole", "utm", "utm_crop"):
+    for name in ("shifted", "hole", "crop", "utm", "utm_crop"):
         out[name] = str(folder / f"{name}.tif")
     return out
 
@@ -97,6 +102,8 @@ def test_log_version_2_keeps_its_frame_and_reads_version_1(s8, tmp_path):
     assert log.frame is not None and abs(log.frame.origin_lat_deg - 50.5) < 0.01 and log.version == 2
     back = read_log(write_log(log, tmp_path / "v2.h5"))
     assert back.frame == log.frame and back.version == 2
+    np.testing.assert_array_equal(back.dem_posts, log.dem_posts)  # the package tile's posts in the log's frame
+    assert log.dem_posts[4:].tolist() == list(result_terrain(s8).heights_m.shape)
     v1 = tmp_path / "v1.h5"
     write_log(log, v1)
     with h5py.File(v1, "a") as f:
@@ -108,6 +115,39 @@ def test_log_version_2_keeps_its_frame_and_reads_version_1(s8, tmp_path):
         f.attrs["version"] = 2
     with pytest.raises(LogError, match="group /frame is missing"):
         read_log(v1)
+
+
+def result_terrain(s8):
+    return s8[0].truth_terrain
+
+
+def test_another_cut_of_the_logs_dem_is_resampled_onto_its_posts(s8, dems):
+    """A geographic DEM is resampled to metres on load; another cut of it resampled on its own is another map (GDAL's
+    bilinear warp weighs a post by the output's extent: measured 2.3 m against 0.37 m for S8 seeds 0–1 over the
+    package tile cut by 40 posts, 30 s). Replay puts it onto the log's DEM posts instead: the same heights (but at
+    the cut's edge), the same likelihood as over the log's own DEM, the same estimate within the filter's noise."""
+    result, log = s8
+    own, crop = replay(log), replay(log, dems["crop"])
+    assert crop.run.info["same_posts"] and crop.run.info["frame_identity"]
+    world, cut = result.truth_terrain, crop.truth_terrain
+    i, j = round((cut.n0 - world.n0) / world.dn), round((cut.e0 - world.e0) / world.de)
+    assert (i, j) == (0, 40)  # the cut's first post is the world's post 40 east of its first
+    a = world.heights_m[i:i + cut.heights_m.shape[0], j:j + cut.heights_m.shape[1]]
+    both = np.isfinite(a) & np.isfinite(cut.heights_m)
+    assert np.mean(a[both] == cut.heights_m[both]) > 0.99
+    assert crop.map_sigma_m == own.map_sigma_m  # no interpolation error counted: the map is the log's DEM
+    np.testing.assert_allclose(crop.run.est_pos, own.run.est_pos, atol=2.0)
+    other = Terrain.from_raster(dems["crop"], posts=(log.frame.crs_wkt, (0.0, 0.0),
+                                                     (*log.dem_posts[:2], 30.0, 30.0, 100, 100)))
+    assert "onto the posts" not in other.description  # another spacing: read on its own
+
+
+def test_bad_dem_posts_are_refused_before_writing(s8, tmp_path):
+    _, log = s8
+    bad = np.r_[log.dem_posts[:3], -1.0, log.dem_posts[4:]]
+    with pytest.raises(LogError, match=r"dem\.posts must be 6 finite numbers"):
+        write_log(dataclasses.replace(log, dem_posts=bad), tmp_path / "bad.h5")
+    assert not any(tmp_path.iterdir())
 
 
 @pytest.mark.parametrize("frame, expect", [

@@ -22,7 +22,11 @@ and needs no table flattening (Parquet would store a scan as M columns or a list
                          sigma (15,): σ of its error [pos m (3), vel m/s (3), attitude rad (3), accel bias m/s² (3),
                          gyro bias rad/s (3)] — the filter's prior
     /mounting            quat_bs (4,) sensor to body; lever_b (3,) m, sensor origin in the body frame
-    /dem                 attrs reference (path or spec of the DEM the flight is over), crs
+    /dem                 attrs reference (path or spec of the DEM the flight is over), crs; posts (optional, 6
+                         floats): north and east of the DEM's first post, its post spacings north and east (m, in
+                         the map frame) and its rows and columns, when that DEM's grid is the frame's (a resampled
+                         DEM, e.g. the package's tiles): replay over another cut of that DEM resamples it onto the
+                         same posts
     /settings (optional) attrs json: the filter settings of the run that wrote the log (replay defaults)
 
 Conventions: times in seconds on one clock. IMU sample k (``f_b[k]``, ``w_b[k]``) is held over its step
@@ -108,6 +112,10 @@ class FlightLog:
     mount_lever: np.ndarray = field(default_factory=lambda: np.zeros(3))
     dem_reference: str = ""
     dem_crs: str = ""
+    dem_posts: np.ndarray | None = None
+    """(6,) ``[n0, e0, dn, de, rows, cols]``: the first post (north, east) and spacings of the log's DEM in its map
+    frame (m) and its size (written when that grid is the frame's; module docstring); None: not recorded. Unused
+    without a geodetic frame."""
     settings: dict = field(default_factory=dict)
     name: str = "flight"
     frame: GeoFrame | None = None
@@ -202,6 +210,12 @@ def _problems(log: FlightLog) -> list[str]:
     p: list[str] = []
     if log.frame is not None:
         p.extend(log.frame.problems())
+    if log.dem_posts is not None:
+        posts = np.asarray(log.dem_posts)
+        if (posts.shape != (6,) or not np.isfinite(posts).all() or not (posts[2:4] > 0).all()
+                or not (posts[4:] >= 2).all() or (posts[4:] != np.round(posts[4:])).any()):
+            p.append(f"dem.posts must be 6 finite numbers [n0, e0, dn, de, rows, cols] with positive spacings and "
+                     f"whole sizes ≥ 2, got {posts.tolist()}")
     if log.imu_grade not in IMU_GRADES:
         p.append(f"imu.grade {log.imu_grade!r} is not a grade warptan knows ({', '.join(IMU_GRADES)})")
     if not (np.isfinite(log.imu_rate_hz) and log.imu_rate_hz > 0):
@@ -375,6 +389,8 @@ def write_log(log: FlightLog, path: str | os.PathLike) -> Path:
             if log.frame is not None:
                 for key in _FRAME_KEYS:
                     frame.attrs[key] = getattr(log.frame, key)
+            if log.dem_posts is not None:
+                f["dem"].attrs["posts"] = np.asarray(log.dem_posts, dtype=np.float64)
             if log.settings:
                 f.create_group("settings").attrs["json"] = json.dumps(log.settings, sort_keys=True)
         os.replace(tmp, path)
@@ -428,6 +444,8 @@ def read_log(path: str | os.PathLike) -> FlightLog:
                                                                           else float(value))
         if "settings" in f:
             kw["settings"] = json.loads(f["settings"].attrs["json"])
+        if "dem" in f and "posts" in f["dem"].attrs:
+            kw["dem_posts"] = np.asarray(f["dem"].attrs["posts"], dtype=np.float64).reshape(-1)
     missing = [name for name, attr in (("imu.t", "imu_t"), ("imu.f_b", "imu_f"), ("imu.w_b", "imu_w"),
                                        ("imu.rate_hz", "imu_rate_hz"), ("imu.grade", "imu_grade"),
                                        ("imu.t_end", "t_end"), ("initial.t", "init_t"), ("initial.pos_n", "init_pos"),

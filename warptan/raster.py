@@ -35,6 +35,10 @@ from warptan.checks import check_positive, host_memory_available
 
 MAX_POSTS = 60_000_000
 """Largest grid (posts) a load may produce; beyond it the requested spacing is almost surely a mistake."""
+SAME_POSTS_REL = 0.01
+"""Relative difference of post spacings within which a resampled raster takes another grid's posts
+(:func:`read_raster`'s ``posts``): the same product cut elsewhere differs by the change of a degree's length across
+the cut (4e-4 for 2 km of SRTM3 at 50° N); another product's posts (1″ against 3″) by far more."""
 MAX_SOURCE_POSTS = 4 * MAX_POSTS
 """Largest raster (pixels) read into memory to be reprojected (float64: 1.9 GB); crop a larger file first. A raster
 read at native resolution (metric, north-up, no spacing) becomes the grid: :data:`MAX_POSTS` applies."""
@@ -173,7 +177,7 @@ def tmerc_crs(lat_deg: float, lon_deg: float):
 
 def read_raster(path: str | os.PathLike, spacing: float | None = None,
                 frame: tuple[str, tuple[float, float]] | None = None, *, band: int | None = None,
-                allow_network: bool = False,
+                posts: tuple[float, ...] | None = None, allow_network: bool = False,
                 allow_raw_vrt: bool = False) -> RasterGrid:
     """Read a DEM file's heights (its one band, or ``band`` of several) into a :class:`RasterGrid`.
 
@@ -186,6 +190,14 @@ def read_raster(path: str | os.PathLike, spacing: float | None = None,
             transverse Mercator centred on it.
         band: The band holding the heights (1-based); required for a raster of several bands (without it, an error
             naming them).
+        posts: ``(n0, e0, dn, de, rows, cols)``, with ``frame``: another grid in that frame (its first post north
+            and east of the origin and spacings, m; its size). A raster that is resampled anyway (not a projected
+            metric north-up grid) and whose own spacing there is theirs within :data:`SAME_POSTS_REL` is resampled
+            onto that grid, whole (GDAL's bilinear warp weighs a post by the output's extent: the same posts in
+            another window differ by up to 1.6 m on the rugged tile), and cut to the rows and columns it covers:
+            another cut of the same DEM gives the same heights at the same places, but at its edges. Otherwise (and
+            for a raster that holds none of those posts) ``frame`` and ``posts`` are not used: the raster is read as
+            without them.
         allow_network: Allow a path, or VRT sources, that read over the network.
         allow_raw_vrt: Allow a VRT with a ``VRTRawRasterBand`` (raw bytes of another file read as heights).
 
@@ -202,7 +214,9 @@ def read_raster(path: str | os.PathLike, spacing: float | None = None,
             raise FileNotFoundError(f"DEM file not found: {path}")
         if os.path.isdir(path):
             raise TerrainError(f"{path}: is a directory, not a DEM file")
-    return _read(path, spacing, frame, allow_raw_vrt, allow_network, band)
+    if posts is not None and (frame is None or spacing is not None):
+        raise ValueError("posts need a frame and no spacing")
+    return _read(path, spacing, frame, allow_raw_vrt, allow_network, band, posts)
 
 
 def _gdal_errors() -> tuple[type[Exception], ...]:
@@ -215,7 +229,8 @@ def _gdal_errors() -> tuple[type[Exception], ...]:
     return (RasterioError, CPLE_BaseError)
 
 
-def _read(path: str, spacing, frame, allow_raw_vrt: bool, allow_network: bool, band: int | None = None) -> RasterGrid:
+def _read(path: str, spacing, frame, allow_raw_vrt: bool, allow_network: bool, band: int | None = None,
+          posts=None) -> RasterGrid:
     import rasterio
 
     errors = _gdal_errors()
@@ -234,12 +249,12 @@ def _read(path: str, spacing, frame, allow_raw_vrt: bool, allow_network: bool, b
 
     try:
         with rasterio.Env(**env):
-            return _read_open(path, spacing, frame, opener, errors, band)
+            return _read_open(path, spacing, frame, opener, errors, band, posts)
     except errors as err:
         raise TerrainError(f"{path}: GDAL cannot use this raster ({err})") from None
 
 
-def _read_open(path: str, spacing, frame, opener, errors, band: int | None = None) -> RasterGrid:
+def _read_open(path: str, spacing, frame, opener, errors, band: int | None = None, posts=None) -> RasterGrid:
     try:
         src = opener(path)
     except errors as err:
@@ -255,7 +270,7 @@ def _read_open(path: str, spacing, frame, opener, errors, band: int | None = Non
             raise TerrainError(f"{path}: raster has no CRS (no georeferencing), cannot place it on a metric grid")
         if src.width < 2 or src.height < 2:
             raise TerrainError(f"{path}: raster is {src.height}×{src.width} pixels; a DEM needs at least 2×2 posts")
-        native = (spacing is None and frame is None and src.crs.is_projected
+        native = (spacing is None and (frame is None or posts is not None) and src.crs.is_projected
                   and math.isclose(src.crs.linear_units_factor[1], 1.0))
         limit = MAX_POSTS if native else MAX_SOURCE_POSTS  # read at native resolution, the grid is the raster
         if src.width * src.height > limit:
@@ -287,9 +302,11 @@ def _read_open(path: str, spacing, frame, opener, errors, band: int | None = Non
 
     metric = crs.is_projected and math.isclose(crs.linear_units_factor[1], 1.0)
     north_up = transform.b == 0.0 and transform.d == 0.0 and transform.e < 0.0 and transform.a > 0.0
+    if posts is not None and metric and north_up:  # used as it is: no resampling, no posts to share
+        frame, posts = None, None
     if frame is None and metric and north_up and spacing is None:
         return _native_grid(data, crs, transform, path)
-    return _reprojected_grid(data, crs, transform, bounds, spacing, path, frame)
+    return _reprojected_grid(data, crs, transform, bounds, spacing, path, frame, posts)
 
 
 def _band(src, band: int | None, path: str) -> int:
@@ -350,7 +367,7 @@ def _native_grid(data, crs, transform, path) -> RasterGrid:
     )
 
 
-def _reprojected_grid(data, crs, transform, bounds, spacing, path, frame=None) -> RasterGrid:
+def _reprojected_grid(data, crs, transform, bounds, spacing, path, frame=None, posts=None) -> RasterGrid:
     from rasterio.enums import Resampling
     from rasterio.transform import from_origin
     from rasterio.warp import reproject, transform_bounds
@@ -375,12 +392,22 @@ def _reprojected_grid(data, crs, transform, bounds, spacing, path, frame=None) -
         de = math.hypot(xs[1] - xs[0], ys[1] - ys[0])
         dn = math.hypot(xs[2] - xs[0], ys[2] - ys[0])
         how = "native spacing"
+        if posts is not None:
+            if not (math.isclose(dn, posts[2], rel_tol=SAME_POSTS_REL)
+                    and math.isclose(de, posts[3], rel_tol=SAME_POSTS_REL)):
+                return _reprojected_grid(data, crs, transform, bounds, spacing, path)  # another product's posts
+            dn, de = float(posts[2]), float(posts[3])
+            how = f"onto the posts of another grid ({dn:.6g} m × {de:.6g} m)"
     else:
         dn = de = spacing
         how = f"resampled to {spacing:g} m"
     left, bottom, right, top = transform_bounds(crs, dst_crs, *bounds, densify_pts=51)
-    out_cols = math.floor((right - left) / de)
-    out_rows = math.floor((top - bottom) / dn)
+    if posts is not None:  # the other grid, whole (the warp's sampling depends on the output's extent)
+        x_first, y_south = origin[0] + posts[1], origin[1] + posts[0]
+        out_rows, out_cols = int(posts[4]), int(posts[5])
+    else:
+        out_cols = math.floor((right - left) / de)
+        out_rows = math.floor((top - bottom) / dn)
     if out_rows < 2 or out_cols < 2:
         raise TerrainError(f"{path}: spacing {spacing} m leaves fewer than 2×2 posts")
     if out_rows * out_cols > MAX_POSTS:
@@ -388,9 +415,11 @@ def _reprojected_grid(data, crs, transform, bounds, spacing, path, frame=None) -
             f"{path}: spacing {spacing} m would make {out_rows}×{out_cols} posts (limit {MAX_POSTS}); "
             "use a larger spacing"
         )
-    # Centre the output grid on the footprint.
-    left += 0.5 * ((right - left) - out_cols * de)
-    top -= 0.5 * ((top - bottom) - out_rows * dn)
+    if posts is not None:
+        left, top = x_first - 0.5 * de, y_south + (out_rows - 0.5) * dn
+    else:  # centre the output grid on the footprint
+        left += 0.5 * ((right - left) - out_cols * de)
+        top -= 0.5 * ((top - bottom) - out_rows * dn)
     dst_transform = from_origin(left, top, de, dn)
 
     heights = np.full((out_rows, out_cols), np.nan, dtype=np.float32)
@@ -422,10 +451,19 @@ def _reprojected_grid(data, crs, transform, bounds, spacing, path, frame=None) -
     )
     out = heights.astype(np.float64)
     out[(holes_out != 0.0) | ~np.isfinite(out)] = np.nan
+    if posts is not None and not np.isfinite(out).any():  # another place: read on its own
+        return _reprojected_grid(data, crs, transform, bounds, spacing, path)
     if not np.isfinite(out).any():
         raise TerrainError(f"{path}: no valid post after reprojection")
-    x_first = left + 0.5 * de
-    y_south = top - (out_rows - 0.5) * dn
+    if posts is not None:  # the other grid's posts this raster covers: its rows and columns with data
+        rows_ok, cols_ok = np.flatnonzero(np.isfinite(out).any(axis=1)), np.flatnonzero(np.isfinite(out).any(axis=0))
+        out = out[rows_ok[0]:rows_ok[-1] + 1, cols_ok[0]:cols_ok[-1] + 1]
+        x_first += cols_ok[0] * de
+        y_south += (out_rows - 1 - rows_ok[-1]) * dn  # row 0 is the northernmost here
+        out_rows = out.shape[0]
+    if posts is None:
+        x_first = left + 0.5 * de
+        y_south = top - (out_rows - 0.5) * dn
     target = (f"transverse Mercator at {lat_c:.4f}°N {lon_c:.4f}°E" if frame is None
               else f"another terrain's frame ({_crs_name(dst_crs)})")
     return RasterGrid(

@@ -51,6 +51,10 @@ def logs_from_record(record: dict, flight, config: dict, likelihood: Likelihood,
     ie, s = config["initial_error"], config["sensor"]
     geo = GeoFrame.of_terrain(terrain) if terrain is not None else None
     change = None if geo is None else frame_change(terrain, geo, corners(flight.pos_n))
+    dem = getattr(terrain, "base", None) or terrain  # a World's: the DEM it was made from, the one the log names
+    posts = None  # the DEM's posts, when its grid is the log's frame
+    if change is not None and change.identity and dem.crs_wkt == terrain.crs_wkt:
+        posts = np.array([dem.n0, dem.e0, dem.dn, dem.de, *dem.heights_m.shape], dtype=np.float64)
     k_total = record["f"].shape[0]
     t_imu = np.asarray(flight.t_s[:k_total], dtype=np.float64)
     t_meas = np.asarray(flight.t_s[np.array(record["epochs"])], dtype=np.float64)
@@ -81,7 +85,7 @@ def logs_from_record(record: dict, flight, config: dict, likelihood: Likelihood,
             truth_t=np.asarray(flight.t_s[:k_total + 1], dtype=np.float64), truth_pos=flight.pos_n[:k_total + 1],
             truth_vel=flight.vel_n[:k_total + 1], truth_quat=flight.quat_nb[:k_total + 1],
             truth_accel_bias=bias[:, 0:3], truth_gyro_bias=bias[:, 3:6],
-            dem_reference=terrain_spec, settings=settings, name=f"{config['id']}_seed{seed}", **kw)
+            dem_reference=terrain_spec, dem_posts=posts, settings=settings, name=f"{config['id']}_seed{seed}", **kw)
         logs.append(log if change is None else convert_log(log, change, frame=geo))
     return logs
 
@@ -324,13 +328,34 @@ def place_log(log: FlightLog, terrain, own: bool) -> tuple[FlightLog, dict]:
 
 
 def replay_terrain(log: FlightLog, config: dict, terrain=None):
-    """The DEM of a replay: ``terrain`` (Terrain, name, path or spec), else the one the log names."""
+    """The DEM of a replay: ``terrain`` (Terrain, name, path or spec), else the one the log names. Another DEM file
+    that must be resampled anyway (geographic, say) is resampled onto the log's DEM posts when the log records them
+    and the file's own spacing is theirs (:attr:`~warptan.flightlog.FlightLog.dem_posts`, :func:`warptan.raster.
+    read_raster`): another cut of the log's DEM is then the same map (:func:`same_posts`)."""
     from warptan.scenarios import resolve_terrain
 
     spec = terrain if terrain is not None else (log.settings.get("terrain_spec") or log.dem_reference or None)
     if spec is None:
         raise LogError(f"flight log {log.name}", ["no DEM: the log names none (dem.reference); give --terrain"])
-    return resolve_terrain(config, spec)
+    posts = None
+    if log.dem_posts is not None and log.frame is not None and not own_terrain(log, terrain):
+        posts = (log.frame.crs_wkt, (0.0, 0.0), tuple(float(v) for v in log.dem_posts))
+    return resolve_terrain(config, spec, posts=posts)
+
+
+def same_posts(log: FlightLog, terrain) -> bool:
+    """``terrain``'s posts are among the log's DEM posts (:attr:`~warptan.flightlog.FlightLog.dem_posts`), in the
+    log's frame: another cut of the same grid, whose heights are the log's DEM's (the map it was flown over)."""
+    if log.dem_posts is None or log.frame is None or not getattr(terrain, "crs_wkt", None):
+        return False
+    n0, e0, dn, de = (float(v) for v in log.dem_posts[:4])
+    if not (math.isclose(terrain.dn, dn, rel_tol=1e-12) and math.isclose(terrain.de, de, rel_tol=1e-12)):
+        return False
+    k = np.array([(terrain.n0 - n0) / dn, (terrain.e0 - e0) / de])
+    if np.abs(k - np.round(k)).max() > 1e-6:
+        return False
+    probe = np.array([[terrain.n0, terrain.e0, 0.0], [terrain.n0 + 1e4, terrain.e0 + 1e4, 0.0]])
+    return frame_change(log.frame, terrain, probe).identity
 
 
 def replay(log: FlightLog, terrain=None, *, model: str | None = None, backend: str | None = None,
@@ -359,6 +384,8 @@ def replay(log: FlightLog, terrain=None, *, model: str | None = None, backend: s
     truth_terrain = replay_terrain(log, config, terrain)
     own = own_terrain(log, terrain)
     log, placed = place_log(log, truth_terrain, own)
+    if not own:
+        placed["same_posts"] = same_posts(log, truth_terrain)
     filter_seed = check_seed(log.settings.get("seed", 0) if seed is None else seed)
     the_map = map_terrain(truth_terrain, config, filter_seed) if "config" in log.settings else truth_terrain
     s = config["sensor"]
@@ -374,7 +401,7 @@ def replay(log: FlightLog, terrain=None, *, model: str | None = None, backend: s
     ins = Ins(nominal0, log.imu_rate_hz).run(log.imu_f[sample], log.imu_w[sample], dt=dts)["pos_n"]
     ins_at = ins[np.r_[0, ends]]
     over_gaps = check_coverage(log, truth_terrain, ins_at, allow_gaps)
-    lik = _likelihood(log, config, the_map, own)
+    lik = _likelihood(log, config, the_map, own or placed.get("same_posts", False))
     mpf_model = scenario_model(config, the_map, lik)
     sig = log.init_sigma
     mpf = MarginalizedParticleFilter(mpf_model, nominal0, imu_grade(log.imu_grade), log.imu_rate_hz, sig[0:3],

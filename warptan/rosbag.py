@@ -81,9 +81,9 @@ class BagConfig:
     """What a bag needs beside its messages. Attributes: topic names, the IMU grade and nominal rate (0: the median
     sample rate), the mounting (ROS convention), the initial state (NED, warptan convention; None: the first
     odometry message) and its σ (15: pos m, vel m/s, attitude rad, accel bias m/s², gyro bias rad/s), sensor σ,
-    the DEM, the map frame on the Earth (``frame_origin_lat_deg``, ``frame_origin_lon_deg``, ``frame_origin_height_m``,
-    ``frame_vertical_datum``: :class:`~warptan.geoframe.GeoFrame`; without a latitude the ENU frame is the DEM's
-    grid) and optional filter settings (JSON)."""
+    the DEM (and its posts, ``dem_posts``), the map frame on the Earth (``frame_origin_lat_deg``,
+    ``frame_origin_lon_deg``, ``frame_origin_height_m``, ``frame_vertical_datum``: :class:`~warptan.geoframe.GeoFrame`;
+    without a latitude the ENU frame is the DEM's grid) and optional filter settings (JSON)."""
 
     imu: str = "/imu"
     cloud: str = "/points"
@@ -108,6 +108,8 @@ class BagConfig:
     frame_origin_lon_deg: float | None = None
     frame_origin_height_m: float = 0.0
     frame_vertical_datum: str = ""
+    dem_posts: tuple | None = None
+    """The DEM's posts in the map frame (:attr:`warptan.flightlog.FlightLog.dem_posts`; None: not recorded)."""
     settings_json: str = ""
 
     @property
@@ -185,6 +187,7 @@ def write_bag(log: FlightLog, path) -> Path:
                     initial_sigma=tuple(log.init_sigma), range_sigma_m=log.range_sigma_m,
                     altimeter_sigma_m=log.altimeter_sigma_m, baro_sigma_m=log.baro_sigma_m, dem=log.dem_reference,
                     **({} if log.frame is None else {f"frame_{k}": v for k, v in asdict(log.frame).items()}),
+                    dem_posts=None if log.dem_posts is None else tuple(float(v) for v in log.dem_posts),
                     settings_json=json.dumps(log.settings, sort_keys=True) if log.settings else "")
 
     def header(t, frame):
@@ -389,5 +392,6 @@ def read_bag(path, config: BagConfig | None = None) -> FlightLog:
                     range_sigma_m=config.range_sigma_m, altimeter_sigma_m=config.altimeter_sigma_m,
                     baro_sigma_m=config.baro_sigma_m, mount_quat=_mount_from_ros(config.mount_quat_xyzw),
                     mount_lever=FLU_FRD @ np.array(config.mount_lever_m, dtype=np.float64), dem_reference=config.dem,
+                    dem_posts=None if config.dem_posts is None else np.array(config.dem_posts, dtype=np.float64),
                     frame=config.frame, settings=settings, name=folder.name, **kw)
     return log.validate(source)

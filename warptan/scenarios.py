@@ -462,9 +462,9 @@ def load_config(name_or_path, overrides_from: str = "override", **overrides) -> 
 _TERRAIN_CACHE: dict[str, Terrain] = {}
 
 
-def resolve_terrain(config: dict, terrain=None) -> Terrain:
+def resolve_terrain(config: dict, terrain=None, posts=None) -> Terrain:
     """The truth terrain: an override (Terrain, name, path or spec), else the scenario's ``terrain.kind`` (a named
-    real DEM) or ``terrain.path``."""
+    real DEM) or ``terrain.path``; ``posts`` go to a raster's load (:meth:`~warptan.terrain.Terrain.from_raster`)."""
     if isinstance(terrain, Terrain):
         return terrain
     if terrain is not None:
@@ -476,14 +476,17 @@ def resolve_terrain(config: dict, terrain=None) -> Terrain:
         spec = config["terrain"]["path"]
     else:
         spec = config["terrain"]["kind"]
-    return _load_terrain(spec)
+    return _load_terrain(spec, posts=posts)
 
 
-def _load_terrain(spec: str, onto: Terrain | None = None) -> Terrain:
+def _load_terrain(spec: str, onto: Terrain | None = None, posts=None) -> Terrain:
     key = spec if onto is None else f"{spec} onto {onto.name} {onto.origin_xy} {onto.crs_wkt}"
+    if posts is not None:
+        key = f"{key} on posts {posts}"
     if key not in _TERRAIN_CACHE:
         try:
-            _TERRAIN_CACHE[key] = Terrain.load(spec) if onto is None else Terrain.from_raster(spec, onto=onto)
+            _TERRAIN_CACHE[key] = (Terrain.load(spec, **({} if posts is None else {"posts": posts})) if onto is None
+                                   else Terrain.from_raster(spec, onto=onto))
         except (ValueError, FileNotFoundError) as err:
             raise ScenarioError(f"terrain {spec!r} does not load: {err}") from None
     return _TERRAIN_CACHE[key]

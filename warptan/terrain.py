@@ -151,7 +151,7 @@ class Terrain:
     @classmethod
     def from_raster(cls, path: str | os.PathLike, spacing: float | None = None, onto: Terrain | None = None, *,
                     valid_range_m: tuple[float, float] = PLAUSIBLE_HEIGHTS_M, allow_network: bool = False,
-                    allow_raw_vrt: bool = False, band: int | None = None) -> Terrain:
+                    allow_raw_vrt: bool = False, band: int | None = None, posts=None) -> Terrain:
         """Load a DEM file (DTED, SRTM .hgt, GeoTIFF, a VRT of them; see :mod:`warptan.raster` for the projection).
 
         Args:
@@ -162,14 +162,24 @@ class Terrain:
             valid_range_m: Plausible heights; posts outside are nodata (with a warning).
             allow_network, allow_raw_vrt: Allow a DEM (or VRT source) read over the network, a VRT raw band.
             band: The band holding the heights (1-based); required for a raster of several bands.
+            posts: ``(crs_wkt, origin_xy, (n0, e0, dn, de, rows, cols))``: another grid's frame and posts, which a
+                raster that is resampled anyway takes when its own spacing is theirs (:func:`warptan.raster.
+                read_raster`); a flight
+                log's DEM posts (:attr:`warptan.flightlog.FlightLog.dem_posts`) make another cut of its DEM the same
+                map. Not with ``onto``.
         """
-        frame = None
+        frame = lattice = None
+        if posts is not None:
+            if onto is not None:
+                raise TerrainError(f"{path}: give onto or posts, not both")
+            frame, lattice = (posts[0], tuple(posts[1])), tuple(float(v) for v in posts[2])
         if onto is not None:
             if not onto.crs_wkt:
                 raise TerrainError(f"{path}: cannot be placed onto {onto.name}, which has no geographic reference "
                                    "(a generated or array terrain)")
             frame = (onto.crs_wkt, onto.origin_xy)
-        grid = read_raster(path, spacing, frame, band=band, allow_network=allow_network, allow_raw_vrt=allow_raw_vrt)
+        grid = read_raster(path, spacing, frame, band=band, posts=lattice, allow_network=allow_network,
+                           allow_raw_vrt=allow_raw_vrt)
         return cls(
             grid.heights_m, grid.n0, grid.e0, grid.dn, grid.de, crs_wkt=grid.crs_wkt, origin_xy=grid.origin_xy,
             name=os.fspath(path), description=grid.description, valid_range_m=valid_range_m,
@@ -225,7 +235,7 @@ class Terrain:
         package), a file (raster or ``.npz`` saved by :meth:`save_npz`) or a ``synthetic:KIND[,key=value...]``
         spec (keys ``size_m``, ``spacing``, ``seed``), e.g. ``synthetic:rugged,size_m=10000,seed=3``; a raster of
         several bands as ``FILE#band=N``.
-        ``raster_options`` (``valid_range_m``, ``allow_network``, ``allow_raw_vrt``, ``band``) go to
+        ``raster_options`` (``valid_range_m``, ``allow_network``, ``allow_raw_vrt``, ``band``, ``posts``) go to
         :meth:`from_raster`."""
         if not isinstance(spec, (str, os.PathLike)):
             raise TerrainError(f"a terrain is a name ({', '.join(NAMED_TERRAINS)}), a DEM path or a 'synthetic:KIND' "
@@ -233,7 +243,8 @@ class Terrain:
         text = os.fspath(spec)
         if text in NAMED_TERRAINS:
             file = named_terrain_file(text)
-            terrain = cls.from_npz(file) if file.suffix == ".npz" else cls.from_raster(file, spacing=spacing)
+            terrain = cls.from_npz(file) if file.suffix == ".npz" else cls.from_raster(file, spacing=spacing,
+                                                                                       **raster_options)
             terrain.name = f"{text}:{NAMED_TERRAINS[text]}"
             terrain.description = f"{terrain.description} (read from {file})"
             return terrain
