@@ -304,10 +304,34 @@ def world_block(path: str = "results/world/study.json") -> str:
     return "\n".join(lines)
 
 
+def replay_frames_block(path: str = "results/replay_frames.json") -> str:
+    """Flights tied to the Earth over many seeds: in memory, replayed over the own DEM, through geodetic CSV tables,
+    over another cut of the DEM and over a UTM copy."""
+    data = _load(path)
+    names = {"memory": "in memory", "own": "own DEM", "csv": "CSV tables", "crop": "another cut",
+             "utm": "UTM copy"}
+    lines = ["Converged horizontal RMSE (m, mean ± 95 % interval over the seeds) and pooled 3σ coverage N / E / D; "
+             "within: seeds whose RMSE is at most 1.25 × the in-memory run's + 1 m; same bits: seeds whose estimate "
+             "equals the in-memory one bit for bit. Source: `" + path + "` (" + "; ".join(
+                 f"`{' '.join(r['command']) if isinstance(r['command'], list) else r['command']}` at "
+                 f"{str(r.get('git_commit', '?'))[:7]} on {', '.join(r.get('gpu') or r['devices'])}"
+                 for r in data["meta"]["runs"]) + ").", "",
+             "| scenario | seeds | " + " | ".join(names.values()) + " | within (cut / UTM) | same bits (own / CSV) |",
+             "|---|---|" + "---|" * (len(names) + 2)]
+    for r in data["rows"]:
+        cells = [f"{r[f'{k}_rmse_mean_m']:.2f}±{r[f'{k}_rmse_ci95_m']:.2f} ({_pct(r[f'{k}_coverage_mean'])})"
+                 for k in names]
+        lines.append(f"| {r['scenario']} | {r['seeds']} | " + " | ".join(cells)
+                     + f" | {r['crop_within_mark']} / {r['utm_within_mark']} | {r['own_identical']} / "
+                       f"{r['csv_identical']} |")
+    return "\n".join(lines)
+
+
 BLOCKS = {"paper": paper_block, "attitude": attitude_block, "paper30": lambda: paper_block("results/paper30"),
           "closed_loop": closed_loop_block, "map_error": map_error_block, "long_flight": long_flight_block,
           "step": step_block, "profile": profile_block, "kernels": kernels_block, "threads": threads_block,
-          "numpy": numpy_block, "batch": batch_block, "campaign": campaign_block, "world": world_block}
+          "numpy": numpy_block, "batch": batch_block, "campaign": campaign_block, "world": world_block,
+          "replay_frames": replay_frames_block}
 
 _BLOCK = re.compile(r"<!-- generated:(\w+) -->\n.*?<!-- /generated:\1 -->", re.S)
 _FENCE = re.compile(r"```.*?```", re.S)

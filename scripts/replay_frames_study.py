@@ -1,11 +1,15 @@
 """Flights tied to the Earth, measured over many seeds: each simulated flight (``warptan run`` in memory, over the
 package's geographic rugged tile) is replayed from its log over the same DEM, through geodetic CSV tables (GPS
 latitude/longitude/height, true-north attitude), over a crop of the DEM (the same posts, another origin) and over
-a UTM copy (reprojected, bilinear: another map of the same ground). Per scenario: converged horizontal RMSE, mean
-± 95 % interval, per replay; the seeds within issue 36's mark (``≤ 1.25 × the in-memory RMSE + 1 m``); whether the
-own-DEM and CSV replays give the in-memory bits. Writes JSON.
+a UTM copy (reprojected, bilinear: another map of the same ground; the copies' surfaces against the tile's are
+measured too). Per scenario: converged horizontal RMSE, mean ± 95 % interval, per replay; the seeds within issue
+36's mark (``≤ 1.25 × the in-memory RMSE + 1 m``); whether the own-DEM and CSV replays give the in-memory bits.
+Writes JSON.
 
     python scripts/replay_frames_study.py --scenarios S8 S7 S9 --seeds 20 --json results/replay_frames.json
+
+An existing ``--json`` file keeps its other scenarios' rows (a row is replaced by its scenario's new one) and lists
+every command and device that wrote it (``meta.runs``); the file is written after each scenario.
 """
 
 import argparse
@@ -56,17 +60,41 @@ def make_dems(folder: Path) -> dict:
     return {"crop": str(folder / "crop.tif"), "utm": str(folder / "utm.tif")}
 
 
+def surface_difference(dems: dict, half_m: float = 8000.0, n: int = 20000) -> dict:
+    """RMS and 99th percentile (m) of each copy's triangulated surface minus the tile's at random places within
+    ``half_m`` of the tile's centre (the same places on the Earth), each copy read as a replay reads it (onto the
+    tile's posts when it is resampled with their spacing; ``own``: the crop read on its own instead): what the copy
+    changes in the map."""
+    from warptan.geoframe import GeoFrame, frame_change
+    from warptan.terrain import Terrain
+
+    world = Terrain.load("rugged")
+    posts = (GeoFrame.of_terrain(world).crs_wkt, (0.0, 0.0),
+             (world.n0, world.e0, world.dn, world.de, *world.heights_m.shape))
+    rng = np.random.default_rng(0)
+    pos = np.column_stack([rng.uniform(-half_m, half_m, (n, 2)), np.zeros(n)])
+    out = {}
+    for name, path in {**dems, "crop_own": dems["crop"]}.items():
+        copy = Terrain.load(path) if name == "crop_own" else Terrain.load(path, posts=posts)
+        moved = frame_change(world, copy, pos[:5]).positions(pos)
+        d = copy.surface_height_at(moved[:, 0], moved[:, 1]) - world.surface_height_at(pos[:, 0], pos[:, 1])
+        d = d[np.isfinite(d)]
+        out[name] = {"rms_m": float(np.sqrt(np.mean(d**2))), "p99_abs_m": float(np.percentile(np.abs(d), 99))}
+    return out
+
+
 def horizontal(result) -> float:
     return float(np.hypot(*result.rmse_converged[:2]))
 
 
-def one_seed(sid: str, seed: int, dems: dict, folder: Path, duration_s: float | None) -> dict:
+def one_seed(sid: str, seed: int, dems: dict, folder: Path, duration_s: float | None, device: str) -> dict:
     logs = []
     kw = {} if duration_s is None else {"duration_s": duration_s}
-    ref = run_scenario(sid, seed=seed, export_logs=logs, **kw)
+    ref = run_scenario(sid, seed=seed, export_logs=logs, device=device, **kw)
     log = logs[0]
-    runs = {"own": replay(log), "csv": replay(read_tables(write_tables(log, folder / f"{sid}_{seed}"))),
-            "crop": replay(log, dems["crop"]), "utm": replay(log, dems["utm"])}
+    runs = {"own": replay(log, device=device),
+            "csv": replay(read_tables(write_tables(log, folder / f"{sid}_{seed}")), device=device),
+            "crop": replay(log, dems["crop"], device=device), "utm": replay(log, dems["utm"], device=device)}
     row = {"seed": seed, "memory": horizontal(ref), "coverage_memory": ref.summary()["coverage_3sigma"]}
     for name, r in runs.items():
         row[name] = horizontal(r)
@@ -103,25 +131,31 @@ def main() -> None:
     parser.add_argument("--seeds", type=int, default=20)
     parser.add_argument("--duration-s", type=float, default=None, help="default: the scenario's")
     parser.add_argument("--json", default=None)
+    parser.add_argument("--device", default="cpu")
+    parser.add_argument("--surface-only", action="store_true", help="print the copies' surface differences only")
     args = parser.parse_args()
     quiet_warp()
-    rows = []
-    t0 = time.perf_counter()
+    out = Path(args.json) if args.json else None
+    data = json.loads(out.read_text()) if out is not None and out.exists() else {"meta": {"runs": []}, "rows": []}
+    this = run_meta(devices=(args.device,))
+    data["meta"]["runs"].append({k: this[k] for k in ("git_commit", "date_utc", "command", "devices", "gpu")
+                                 if k in this})
+    data["meta"].update(crop_posts=CROP_POSTS, utm=list(UTM), seeds=args.seeds)
     with tempfile.TemporaryDirectory() as tmp:
         dems = make_dems(Path(tmp))
-        for sid in args.scenarios:
+        data["meta"]["copy_minus_tile"] = surface_difference(dems)
+        print(json.dumps({"copy_minus_tile": data["meta"]["copy_minus_tile"]}), flush=True)
+        for sid in [] if args.surface_only else args.scenarios:
+            t0 = time.perf_counter()
             seeds = []
             for seed in range(args.seeds):
-                seeds.append(one_seed(sid, seed, dems, Path(tmp), args.duration_s))
+                seeds.append(one_seed(sid, seed, dems, Path(tmp), args.duration_s, args.device))
                 print(json.dumps({k: v for k, v in seeds[-1].items() if not k.startswith("coverage")}), flush=True)
-            rows.append(summarise(sid, seeds))
-            print(json.dumps({k: v for k, v in rows[-1].items() if k != "per_seed"}), flush=True)
-    if args.json:
-        meta = run_meta(command="replay_frames_study.py " + " ".join(
-            f"--{k.replace('_', '-')} {' '.join(map(str, v)) if isinstance(v, list) else v}"
-            for k, v in vars(args).items() if v is not None and k != "json"))
-        meta.update(wall_s=time.perf_counter() - t0, crop_posts=CROP_POSTS, utm=list(UTM))
-        Path(args.json).write_text(json.dumps({"meta": meta, "rows": rows}, indent=1) + "\n")
+            row = {**summarise(sid, seeds), "device": args.device, "wall_s": time.perf_counter() - t0}
+            print(json.dumps({k: v for k, v in row.items() if k != "per_seed"}), flush=True)
+            data["rows"] = [r for r in data["rows"] if r["scenario"] != sid] + [row]
+            if out is not None:
+                out.write_text(json.dumps(data, indent=1) + "\n")
 
 
 if __name__ == "__main__":
