@@ -309,20 +309,23 @@ def replay_frames_block(path: str = "results/replay_frames.json") -> str:
     over another cut of the DEM and over a UTM copy."""
     data = _load(path)
     names = {"memory": "in memory", "own": "own DEM", "csv": "CSV tables", "crop": "another cut",
-             "utm": "UTM copy"}
+             "utm": "UTM copy", "tmerc": "own-frame copy"}
     lines = ["Converged horizontal RMSE (m, mean ± 95 % interval over the seeds) and pooled 3σ coverage N / E / D; "
              "within: seeds whose RMSE is at most 1.25 × the in-memory run's + 1 m; same bits: seeds whose estimate "
              "equals the in-memory one bit for bit. Source: `" + path + "` (" + "; ".join(
                  f"`{' '.join(r['command']) if isinstance(r['command'], list) else r['command']}` at "
-                 f"{str(r.get('git_commit', '?'))[:7]} on {', '.join(r.get('gpu') or r['devices'])}"
+                 f"{str(r.get('git_commit', '?'))[:7]} on "
+                 f"{', '.join(r['gpu']['names'] if 'gpu' in r else r['devices'].values())}"
                  for r in data["meta"]["runs"]) + ").", "",
-             "| scenario | seeds | " + " | ".join(names.values()) + " | within (cut / UTM) | same bits (own / CSV) |",
+             "| scenario | seeds | " + " | ".join(names.values()) + " | within (cut / UTM / own-frame) | same bits "
+             "(own / CSV) |",
              "|---|---|" + "---|" * (len(names) + 2)]
     for r in data["rows"]:
         cells = [f"{r[f'{k}_rmse_mean_m']:.2f}±{r[f'{k}_rmse_ci95_m']:.2f} ({_pct(r[f'{k}_coverage_mean'])})"
                  for k in names]
         lines.append(f"| {r['scenario']} | {r['seeds']} | " + " | ".join(cells)
-                     + f" | {r['crop_within_mark']} / {r['utm_within_mark']} | {r['own_identical']} / "
+                     + f" | {r['crop_within_mark']} / {r['utm_within_mark']} / {r['tmerc_within_mark']} | "
+                       f"{r['own_identical']} / "
                        f"{r['csv_identical']} |")
     return "\n".join(lines)
 

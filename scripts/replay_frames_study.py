@@ -1,10 +1,10 @@
 """Flights tied to the Earth, measured over many seeds: each simulated flight (``warptan run`` in memory, over the
 package's geographic rugged tile) is replayed from its log over the same DEM, through geodetic CSV tables (GPS
-latitude/longitude/height, true-north attitude), over a crop of the DEM (the same posts, another origin) and over
-a UTM copy (reprojected, bilinear: another map of the same ground; the copies' surfaces against the tile's are
-measured too). Per scenario: converged horizontal RMSE, mean ± 95 % interval, per replay; the seeds within issue
-36's mark (``≤ 1.25 × the in-memory RMSE + 1 m``); whether the own-DEM and CSV replays give the in-memory bits.
-Writes JSON.
+latitude/longitude/height, true-north attitude), over a crop of the DEM (the same posts, another origin), over a
+UTM copy (reprojected, bilinear: another map of the same ground) and over a control copy resampled the same way in
+the log's own frame (the copies' surfaces against the tile's are measured too). Per scenario: converged horizontal
+RMSE, mean ± 95 % interval, per replay; the seeds within issue 36's mark (``≤ 1.25 × the in-memory RMSE + 1 m``);
+whether the own-DEM and CSV replays give the in-memory bits. Writes JSON.
 
     python scripts/replay_frames_study.py --scenarios S8 S7 S9 --seeds 20 --json results/replay_frames.json
 
@@ -21,24 +21,29 @@ from pathlib import Path
 import numpy as np
 
 from warptan.device import quiet_warp
+from warptan.geoframe import GeoFrame
 from warptan.logcsv import read_tables, write_tables
 from warptan.meta import run_meta
 from warptan.replay import replay
 from warptan.report import ci95
 from warptan.scenarios import run_scenario
-from warptan.terrain import named_terrain_file
+from warptan.terrain import Terrain, named_terrain_file
 
-REPLAYS = ("own", "csv", "crop", "utm")
+REPLAYS = ("own", "csv", "crop", "utm", "tmerc")
 SAME_FRAME = ("own", "csv")
 """Replays whose estimates are in the in-memory run's frame (compared bit for bit)."""
 CROP_POSTS = 40
 """Posts cut from the west and north edges of the geographic tile for the crop (about 2.5 km and 3.7 km)."""
 UTM = ("EPSG:32632", 60.0)
 """The projected copy: UTM zone 32N at 60 m posts, bilinear from the 3″ tile."""
+TMERC_M = 60.0
+"""The control copy: the tile resampled the same way (bilinear, 60 m posts) into its own transverse Mercator, the
+log's frame (no convergence, scale 1): what resampling alone changes, without a projection."""
 
 
 def make_dems(folder: Path) -> dict:
-    """The crop and the UTM copy of the package's rugged tile, as GeoTIFFs in ``folder``."""
+    """The crop, the UTM copy and the transverse Mercator control copy of the package's rugged tile, as GeoTIFFs in
+    ``folder``."""
     import rasterio
     from rasterio.warp import Resampling, calculate_default_transform, reproject
     from rasterio.windows import Window, transform
@@ -57,7 +62,14 @@ def make_dems(folder: Path) -> dict:
                   resampling=Resampling.bilinear, src_nodata=-32768.0, dst_nodata=-32768.0)
         with rasterio.open(folder / "utm.tif", "w", **dict(prof, crs=crs, transform=tr, width=w, height=h)) as dst:
             dst.write(utm, 1)
-    return {"crop": str(folder / "crop.tif"), "utm": str(folder / "utm.tif")}
+        own = GeoFrame.of_terrain(Terrain.load("rugged")).crs_wkt
+        tr, w, h = calculate_default_transform(src.crs, own, src.width, src.height, *src.bounds, resolution=TMERC_M)
+        tm = np.full((h, w), -32768.0, np.float32)
+        reproject(data, tm, src_transform=t, src_crs=src.crs, dst_transform=tr, dst_crs=own,
+                  resampling=Resampling.bilinear, src_nodata=-32768.0, dst_nodata=-32768.0)
+        with rasterio.open(folder / "tmerc.tif", "w", **dict(prof, crs=own, transform=tr, width=w, height=h)) as dst:
+            dst.write(tm, 1)
+    return {name: str(folder / f"{name}.tif") for name in ("crop", "utm", "tmerc")}
 
 
 def surface_difference(dems: dict, half_m: float = 8000.0, n: int = 20000) -> dict:
@@ -65,8 +77,7 @@ def surface_difference(dems: dict, half_m: float = 8000.0, n: int = 20000) -> di
     ``half_m`` of the tile's centre (the same places on the Earth), each copy read as a replay reads it (onto the
     tile's posts when it is resampled with their spacing; ``own``: the crop read on its own instead): what the copy
     changes in the map."""
-    from warptan.geoframe import GeoFrame, frame_change
-    from warptan.terrain import Terrain
+    from warptan.geoframe import frame_change
 
     world = Terrain.load("rugged")
     posts = (GeoFrame.of_terrain(world).crs_wkt, (0.0, 0.0),
@@ -94,7 +105,7 @@ def one_seed(sid: str, seed: int, dems: dict, folder: Path, duration_s: float | 
     log = logs[0]
     runs = {"own": replay(log, device=device),
             "csv": replay(read_tables(write_tables(log, folder / f"{sid}_{seed}")), device=device),
-            "crop": replay(log, dems["crop"], device=device), "utm": replay(log, dems["utm"], device=device)}
+            **{name: replay(log, path, device=device) for name, path in dems.items()}}
     row = {"seed": seed, "memory": horizontal(ref), "coverage_memory": ref.summary()["coverage_3sigma"]}
     for name, r in runs.items():
         row[name] = horizontal(r)
@@ -140,7 +151,7 @@ def main() -> None:
     this = run_meta(devices=(args.device,))
     data["meta"]["runs"].append({k: this[k] for k in ("git_commit", "date_utc", "command", "devices", "gpu")
                                  if k in this})
-    data["meta"].update(crop_posts=CROP_POSTS, utm=list(UTM), seeds=args.seeds)
+    data["meta"].update(crop_posts=CROP_POSTS, utm=list(UTM), tmerc_m=TMERC_M, seeds=args.seeds)
     with tempfile.TemporaryDirectory() as tmp:
         dems = make_dems(Path(tmp))
         data["meta"]["copy_minus_tile"] = surface_difference(dems)
