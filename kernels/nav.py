@@ -125,10 +125,10 @@ def nav_interval_kernel(
     row0: int,
     counts: wp.array2d(dtype=wp.int32),
     nominal_dt: wp.float64,
-    q_pos: wp.float64,
+    q_pos: wp.array(dtype=wp.float64),
     q_rough: wp.float64,
     q_lin: wp.vec4d,
-    q_vel_down: wp.float64,
+    q_vel_down: wp.array(dtype=wp.float64),
     imu: wp.array3d(dtype=wp.vec3d),
     pos: wp.array(dtype=wp.vec3d),
     vel: wp.array(dtype=wp.vec3d),
@@ -151,10 +151,10 @@ def nav_interval_kernel(
     writes Φ and the lower Cholesky factor of S (5×5 blocks, float32), the nominal pose ``[p (3), q (4)]`` at the end
     of the interval, and what the update's kernels read of P: ``P_θθ`` (``att_cov_out``) and the column blocks ``P_:θ``
     (``p_col_out``).
-    ``q_lin`` = diagonal of Q^l per block (dv, dth, dba, dbg); ``q_pos`` = diagonal of Q^n (the position noise
+    ``q_lin`` = diagonal of Q^l per block (dv, dth, dba, dbg); ``q_pos[b]`` = diagonal of Q^n (the position noise
     the Kalman part models, in N_k and L_k); ``q_rough`` = per-step variance of the roughening, added to the
     particles' dp only (``S_dpdp += K q_rough I``: T_k leaves a dp-only noise on dp), so that L_k never reads it
-    as velocity. ``q_vel_down`` is added to the down velocity's Q^l (a map-error offset's change along the track,
+    as velocity. ``q_vel_down[b]`` is added to the down velocity's Q^l (a map-error offset's change along the track,
     :meth:`warptan.measurement.Likelihood.offset_process`; 0 without one)."""
     t = wp.tid()
     b = row0 + t
@@ -203,7 +203,7 @@ def nav_interval_kernel(
         pa1 = dt * cov[b, 1, 0] + half * dt * (cov[b, 1, 1] * wp.transpose(a) + cov[b, 1, 2] * wp.transpose(bm))
         pa2 = dt * cov[b, 2, 0] + half * dt * (cov[b, 2, 1] * wp.transpose(a) + cov[b, 2, 2] * wp.transpose(bm))
         pa3 = dt * cov[b, 3, 0] + half * dt * (cov[b, 3, 1] * wp.transpose(a) + cov[b, 3, 2] * wp.transpose(bm))
-        nk = sym_d(dt * pa0 + half * dt * (a * pa1 + bm * pa2) + (q_pos * scale) * eye)
+        nk = sym_d(dt * pa0 + half * dt * (a * pa1 + bm * pa2) + (q_pos[b] * scale) * eye)
         l0, l1 = apply_l(pa0, pa1, pa2, pa3, a, bm, e, jm)
         inv_nk = wp.inverse(nk)
         g0 = l0 * inv_nk
@@ -226,9 +226,9 @@ def nav_interval_kernel(
             for c in range(4):
                 cov[b, r, c] = cov[b, r, c] - gn * wp.transpose(block_of(c + 1, eye, g0, g1, g2, g3))
             cov[b, r, r] = cov[b, r, r] + (q_lin[r] * scale) * eye
-        if q_vel_down > wp.float64(0.0):
+        if q_vel_down[b] > wp.float64(0.0):
             dv = cov[b, 0, 0]
-            dv[2, 2] = dv[2, 2] + q_vel_down * scale
+            dv[2, 2] = dv[2, 2] + q_vel_down[b] * scale
             cov[b, 0, 0] = dv
         for r in range(4):
             cov[b, r, r] = sym_d(cov[b, r, r])

@@ -9,7 +9,8 @@ whether the own-DEM and CSV replays give the in-memory bits. Writes JSON.
     python scripts/replay_frames_study.py --scenarios S8 S7 S9 --seeds 20 --json results/replay_frames.json
 
 An existing ``--json`` file keeps its other scenarios' rows (a row is replaced by its scenario's new one) and lists
-every command and device that wrote it (``meta.runs``); the file is written after each scenario.
+every run that wrote it (``meta.runs``, each with its whole provenance; ``meta`` itself is the latest run's); the
+file is written after each scenario.
 """
 
 import argparse
@@ -149,9 +150,9 @@ def main() -> None:
     out = Path(args.json) if args.json else None
     data = json.loads(out.read_text()) if out is not None and out.exists() else {"meta": {"runs": []}, "rows": []}
     this = run_meta(devices=(args.device,))
-    data["meta"]["runs"].append({k: this[k] for k in ("git_commit", "date_utc", "command", "devices", "gpu")
-                                 if k in this})
-    data["meta"].update(crop_posts=CROP_POSTS, utm=list(UTM), tmerc_m=TMERC_M, seeds=args.seeds)
+    runs = [*data["meta"].get("runs", []), this]
+    data["meta"] = {**this, "runs": runs, "crop_posts": CROP_POSTS, "utm": list(UTM), "tmerc_m": TMERC_M,
+                    "seeds": args.seeds}  # the latest run's provenance, and every run's
     with tempfile.TemporaryDirectory() as tmp:
         dems = make_dems(Path(tmp))
         data["meta"]["copy_minus_tile"] = surface_difference(dems)

@@ -9,6 +9,7 @@ import warnings
 import numpy as np
 import pytest
 
+from warptan.checks import FilterError
 from warptan.flightlog import LogError, read_log, write_log
 from warptan.frames import quat_to_euler
 from warptan.geoframe import GeoFrame, corners, frame_change
@@ -140,6 +141,24 @@ def test_another_cut_of_the_logs_dem_is_resampled_onto_its_posts(s8, dems):
     other = Terrain.from_raster(dems["crop"], posts=(log.frame.crs_wkt, (0.0, 0.0),
                                                      (*log.dem_posts[:2], 30.0, 30.0, 100, 100)))
     assert "onto the posts" not in other.description  # another spacing: read on its own
+
+
+def test_replay_is_told_the_dems_stated_accuracy(s8, tmp_path):
+    """A real flight's DEM has a published accuracy: replay takes it (API and CLI) into the likelihood's map-error
+    modes; half a statement, or an RMS without a correlation length, is one clear error before any work."""
+    _, log = s8
+    told = replay(log, map_error=(5.0, 1000.0))
+    assert (told.config["likelihood"]["map_error_rms_m"], told.config["likelihood"]["map_error_corr_m"]) == (5.0, 1e3)
+    assert np.isfinite(told.run.est_pos).all()
+    assert not np.array_equal(told.run.est_pos, replay(log).run.est_pos)  # the modes weigh the scans
+    with pytest.raises(FilterError, match="stated accuracy must be"):
+        replay(log, map_error=(5.0, 0.0))
+    path = write_log(log, tmp_path / "flight.h5")
+    out = tmp_path / "out"
+    proc = subprocess.run([sys.executable, "-m", "warptan", "replay", str(path), "--map-error-m", "5", "--out",
+                           str(out), "--quiet"], capture_output=True, text=True, timeout=300, cwd=tmp_path)
+    assert proc.returncode == 2 and "Traceback" not in proc.stderr
+    assert "--map-error-m and --map-error-corr-m go together" in proc.stderr and not out.exists()
 
 
 def test_bad_dem_posts_are_refused_before_writing(s8, tmp_path):

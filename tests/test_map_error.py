@@ -422,7 +422,7 @@ def test_the_filter_reports_the_offset_it_carries():
     fix = stated.fix_process(np.linalg.norm(nominal.vel_n[:2]))  # at the nominal's ground speed
     told, baro = make(wt.make_model("sliding", dem, stated)), make(wt.make_model("altimeter", dem, stated))
     plain = make(wt.make_model("sliding", dem), kalman_pos_noise=np.sqrt(0.25 + fix))  # the same Q^n
-    np.testing.assert_allclose([told.q_pos, baro.q_pos], [plain.q_pos, 0.25 * 0.01], rtol=1e-12)
+    np.testing.assert_allclose([told.q_pos[0], baro.q_pos[0]], [plain.q_pos[0], 0.25 * 0.01], rtol=1e-12)
     assert told.map_offset_var == 25.0 and plain.map_offset_var == baro.map_offset_var == 0.0
     np.testing.assert_allclose(told.estimate().cov_pos - plain.estimate().cov_pos, np.diag([0.0, 0.0, 25.0]),
                                atol=1e-9)

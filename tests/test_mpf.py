@@ -451,11 +451,17 @@ def test_bad_filter_arguments(rugged):
         mpf.predict([0, 0, np.nan], [0, 0, 0])
 
 
-def test_batch_equals_separate_runs(device, rugged):
+STATED_ERROR = {"sensor_sigma_m": 0.5, "map_error_sigma_m": 5.0, "map_error_corr_m": 1000.0, "track_step_m": 10.0}
+
+
+@pytest.mark.parametrize("likelihood", [wt.Likelihood("paper", r_err=16.0), wt.Likelihood("gaussian", **STATED_ERROR)],
+                         ids=["paper", "stated"])
+def test_batch_equals_separate_runs(device, rugged, likelihood):
     """A batch of 3 seeds in one filter gives bit-identical runs to the 3 seeds run one by one (own INS, IMU
-    errors, noise, random streams and reductions per filter)."""
+    errors, noise, random streams and reductions per filter); under a stated map error too (each filter's fix wander
+    and offset noise at its own speed, its own revisit memory)."""
     truth = Trajectory.build([Straight(4.0)], 100.0, [-3000.0, 0.0, -(rugged.h_max + 600.0)])
-    model = wt.SlidingModel(rugged, wt.Likelihood("paper", r_err=16.0))
+    model = wt.SlidingModel(rugged, likelihood)
     sensor = wt.PointCloudSensor(wt.ScanPattern.grid(6, 6, 30.0), range_sigma_m=0.5)
     seeds = [3, 4, 5]
     batch = run_filter(truth, rugged, model, [ImuModel("navigation", 100.0, seed=s) for s in seeds], sensor,

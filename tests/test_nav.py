@@ -84,7 +84,8 @@ def test_nav_kernel_matches_python(device, uneven):
     step_col[:, :, 0] = steps.reshape(B, k_steps)
     counts = wp.array(np.full((B, 3), k_steps, dtype=np.int32), dtype=wp.int32, device=d)
     wp.launch(knav.nav_interval_kernel, dim=B,
-              inputs=[0, counts, dt, 0.25 * dt, 0.0, wp.vec4d(qd[0], qd[3], qd[6], qd[9]), q_vel_down * dt,
+              inputs=[0, counts, dt, wp.full(B, 0.25 * dt, dtype=wp.float64, device=d), 0.0,
+                      wp.vec4d(qd[0], qd[3], qd[6], qd[9]), wp.full(B, q_vel_down * dt, dtype=wp.float64, device=d),
                       wp.array(np.stack([fb, wb, step_col], axis=2), dtype=wp.vec3d, device=d),
                       pos, vel, quat, ba, bg, cov, phi, noise, scratch],
               outputs=[phi_out, chol_out, pose_out, att_cov, p_col], device=d)

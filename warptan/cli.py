@@ -348,14 +348,20 @@ def _replay(args) -> int:
         tqdm = _NoProgress
     from warptan.replay import replay_config, replay_terrain
 
-    config = replay_config(log, args.model, args.backend, args.particles, args.likelihood)  # checks the model
+    stated = None
+    if args.map_error_m is not None or args.map_error_corr_m is not None:
+        if args.map_error_m is None or (args.map_error_m > 0 and args.map_error_corr_m is None):
+            raise ValueError("--map-error-m and --map-error-corr-m go together (the DEM's stated accuracy: RMS and "
+                              "correlation length of its vertical error, m)")
+        stated = (args.map_error_m, args.map_error_corr_m or 0.0)
+    config = replay_config(log, args.model, args.backend, args.particles, args.likelihood, stated)  # checks them
     replay_terrain(log, config, args.terrain)  # loads (and caches) the DEM before the progress bar
     n_meas = len(log.alt_t if config["sensor"]["model"] == "altimeter" else log.scan_t)
     with tqdm(total=n_meas, unit="update", disable=args.quiet, dynamic_ncols=True) as bar:
         bar.set_description(f"replay {log.name}")
         result = replay(log, args.terrain, model=args.model, backend=args.backend, particles=args.particles,
                         likelihood=args.likelihood, seed=args.seed, device=args.device,
-                        progress=lambda k, n: bar.update(1), allow_gaps=args.allow_gaps)
+                        progress=lambda k, n: bar.update(1), allow_gaps=args.allow_gaps, map_error=stated)
     dropped = result.run.info.get("dropped_measurements", 0)
     if dropped:
         print(f"warptan: note: {dropped} measurement(s) outside the IMU's time span were not used")
@@ -575,6 +581,12 @@ def build_parser() -> argparse.ArgumentParser:
     rep.add_argument("--allow-gaps", action="store_true",
                      help="fly through nodata under the track (its updates skipped and counted) instead of refusing")
     rep.add_argument("--quiet", action="store_true", help="no progress bar")
+    rstated = rep.add_argument_group("the DEM's stated accuracy", "its published correlated vertical error (SRTM, "
+                                                                  "Copernicus, DTED): the filter's bounds count it")
+    rstated.add_argument("--map-error-m", type=number_arg(0.0, False), default=None,
+                         help="RMS of the DEM's correlated vertical error, m")
+    rstated.add_argument("--map-error-corr-m", type=number_arg(0.0, False), default=None,
+                         help="its correlation length, m")
     bag = rep.add_argument_group("ROS 2 bags", "topics and mounting (a TOML file, or these flags)")
     bag.add_argument("--bag-config", default=None, help="TOML with topics, mounting, initial σ, IMU grade")
     bag.add_argument("--imu-topic", default=None, help="sensor_msgs/Imu topic (default /imu)")

@@ -90,8 +90,9 @@ A stated map error (``Likelihood.map_error_sigma_m``) whose offset under the sca
 tell from the aircraft's altitude (ray casts, sliding, the altimeter without a barometer: ``model.absorbs_map_offset``)
 makes the particles' altitude the height above the map: the offset's variance ``var_b`` is added to the reported
 altitude variance (``map_offset_var``; the estimate's ``cov_pos`` and the runs' σ) and its change along the track is
-process noise on the down velocity, ``q_v = 4 σ_e² v³ / L³`` at the fastest nominal's ground speed at construction
-(:meth:`warptan.measurement.Likelihood.offset_process`). A point-cloud model's fix of the horizontal position
+process noise on the down velocity, ``q_v = 4 σ_e² v³ / L³`` at each filter's nominal ground speed at construction
+(:meth:`warptan.measurement.Likelihood.offset_process`; per filter, as the fix wander below: a filter of a batch is the
+filter run alone). A point-cloud model's fix of the horizontal position
 wanders along the track with the error: ``Q^n`` grows by ``2 σ_e² v / ℓ``, ℓ the shorter of L and the terrain slope's
 correlation length (:meth:`warptan.measurement.Likelihood.fix_process`), or the Kalman part reads the wander as
 velocity. Ground read again after the map-error modes forgot it weighs less: each update's exponent starts at
@@ -423,17 +424,23 @@ class MarginalizedParticleFilter:
         self._q_lin = wp.vec4d(ql[0], ql[3], ql[6], ql[9])
         # A stated map error's offset under the scan rides on the particles' altitude (height above the map):
         # its variance (m²) is added to the reported altitude variance, its change along the track is noise on the
-        # down velocity (Likelihood.offset_process; the fastest filter of a batch sets the noise).
-        # The wander of a scan's fix along the track under a stated map error is position noise of the Kalman
-        # part (Likelihood.fix_process).
-        self.map_offset_var, q_v = 0.0, 0.0
+        # down velocity (Likelihood.offset_process). The wander of a scan's fix along the track under a stated map
+        # error is position noise of the Kalman part (Likelihood.fix_process). Both at each filter's own nominal
+        # ground speed at construction: a filter of a batch is the filter run alone.
+        self.map_offset_var = 0.0
+        q_v = np.zeros(b)
         lk = getattr(model, "likelihood", None)
-        speed = max(float(np.linalg.norm(x.vel_n[:2])) for x in nominals)
+        speeds = [float(np.linalg.norm(x.vel_n[:2])) for x in nominals]
         if getattr(model, "absorbs_map_offset", False) and hasattr(lk, "offset_process"):
-            self.map_offset_var, q_v = lk.offset_process(speed)
-        self._q_vel_down = float(q_v) * self.dt
+            self.map_offset_var = lk.offset_process(speeds[0])[0]
+            q_v = np.array([lk.offset_process(v)[1] for v in speeds])
+        self._q_vel_down = q_v * self.dt
         if getattr(model, "fixes_per_scan", False) and hasattr(lk, "fix_process"):
-            self.q_pos += lk.fix_process(speed) * self.dt
+            self.q_pos = self.q_pos + np.array([lk.fix_process(v) for v in speeds]) * self.dt
+        self.q_pos = np.broadcast_to(np.asarray(self.q_pos, dtype=np.float64), (b,)).copy()
+        """(B,) Q^n's diagonal per filter (m² per nominal step): the Kalman part's position noise and the fix wander."""
+        self._q_dev = (wp.array(self.q_pos, dtype=wp.float64, device=self.device),
+                       wp.array(self._q_vel_down, dtype=wp.float64, device=self.device))
         self.max_stages = int(max_stages)
         self.bandwidth = float(regularize) * (4.0 / (self.n * 5.0)) ** (1.0 / 7.0)
         """Regularisation bandwidth h (Silverman's rule for d = 3 times ``regularize``)."""
@@ -659,8 +666,8 @@ class MarginalizedParticleFilter:
         nav, out = self._nav, self._dev
         phi, noise, scratch = self._scratch
         launch_rows(knav.nav_interval_kernel, self.n_filters,
-                    lambda a, b: ([a or 0, self._ints, self.dt, self.q_pos, self.q_rough, self._q_lin,
-                                   self._q_vel_down, self._imu, nav["pos"], nav["vel"], nav["quat"], nav["ba"],
+                    lambda a, b: ([a or 0, self._ints, self.dt, self._q_dev[0], self.q_rough, self._q_lin,
+                                   self._q_dev[1], self._imu, nav["pos"], nav["vel"], nav["quat"], nav["ba"],
                                    nav["bg"], nav["cov"], phi, noise, scratch],
                                   [out["phi"], out["chol"], out["pose"], out["att_cov"], out["p_col"]]),
                     self.device, row_cost=4000 * max(self._interval_k, 1))

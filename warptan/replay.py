@@ -180,9 +180,11 @@ def _measurements(log: FlightLog, model_name: str, idx: np.ndarray) -> list:
 
 # ---------------------------------------------------------------------- replay
 def replay_config(log: FlightLog, model: str | None = None, backend: str | None = None,
-                  particles: int | None = None, likelihood: str | None = None) -> dict:
+                  particles: int | None = None, likelihood: str | None = None,
+                  map_error: tuple[float, float] | None = None) -> dict:
     """The scenario-style config of a replay: the one the log was simulated with (settings), else S8's filter and
-    likelihood settings with the log's IMU grade, sensor and rates; the keywords override."""
+    likelihood settings with the log's IMU grade, sensor and rates; the keywords override (``map_error``: the DEM's
+    stated accuracy, ``(RMS, correlation length)`` in m: ``likelihood.map_error_rms_m`` and ``map_error_corr_m``)."""
     from warptan.scenarios import load_config, with_optional_defaults
 
     stored = log.settings.get("config")
@@ -205,6 +207,12 @@ def replay_config(log: FlightLog, model: str | None = None, backend: str | None 
         config["flight"]["altitude_rule"] = "recorded"
         config["filter"]["converged_after_s"] = min(config["filter"]["converged_after_s"],
                                                     0.5 * config["flight"]["duration_s"])
+    if map_error is not None:
+        rms, corr = (float(v) for v in map_error)
+        if not (math.isfinite(rms) and rms >= 0.0 and math.isfinite(corr) and corr >= 0.0) or (rms > 0 and corr <= 0):
+            raise FilterError(f"the DEM's stated accuracy must be an RMS ≥ 0 m and, with an RMS, a correlation length "
+                              f"> 0 m; got RMS {rms!r} m, correlation length {corr!r} m")
+        config["likelihood"]["map_error_rms_m"], config["likelihood"]["map_error_corr_m"] = rms, corr
     if model is not None:
         if model not in ("sliding", "raycast", "altimeter"):
             raise FilterError(f"unknown model {model!r}; choose sliding, raycast or altimeter")
@@ -238,6 +246,10 @@ def _likelihood(log: FlightLog, config: dict, the_map, own: bool = True) -> Like
             stored_config[group][key] == config[group][key] for group, key in (("sensor", "model"),
                                                                              ("likelihood", "kind"))):
         lik = Likelihood(**stored)
+        stated = config["likelihood"]["map_error_rms_m"], config["likelihood"]["map_error_corr_m"]
+        if stated != (lik.map_error_sigma_m, lik.map_error_corr_m):  # told another accuracy than the run was
+            lik = dataclasses.replace(lik, map_error_sigma_m=stated[0], map_error_corr_m=stated[1],
+                                      fix_corr_m=the_map.slope_correlation_m if stated[0] > 0 else 0.0)
         if not own and config["likelihood"]["map_aware"]:
             lik = dataclasses.replace(lik, map_sigma_m=math.hypot(lik.map_sigma_m,
                                                                   the_map.interpolation_sigma_m(lik.map_sigma_m)))
@@ -360,7 +372,7 @@ def same_posts(log: FlightLog, terrain) -> bool:
 
 def replay(log: FlightLog, terrain=None, *, model: str | None = None, backend: str | None = None,
            particles: int | None = None, likelihood: str | None = None, seed: int | None = None, device="cpu",
-           progress=None, allow_gaps: bool = False):
+           progress=None, allow_gaps: bool = False, map_error: tuple[float, float] | None = None):
     """Filter a recorded flight; returns a :class:`~warptan.scenarios.ScenarioResult` (errors NaN without truth).
 
     Args:
@@ -372,6 +384,9 @@ def replay(log: FlightLog, terrain=None, *, model: str | None = None, backend: s
         device: Warp device.
         progress: Optional callable(k, n) per update.
         allow_gaps: Fly through nodata under the track (its updates are skipped and counted) instead of refusing.
+        map_error: The DEM's stated accuracy, ``(RMS, correlation length)`` of its correlated vertical error in m (a
+            published figure: SRTM, Copernicus, DTED; :meth:`~warptan.measurement.Likelihood.error_modes`); default
+            the log's settings, else none.
 
     The log is placed in the DEM's frame first (:func:`place_log`: a geodetic frame converted, any DEM that covers
     the flight); a DEM that does not contain the flight, nodata under the track, or a frame the DEM cannot be
@@ -380,7 +395,7 @@ def replay(log: FlightLog, terrain=None, *, model: str | None = None, backend: s
     from warptan.scenarios import ScenarioResult, filter_kwargs, map_terrain, scenario_model
 
     log.validate(f"flight log {log.name}")
-    config = replay_config(log, model, backend, particles, likelihood)
+    config = replay_config(log, model, backend, particles, likelihood, map_error)
     truth_terrain = replay_terrain(log, config, terrain)
     own = own_terrain(log, terrain)
     log, placed = place_log(log, truth_terrain, own)
