@@ -56,20 +56,15 @@ def make_dems(folder: Path) -> dict:
         crop = dict(prof, width=win.width, height=win.height, transform=transform(win, t))
         with rasterio.open(folder / "crop.tif", "w", **crop) as dst:
             dst.write(data[CROP_POSTS:, CROP_POSTS:], 1)
-        crs, res = UTM
-        tr, w, h = calculate_default_transform(src.crs, crs, src.width, src.height, *src.bounds, resolution=res)
-        utm = np.full((h, w), -32768.0, np.float32)
-        reproject(data, utm, src_transform=t, src_crs=src.crs, dst_transform=tr, dst_crs=crs,
-                  resampling=Resampling.bilinear, src_nodata=-32768.0, dst_nodata=-32768.0)
-        with rasterio.open(folder / "utm.tif", "w", **dict(prof, crs=crs, transform=tr, width=w, height=h)) as dst:
-            dst.write(utm, 1)
         own = GeoFrame.of_terrain(Terrain.load("rugged")).crs_wkt
-        tr, w, h = calculate_default_transform(src.crs, own, src.width, src.height, *src.bounds, resolution=TMERC_M)
-        tm = np.full((h, w), -32768.0, np.float32)
-        reproject(data, tm, src_transform=t, src_crs=src.crs, dst_transform=tr, dst_crs=own,
-                  resampling=Resampling.bilinear, src_nodata=-32768.0, dst_nodata=-32768.0)
-        with rasterio.open(folder / "tmerc.tif", "w", **dict(prof, crs=own, transform=tr, width=w, height=h)) as dst:
-            dst.write(tm, 1)
+        for name, (crs, res) in {"utm": UTM, "tmerc": (own, TMERC_M)}.items():  # bilinear copies at 60 m posts
+            tr, w, h = calculate_default_transform(src.crs, crs, src.width, src.height, *src.bounds, resolution=res)
+            copy = np.full((h, w), -32768.0, np.float32)
+            reproject(data, copy, src_transform=t, src_crs=src.crs, dst_transform=tr, dst_crs=crs,
+                      resampling=Resampling.bilinear, src_nodata=-32768.0, dst_nodata=-32768.0)
+            out = dict(prof, crs=crs, transform=tr, width=w, height=h)
+            with rasterio.open(folder / f"{name}.tif", "w", **out) as dst:
+                dst.write(copy, 1)
     return {name: str(folder / f"{name}.tif") for name in ("crop", "utm", "tmerc")}
 
 

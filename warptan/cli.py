@@ -378,6 +378,16 @@ def _replay(args) -> int:
     return _report_skipped([result])
 
 
+def _stated_accuracy(parser, description: str) -> None:
+    """``--map-error-m`` and ``--map-error-corr-m``: the DEM's stated accuracy (likelihood.map_error_rms_m and
+    map_error_corr_m)."""
+    group = parser.add_argument_group("the DEM's stated accuracy", description)
+    group.add_argument("--map-error-m", type=number_arg(0.0, False), default=None,
+                       help="RMS of the map's correlated vertical error, m (likelihood.map_error_rms_m)")
+    group.add_argument("--map-error-corr-m", type=number_arg(0.0, False), default=None,
+                       help="its correlation length, m (likelihood.map_error_corr_m)")
+
+
 def _bag_folder(path: str) -> str | None:
     """The bag folder of a bag's .db3/.mcap file (the whole bag is the input), else None."""
     if path.endswith((".db3", ".mcap")) and os.path.isfile(os.path.join(os.path.dirname(path) or ".", "metadata.yaml")):
@@ -525,12 +535,8 @@ def build_parser() -> argparse.ArgumentParser:
                      help="map error: white noise σ per post, m")
     run.add_argument("--map-bias-m", type=_finite, default=None,
                      help="map error: vertical offset of the map, m")
-    stated = run.add_argument_group("the DEM's stated accuracy", "what the filter is told of its map's correlated "
-                                                                 "error (a published accuracy; not the simulation's)")
-    stated.add_argument("--map-error-m", type=number_arg(0.0, False), default=None,
-                        help="RMS of the map's correlated vertical error, m (likelihood.map_error_rms_m)")
-    stated.add_argument("--map-error-corr-m", type=number_arg(0.0, False), default=None,
-                        help="its correlation length, m (likelihood.map_error_corr_m)")
+    _stated_accuracy(run, "what the filter is told of its map's correlated error (a published accuracy; not the "
+                          "simulation's)")
     world = run.add_argument_group("world", "a world that is not the map: the DEM (or --terrain) becomes the filter's "
                                             "map and the flight sees a world made from it (scenario [world] table)")
     world.add_argument("--world-relief-m", default=None, type=_relief_arg,
@@ -581,12 +587,8 @@ def build_parser() -> argparse.ArgumentParser:
     rep.add_argument("--allow-gaps", action="store_true",
                      help="fly through nodata under the track (its updates skipped and counted) instead of refusing")
     rep.add_argument("--quiet", action="store_true", help="no progress bar")
-    rstated = rep.add_argument_group("the DEM's stated accuracy", "its published correlated vertical error (SRTM, "
-                                                                  "Copernicus, DTED): the filter's bounds count it")
-    rstated.add_argument("--map-error-m", type=number_arg(0.0, False), default=None,
-                         help="RMS of the DEM's correlated vertical error, m")
-    rstated.add_argument("--map-error-corr-m", type=number_arg(0.0, False), default=None,
-                         help="its correlation length, m")
+    _stated_accuracy(rep, "its published correlated vertical error (SRTM, Copernicus, DTED): the filter's bounds "
+                          "count it")
     bag = rep.add_argument_group("ROS 2 bags", "topics and mounting (a TOML file, or these flags)")
     bag.add_argument("--bag-config", default=None, help="TOML with topics, mounting, initial σ, IMU grade")
     bag.add_argument("--imu-topic", default=None, help="sensor_msgs/Imu topic (default /imu)")
