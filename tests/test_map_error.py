@@ -125,11 +125,11 @@ def _ray_sigmas(model, out, cloud):
 
 
 def _gated(model, out, cloud, sig):
-    """The rays :func:`warptan.kernels.likelihood.gross_miss` drops for each particle (a stated error only):
-    ``|r_j| > k_out sqrt(σ_j² + (σ_e / max(u_z, 0.1))²)`` (level attitude)."""
+    """The rays :func:`warptan.kernels.likelihood.gross_miss` drops for each particle (told that the map is not the
+    world: a stated error or a map σ): ``|r_j| > k_out sqrt(σ_j² + (σ_e / max(u_z, 0.1))²)`` (level attitude)."""
     res = out.residual_m.numpy().astype(np.float64)
     p = model.params()
-    if p.sigma_err <= 0:
+    if p.lik == klik.LIK_PAPER or (p.sigma_err <= 0 and p.sigma_map <= 0):
         return np.zeros(res.shape, dtype=bool)
     e = p.sigma_err / np.maximum(np.asarray(cloud.dirs_s)[:, 2], 0.1)
     return np.isfinite(res) & (res**2 > p.k_out**2 * (sig**2 + e**2))
@@ -268,6 +268,34 @@ def test_a_ray_that_met_a_surface_the_world_lacks_scores_its_point_s_height_abov
     top = np.minimum(z**2, k_out**2).sum(axis=1) + np.nansum(scores**2, axis=1) + lost
     assert np.all(nis <= top + 1e-2 * m)  # the NIS counts a gross miss as its point's z_v², not k_out²
     assert np.all(nis >= np.nansum(scores**2, axis=1) + lost - 1e-2 * m)
+
+
+def test_a_map_sigma_alone_gates_gross_misses_too(scan, device):
+    """Told only that the map has a σ of its own (interpolation, sub-post relief; no stated correlated error), a ray
+    that met the block the world lacks is a gross miss as well: it scores its point's height above the map, not the
+    Gaussian's tens of σ. The NIS against the float64 oracle (points within the gate min(z², k²), gross misses
+    their z_v², unpredictable ones k²), and no particle's log-likelihood below every point at the floor."""
+    dem, cloud, pos, q = scan
+    heights = dem.heights_m.copy()
+    nn, ee = np.meshgrid(dem.n0 + np.arange(heights.shape[0]) * dem.dn, dem.e0 + np.arange(heights.shape[1]) * dem.de,
+                         indexing="ij")
+    heights[(nn > 150.0) & (nn < 300.0) & (ee > 150.0) & (ee < 300.0)] += 300.0
+    blocked = dataclasses.replace(dem, heights_m=heights)
+    poses = (wp.array(pos, dtype=wp.vec3, device=device), wp.array(np.tile(q, (len(pos), 1)), dtype=wp.vec4,
+                                                                     device=device))
+    told = wt.make_model("raycast", blocked, wt.Likelihood("gaussian", sensor_sigma_m=0.5, map_sigma_m=1.0))
+    out = told.evaluate(*poses, cloud)
+    sig = _ray_sigmas(told, out, cloud)
+    gated = _gated(told, out, cloud, sig)
+    scores = _gated_scores(told, cloud, pos, gated)
+    k_out = told.likelihood.outlier_sigmas
+    assert gated.sum() >= 10 and np.sum(scores < 2.0) >= 5
+    res = out.residual_m.numpy().astype(np.float64)
+    z2 = np.where(np.isfinite(res) & ~gated, np.minimum((res / sig) ** 2, k_out**2), 0.0)
+    lost = (~np.isfinite(res) & cloud.valid).sum(axis=1) * k_out**2
+    expected = z2.sum(axis=1) + np.nansum(scores**2, axis=1) + lost
+    np.testing.assert_allclose(out.nis.numpy().astype(np.float64) * cloud.valid.sum(), expected, rtol=1e-3, atol=1e-2)
+    assert np.all(out.loglik.numpy() >= -0.5 * k_out**2 * cloud.valid.sum() - 1e-3)
 
 
 def test_the_kernels_weigh_by_the_modes_prior_and_carry_it_to_the_next_scan(scan, device):

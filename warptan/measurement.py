@@ -479,6 +479,12 @@ class MeasurementModel:
             self._att_cov = att_cov
             self.generation += 1
 
+    def _gates_misses(self) -> bool:
+        """The likelihood is told its map is not the world, so gross misses score their point's height above the map
+        (:func:`warptan.kernels.likelihood.map_not_world`: the ray casts then also write those heights)."""
+        p = self._params
+        return p.lik != klik.LIK_PAPER and (p.sigma_err > 0.0 or p.sigma_map > 0.0)
+
     def _attitude_cov(self, device, b: int) -> wp.array:
         a = self._att_cov
         if a is not None and a.shape == (b,) and a.device == device:
@@ -759,7 +765,7 @@ class RaycastModel(_PointCloudModel):
         mean, var = self._mode_state(device, res.shape[0], self.n_filters)
         launch_rows(kray.raycast_residual_kernel, res.shape[0],
                     lambda a, b: ([*lead, a or 0, n_per, rows_of(pos_n, a, b), rows_of(quat_nb, a, b), cloud],
-                                  [rows_of(res, a, b), rows_of(nrm, a, b), int(self._params.sigma_err > 0),
+                                  [rows_of(res, a, b), rows_of(nrm, a, b), int(self._gates_misses()),
                                    rows_of(vert, a, b)]),
                     device, cols=res.shape[1], row_cost=20)
         kernel, block = klik.reduce_loglik_kernels[device.is_cuda], _block_dim(device)
