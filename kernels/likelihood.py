@@ -34,9 +34,9 @@ If no received point is valid at all, every particle gets 0 (no information) and
 
 * the normalised squared residual ``nis_i = (Σ_j min((res_ij/σ)^2, k_out^2) + (n_recv - n_ok) k_out^2) / n_recv``
   (dimensionless, about 1 for a particle at the true pose when σ is the residuals' true scale, at most
-  ``k_out^2``: one occluded ray cannot dominate it; under a stated map error a gross miss counts its point's
-  ``min(z_v, k_out)^2``, :func:`acc_gated`), whatever the likelihood: the integrity monitor of the filter uses it
-  (:mod:`warptan.kernels.mpf`).
+  ``k_out^2``: one occluded ray cannot dominate it; told that the map is not the world, a gross miss counts its
+  point's ``min(z_v, k_out)^2``, :func:`acc_gated`), whatever the likelihood: the integrity monitor of the filter
+  uses it (:mod:`warptan.kernels.mpf`).
 On CUDA one block of ``BLOCK_DIM`` threads per particle (``wp.launch_tiled``): each lane sums every
 ``BLOCK_DIM``-th point (:func:`acc_add` per valid prediction), the lanes' sums are added with one tile reduction
 (:func:`acc_block_sum`) and the particle is finished once (:func:`acc_finish`), either over an (N, M) residual

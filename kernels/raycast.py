@@ -315,10 +315,10 @@ def raycast_residual_kernel(
     Also what the range's derivatives need: with the surface ``F = z + h(n, e) = 0``, ``∇F = (h_n, h_e, 1)`` at the
     hit and ``u = R d``, the scaled normal ``s = ∇F / (∇F · u)`` (zero at a grazing hit), from which
     :func:`warptan.kernels.likelihood.ray_jacobians` forms ``∂t/∂dθ = t (Rᵀs) × d`` (SPEC §6b) and ``∂t/∂p = -s``.
-    With ``want_vertical`` (a stated map error) also the received point's height above the map's surface, ``-q_z -
-    h(q_n, q_e)`` with ``q = p + r_j d`` (m; NaN where the point is invalid or off the map): what a ray that met
-    another surface still says (:func:`warptan.kernels.likelihood.acc_gated`); otherwise ``vertical_out`` is not
-    written (nothing reads it).
+    With ``want_vertical`` (the likelihood is told its map is not the world: :func:`warptan.kernels.likelihood.
+    map_not_world`) also the received point's height above the map's surface, ``-q_z - h(q_n, q_e)`` with ``q = p +
+    r_j d`` (m; NaN where the point is invalid or off the map): what a ray that met another surface still says
+    (:func:`warptan.kernels.likelihood.acc_gated`); otherwise ``vertical_out`` is not written (nothing reads it).
     """
     i, j = wp.tid()
     row = cloud[(row0 + i) // n_per, j]

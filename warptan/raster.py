@@ -405,9 +405,13 @@ def _reprojected_grid(data, crs, transform, bounds, spacing, path, frame=None, p
     if posts is not None:  # the other grid, whole (the warp's sampling depends on the output's extent)
         x_first, y_south = origin[0] + posts[1], origin[1] + posts[0]
         out_rows, out_cols = int(posts[4]), int(posts[5])
-    else:
+        left, top = x_first - 0.5 * de, y_south + (out_rows - 0.5) * dn
+    else:  # as many posts as the footprint holds, the grid centred on it
         out_cols = math.floor((right - left) / de)
         out_rows = math.floor((top - bottom) / dn)
+        left += 0.5 * ((right - left) - out_cols * de)
+        top -= 0.5 * ((top - bottom) - out_rows * dn)
+        x_first, y_south = left + 0.5 * de, top - (out_rows - 0.5) * dn
     if out_rows < 2 or out_cols < 2:
         raise TerrainError(f"{path}: spacing {spacing} m leaves fewer than 2×2 posts")
     if out_rows * out_cols > MAX_POSTS:
@@ -415,11 +419,6 @@ def _reprojected_grid(data, crs, transform, bounds, spacing, path, frame=None, p
             f"{path}: spacing {spacing} m would make {out_rows}×{out_cols} posts (limit {MAX_POSTS}); "
             "use a larger spacing"
         )
-    if posts is not None:
-        left, top = x_first - 0.5 * de, y_south + (out_rows - 0.5) * dn
-    else:  # centre the output grid on the footprint
-        left += 0.5 * ((right - left) - out_cols * de)
-        top -= 0.5 * ((top - bottom) - out_rows * dn)
     dst_transform = from_origin(left, top, de, dn)
 
     heights = np.full((out_rows, out_cols), np.nan, dtype=np.float32)
@@ -460,10 +459,6 @@ def _reprojected_grid(data, crs, transform, bounds, spacing, path, frame=None, p
         out = out[rows_ok[0]:rows_ok[-1] + 1, cols_ok[0]:cols_ok[-1] + 1]
         x_first += cols_ok[0] * de
         y_south += (out_rows - 1 - rows_ok[-1]) * dn  # row 0 is the northernmost here
-        out_rows = out.shape[0]
-    if posts is None:
-        x_first = left + 0.5 * de
-        y_south = top - (out_rows - 0.5) * dn
     target = (f"transverse Mercator at {lat_c:.4f}°N {lon_c:.4f}°E" if frame is None
               else f"another terrain's frame ({_crs_name(dst_crs)})")
     return RasterGrid(

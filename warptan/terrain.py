@@ -164,9 +164,8 @@ class Terrain:
             band: The band holding the heights (1-based); required for a raster of several bands.
             posts: ``(crs_wkt, origin_xy, (n0, e0, dn, de, rows, cols))``: another grid's frame and posts, which a
                 raster that is resampled anyway takes when its own spacing is theirs (:func:`warptan.raster.
-                read_raster`); a flight
-                log's DEM posts (:attr:`warptan.flightlog.FlightLog.dem_posts`) make another cut of its DEM the same
-                map. Not with ``onto``.
+                read_raster`); a flight log's DEM posts (:attr:`warptan.flightlog.FlightLog.dem_posts`) make another
+                cut of its DEM the same map. Not with ``onto``.
         """
         frame = lattice = None
         if posts is not None:
