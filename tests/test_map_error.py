@@ -510,8 +510,10 @@ def test_the_filter_carries_the_mode_amplitudes_from_scan_to_scan():
 def test_ground_read_again_after_the_modes_forgot_it_weighs_less():
     """:class:`warptan.measurement.RevisitMemory`: a straight flight keeps exponent 1 (its older scans are far
     behind: ≥ 0.98), an orbit of 600 m radius inside one correlation length is discounted once its earlier passes
-    are older than κ scans, to ``(1 + C)⁻²`` of the NumPy sum over every earlier scan (C = Σ_k exp(−d_k²/L²) / κ,
-    the scans older than κ; the memory keeps every κ/16-th); the first κ updates are exactly 1."""
+    are older than κ scans, to what one more pass adds to passes whose fixes are correlated by ρ, ``(1 − ρ) / ((1 +
+    Cρ)(1 + (C − 1)ρ))`` (C ≥ 1; below, ``(1 − ρC) / (1 + ρC)``), of the NumPy sum over every earlier scan (C = Σ_k
+    exp(−d_k²/L²) / κ, the scans older than κ; the memory keeps every κ/16-th); the first κ updates are exactly 1;
+    ρ = 0 never discounts; the passes of an orbit add up to at most 1/ρ passes."""
     from warptan.measurement import RevisitMemory
 
     lk = wt.Likelihood("gaussian", sensor_sigma_m=0.5, **STATED)
@@ -521,6 +523,7 @@ def test_ground_read_again_after_the_modes_forgot_it_weighs_less():
     straight = np.c_[steps * 10.0, np.zeros_like(steps, dtype=float)]
     angle = steps * 10.0 / 600.0
     orbit = 600.0 * np.c_[np.cos(angle), np.sin(angle)]
+    rho = lk.revisit_correlation
     for track, low in ((straight, 0.98), (orbit, None)):
         memory = RevisitMemory(lk, 2)
         got = np.array([memory.exponents(np.stack([x, x + 5.0]))[0] for x in track])
@@ -529,9 +532,16 @@ def test_ground_read_again_after_the_modes_forgot_it_weighs_less():
         d2 = np.sum((track[:, None] - track[None]) ** 2, axis=2)
         older = np.arange(1200)[None, :] <= np.arange(1200)[:, None] - mem
         passes = np.where(older, np.exp(-d2 / 1000.0**2), 0.0).sum(axis=1) / kappa
-        expected = 1.0 / (1.0 + passes) ** 2
+        with np.errstate(divide="ignore"):
+            again = (1.0 - rho) / ((1.0 + passes * rho) * (1.0 + (passes - 1.0) * rho))
+        expected = np.where(passes >= 1.0, again, (1.0 - rho * passes) / (1.0 + rho * passes))
         if low is not None:
             assert got.min() >= low
         else:
-            assert got[-1] < 0.15  # three orbits on: the same error read a fourth time
-        np.testing.assert_allclose(got, expected, atol=0.03)
+            assert got[-1] < 0.03  # three orbits on: the same error read a fourth time
+            assert (got[mem:].sum() / (len(got) - mem)) * (len(got) / (2 * math.pi * 600.0 / 10.0)) < 1.0 / rho
+        np.testing.assert_allclose(got, expected, atol=0.04)  # C counted from every κ/16-th scan
+    independent = RevisitMemory(wt.Likelihood("gaussian", sensor_sigma_m=0.5, revisit_correlation=0.0, **STATED), 1)
+    assert all(independent.exponents(np.asarray(x)) == 1.0 for x in orbit)
+    with pytest.raises(wt.FilterError, match="revisit_correlation"):
+        wt.Likelihood("gaussian", revisit_correlation=1.0)

@@ -95,8 +95,9 @@ process noise on the down velocity, ``q_v = 4 σ_e² v³ / L³`` at each filter'
 filter run alone). A point-cloud model's fix of the horizontal position
 wanders along the track with the error: ``Q^n`` grows by ``2 σ_e² v / ℓ``, ℓ the shorter of L and the terrain slope's
 correlation length (:meth:`warptan.measurement.Likelihood.fix_process`), or the Kalman part reads the wander as
-velocity. Ground read again after the map-error modes forgot it weighs less: each update's exponent starts at
-``(1 + C)⁻²`` instead of 1 (:class:`warptan.measurement.RevisitMemory`).
+velocity. Ground read again after the map-error modes forgot it weighs less: each update's exponent is what one more
+pass adds to passes whose fixes are correlated by ρ (``(1 − ρ)/((1 + Cρ)(1 + (C − 1)ρ))`` after C passes; ρ = 0.9,
+:class:`warptan.measurement.RevisitMemory`), not 1.
 
 Integrity (MBARI TRN style): every model returns each particle's normalised squared residual (NIS, mean of
 ``min((r/σ)², k_out²)`` over the received points; ≈ 1 at the true pose); the smallest NIS of any particle — is
