@@ -26,13 +26,14 @@ vec12 = wp.types.vector(length=12, dtype=wp.float32)
 
 N_CHUNKS = wp.constant(64)
 """Partial sums per filter in the weight reductions (threads of their first stage, per filter)."""
-N_CHUNK_SUMS = wp.constant(18)
+N_CHUNK_SUMS = wp.constant(21)
 """Values per chunk of the weight reductions: Σe, Σe², Σe dp (3), Σe dp∘dp (3), Σe (xy, xz, yz), Σe nis,
-Σe Λ (6: 00 11 22 01 02 12)."""
+Σe Λ (6: 00 11 22 01 02 12), Σe I_p (3: nn ee ne; the position information of a model that cannot fix the position
+with one measurement, else 0)."""
 N_SUMMARY_SUMS = wp.constant(34)
 """Values per chunk of the record's reduction: Σw, Σw dp (3), Σw dp∘dp (3), Σw (xy, xz, yz), Σw l (12),
 Σw l∘l (12)."""
-chunk_vec = wp.types.vector(length=18, dtype=wp.float64)
+chunk_vec = wp.types.vector(length=21, dtype=wp.float64)
 summary_vec = wp.types.vector(length=34, dtype=wp.float64)
 """The chunk sums of one filter, reduced by a block (lanes over the chunks; one thread in order on the CPU). One
 thread per filter reading the 64 chunks took 34 µs per reduction on an H100 (latency of 1 152 serial loads)."""
@@ -54,6 +55,15 @@ NOM_BG = wp.constant(13)
 N_NOMINAL = 16
 N_TEMPER = wp.constant(20)
 """Candidate exponents of a tempering stage: ``γ_k = remaining · TEMPER_RATIO^k``."""
+JITTER_NIS = wp.constant(1.0)
+"""A model that cannot fix the position with one measurement (the altimeter: a contour per reading) is found from the
+accumulated profile, which each particle's weight carries; a resampled particle keeps its ancestor's weight, which
+holds only as long as its jitter moves its prediction of the last measurement by no more than about σ. The
+regularisation kernel ``h² Σ̂`` is therefore scaled down until ``tr(h² Σ̂ Ī_p) ≤ JITTER_NIS`` (Ī_p the weighted mean
+of the particles' horizontal position information, ``g gᵀ / σ²``): Silverman's h on a cloud that the first readings
+leave multimodal (tens of metres between contours, σ_pos ~ 100 m) jittered S9 on the 30 m tile ~40 m per
+resampling, and the cloud walked off along the contours (4 of 20 seeds lost, up to 6 km). In a cloud that has
+converged ``h² Σ̂`` is far inside one measurement's resolution and nothing changes."""
 TEMPER_RATIO = wp.constant(0.57434918)  # 2^-0.8: the smallest candidate is 2^-15.2 ≈ 2.7e-5 of the remaining
 
 # ---- per-filter statistics of an update (columns of ``stats``)
@@ -75,6 +85,7 @@ ST_RESAMPLES = wp.constant(20)  # resamplings in this update
 ST_SKIP = wp.constant(21)  # the update carried no usable information (see temper_select_kernel)
 ST_NIS = wp.constant(22)  # posterior-weighted normalised squared residual
 ST_APPLIED = wp.constant(23)  # total exponent applied
+ST_JITTER = wp.constant(24)  # the regularisation bandwidth's factor in this stage's resampling (≤ 1; JITTER_NIS)
 ST_NIS_MIN = wp.constant(25)  # smallest NIS of any particle (the integrity monitor's input)
 ST_LAM = wp.constant(26)  # 6 values: weighted mean of the particles' attitude information Λ (00 11 22 01 02 12)
 
@@ -523,11 +534,12 @@ def exp_partials_kernel(
     dp: wp.array(dtype=wp.vec3),
     nis: wp.array(dtype=wp.float32),
     lam: wp.array(dtype=wp.mat33),
+    info_pos: wp.array(dtype=wp.vec3),
     stats: wp.array2d(dtype=wp.float64),
     sums_out: wp.array3d(dtype=wp.float64),
 ):
     """Active filter b, chunk c, with ``e_i = exp(lw_i - max)``: partial ``Σe``, ``Σe²``, ``Σe dp``, ``Σe dp dpᵀ``,
-    ``Σe nis`` and ``Σe Λ`` (``N_CHUNK_SUMS`` values)."""
+    ``Σe nis``, ``Σe Λ`` and ``Σe I_p`` (``N_CHUNK_SUMS`` values; ``info_pos`` of length 1: no I_p, zeros)."""
     b, c = wp.tid()
     if stats[b, ST_ACTIVE] == wp.float64(0.0):
         return
@@ -541,6 +553,8 @@ def exp_partials_kernel(
     m3 = wp.vec3d()
     ld = wp.vec3d()
     lo_ = wp.vec3d()
+    ip = wp.vec3d()
+    with_ip = info_pos.shape[0] > 1
     for k in range(lo, hi):
         i = b * n_per + k
         x = wp.float64(wp.exp(logw[i] - m))
@@ -556,6 +570,8 @@ def exp_partials_kernel(
         z = nis[i]
         if wp.isfinite(z):
             sz += x * wp.float64(z)
+        if with_ip:
+            ip += x * wp.vec3d(info_pos[i])
     sums_out[b, c, 0] = s1
     sums_out[b, c, 1] = s2
     for a in range(3):
@@ -564,6 +580,7 @@ def exp_partials_kernel(
         sums_out[b, c, 8 + a] = m3[a]
         sums_out[b, c, 12 + a] = ld[a]
         sums_out[b, c, 15 + a] = lo_[a]
+        sums_out[b, c, 18 + a] = ip[a]
     sums_out[b, c, 11] = sz
 
 
@@ -605,6 +622,7 @@ def weight_stats_kernel(
     params: UpdateParams,
     sums_in: wp.array3d(dtype=wp.float64),
     stats: wp.array2d(dtype=wp.float64),
+    kernel_chol: wp.array(dtype=wp.mat33),
 ):
     """One block per active filter (``wp.launch_tiled``, lanes over the chunks): ESS = (Σw)²/Σw², log-normaliser,
     weighted mean and Cholesky factor of the covariance of dp (the regularisation kernel's shape), posterior NIS,
@@ -615,7 +633,7 @@ def weight_stats_kernel(
         return
     part = chunk_vec()
     for k in range(lane, N_CHUNKS, wp.block_dim()):
-        for a in range(18):
+        for a in range(N_CHUNK_SUMS):
             part[a] += sums_in[b, k, a]
     tot = wp.tile_sum(wp.tile(part, preserve_type=True))[0]
     if lane != 0:
@@ -636,6 +654,14 @@ def weight_stats_kernel(
     stats[b, ST_CHOL + 4] = lo[2, 1]
     stats[b, ST_CHOL + 5] = lo[2, 2]
     stats[b, ST_NIS] = tot[11] / s1
+    # JITTER_NIS: tr(h² Σ̂ Ī_p) with Σ̂ = L Lᵀ (its horizontal block)
+    ip = wp.vec3d(tot[18], tot[19], tot[20]) / s1
+    q = wp.float64(params.bandwidth * params.bandwidth) * (cov[0, 0] * ip[0] + cov[1, 1] * ip[1]
+                                                           + wp.float64(2.0) * cov[0, 1] * ip[2])
+    stats[b, ST_JITTER] = wp.float64(1.0)
+    if q > wp.float64(JITTER_NIS):
+        stats[b, ST_JITTER] = wp.sqrt(wp.float64(JITTER_NIS) / q)
+    kernel_chol[b] = wp.float32(wp.float64(params.bandwidth) * stats[b, ST_JITTER]) * stats_chol(stats, b)
     for a in range(6):
         stats[b, ST_LAM + a] = tot[12 + a] / s1
     if ess < wp.float64(params.resample_threshold) * wp.float64(n_per) or stats[b, ST_REMAIN] > wp.float64(0.0):
@@ -817,7 +843,7 @@ def gather_kernel(
     lw = logw_in[a]
     if stats[b, ST_RESAMPLE] != wp.float64(0.0):
         lw = -wp.log(float(n_per))
-        h = params.bandwidth
+        h = params.bandwidth * wp.float32(stats[b, ST_JITTER])
         if h > 0.0:
             state = wp.rand_init(seeds[b], stage * 2 * n_per + n_per + i % n_per)
             shrink = wp.sqrt(wp.max(1.0 - params.shrinkage * h * h, 0.0))
@@ -909,7 +935,7 @@ def modes_variance_kernel(m: int, table: wp.array(dtype=modes_vec), stats: wp.ar
 
 @wp.kernel
 def integrity_kernel(params: UpdateParams, stats: wp.array2d(dtype=wp.float64),
-                     integrity: wp.array2d(dtype=wp.float64)):
+                     integrity: wp.array2d(dtype=wp.float64), kernel_chol: wp.array(dtype=wp.mat33)):
     """One thread per filter, after the last stage (MBARI TRN style): the mean over the last ``integrity_window``
     informative updates of the smallest NIS of any particle — large only when no hypothesis explains the scan,
     whereas a wide but healthy cloud (acquisition, a flat likelihood) still holds particles that do; above
@@ -931,6 +957,7 @@ def integrity_kernel(params: UpdateParams, stats: wp.array2d(dtype=wp.float64),
     integrity[b, IN_MEAN] = mean
     if k >= params.integrity_min_updates and mean > wp.float64(params.integrity_threshold):
         stats[b, ST_RESPREAD] = wp.float64(1.0)
+        kernel_chol[b] = params.bandwidth * params.respread_chol  # the re-spread cloud's kernel
         integrity[b, IN_RESPREADS] = integrity[b, IN_RESPREADS] + wp.float64(1.0)
         k = 0
     integrity[b, IN_SINCE] = wp.float64(k)
@@ -943,11 +970,17 @@ def respread_kernel(
     seeds: wp.array(dtype=wp.int32),
     params: UpdateParams,
     stats: wp.array2d(dtype=wp.float64),
+    p0_lin: wp.array2d(dtype=wp.mat33d),
     dp: wp.array(dtype=wp.vec3),
+    lin: wp.array(dtype=vec12),
     logw: wp.array(dtype=wp.float32),
+    cov: wp.array3d(dtype=wp.mat33d),
 ):
-    """A filter flagged lost re-spreads dp around its weighted mean with the re-spread covariance, uniform
-    weights (Kalman means kept); stream ``offset + j``."""
+    """A filter flagged lost starts over: dp re-spread around its weighted mean with the re-spread covariance,
+    uniform weights, and the linear part back to its prior (Kalman means zero, ``P = p0_lin``, 4 × 4 blocks): what
+    it learnt while lost came from hypotheses that explained nothing (a particle that keeps re-locking on wrong
+    contours reads its jumps as velocity: S9 on the 30 m tile drifted 33 m/s under a 3σ of 0.3 m/s). Stream
+    ``offset + j``."""
     i = wp.tid()
     b = i // n_per
     if stats[b, ST_RESPREAD] == wp.float64(0.0):
@@ -956,7 +989,12 @@ def respread_kernel(
     centre = wp.vec3(wp.float32(stats[b, ST_MEAN_DP]), wp.float32(stats[b, ST_MEAN_DP + 1]),
                      wp.float32(stats[b, ST_MEAN_DP + 2]))
     dp[i] = centre + params.respread_chol * gaussian3(state)
+    lin[i] = vec12()
     logw[i] = -wp.log(float(n_per))
+    if i % n_per == 0:
+        for r in range(4):
+            for c in range(4):
+                cov[b, r, c] = p0_lin[r, c]
 
 
 @wp.kernel

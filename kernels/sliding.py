@@ -18,6 +18,7 @@ import warp as wp
 from warptan.kernels.frames import quat_to_mat_wxyz
 from warptan.kernels.likelihood import (
     CR_VALID,
+    LIK_PAPER,
     LikParams,
     acc_add,
     acc_block_sum,
@@ -34,7 +35,7 @@ from warptan.kernels.likelihood import (
     row_dir,
     row_point,
 )
-from warptan.kernels.terrain import HeightGrid, grid_height, grid_height_gradient
+from warptan.kernels.terrain import HeightGrid, grid_gradient, grid_height, grid_height_gradient
 
 wp.set_module_options({"enable_backward": False})
 
@@ -134,6 +135,41 @@ sliding_loglik_kernels = per_particle_kernels(_sliding_loglik)
 """The fused sliding model: ``[True]`` tiled (``wp.launch_tiled``, CUDA), ``[False]`` one thread per particle."""
 
 
+KERNEL_POINT_SCALE = wp.constant(1.7320508)  # sqrt(n + κ) of the horizontal kernel's unscented points (n = 2, κ = 1)
+
+
+@wp.func
+def kernel_height(grid: HeightGrid, surface: int, p: wp.vec3, chol: wp.mat33):
+    """(mean, variance) in m, m² of the map's height over a particle's kernel: the Gaussian about ``p`` whose
+    horizontal covariance has the lower Cholesky factor ``chol[:2, :2]`` (the regularisation kernel the particle stands
+    for and resampling draws from), from the unscented transform's five points (``p``, weight 1/3; ``p ± sqrt(3) c_j``
+    for the factor's columns c_j, 1/6 each; heights relative to ``h(p)``, so float32 does not cancel). Points off the
+    map are left out (their weight to the others); a zero kernel or a centre off the map gives ``(h(p), 0)``."""
+    h0 = grid_height(grid, surface, p[0], p[1])
+    c0 = wp.vec2(chol[0, 0], chol[1, 0])
+    c1 = wp.vec2(0.0, chol[1, 1])
+    if wp.isnan(h0) or (c0[0] == 0.0 and c0[1] == 0.0 and c1[1] == 0.0):
+        return h0, float(0.0)
+    sw = 1.0 / 3.0
+    s1 = float(0.0)
+    s2 = float(0.0)
+    for j in range(4):
+        c = c0
+        if j >= 2:
+            c = c1
+        sign = 1.0
+        if j % 2 == 1:
+            sign = -1.0
+        d = (sign * KERNEL_POINT_SCALE) * c
+        dh = grid_height(grid, surface, p[0] + d[0], p[1] + d[1]) - h0
+        if not wp.isnan(dh):
+            sw += 1.0 / 6.0
+            s1 += dh / 6.0
+            s2 += dh * dh / 6.0
+    mean = s1 / sw
+    return h0 + mean, wp.max(s2 / sw - mean * mean, 0.0)
+
+
 @wp.kernel
 def altimeter_loglik_kernel(
     n_per: int,
@@ -146,6 +182,7 @@ def altimeter_loglik_kernel(
     modes: wp.array(dtype=modes_vec),
     mode_mean: wp.array(dtype=modes_vec),
     mode_var: wp.array(dtype=modes_vec),
+    kernel_chol: wp.array(dtype=wp.mat33),
     residual_out: wp.array2d(dtype=wp.float32),
     err_out: wp.array(dtype=wp.float32),
     loglik_out: wp.array(dtype=wp.float32),
@@ -154,27 +191,45 @@ def altimeter_loglik_kernel(
     lam_out: wp.array(dtype=wp.mat33),
     info_out: wp.array(dtype=wp.vec3),
     post_out: wp.array(dtype=modes_vec),
+    info_pos_out: wp.array(dtype=wp.vec3),
 ):
     """One thread per particle; ``reading[b] = [range a, h_baro, valid, 1/σ_baro²]``: residual
-    ``a - (h_baro - h(p_i,x, p_i,y))`` in m (without a barometer, ``use_baro == 0``, the particle's own altitude
-    ``-p_i,z`` replaces ``h_baro``). With a barometer it is also scored as a measurement of the particle's
-    altitude: ``loglik_i += -0.5 (h_baro + p_i,z)² / σ_baro²``."""
+    ``a - (h_baro - h̄_i)`` in m (without a barometer, ``use_baro == 0``, the particle's own altitude ``-p_i,z``
+    replaces ``h_baro``) of standard deviation ``sqrt(σ² + v_i)``: ``h̄_i``, ``v_i`` the mean and variance of the map's
+    height over the particle's regularisation kernel ``kernel_chol[b]`` (:func:`kernel_height`; ``h(p_i)`` and 0 for a
+    zero kernel), i.e. the Gaussian approximation of ``∫ N(a; h_baro - h(x), σ²) K(x - p_i) dx``: a particle stands for
+    its kernel, and without it the one particle that happens to lie on the right contour wins over the one nearest the
+    truth, a few metres off and so a few σ off. With a barometer it is also scored as a measurement of the particle's
+    altitude: ``loglik_i += -0.5 (h_baro + p_i,z)² / σ_baro²``. ``info_pos_out``: ``g gᵀ / σ²`` (nn, ee, ne; m⁻²)
+    with g = ∇h at the particle (zero for the paper's scalar error or an invalid residual)."""
     i = wp.tid()
     b = i // n_per
     r = reading[b]
     p = pos_n[i]
     acc = acc_init()
     res = float(wp.nan)
+    info_pos = wp.vec3()
     if r[2] != 0.0:
         acc.n_recv = 1
         alt = r[1]
         if use_baro == 0:
             alt = -p[2]
-        res = r[0] - (alt - grid_height(grid, surface, p[0], p[1]))
+        kernel = kernel_chol[b]
+        if params.lik == LIK_PAPER:  # the paper's scalar error scores the particle itself
+            kernel = wp.mat33()
+        h, var = kernel_height(grid, surface, p, kernel)
+        res = r[0] - (alt - h)
         if not wp.isnan(res):
-            acc = acc_add(acc, params, res, params.sigma, wp.vec3(1.0, 1.0, 1.0), wp.vec3(), wp.vec3())
+            sigma = params.sigma
+            if var > 0.0:
+                sigma = wp.sqrt(sigma * sigma + var)
+            if params.lik != LIK_PAPER:
+                g = grid_gradient(grid, surface, p[0], p[1])
+                iv = 1.0 / (sigma * sigma)
+                info_pos = wp.vec3(g[0] * g[0] * iv, g[1] * g[1] * iv, g[0] * g[1] * iv)
+            acc = acc_add(acc, params, res, sigma, wp.vec3(1.0, 1.0, 1.0), wp.vec3(), wp.vec3())
             if params.n_modes > 0:
-                acc = acc_modes(acc, params, modes[0], res, params.sigma, wp.vec3(), wp.vec3())
+                acc = acc_modes(acc, params, modes[0], res, sigma, wp.vec3(), wp.vec3())
     if params.n_modes > 0:
         acc = acc_set_modes(acc, modes, 1, mode_mean[i], mode_var[b])
         post_out[i] = mode_post(acc, modes, 1)
@@ -189,3 +244,4 @@ def altimeter_loglik_kernel(
     n_valid_out[i] = acc.n_ok
     lam_out[i] = wp.mat33()  # a nadir range does not see the attitude to first order
     info_out[i] = wp.vec3()
+    info_pos_out[i] = info_pos

@@ -569,10 +569,11 @@ def test_regularisation_jitter_matches_numpy(device):
     nis = wp.ones(n, dtype=wp.float32, device=device)
     g = rng.normal(size=(n, 3, 3))
     lam = (g @ g.swapaxes(1, 2)).astype(np.float32)  # per-particle attitude information
+    kernel_chol = wp.zeros(1, dtype=wp.mat33, device=device)
     wp.launch(kmpf.exp_partials_kernel, dim=(1, kmpf.N_CHUNKS),
-              inputs=[n, d_logw, d_dp, nis, wp.array(lam, dtype=wp.mat33, device=device), stats], outputs=[sums],
-              device=device)
-    wp.launch_tiled(kmpf.weight_stats_kernel, dim=[1], inputs=[n, params, sums], outputs=[stats],
+              inputs=[n, d_logw, d_dp, nis, wp.array(lam, dtype=wp.mat33, device=device),
+                      wp.zeros(1, dtype=wp.vec3, device=device), stats], outputs=[sums], device=device)
+    wp.launch_tiled(kmpf.weight_stats_kernel, dim=[1], inputs=[n, params, sums], outputs=[stats, kernel_chol],
                     block_dim=kmpf.N_CHUNKS, device=device)
     s = stats.numpy()[0]
     lam_bar = np.einsum("i,ijk->jk", w, lam.astype(np.float64))
@@ -581,7 +582,8 @@ def test_regularisation_jitter_matches_numpy(device):
     lo = np.zeros((3, 3))
     lo[np.tril_indices(3)] = s[kmpf.ST_CHOL:kmpf.ST_CHOL + 6]
     np.testing.assert_allclose(lo, np.linalg.cholesky(cov + 1e-6 * np.eye(3)), rtol=1e-6, atol=1e-6)
-    assert s[kmpf.ST_RESAMPLE] == 1.0
+    np.testing.assert_allclose(kernel_chol.numpy()[0], 0.4 * lo, rtol=1e-5, atol=1e-6)  # no position info: h
+    assert s[kmpf.ST_RESAMPLE] == 1.0 and s[kmpf.ST_JITTER] == 1.0
     out = [wp.empty_like(d_dp), wp.empty(n, dtype=kmpf.vec12, device=device), wp.empty_like(d_logw)]
     wp.launch(kmpf.gather_kernel, dim=n,
               inputs=[n, 0, wp.array([5], dtype=wp.int32, device=device), params, stats,

@@ -397,6 +397,11 @@ class ModelOutput:
     vertical_m: wp.array | None = None
     """(N, M) float32 each received point's height above the map's surface, placed with the particle's pose (m, NaN
     where invalid; ray casts): what a gross miss scores (:func:`warptan.kernels.likelihood.acc_gated`)."""
+    info_pos: wp.array | None = None
+    """(N,) vec3 horizontal position information of each particle's residuals, ``Σ_j g_j g_jᵀ / σ_j²`` as (nn, ee, ne)
+    (m⁻²), g_j the prediction's gradient w.r.t. the horizontal position; written by the models that cannot fix the
+    position with one measurement (the altimeter), zero otherwise: the filter keeps its regularisation jitter within
+    what one measurement resolves (:mod:`warptan.mpf`)."""
     mode_post: wp.array | None = None
     """(N,) modes_vec the particles' map-error mode amplitudes after this scan, predicted to the next (whitened, in
     the modes of the table in use; zero without a stated map error): the filter keeps them as the next prior."""
@@ -555,6 +560,7 @@ class MeasurementModel:
                 normal=wp.empty((n, m), dtype=wp.vec3, device=device) if self.name == "raycast" else None,
                 vertical_m=wp.empty((n, m), dtype=wp.float32, device=device) if self.name == "raycast" else None,
                 mode_post=wp.zeros(n, dtype=klik.modes_vec, device=device),
+                info_pos=wp.zeros(n, dtype=wp.vec3, device=device),
             )
             self._staged = self._staging_buffer(device, b, m)
             self.generation += 1
@@ -863,6 +869,8 @@ class AltimeterModel(MeasurementModel):
             raise FilterError(f"baro_sigma_m must be a positive number of metres, got {baro_sigma_m!r}")
         self.use_baro = bool(use_baro)
         self.baro_sigma_m = float(baro_sigma_m)
+        self._kernel_chol: wp.array | None = None
+        self._zero_kernel: wp.array | None = None
 
     @property
     def absorbs_map_offset(self) -> bool:
@@ -885,13 +893,32 @@ class AltimeterModel(MeasurementModel):
         self._staged.assign(host.astype(np.float32))
         return valid.astype(np.int64)
 
+    def bind_particle_kernel(self, chol: wp.array | None) -> None:
+        """Score each particle for its regularisation kernel: ``chol`` ((B,) mat33 on the particles' device, m: each
+        filter's kernel factor, kept current by its owner, :class:`~warptan.mpf.MarginalizedParticleFilter`); the
+        residual's σ grows by the map's height variance over the kernel
+        (:func:`warptan.kernels.sliding.kernel_height`). None (the default): point particles."""
+        if chol is not self._kernel_chol:
+            self._kernel_chol = chol
+            self.generation += 1
+
+    def _particle_kernel(self, device, b: int) -> wp.array:
+        k = self._kernel_chol
+        if k is not None and k.shape == (b,) and k.device == device:
+            return k
+        if self._zero_kernel is None or self._zero_kernel.shape != (b,) or self._zero_kernel.device != device:
+            self._zero_kernel = wp.zeros(b, dtype=wp.mat33, device=device)
+            self.generation += 1
+        return self._zero_kernel
+
     def _launch(self, pos_n, quat_nb, out, device):
         mean, var = self._mode_state(device, pos_n.shape[0], self.n_filters)
         launch(kslide.altimeter_loglik_kernel, dim=pos_n.shape[0],
                   inputs=[self.n_per, self.terrain.grid(device), int(self.surface), int(self.use_baro), pos_n,
-                          self._staged, self._params, self._modes, mean, var],
+                          self._staged, self._params, self._modes, mean, var,
+                          self._particle_kernel(device, self.n_filters)],
                   outputs=[out.residual_m, out.error_m, out.loglik, out.nis, out.n_valid, out.lam, out.info,
-                           out.mode_post],
+                           out.mode_post, out.info_pos],
                   device=device)
 
 

@@ -457,10 +457,17 @@ class MarginalizedParticleFilter:
         params.integrity_min_updates = 2 * int(integrity_window)
         chol_p0 = np.linalg.cholesky(self.p0_pos + 1e-12 * np.eye(3))
         params.respread_chol = wp.mat33(*(respread_scale * chol_p0).ravel())
+        self._kernel_chol = wp.array(np.broadcast_to(self.bandwidth * chol_p0, (b, 3, 3)).copy(), dtype=wp.mat33,
+                                     device=self.device)
+        """(B,) each filter's regularisation kernel factor (m): ``h · chol(P0)`` at the start and ``h ·`` the
+        re-spread's after one, else the last resampling's (``h`` times the weighted cloud's factor, scaled by
+        :data:`warptan.kernels.mpf.JITTER_NIS`); a model that scores a particle for its kernel reads it
+        (``bind_particle_kernel``: the altimeter)."""
         self.params = params
         self.measurement_update = bool(measurement_update)
         self.closed_loop = bool(closed_loop)
         self._no_info: tuple[wp.array, wp.array] | None = None
+        self._no_pos_info: wp.array | None = None
         self.graph = self.device.is_cuda if graph is None else bool(graph)
         self._recorder = Recorder() if self.device.is_cpu and not self.graph else None
         """Eager CPU updates replay their fixed pieces from recorded launches (:class:`warptan.parallel.Recorder`);
@@ -488,6 +495,7 @@ class MarginalizedParticleFilter:
             "bg": wp.array(np.array([x.gyro_bias for x in nominals]), dtype=wp.vec3d, device=d),
             "cov": wp.array(_to_blocks(np.broadcast_to(p0, (b, 12, 12)), 4), dtype=wp.mat33d, device=d),
         }
+        self._p0_lin_blocks = wp.array(_to_blocks(p0[None], 4)[0], dtype=wp.mat33d, device=d)  # a re-spread's P
         self._scratch = [wp.zeros((b, 5, 5), dtype=wp.mat33d, device=d), wp.zeros((b, 5, 5), dtype=wp.mat33d, device=d),
                          wp.zeros((b, 15, 15), dtype=wp.float64, device=d)]
         # ---- host staging of an interval: the IMU samples [f, w] and [K, move seed, resample seed] per filter. On
@@ -742,14 +750,26 @@ class MarginalizedParticleFilter:
                   outputs=[self._stats], device=d)
         lam, info = self._attitude_info(out)
         launch(kmpf.exp_partials_kernel, dim=(b, kmpf.N_CHUNKS),
-                  inputs=[n, st.logw, st.dp, out.nis, lam, self._stats], outputs=[self._chunk_sums], device=d)
+                  inputs=[n, st.logw, st.dp, out.nis, lam, self._position_info(out), self._stats],
+                  outputs=[self._chunk_sums], device=d)
         launch(kmpf.weight_stats_kernel, dim=[b], inputs=[n, self.params, self._chunk_sums],
-                        outputs=[self._stats], block_dim=kmpf.N_CHUNKS, device=d)
+                        outputs=[self._stats, self._kernel_chol], block_dim=kmpf.N_CHUNKS, device=d)
         launch(kmpf.normalize_weights_kernel, dim=b * n, inputs=[n, self._stats], outputs=[st.logw], device=d)
         if self.measurement_update:
             launch(kmpf.kalman_update_kernel, dim=b * n,
                    inputs=[n, self.params, self._stats, self._feedback, self._dev["p_col"], lam, info],
                    outputs=[st.lin], device=d)
+
+    def _position_info(self, out) -> wp.array:
+        """The particles' horizontal position information when the model cannot fix the position with one
+        measurement (it then bounds the regularisation jitter: :data:`warptan.kernels.mpf.JITTER_NIS`), else a
+        one-element array (none)."""
+        info = getattr(out, "info_pos", None)
+        if info is not None and not getattr(self.model, "fixes_per_scan", False) and info.shape[0] > 1:
+            return info
+        if self._no_pos_info is None:
+            self._no_pos_info = wp.zeros(1, dtype=wp.vec3, device=self.device)
+        return self._no_pos_info
 
     def _attitude_info(self, out) -> tuple[wp.array, wp.array]:
         """The model's per-particle attitude information (Λ_i, b_i); zeros for a model that gives none."""
@@ -799,10 +819,12 @@ class MarginalizedParticleFilter:
 
     def _launch_integrity(self) -> None:
         d, b, n, st = self.device, self.n_filters, self.n, self.state
-        launch(kmpf.integrity_kernel, dim=b, inputs=[self.params, self._stats, self._integrity], device=d)
+        launch(kmpf.integrity_kernel, dim=b, inputs=[self.params, self._stats, self._integrity],
+               outputs=[self._kernel_chol], device=d)
         launch(kmpf.respread_kernel, dim=b * n,
                   inputs=[n, 2 * n * self.max_stages, self._dev["resample_seeds"], self.params, self._stats,
-                          st.dp, st.logw], device=d)
+                          self._p0_lin_blocks],
+                  outputs=[st.dp, st.lin, st.logw, self._nav["cov"]], device=d)
 
     def _launch_record(self) -> None:
         d, b, st = self.device, self.n_filters, self.state
@@ -916,6 +938,8 @@ class MarginalizedParticleFilter:
             self.model.bind_attitude_cov(self._dev["att_cov"])
         if hasattr(self.model, "bind_mode_state"):
             self.model.bind_mode_state(self._mode_mean, self._mode_var)
+        if hasattr(self.model, "bind_particle_kernel"):
+            self.model.bind_particle_kernel(self._kernel_chol)
         self._out = out
         self._ensure_history()
         self._stage_interval()
