@@ -970,17 +970,11 @@ def respread_kernel(
     seeds: wp.array(dtype=wp.int32),
     params: UpdateParams,
     stats: wp.array2d(dtype=wp.float64),
-    p0_lin: wp.array2d(dtype=wp.mat33d),
     dp: wp.array(dtype=wp.vec3),
-    lin: wp.array(dtype=vec12),
     logw: wp.array(dtype=wp.float32),
-    cov: wp.array3d(dtype=wp.mat33d),
 ):
-    """A filter flagged lost starts over: dp re-spread around its weighted mean with the re-spread covariance,
-    uniform weights, and the linear part back to its prior (Kalman means zero, ``P = p0_lin``, 4 × 4 blocks): what
-    it learnt while lost came from hypotheses that explained nothing (a particle that keeps re-locking on wrong
-    contours reads its jumps as velocity: S9 on the 30 m tile drifted 33 m/s under a 3σ of 0.3 m/s). Stream
-    ``offset + j``."""
+    """A filter flagged lost re-spreads dp around its weighted mean with the re-spread covariance, uniform
+    weights (Kalman means kept); stream ``offset + j``."""
     i = wp.tid()
     b = i // n_per
     if stats[b, ST_RESPREAD] == wp.float64(0.0):
@@ -989,12 +983,7 @@ def respread_kernel(
     centre = wp.vec3(wp.float32(stats[b, ST_MEAN_DP]), wp.float32(stats[b, ST_MEAN_DP + 1]),
                      wp.float32(stats[b, ST_MEAN_DP + 2]))
     dp[i] = centre + params.respread_chol * gaussian3(state)
-    lin[i] = vec12()
     logw[i] = -wp.log(float(n_per))
-    if i % n_per == 0:
-        for r in range(4):
-            for c in range(4):
-                cov[b, r, c] = p0_lin[r, c]
 
 
 @wp.kernel

@@ -495,7 +495,6 @@ class MarginalizedParticleFilter:
             "bg": wp.array(np.array([x.gyro_bias for x in nominals]), dtype=wp.vec3d, device=d),
             "cov": wp.array(_to_blocks(np.broadcast_to(p0, (b, 12, 12)), 4), dtype=wp.mat33d, device=d),
         }
-        self._p0_lin_blocks = wp.array(_to_blocks(p0[None], 4)[0], dtype=wp.mat33d, device=d)  # a re-spread's P
         self._scratch = [wp.zeros((b, 5, 5), dtype=wp.mat33d, device=d), wp.zeros((b, 5, 5), dtype=wp.mat33d, device=d),
                          wp.zeros((b, 15, 15), dtype=wp.float64, device=d)]
         # ---- host staging of an interval: the IMU samples [f, w] and [K, move seed, resample seed] per filter. On
@@ -823,8 +822,7 @@ class MarginalizedParticleFilter:
                outputs=[self._kernel_chol], device=d)
         launch(kmpf.respread_kernel, dim=b * n,
                   inputs=[n, 2 * n * self.max_stages, self._dev["resample_seeds"], self.params, self._stats,
-                          self._p0_lin_blocks],
-                  outputs=[st.dp, st.lin, st.logw, self._nav["cov"]], device=d)
+                          st.dp, st.logw], device=d)
 
     def _launch_record(self) -> None:
         d, b, st = self.device, self.n_filters, self.state
