@@ -479,3 +479,38 @@ def test_attitude_information_follows_the_likelihood(device):
     assert 0.05 < scale < 0.5
     np.testing.assert_allclose(got["footprint"][0], scale * got["plain"][0], rtol=1e-4, atol=1e-3)
     np.testing.assert_allclose(got["footprint"][1], scale * got["plain"][1], rtol=1e-4, atol=1e-3)
+
+
+def test_altimeter_scores_a_particle_for_its_kernel(device):
+    """Bound to a regularisation kernel K (the filter's ``h · chol(Σ̂)``), the altimeter scores each particle with
+    the mean and variance of the map's height over K: on a plane h = c + g·p (bilinear exact) the mean is h(p) and
+    the variance gᵀ K g, so the log-likelihood is ``-r²/2(σ² + gᵀKg) - log(sqrt(σ² + gᵀKg)/σ)`` plus the barometer's
+    term, and the position information ``g gᵀ / (σ² + gᵀKg)`` (NumPy). The paper's scalar error ignores K; an
+    unbound model scores the point particle."""
+    n, e = np.meshgrid(np.arange(-40, 41) * 30.0, np.arange(-40, 41) * 30.0, indexing="ij")
+    g = np.array([0.3, -0.2])
+    plane = wt.Terrain(100.0 + g[0] * n + g[1] * e, -1200.0, -1200.0, 30.0, 30.0, name="plane")
+    poses = np.array([[0.0, 0.0, -1500.0], [210.0, -330.0, -1503.0], [-400.0, 120.0, -1497.0]])
+    quats = np.tile([1.0, 0, 0, 0], (3, 1))
+    reading = wt.AltimeterReading(range_m=1400.0, baro_alt_m=1499.0)
+    chol = np.array([[20.0, 0, 0], [5.0, 10.0, 0], [1.0, 2.0, 3.0]])
+    kxy = (chol @ chol.T)[:2, :2]
+    h = 100.0 + poses[:, :2] @ g
+    res = 1400.0 - (1499.0 - h)
+    baro_term = -0.5 * ((1499.0 + poses[:, 2]) / 2.0) ** 2
+    model = wt.AltimeterModel(plane, wt.Likelihood("gaussian", sigma_m=1.5), baro_sigma_m=2.0)
+    sigma = model.params().sigma
+    plain = model.evaluate(*_poses(poses, quats, device), reading)
+    np.testing.assert_allclose(plain.loglik.numpy(), -0.5 * res**2 / sigma**2 + baro_term, rtol=1e-4)
+    model.bind_particle_kernel(wp.array(chol[None].astype(np.float32), dtype=wp.mat33, device=device))
+    out = model.evaluate(*_poses(poses, quats, device), reading)
+    var = sigma**2 + g @ kxy @ g
+    np.testing.assert_allclose(out.error_m.numpy(), res, atol=2e-3)
+    np.testing.assert_allclose(out.loglik.numpy(), -0.5 * res**2 / var - 0.5 * np.log(var / sigma**2) + baro_term,
+                               rtol=1e-4)
+    np.testing.assert_allclose(out.info_pos.numpy(), np.tile([g[0] ** 2, g[1] ** 2, g[0] * g[1]], (3, 1)) / var,
+                               rtol=1e-4)
+    paper = wt.AltimeterModel(plane, wt.Likelihood("paper", r_err=9.0), baro_sigma_m=2.0)
+    paper.bind_particle_kernel(wp.array(chol[None].astype(np.float32), dtype=wp.mat33, device=device))
+    np.testing.assert_allclose(paper.evaluate(*_poses(poses, quats, device), reading).loglik.numpy(),
+                               -0.5 * res**2 / 9.0 + baro_term, rtol=1e-4)

@@ -596,6 +596,58 @@ def test_regularisation_jitter_matches_numpy(device):
     np.testing.assert_allclose(out[2].numpy(), -np.log(n), rtol=1e-6)
 
 
+def test_jitter_stays_within_what_one_reading_resolves(device):
+    """A model that cannot fix the position with one reading gives each particle's position information I_p; the
+    weight statistics shrink the regularisation kernel h² Σ̂ by f² = JITTER_NIS / tr(h² Σ̂ Ī_p) when that trace is
+    larger (Ī_p the weighted mean, NumPy), write the kernel factor h f chol(Σ̂) the altimeter scores with, and the
+    resampling jitters with covariance (h f)² Σ̂ (200 000 particles, 3 %); without I_p nothing changes."""
+    n = 200_000
+    rng = np.random.default_rng(2)
+    a = np.array([[60.0, 0.0, 0.0], [20.0, 40.0, 0.0], [0.0, 0.0, 5.0]])
+    dp = (rng.normal(size=(n, 3)) @ a.T).astype(np.float32)
+    logw = rng.normal(0.0, 0.5, n).astype(np.float32)
+    w = np.exp(logw.astype(np.float64))
+    w /= w.sum()
+    mean = w @ dp
+    cov = (dp - mean).T @ ((dp - mean) * w[:, None])
+    grad = rng.normal(0.0, 0.3, size=(n, 2))
+    info = np.stack([grad[:, 0] ** 2, grad[:, 1] ** 2, grad[:, 0] * grad[:, 1]], axis=1) / 2.0  # σ² = 2 m²
+    ip = w @ info
+    h = 0.4
+    q = h * h * (cov[0, 0] * ip[0] + cov[1, 1] * ip[1] + 2.0 * cov[0, 1] * ip[2])
+    f = np.sqrt(kmpf.JITTER_NIS / q)
+    assert q > 10.0  # the case the bound is for: a cloud much wider than one reading resolves
+    params = kmpf.UpdateParams()
+    params.resample_threshold = 1.0
+    params.bandwidth = h
+    params.shrinkage = 1.0
+    stats = wp.zeros((1, kmpf.N_STATS), dtype=wp.float64, device=device)
+    stats.assign(np.eye(1, kmpf.N_STATS, kmpf.ST_ACTIVE))
+    d_dp = wp.array(dp, dtype=wp.vec3, device=device)
+    d_logw = wp.array(logw, dtype=wp.float32, device=device)
+    sums = wp.zeros((1, kmpf.N_CHUNKS, kmpf.N_CHUNK_SUMS), dtype=wp.float64, device=device)
+    kernel_chol = wp.zeros(1, dtype=wp.mat33, device=device)
+    wp.launch(kmpf.exp_partials_kernel, dim=(1, kmpf.N_CHUNKS),
+              inputs=[n, d_logw, d_dp, wp.ones(n, dtype=wp.float32, device=device),
+                      wp.zeros(n, dtype=wp.mat33, device=device), wp.array(info, dtype=wp.vec3, device=device),
+                      stats], outputs=[sums], device=device)
+    wp.launch_tiled(kmpf.weight_stats_kernel, dim=[1], inputs=[n, params, sums], outputs=[stats, kernel_chol],
+                    block_dim=kmpf.N_CHUNKS, device=device)
+    s = stats.numpy()[0]
+    assert s[kmpf.ST_JITTER] == pytest.approx(f, rel=1e-5)
+    lo = np.linalg.cholesky(cov + 1e-6 * np.eye(3))
+    np.testing.assert_allclose(kernel_chol.numpy()[0], h * f * lo, rtol=1e-4, atol=1e-5)
+    out = [wp.empty_like(d_dp), wp.empty(n, dtype=kmpf.vec12, device=device), wp.empty_like(d_logw)]
+    wp.launch(kmpf.gather_kernel, dim=n,
+              inputs=[n, 0, wp.array([5], dtype=wp.int32, device=device), params, stats,
+                      wp.array(np.arange(n, dtype=np.int32), device=device), d_dp,
+                      wp.zeros(n, dtype=kmpf.vec12, device=device), d_logw], outputs=out, device=device)
+    hf2 = (h * f) ** 2
+    shrink = np.sqrt(1.0 - hf2)
+    jitter = out[0].numpy().astype(np.float64) - (shrink * dp + (1.0 - shrink) * s[kmpf.ST_MEAN_DP:kmpf.ST_MEAN_DP + 3])
+    np.testing.assert_allclose(np.cov(jitter.T), hf2 * cov, atol=0.03 * hf2 * np.abs(cov).max())
+
+
 def test_flight_off_the_map_edge_does_not_drag_the_estimate(rugged):
     """The world goes on where the map ends: 80 s north over a map that stops at north = +2 km (the aircraft
     crosses the edge at 60 s and flies 20 s beyond it). The scans the map cannot cover are skipped, so the

@@ -270,3 +270,17 @@ def test_surface_key_reaches_the_model():
     assert sig["triangles"] < sig["bilinear"], sig
     with pytest.raises(wt.scenarios.ScenarioError, match=re.escape("sensor.surface")):
         wt.scenarios.load_config("S8", surface="cubic")
+
+
+def test_altimeter_runs_that_walked_off_along_the_contours_converge():
+    """S12 over flat ground (seeds 6 and 17) and S9 over the 30 m tile (seeds 12 and 18) walked off along the
+    contours by kilometres before the altimeter kept its jitter within one reading's resolution and scored each
+    particle for its kernel (CPU: 1.4–3.5 km and 4.3–6.6 km); now each converges (S12: within its flat-ground
+    tens of metres, S9: within 5 m) with its 3σ covering the error."""
+    from warptan.scenarios import run_scenario_batch
+
+    for sid, terrain, seeds, bound in (("S12", None, [6, 17], 100.0), ("S9", "rugged30", [12, 18], 5.0)):
+        for r in run_scenario_batch(sid, seeds, device="cpu", terrain=terrain):
+            horiz = float(np.hypot(*r.rmse_converged[:2]))
+            assert horiz < bound, (sid, r.seed, horiz)
+            assert min(r.run.coverage(30.0)[:2]) > 0.9, (sid, r.seed, r.run.coverage(30.0))
