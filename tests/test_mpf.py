@@ -543,108 +543,90 @@ def test_tempering_gives_the_one_update_posterior(device):
     np.testing.assert_allclose(var, np.diag(post_cov), rtol=0.15)
 
 
-def test_regularisation_jitter_matches_numpy(device):
-    """The weight statistics give the Cholesky factor of the weighted covariance of dp and the weighted mean
-    attitude information Λ̄ (NumPy float64); the
-    regularisation at resampling, ``a dp + (1 - a) m + h chol(Σ̂) z`` with ``a = sqrt(1 - h²)``, adds noise of
-    covariance h² Σ̂ around the shrunk particles (200 000 particles, 3 % on each entry)."""
-    n = 200_000
-    rng = np.random.default_rng(1)
-    a = np.array([[3.0, 0.0, 0.0], [1.0, 2.0, 0.0], [0.5, -0.4, 0.7]])
-    dp = (rng.normal(size=(n, 3)) @ a.T).astype(np.float32)
+def _weighted_cloud(seed: int, factor, n: int = 200_000):
+    """n particles of dp = factor · z with random log-weights: (dp, logw, normalised w, weighted mean, covariance)."""
+    rng = np.random.default_rng(seed)
+    dp = (rng.normal(size=(n, 3)) @ np.asarray(factor).T).astype(np.float32)
     logw = rng.normal(0.0, 0.5, n).astype(np.float32)
     w = np.exp(logw.astype(np.float64))
     w /= w.sum()
     mean = w @ dp
-    cov = (dp - mean).T @ ((dp - mean) * w[:, None])
+    return dp, logw, w, mean, (dp - mean).T @ ((dp - mean) * w[:, None])
+
+
+def _weigh_and_resample(device, dp, logw, lam, info, bandwidth):
+    """The weight statistics (``exp_partials``, ``weight_stats``; ``info`` None: no position information) and one
+    regularised resampling with every particle its own ancestor and full shrinkage: (stats, kernel factor, the
+    jitter ``dp_out - (a dp + (1 - a) m)`` with ``a = sqrt(1 - (h f)²)``, f the stats' jitter factor)."""
+    n = len(dp)
     params = kmpf.UpdateParams()
     params.resample_threshold = 1.0
-    params.bandwidth = 0.4
+    params.bandwidth = bandwidth
     params.shrinkage = 1.0
     stats = wp.zeros((1, kmpf.N_STATS), dtype=wp.float64, device=device)
     stats.assign(np.eye(1, kmpf.N_STATS, kmpf.ST_ACTIVE))
     d_dp = wp.array(dp, dtype=wp.vec3, device=device)
     d_logw = wp.array(logw, dtype=wp.float32, device=device)
     sums = wp.zeros((1, kmpf.N_CHUNKS, kmpf.N_CHUNK_SUMS), dtype=wp.float64, device=device)
-    nis = wp.ones(n, dtype=wp.float32, device=device)
-    g = rng.normal(size=(n, 3, 3))
-    lam = (g @ g.swapaxes(1, 2)).astype(np.float32)  # per-particle attitude information
     kernel_chol = wp.zeros(1, dtype=wp.mat33, device=device)
+    info = np.zeros((1, 3)) if info is None else info
     wp.launch(kmpf.exp_partials_kernel, dim=(1, kmpf.N_CHUNKS),
-              inputs=[n, d_logw, d_dp, nis, wp.array(lam, dtype=wp.mat33, device=device),
-                      wp.zeros(1, dtype=wp.vec3, device=device), stats], outputs=[sums], device=device)
+              inputs=[n, d_logw, d_dp, wp.ones(n, dtype=wp.float32, device=device),
+                      wp.array(lam, dtype=wp.mat33, device=device), wp.array(info, dtype=wp.vec3, device=device),
+                      stats], outputs=[sums], device=device)
     wp.launch_tiled(kmpf.weight_stats_kernel, dim=[1], inputs=[n, params, sums], outputs=[stats, kernel_chol],
                     block_dim=kmpf.N_CHUNKS, device=device)
     s = stats.numpy()[0]
+    out = [wp.empty_like(d_dp), wp.empty(n, dtype=kmpf.vec12, device=device), wp.empty_like(d_logw)]
+    wp.launch(kmpf.gather_kernel, dim=n,
+              inputs=[n, 0, wp.array([5], dtype=wp.int32, device=device), params, stats,
+                      wp.array(np.arange(n, dtype=np.int32), device=device), d_dp,
+                      wp.zeros(n, dtype=kmpf.vec12, device=device), d_logw], outputs=out, device=device)
+    np.testing.assert_allclose(out[2].numpy(), -np.log(n), rtol=1e-6)
+    shrink = np.sqrt(1.0 - (bandwidth * s[kmpf.ST_JITTER]) ** 2)
+    mean = s[kmpf.ST_MEAN_DP:kmpf.ST_MEAN_DP + 3]
+    jitter = out[0].numpy().astype(np.float64) - (shrink * dp + (1.0 - shrink) * mean)
+    return s, kernel_chol.numpy()[0], jitter
+
+
+def test_regularisation_jitter_matches_numpy(device):
+    """The weight statistics give the Cholesky factor of the weighted covariance of dp and the weighted mean
+    attitude information Λ̄ (NumPy float64); the
+    regularisation at resampling, ``a dp + (1 - a) m + h chol(Σ̂) z`` with ``a = sqrt(1 - h²)``, adds noise of
+    covariance h² Σ̂ around the shrunk particles (200 000 particles, 3 % on each entry)."""
+    dp, logw, w, mean, cov = _weighted_cloud(1, [[3.0, 0.0, 0.0], [1.0, 2.0, 0.0], [0.5, -0.4, 0.7]])
+    g = np.random.default_rng(11).normal(size=(len(dp), 3, 3))
+    lam = (g @ g.swapaxes(1, 2)).astype(np.float32)  # per-particle attitude information
+    s, kernel, jitter = _weigh_and_resample(device, dp, logw, lam, None, 0.4)
     lam_bar = np.einsum("i,ijk->jk", w, lam.astype(np.float64))
     np.testing.assert_allclose(s[kmpf.ST_LAM:kmpf.ST_LAM + 6], lam_bar[(0, 1, 2, 0, 0, 1), (0, 1, 2, 1, 2, 2)],
                                rtol=1e-5)
     lo = np.zeros((3, 3))
     lo[np.tril_indices(3)] = s[kmpf.ST_CHOL:kmpf.ST_CHOL + 6]
     np.testing.assert_allclose(lo, np.linalg.cholesky(cov + 1e-6 * np.eye(3)), rtol=1e-6, atol=1e-6)
-    np.testing.assert_allclose(kernel_chol.numpy()[0], 0.4 * lo, rtol=1e-5, atol=1e-6)  # no position info: h
+    np.testing.assert_allclose(kernel, 0.4 * lo, rtol=1e-5, atol=1e-6)  # no position information: h
     assert s[kmpf.ST_RESAMPLE] == 1.0 and s[kmpf.ST_JITTER] == 1.0
-    out = [wp.empty_like(d_dp), wp.empty(n, dtype=kmpf.vec12, device=device), wp.empty_like(d_logw)]
-    wp.launch(kmpf.gather_kernel, dim=n,
-              inputs=[n, 0, wp.array([5], dtype=wp.int32, device=device), params, stats,
-                      wp.array(np.arange(n, dtype=np.int32), device=device), d_dp,
-                      wp.zeros(n, dtype=kmpf.vec12, device=device), d_logw], outputs=out, device=device)
-    shrink = np.sqrt(1.0 - 0.16)
-    jitter = out[0].numpy().astype(np.float64) - (shrink * dp + (1.0 - shrink) * s[kmpf.ST_MEAN_DP:kmpf.ST_MEAN_DP + 3])
     np.testing.assert_allclose(s[kmpf.ST_MEAN_DP:kmpf.ST_MEAN_DP + 3], mean, atol=1e-6)
     np.testing.assert_allclose(np.cov(jitter.T), 0.16 * cov, atol=0.03 * 0.16 * np.abs(cov).max())
-    np.testing.assert_allclose(out[2].numpy(), -np.log(n), rtol=1e-6)
 
 
 def test_jitter_stays_within_what_one_reading_resolves(device):
     """A model that cannot fix the position with one reading gives each particle's position information I_p; the
     weight statistics shrink the regularisation kernel h² Σ̂ by f² = JITTER_NIS / tr(h² Σ̂ Ī_p) when that trace is
     larger (Ī_p the weighted mean, NumPy), write the kernel factor h f chol(Σ̂) the altimeter scores with, and the
-    resampling jitters with covariance (h f)² Σ̂ (200 000 particles, 3 %); without I_p nothing changes."""
-    n = 200_000
-    rng = np.random.default_rng(2)
-    a = np.array([[60.0, 0.0, 0.0], [20.0, 40.0, 0.0], [0.0, 0.0, 5.0]])
-    dp = (rng.normal(size=(n, 3)) @ a.T).astype(np.float32)
-    logw = rng.normal(0.0, 0.5, n).astype(np.float32)
-    w = np.exp(logw.astype(np.float64))
-    w /= w.sum()
-    mean = w @ dp
-    cov = (dp - mean).T @ ((dp - mean) * w[:, None])
-    grad = rng.normal(0.0, 0.3, size=(n, 2))
+    resampling jitters with covariance (h f)² Σ̂ (200 000 particles, 3 %)."""
+    dp, logw, w, _, cov = _weighted_cloud(2, [[60.0, 0.0, 0.0], [20.0, 40.0, 0.0], [0.0, 0.0, 5.0]])
+    grad = np.random.default_rng(12).normal(0.0, 0.3, size=(len(dp), 2))
     info = np.stack([grad[:, 0] ** 2, grad[:, 1] ** 2, grad[:, 0] * grad[:, 1]], axis=1) / 2.0  # σ² = 2 m²
     ip = w @ info
     h = 0.4
     q = h * h * (cov[0, 0] * ip[0] + cov[1, 1] * ip[1] + 2.0 * cov[0, 1] * ip[2])
     f = np.sqrt(kmpf.JITTER_NIS / q)
     assert q > 10.0  # the case the bound is for: a cloud much wider than one reading resolves
-    params = kmpf.UpdateParams()
-    params.resample_threshold = 1.0
-    params.bandwidth = h
-    params.shrinkage = 1.0
-    stats = wp.zeros((1, kmpf.N_STATS), dtype=wp.float64, device=device)
-    stats.assign(np.eye(1, kmpf.N_STATS, kmpf.ST_ACTIVE))
-    d_dp = wp.array(dp, dtype=wp.vec3, device=device)
-    d_logw = wp.array(logw, dtype=wp.float32, device=device)
-    sums = wp.zeros((1, kmpf.N_CHUNKS, kmpf.N_CHUNK_SUMS), dtype=wp.float64, device=device)
-    kernel_chol = wp.zeros(1, dtype=wp.mat33, device=device)
-    wp.launch(kmpf.exp_partials_kernel, dim=(1, kmpf.N_CHUNKS),
-              inputs=[n, d_logw, d_dp, wp.ones(n, dtype=wp.float32, device=device),
-                      wp.zeros(n, dtype=wp.mat33, device=device), wp.array(info, dtype=wp.vec3, device=device),
-                      stats], outputs=[sums], device=device)
-    wp.launch_tiled(kmpf.weight_stats_kernel, dim=[1], inputs=[n, params, sums], outputs=[stats, kernel_chol],
-                    block_dim=kmpf.N_CHUNKS, device=device)
-    s = stats.numpy()[0]
+    s, kernel, jitter = _weigh_and_resample(device, dp, logw, np.zeros((len(dp), 3, 3), np.float32), info, h)
     assert s[kmpf.ST_JITTER] == pytest.approx(f, rel=1e-5)
-    lo = np.linalg.cholesky(cov + 1e-6 * np.eye(3))
-    np.testing.assert_allclose(kernel_chol.numpy()[0], h * f * lo, rtol=1e-4, atol=1e-5)
-    out = [wp.empty_like(d_dp), wp.empty(n, dtype=kmpf.vec12, device=device), wp.empty_like(d_logw)]
-    wp.launch(kmpf.gather_kernel, dim=n,
-              inputs=[n, 0, wp.array([5], dtype=wp.int32, device=device), params, stats,
-                      wp.array(np.arange(n, dtype=np.int32), device=device), d_dp,
-                      wp.zeros(n, dtype=kmpf.vec12, device=device), d_logw], outputs=out, device=device)
+    np.testing.assert_allclose(kernel, h * f * np.linalg.cholesky(cov + 1e-6 * np.eye(3)), rtol=1e-4, atol=1e-5)
     hf2 = (h * f) ** 2
-    shrink = np.sqrt(1.0 - hf2)
-    jitter = out[0].numpy().astype(np.float64) - (shrink * dp + (1.0 - shrink) * s[kmpf.ST_MEAN_DP:kmpf.ST_MEAN_DP + 3])
     np.testing.assert_allclose(np.cov(jitter.T), hf2 * cov, atol=0.03 * hf2 * np.abs(cov).max())
 
 

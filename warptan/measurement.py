@@ -507,14 +507,20 @@ class MeasurementModel:
         p = self._params
         return p.lik != klik.LIK_PAPER and (p.sigma_err > 0.0 or p.sigma_map > 0.0)
 
-    def _attitude_cov(self, device, b: int) -> wp.array:
-        a = self._att_cov
-        if a is not None and a.shape == (b,) and a.device == device:
-            return a
-        if self._zero_att is None or self._zero_att.shape != (b,) or self._zero_att.device != device:
-            self._zero_att = wp.zeros(b, dtype=wp.mat33, device=device)
+    def _bound_or_zero(self, bound: wp.array | None, zero_attr: str, device, b: int) -> wp.array:
+        """A bound (B,) mat33 per-filter array when it fits ``device`` and ``b``, else the model's own zeros (kept in
+        ``zero_attr``; reallocating it bumps :attr:`generation`)."""
+        if bound is not None and bound.shape == (b,) and bound.device == device:
+            return bound
+        zero = getattr(self, zero_attr)
+        if zero is None or zero.shape != (b,) or zero.device != device:
+            zero = wp.zeros(b, dtype=wp.mat33, device=device)
+            setattr(self, zero_attr, zero)
             self.generation += 1
-        return self._zero_att
+        return zero
+
+    def _attitude_cov(self, device, b: int) -> wp.array:
+        return self._bound_or_zero(self._att_cov, "_zero_att", device, b)
 
     @property
     def sigma_m(self) -> float:
@@ -903,13 +909,7 @@ class AltimeterModel(MeasurementModel):
             self.generation += 1
 
     def _particle_kernel(self, device, b: int) -> wp.array:
-        k = self._kernel_chol
-        if k is not None and k.shape == (b,) and k.device == device:
-            return k
-        if self._zero_kernel is None or self._zero_kernel.shape != (b,) or self._zero_kernel.device != device:
-            self._zero_kernel = wp.zeros(b, dtype=wp.mat33, device=device)
-            self.generation += 1
-        return self._zero_kernel
+        return self._bound_or_zero(self._kernel_chol, "_zero_kernel", device, b)
 
     def _launch(self, pos_n, quat_nb, out, device):
         mean, var = self._mode_state(device, pos_n.shape[0], self.n_filters)
