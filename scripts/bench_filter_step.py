@@ -15,8 +15,17 @@ filter's own timers on (:class:`warptan.mpf.StepTimer`): the medians ``host_ms``
 staging, issuing launches or the graph), ``upload_ms`` (validating, packing and copying the measurement to the
 device) and ``device_ms`` (the update's device work: CUDA events around it, or the CPU's launches) per interval.
 
+With ``--scenario S8 [S7 ...]`` each row is the filter that scenario flies (its map, surface, likelihood, scan,
+rates, tempering, regularisation and attitude update: :func:`warptan.scenarios.scenario_model`,
+:func:`~warptan.scenarios.filter_kwargs`), measured on its own flight after ``--settle-s`` of it (acquisition is not
+the steady state); ``--n`` and ``--batch`` still apply. Such a row also reports the achieved point evaluations per
+second (B · N · M · tempering stages per update time) beside the bare model kernel's rate on the same poses and
+scan (the bound: ``model.launch`` alone), and, with ``--rtf-s T``, the real-time factor of a whole run of the
+scenario (T s flown by :func:`~warptan.scenarios.run_scenario` with N particles, after a short run that compiles).
+
     python scripts/bench_filter_step.py --n 500 5000 --models sliding dda --json step.json
     python scripts/bench_filter_step.py --device cuda:0 --n 500 --batch 1 100 --m-side 20 --graph on off
+    python scripts/bench_filter_step.py --scenario S8 S7 --n 500 --rtf-s 20 --json scenario_step.json
 """
 
 from __future__ import annotations
@@ -50,30 +59,77 @@ def build(model_name: str, terrain, likelihood):
     return wt.RaycastModel(terrain, likelihood, caster=wt.RayCaster(model_name))
 
 
-def bench(terrain, model_name, n, m_side, device, repeats, warmup, imu_per_meas=10, seed=0, graph=None, batch=1,
-          likelihood="paper"):
-    intervals = repeats + warmup
+def generic_setup(terrain, model_name, m_side, likelihood, intervals, imu_per_meas=10):
+    """The generic configuration: a straight flight 600 m over the terrain, navigation IMU, 30° scan of
+    m_side × m_side rays, the likelihood with its defaults (``r_err`` 16 m² for the paper's)."""
     truth = Trajectory.build([Straight(3 * intervals * imu_per_meas / 100.0 + 0.5)], 100.0,
                              [0.0, 0.0, -(terrain.h_max + 600.0)])
-    imu = ImuModel("navigation", 100.0, seed=seed)
+    return {"model": build(model_name, terrain, wt.Likelihood(likelihood, r_err=16.0)), "filter": {},
+            "truth": truth, "world": terrain, "grade": "navigation", "imu_per_meas": imu_per_meas, "start": 0,
+            "sensor": wt.PointCloudSensor(wt.ScanPattern.grid(m_side, m_side, 30.0)),
+            "altimeter": (wt.RadarAltimeter(), wt.Barometer()), "initial": InitialErrors(), "label": model_name}
+
+
+def scenario_setup(sid, device, settle_s, terrain=None):
+    """The filter scenario ``sid`` flies (model, surface, likelihood, scan, rates, filter keywords), its flight and
+    world; measurement starts ``settle_s`` into the flight (the intervals before run untimed)."""
+    from warptan.scenarios import filter_kwargs, map_terrain, prepare, scenario_likelihood, scenario_model
+
+    config, world, flight = prepare(sid, terrain=terrain, device=device)
+    the_map = map_terrain(world, config, int(config["run"]["seed"]))
+    s, ie = config["sensor"], config["initial_error"]
+    model = scenario_model(config, the_map, scenario_likelihood(config, the_map, world))
+    imu_per_meas = round(config["imu"]["rate_hz"] / s["rate_hz"])
+    label = s["model"] if s["model"] != "raycast" else s["backend"]
+    return {"model": model, "filter": filter_kwargs(config), "truth": flight, "world": world,
+            "grade": config["imu"]["grade"], "imu_per_meas": imu_per_meas, "label": f"{sid}:{label}",
+            "start": round(settle_s * config["imu"]["rate_hz"] / imu_per_meas),
+            "sensor": wt.PointCloudSensor(wt.ScanPattern.grid(s["scan_nx"], s["scan_ny"], s["scan_half_angle_deg"]),
+                                          range_sigma_m=s["range_sigma_m"]),
+            "altimeter": (wt.RadarAltimeter(s["altimeter_sigma_m"]), wt.Barometer(s["baro_sigma_m"])),
+            "initial": InitialErrors(tuple(ie["pos_m"]), ie["vel_mps"], tuple(ie["att_deg"])), "config": config}
+
+
+def kernel_rate(model, pos, quat, measurement, device, repeats=20) -> float:
+    """Point evaluations per second of the model kernel alone (``launch`` on staged poses; the bound)."""
+    m = model.stage(measurement, pos, quat).residual_m.shape[1]
+    for _ in range(3):
+        model.launch(pos, quat)
+    wp.synchronize_device(device)
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        model.launch(pos, quat)
+        wp.synchronize_device(device)
+        times.append(time.perf_counter() - t0)
+    return pos.shape[0] * m / statistics.median(times)
+
+
+def bench(setup, n, device, repeats, warmup, seed=0, graph=None, batch=1):
+    intervals = repeats + warmup
+    truth, terrain, imu_per_meas, start = setup["truth"], setup["world"], setup["imu_per_meas"], setup["start"]
+    model = setup["model"]
+    imu = ImuModel(setup["grade"], truth.rate_hz, seed=seed)
     f, w, _ = imu.corrupt(truth.f_b, truth.w_b)
     rng = np.random.default_rng(seed)
-    initial = InitialErrors()
+    initial = setup["initial"]
     nominal = [initial_nominal(truth.state(0), initial, rng) for _ in range(batch)]
-    mpf = MarginalizedParticleFilter(build(model_name, terrain, wt.Likelihood(likelihood, r_err=16.0)),
-                                     nominal if batch > 1 else nominal[0], imu.grade, 100.0,
+    mpf = MarginalizedParticleFilter(model, nominal if batch > 1 else nominal[0], imu.grade, truth.rate_hz,
                                      np.asarray(initial.pos_m), prior_linear_cov(initial, imu), n_particles=n,
                                      device=device, seed=list(range(seed, seed + batch)) if batch > 1 else seed,
-                                     graph=graph)
+                                     graph=graph, **setup["filter"])
     f = np.repeat(f[:, None], batch, axis=1) if batch > 1 else f
     w = np.repeat(w[:, None], batch, axis=1) if batch > 1 else w
-    sensor = wt.PointCloudSensor(wt.ScanPattern.grid(m_side, m_side, 30.0))
-    alt, baro = wt.RadarAltimeter(), wt.Barometer()
+    sensor, (alt, baro) = setup["sensor"], setup["altimeter"]
+    altimeter = isinstance(model, wt.AltimeterModel)
+    if len(truth.f_b) < (start + 3 * intervals) * imu_per_meas + 1:
+        raise SystemExit(f"bench_filter_step: error: the flight of {setup['label']} is too short for --settle-s and "
+                         f"{3 * intervals} intervals")
     t_pred, t_upd, t_step, t_est = [], [], [], []
     measurements = []
-    for it in range(3 * intervals):
+    for it in range(start + 3 * intervals):
         k_meas = (it + 1) * imu_per_meas
-        if model_name == "altimeter":
+        if altimeter:
             meas = [wt.AltimeterReading(alt.measure(terrain, truth.pos_n[k_meas], rng),
                                         baro.measure(truth.pos_n[k_meas], rng)) for _ in range(batch)]
         else:
@@ -81,6 +137,11 @@ def bench(terrain, model_name, n, m_side, device, repeats, warmup, imu_per_meas=
                                        device=device)
         measurements.append(meas if batch > 1 else meas[0])
     k = 0
+    for it in range(start):  # the part of the flight before measuring (a scenario's acquisition)
+        mpf.predict_many(f[k:k + imu_per_meas], w[k:k + imu_per_meas])
+        k += imu_per_meas
+        mpf.update(measurements[it], sync=False)
+    measurements = measurements[start:]
     for it in range(intervals):  # latency: each interval synchronised before the clock stops
         wp.synchronize_device(device)
         t0 = time.perf_counter()
@@ -117,59 +178,112 @@ def bench(terrain, model_name, n, m_side, device, repeats, warmup, imu_per_meas=
     parts = {name: float(np.median(v[warmup:])) for name, v in mpf.timer.times().items()}
     mpf.timer = None
     med = statistics.median
-    stages = mpf.history()[warmup:, :, kmpf.H_STAGES]
-    return {"model": model_name, "likelihood": likelihood, "B": batch, "N": n, "graph": mpf.graph,
-            "tempering_stages_mean": float(stages.mean()), "tempering_stages_max": int(stages.max()),
-            "filter_steps_per_s": batch / med(t_step), "M": 1 if model_name == "altimeter" else m_side * m_side,
-            "device": wt.resolve_device(device).alias, "imu_per_meas": imu_per_meas,
-            "predict_ms": 1e3 * med(t_pred), "update_ms": 1e3 * med(t_upd), "step_ms": 1e3 * med(t_step),
-            "estimate_ms": 1e3 * med(t_est), "throughput_step_ms": throughput_ms, "repeats": repeats,
-            "host_ms": parts["host"], "upload_ms": parts["upload"], "device_ms": parts["device"]}
+    stages = mpf.history()[start + warmup:, :, kmpf.H_STAGES]
+    m = 1 if altimeter else sensor.pattern.m
+    row = {"model": setup["label"], "likelihood": model.likelihood.kind, "B": batch, "N": n, "graph": mpf.graph,
+           "tempering_stages_mean": float(stages.mean()), "tempering_stages_max": int(stages.max()),
+           "filter_steps_per_s": batch / med(t_step), "M": m,
+           "device": wt.resolve_device(device).alias, "imu_per_meas": imu_per_meas,
+           "predict_ms": 1e3 * med(t_pred), "update_ms": 1e3 * med(t_upd), "step_ms": 1e3 * med(t_step),
+           "estimate_ms": 1e3 * med(t_est), "throughput_step_ms": throughput_ms, "repeats": repeats,
+           "host_ms": parts["host"], "upload_ms": parts["upload"], "device_ms": parts["device"]}
+    if "config" in setup:  # the scenario's own filter: what its points cost against the kernel's bound
+        row["scenario"] = setup["config"]["id"]
+        row["settle_s"] = start * imu_per_meas / truth.rate_hz
+        row["point_evals_per_s"] = batch * n * m * float(stages.mean()) / (1e-3 * row["update_ms"])
+        row["kernel_point_evals_per_s"] = kernel_rate(model, mpf._pos, mpf._quat, measurements[-1], device)
+        row["surface"] = "triangles" if getattr(model, "surface", True) else "bilinear"
+    return row
+
+
+def real_time_factor(sid, device, n, duration_s, terrain=None) -> dict:
+    """A whole run of the scenario (N particles, ``duration_s`` flown, seed 0) after a 2 s run that compiles:
+    flight time over wall time (:attr:`warptan.scenarios.ScenarioResult.wall_s`: the filter loop with the simulated
+    sensor)."""
+    from warptan.scenarios import run_scenario
+
+    run_scenario(sid, 0, device, terrain=terrain, particles=n, duration_s=2.0)
+    r = run_scenario(sid, 0, device, terrain=terrain, particles=n, duration_s=duration_s)
+    return {"rtf_flight_s": duration_s, "rtf_wall_s": r.wall_s, "real_time_factor": duration_s / r.wall_s}
 
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--device", nargs="+", default=["cpu"])
     parser.add_argument("--n", type=count_arg, nargs="+", default=[500, 5000])
-    parser.add_argument("--m-side", type=count_arg, nargs="+", default=[10], help="scan is m_side × m_side rays")
-    parser.add_argument("--models", nargs="+", default=["sliding", "dda"], choices=MODELS)
+    parser.add_argument("--scenario", nargs="+", default=None,
+                        help="the filters these scenarios fly (default S8 S7 unless --models is given)")
+    parser.add_argument("--settle-s", type=float, default=10.0, help="scenario flight before measuring, s")
+    parser.add_argument("--rtf-s", type=float, default=0.0,
+                        help="also a whole run of each scenario this long: its real-time factor (0: none)")
+    parser.add_argument("--models", nargs="+", default=None, choices=MODELS,
+                        help="the generic configuration instead (straight flight, default likelihood settings)")
+    parser.add_argument("--m-side", type=count_arg, nargs="+", default=[10],
+                        help="generic: scan is m_side × m_side rays")
     parser.add_argument("--batch", type=count_arg, nargs="+", default=[1], help="filters per batch B")
     parser.add_argument("--graph", nargs="+", default=["auto"], choices=["auto", "on", "off"],
                         help="replay a captured graph (auto: on CUDA only)")
-    parser.add_argument("--terrain", default="synthetic:rugged")
-    parser.add_argument("--likelihood", nargs="+", default=["paper"], choices=["paper", "gaussian", "student_t"])
+    parser.add_argument("--terrain", default="synthetic:rugged", help="generic: the terrain")
+    parser.add_argument("--likelihood", nargs="+", default=["paper"], choices=["paper", "gaussian", "student_t"],
+                        help="generic: the likelihood")
     parser.add_argument("--repeats", type=count_arg, default=20)
     parser.add_argument("--warmup", type=count_arg, default=3)
     parser.add_argument("--json", dest="json_out")
     args = parser.parse_args(argv)
+    scenarios = args.scenario if args.scenario is not None else ([] if args.models else ["S8", "S7"])
     terrain = script_inputs("bench_filter_step", args.device, args.terrain)
+    if args.settle_s < 0 or args.rtf_s < 0:
+        parser.error("--settle-s and --rtf-s must be ≥ 0 s")
+    from warptan.scenarios import load_config
+
+    for sid in scenarios:  # an unknown scenario or a bad file: one line, exit 2, before any work
+        try:
+            load_config(sid)
+        except (ValueError, OSError) as err:
+            print(f"bench_filter_step: error: {err}", file=sys.stderr)
+            return 2
     rows = []
-    print(f"{'device':7s} {'model':9s} {'lik':8s} {'graph':5s} {'B':>4s} {'N':>7s} {'M':>5s} {'predict ms':>11s} "
+    print(f"{'device':7s} {'model':12s} {'lik':8s} {'graph':5s} {'B':>4s} {'N':>7s} {'M':>5s} {'predict ms':>11s} "
           f"{'update ms':>10s} {'step ms':>9s} {'pipelined':>9s} {'filter-steps/s':>15s} {'stages':>6s} "
-          f"{'host':>6s} {'upload':>6s} {'device':>6s}")
+          f"{'host':>6s} {'upload':>6s} {'device':>6s} {'Mpt/s':>7s} {'kernel':>7s} {'RTF':>6s}")
     modes = {"auto": None, "on": True, "off": False}
+    intervals = args.repeats + args.warmup
     for device in args.device:
-        for m_side in args.m_side:
-            for model in args.models:
-                for b in args.batch:
-                    for n in args.n:
-                        for g in args.graph:
-                            for lik in args.likelihood:
-                                r = bench(terrain, model, n, m_side, device, args.repeats, args.warmup,
-                                          graph=modes[g], batch=b, likelihood=lik)
-                                rows.append(r)
-                                print(f"{r['device']:7s} {model:9s} {lik:8s} {r['graph']!s:5s} {b:>4d} {n:>7d} "
-                                      f"{r['M']:>5d} {r['predict_ms']:11.3f} {r['update_ms']:10.3f} "
-                                      f"{r['step_ms']:9.3f} {r['throughput_step_ms']:9.3f} "
-                                      f"{r['filter_steps_per_s']:15.0f} "
-                                      f"{r['tempering_stages_mean']:6.2f} {r['host_ms']:6.3f} "
-                                      f"{r['upload_ms']:6.3f} {r['device_ms']:6.3f}")
+        setups = []
+        for sid in scenarios:
+            try:
+                setups.append(scenario_setup(sid, device, args.settle_s))
+            except (ValueError, OSError) as err:  # a DEM that cannot be read: one line, exit 2
+                print(f"bench_filter_step: error: {err}", file=sys.stderr)
+                return 2
+        setups += [generic_setup(terrain, model, m_side, lik, intervals)
+                   for m_side in args.m_side for model in args.models or [] for lik in args.likelihood]
+        for setup in setups:
+            rtf = {}
+            if "config" in setup and args.rtf_s > 0:
+                rtf = real_time_factor(setup["config"]["id"], device, args.n[0], args.rtf_s)
+            for b in args.batch:
+                for n in args.n:
+                    for g in args.graph:
+                        r = {**bench(setup, n, device, args.repeats, args.warmup, graph=modes[g], batch=b),
+                             **(rtf if n == args.n[0] and b == 1 else {})}
+                        rows.append(r)
+                        print(f"{r['device']:7s} {r['model']:12s} {r['likelihood']:8s} {r['graph']!s:5s} {b:>4d} "
+                              f"{n:>7d} {r['M']:>5d} {r['predict_ms']:11.3f} {r['update_ms']:10.3f} "
+                              f"{r['step_ms']:9.3f} {r['throughput_step_ms']:9.3f} {r['filter_steps_per_s']:15.0f} "
+                              f"{r['tempering_stages_mean']:6.2f} {r['host_ms']:6.3f} {r['upload_ms']:6.3f} "
+                              f"{r['device_ms']:6.3f} {r.get('point_evals_per_s', float('nan')) / 1e6:7.1f} "
+                              f"{r.get('kernel_point_evals_per_s', float('nan')) / 1e6:7.1f} "
+                              f"{r.get('real_time_factor', float('nan')):6.1f}")
     if args.json_out:
-        meta = run_meta(args.device, terrain=terrain.name,
+        meta = run_meta(args.device, terrain=terrain.name if args.models else "the scenarios' own",
                         what="median ms per IMU predict call, per measurement update, and per whole interval "
                              "(imu_per_meas predicts + one update) of B filters x N particles; filter_steps_per_s = "
                              "B / step time; host_ms / upload_ms / device_ms: median breakdown of an interval from "
-                             "the filter's StepTimer (warptan.mpf)")
+                             "the filter's StepTimer (warptan.mpf); scenario rows (model 'Sx:kind'): the filter the "
+                             "scenario flies, measured after settle_s of its flight, point_evals_per_s = B N M "
+                             "stages / update time against kernel_point_evals_per_s (the model kernel alone), "
+                             "real_time_factor = rtf_flight_s / rtf_wall_s of a whole run (B = 1, the first N)")
         write_json(args.json_out, {"meta": meta, "results": rows})
         print(f"wrote {args.json_out}")
     return 0

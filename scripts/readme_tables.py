@@ -173,9 +173,35 @@ def step_block() -> str:
                          f"{r['B']} × {r['N']} | {r['M']} | {r['step_ms']:.2f} | {pipelined} | "
                          f"{r['tempering_stages_mean']:.2f} |")
     commands = "; ".join(f"`{_load(p)['meta']['command']}`" for p in sources)
-    return ("Median whole step (10 IMU samples + one update, synchronised) and the pipelined step (the next intervals "
-            "back to back, one synchronisation at the end); N is filters × particles. " + _provenance(*sources)
+    return ("The generic configuration (`--models`: a straight flight 600 m over the synthetic rugged terrain, the "
+            "likelihood's defaults, bilinear sliding): median whole step (10 IMU samples + one update, synchronised) "
+            "and the pipelined step (the next intervals back to back, one synchronisation at the end); N is filters × "
+            "particles. " + _provenance(*sources)
             + " Commands: " + commands + ".\n\n" + "\n".join(lines))
+
+
+def scenario_step_block() -> str:
+    """The filters the scenarios fly (``bench_filter_step.py --scenario``): what one update costs against its model
+    kernel alone, and a whole run's real-time factor."""
+    sources = [p for p in ("benchmarks/issue32/scenario_step_cpu.json", "benchmarks/issue32/scenario_step_h100.json")
+               if (ROOT / p).exists()]
+    lines = ["| device | scenario filter | likelihood, surface | N | M | update ms | step ms | pipelined ms | "
+             "stages per update | point evaluations per s: achieved / kernel alone | real-time factor |",
+             "|---|---|---|---|---|---|---|---|---|---|---|"]
+    for path in sources:
+        data = _load(path)
+        device = ", ".join(data["meta"]["devices"].values())
+        for r in data["results"]:
+            rtf = f"{r['real_time_factor']:.1f}" if "real_time_factor" in r else "—"
+            lines.append(f"| {device} | {r['model']} | {r['likelihood']}, {r['surface']} | {r['B']} × {r['N']} | "
+                         f"{r['M']} | {r['update_ms']:.2f} | {r['step_ms']:.2f} | {r['throughput_step_ms']:.2f} | "
+                         f"{r['tempering_stages_mean']:.2f} | {r['point_evals_per_s'] / 1e6:.1f} M / "
+                         f"{r['kernel_point_evals_per_s'] / 1e6:.1f} M | {rtf} |")
+    commands = "; ".join(f"`{_load(p)['meta']['command']}`" for p in sources)
+    return ("The filter each scenario flies (its map surface, likelihood, scan, rates, tempering and attitude update), "
+            "measured on its own flight after its first seconds; the real-time factor is a whole run of the "
+            "scenario (flight time over wall time, seed 0). " + _provenance(*sources) + " Commands: " + commands
+            + ".\n\n" + "\n".join(lines))
 
 
 def profile_block(top: int = 10) -> str:
@@ -332,7 +358,7 @@ def replay_frames_block(path: str = "results/replay_frames.json") -> str:
 
 BLOCKS = {"paper": paper_block, "attitude": attitude_block, "paper30": lambda: paper_block("results/paper30"),
           "closed_loop": closed_loop_block, "map_error": map_error_block, "long_flight": long_flight_block,
-          "step": step_block, "profile": profile_block, "kernels": kernels_block, "threads": threads_block,
+          "step": step_block, "scenario_step": scenario_step_block, "profile": profile_block, "kernels": kernels_block, "threads": threads_block,
           "numpy": numpy_block, "batch": batch_block, "campaign": campaign_block, "world": world_block,
           "replay_frames": replay_frames_block}
 

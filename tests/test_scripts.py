@@ -75,6 +75,27 @@ def test_bench_filter_step_records_stages(tmp_path):
 
 
 @pytest.mark.slow
+def test_bench_filter_step_flies_the_scenarios_filter(tmp_path):
+    """`bench_filter_step.py --scenario S8` builds the filter S8 flies (its likelihood, surface, scan) and reports the
+    achieved point evaluations beside the kernel's bound and a whole run's real-time factor; an unknown scenario is
+    one line and exit 2."""
+    out = tmp_path / "s.json"
+    script = str(ROOT / "scripts" / "bench_filter_step.py")
+    proc = subprocess.run([sys.executable, script, "--scenario", "S8", "--n", "64", "--repeats", "2", "--warmup",
+                           "1", "--settle-s", "1", "--rtf-s", "2", "--json", str(out)],
+                          capture_output=True, text=True, timeout=300, cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    row = json.loads(out.read_text())["results"][0]
+    assert row["model"] == "S8:sliding" and row["scenario"] == "S8" and row["M"] == 100
+    assert row["likelihood"] == "gaussian" and row["surface"] == "triangles" and row["settle_s"] == 1.0
+    assert row["point_evals_per_s"] > 0 and row["kernel_point_evals_per_s"] > 0 and row["real_time_factor"] > 0
+    bad = subprocess.run([sys.executable, script, "--scenario", "S99"], capture_output=True, text=True, timeout=120,
+                         cwd=tmp_path)
+    errors = [line for line in bad.stderr.splitlines() if line.startswith("bench_filter_step: error:")]
+    assert bad.returncode == 2 and len(errors) == 1 and "S99" in errors[0] and not bad.stdout
+
+
+@pytest.mark.slow
 def test_world_study_runs_resumes_and_reports(tmp_path):
     """`world_study.py` on a tiny plan: rows with the three estimators, meta with the command; a resume adds only the
     missing rows; the Markdown table names every row."""
