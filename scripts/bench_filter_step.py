@@ -26,6 +26,7 @@ scenario (T s flown by :func:`~warptan.scenarios.run_scenario` with N particles,
     python scripts/bench_filter_step.py --n 500 5000 --models sliding dda --json step.json
     python scripts/bench_filter_step.py --device cuda:0 --n 500 --batch 1 100 --m-side 20 --graph on off
     python scripts/bench_filter_step.py --scenario S8 S7 --n 500 --rtf-s 20 --json scenario_step.json
+    python scripts/bench_filter_step.py --device cuda:0 --scenario S8 S7 --scan-side 20 --n 500 --batch 1 100
 """
 
 from __future__ import annotations
@@ -70,12 +71,13 @@ def generic_setup(terrain, model_name, m_side, likelihood, intervals, imu_per_me
             "altimeter": (wt.RadarAltimeter(), wt.Barometer()), "initial": InitialErrors(), "label": model_name}
 
 
-def scenario_setup(sid, device, settle_s, terrain=None):
-    """The filter scenario ``sid`` flies (model, surface, likelihood, scan, rates, filter keywords), its flight and
-    world; measurement starts ``settle_s`` into the flight (the intervals before run untimed)."""
+def scenario_setup(sid, device, settle_s, terrain=None, **overrides):
+    """The filter scenario ``sid`` flies (model, surface, likelihood, scan, rates, filter keywords; ``overrides`` as
+    :func:`~warptan.scenarios.run_scenario` takes them), its flight and world; measurement starts ``settle_s`` into
+    the flight (the intervals before run untimed)."""
     from warptan.scenarios import filter_kwargs, map_terrain, prepare, scenario_likelihood, scenario_model
 
-    config, world, flight = prepare(sid, terrain=terrain, device=device)
+    config, world, flight = prepare(sid, terrain=terrain, device=device, **overrides)
     the_map = map_terrain(world, config, int(config["run"]["seed"]))
     s, ie = config["sensor"], config["initial_error"]
     model = scenario_model(config, the_map, scenario_likelihood(config, the_map, world))
@@ -196,14 +198,14 @@ def bench(setup, n, device, repeats, warmup, seed=0, graph=None, batch=1):
     return row
 
 
-def real_time_factor(sid, device, n, duration_s, terrain=None) -> dict:
+def real_time_factor(sid, device, n, duration_s, terrain=None, **overrides) -> dict:
     """A whole run of the scenario (N particles, ``duration_s`` flown, seed 0) after a 2 s run that compiles:
     flight time over wall time (:attr:`warptan.scenarios.ScenarioResult.wall_s`: the filter loop with the simulated
     sensor)."""
     from warptan.scenarios import run_scenario
 
-    run_scenario(sid, 0, device, terrain=terrain, particles=n, duration_s=2.0)
-    r = run_scenario(sid, 0, device, terrain=terrain, particles=n, duration_s=duration_s)
+    run_scenario(sid, 0, device, terrain=terrain, particles=n, duration_s=2.0, **overrides)
+    r = run_scenario(sid, 0, device, terrain=terrain, particles=n, duration_s=duration_s, **overrides)
     return {"rtf_flight_s": duration_s, "rtf_wall_s": r.wall_s, "real_time_factor": duration_s / r.wall_s}
 
 
@@ -214,6 +216,8 @@ def main(argv=None) -> int:
     parser.add_argument("--scenario", nargs="+", default=None,
                         help="the filters these scenarios fly (default S8 S7 unless --models is given)")
     parser.add_argument("--settle-s", type=float, default=10.0, help="scenario flight before measuring, s")
+    parser.add_argument("--scan-side", type=count_arg, default=None,
+                        help="scenarios: a scan of this many × this many rays instead of the scenario's")
     parser.add_argument("--rtf-s", type=float, default=0.0,
                         help="also a whole run of each scenario this long: its real-time factor (0: none)")
     parser.add_argument("--models", nargs="+", default=None, choices=MODELS,
@@ -231,6 +235,7 @@ def main(argv=None) -> int:
     parser.add_argument("--json", dest="json_out")
     args = parser.parse_args(argv)
     scenarios = args.scenario if args.scenario is not None else ([] if args.models else ["S8", "S7"])
+    scan = {} if args.scan_side is None else {"scan_nx": args.scan_side, "scan_ny": args.scan_side}
     terrain = script_inputs("bench_filter_step", args.device, args.terrain)
     if args.settle_s < 0 or args.rtf_s < 0:
         parser.error("--settle-s and --rtf-s must be ≥ 0 s")
@@ -238,7 +243,7 @@ def main(argv=None) -> int:
 
     for sid in scenarios:  # an unknown scenario or a bad file: one line, exit 2, before any work
         try:
-            load_config(sid)
+            load_config(sid, **scan)
         except (ValueError, OSError) as err:
             print(f"bench_filter_step: error: {err}", file=sys.stderr)
             return 2
@@ -252,7 +257,7 @@ def main(argv=None) -> int:
         setups = []
         for sid in scenarios:
             try:
-                setups.append(scenario_setup(sid, device, args.settle_s))
+                setups.append(scenario_setup(sid, device, args.settle_s, **scan))
             except (ValueError, OSError) as err:  # a DEM that cannot be read: one line, exit 2
                 print(f"bench_filter_step: error: {err}", file=sys.stderr)
                 return 2
@@ -261,7 +266,7 @@ def main(argv=None) -> int:
         for setup in setups:
             rtf = {}
             if "config" in setup and args.rtf_s > 0:
-                rtf = real_time_factor(setup["config"]["id"], device, args.n[0], args.rtf_s)
+                rtf = real_time_factor(setup["config"]["id"], device, args.n[0], args.rtf_s, **scan)
             for b in args.batch:
                 for n in args.n:
                     for g in args.graph:

@@ -358,9 +358,9 @@ def replay_frames_block(path: str = "results/replay_frames.json") -> str:
 
 BLOCKS = {"paper": paper_block, "attitude": attitude_block, "paper30": lambda: paper_block("results/paper30"),
           "closed_loop": closed_loop_block, "map_error": map_error_block, "long_flight": long_flight_block,
-          "step": step_block, "scenario_step": scenario_step_block, "profile": profile_block, "kernels": kernels_block, "threads": threads_block,
-          "numpy": numpy_block, "batch": batch_block, "campaign": campaign_block, "world": world_block,
-          "replay_frames": replay_frames_block}
+          "step": step_block, "scenario_step": scenario_step_block, "profile": profile_block, "kernels": kernels_block,
+          "threads": threads_block, "numpy": numpy_block, "batch": batch_block, "campaign": campaign_block,
+          "world": world_block, "replay_frames": replay_frames_block}
 
 _BLOCK = re.compile(r"<!-- generated:(\w+) -->\n.*?<!-- /generated:\1 -->", re.S)
 _FENCE = re.compile(r"```.*?```", re.S)

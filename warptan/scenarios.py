@@ -209,6 +209,8 @@ OVERRIDES = {
     "likelihood": ("likelihood", "kind"),
     "model": ("sensor", "model"),
     "meas_rate_hz": ("sensor", "rate_hz"),
+    "scan_nx": ("sensor", "scan_nx"),
+    "scan_ny": ("sensor", "scan_ny"),
     "use_baro": ("sensor", "use_baro"),
     "r_err_m2": ("likelihood", "r_err_m2"),
     "sigma_m": ("likelihood", "sigma_m"),
