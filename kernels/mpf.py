@@ -626,8 +626,9 @@ def weight_stats_kernel(
 ):
     """One block per active filter (``wp.launch_tiled``, lanes over the chunks): ESS = (Σw)²/Σw², log-normaliser,
     weighted mean and Cholesky factor of the covariance of dp (the regularisation kernel's shape), posterior NIS,
-    weighted mean Λ̄, and the decision to resample: when ESS < threshold · n, or when exponent remains (between
-    tempering stages)."""
+    weighted mean Λ̄, the bandwidth's factor ``ST_JITTER`` (:data:`JITTER_NIS`; 1 without position information) and
+    the kernel factor ``kernel_chol[b] = h · ST_JITTER · chol(Σ̂)`` the altimeter scores with, and the decision to
+    resample: when ESS < threshold · n, or when exponent remains (between tempering stages)."""
     b, lane = wp.tid()
     if stats[b, ST_ACTIVE] == wp.float64(0.0):
         return
@@ -833,7 +834,8 @@ def gather_kernel(
 ):
     """Slot i takes its ancestor in a resampling filter, with uniform weights and the regularisation jitter with
     (partial) kernel shrinkage (Liu & West 2001): ``dp = a dp_anc + (1 - a) m + h chol(Σ̂) z``,
-    ``a = sqrt(1 - s h²)``, Σ̂ and m the weighted covariance and mean of dp before resampling (stream
+    ``a = sqrt(1 - s h²)``, ``h`` the bandwidth times the stage's ``ST_JITTER`` (:data:`JITTER_NIS`), Σ̂ and m the
+    weighted covariance and mean of dp before resampling (stream
     ``stage · 2n + n + j``): the mean is kept and the covariance grows by ``1 + (1 - s) h²``.
     The Kalman mean is the ancestor's (see :mod:`warptan.mpf`). Other filters copy."""
     i = wp.tid()
