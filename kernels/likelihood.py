@@ -157,6 +157,19 @@ class Acc:
     lam_pp: wp.mat33  # Σ G Gᵀ / σ² (G: the prediction's Jacobian w.r.t. the position, 1)
     lam_tp: wp.mat33  # Σ H Gᵀ / σ², m/rad
     info_p: wp.vec3  # Σ Gᵀ r / σ², 1/m
+    sq_raw: float  # Σ z² unclipped (the NIS's Mahalanobis form)
+    n_gated: int  # of the predictable points, those dropped as gross misses (:func:`gross_miss`; not in n_ok)
+    gated_ll: float  # Σ over the gross misses of their log-density (:func:`acc_gated`)
+    gated_sq: float  # Σ over the gross misses of their min(z², k_out²) (:func:`acc_gated`)
+
+
+@wp.struct
+class ModeAcc:
+    """The map-error modes' running sums and weights of one particle (touched only when modes are in use). Apart from
+    :class:`Acc` because a Warp function takes and returns its structs by value: with these ~200 floats inside, the
+    per-point ``acc = acc_point(acc, ...)`` copies made the CPU's sliding kernel 2.8× and the ray casts' reduction
+    1.6× slower even where no mode is in use (map = world; S8 / S7, N = 500, 2 threads)."""
+
     proj: modes_vec  # per map-error mode i: p_i = Σ_j v_ji r_j / σ_j (v_ji: the table's row j)
     proj_h: modes_mat  # per mode: Σ_j v_ji H_j / σ_j
     proj_g: modes_mat  # per mode: Σ_j v_ji G_j / σ_j
@@ -165,10 +178,6 @@ class Acc:
     mode_mu: modes_vec  # per mode: the amplitude's prior mean μ_i (likewise)
     mode_w0: modes_vec  # per mode: its one-scan weight c⁰_i for the NIS (likewise)
     mode_wa: modes_vec  # per mode: the attitude information's weight (likewise)
-    sq_raw: float  # Σ z² unclipped (the NIS's Mahalanobis form)
-    n_gated: int  # of the predictable points, those dropped as gross misses (:func:`gross_miss`; not in n_ok)
-    gated_ll: float  # Σ over the gross misses of their log-density (:func:`acc_gated`)
-    gated_sq: float  # Σ over the gross misses of their min(z², k_out²) (:func:`acc_gated`)
 
 
 @wp.func
@@ -187,14 +196,6 @@ def acc_init() -> Acc:
     a.lam_pp = wp.mat33()
     a.lam_tp = wp.mat33()
     a.info_p = wp.vec3()
-    a.proj = modes_vec()
-    a.proj_h = modes_mat()
-    a.proj_g = modes_mat()
-    a.mode_w = modes_vec()
-    a.mode_q = modes_vec()
-    a.mode_mu = modes_vec()
-    a.mode_w0 = modes_vec()
-    a.mode_wa = modes_vec()
     a.sq_raw = 0.0
     a.n_gated = 0
     a.gated_ll = 0.0
@@ -203,7 +204,23 @@ def acc_init() -> Acc:
 
 
 @wp.func
-def acc_modes(acc: Acc, p: LikParams, v: modes_vec, res: float, sigma: float, jac: wp.vec3, jac_pos: wp.vec3) -> Acc:
+def modes_init() -> ModeAcc:
+    """Empty mode sums."""
+    m = ModeAcc()
+    m.proj = modes_vec()
+    m.proj_h = modes_mat()
+    m.proj_g = modes_mat()
+    m.mode_w = modes_vec()
+    m.mode_q = modes_vec()
+    m.mode_mu = modes_vec()
+    m.mode_w0 = modes_vec()
+    m.mode_wa = modes_vec()
+    return m
+
+
+@wp.func
+def acc_modes(acc: ModeAcc, p: LikParams, v: modes_vec, res: float, sigma: float, jac: wp.vec3,
+              jac_pos: wp.vec3) -> ModeAcc:
     """``acc`` plus one predictable point's projections on the map-error modes (its table row ``v``; called only when
     modes are in use): the whitened residual ``res / sigma`` and the attitude and position Jacobians over ``sigma``
     (nothing for the paper's form). The rows are the scan's modes for its nominal sensitivities (a range's 1/cos
@@ -309,7 +326,7 @@ BLOCK_DIM = 64
 
 
 @wp.func
-def acc_pack(a: Acc) -> acc_vec:
+def acc_pack(a: Acc, m: ModeAcc) -> acc_vec:
     """The running sums as one vector (see :data:`acc_vec`)."""
     v = acc_vec()
     v[0] = float(a.n_recv)
@@ -343,10 +360,10 @@ def acc_pack(a: Acc) -> acc_vec:
     v[34] = a.info_p[1]
     v[35] = a.info_p[2]
     for i in range(MAX_MODES):  # the map-error mode sums (zero without modes)
-        v[ACC_BASE + i] = a.proj[i]
+        v[ACC_BASE + i] = m.proj[i]
         for c in range(3):
-            v[ACC_BASE + MAX_MODES + 3 * i + c] = a.proj_h[i, c]
-            v[ACC_BASE + 4 * MAX_MODES + 3 * i + c] = a.proj_g[i, c]
+            v[ACC_BASE + MAX_MODES + 3 * i + c] = m.proj_h[i, c]
+            v[ACC_BASE + 4 * MAX_MODES + 3 * i + c] = m.proj_g[i, c]
     v[ACC_LEN - 4] = a.gated_ll
     v[ACC_LEN - 3] = a.gated_sq
     v[ACC_LEN - 2] = float(a.n_gated)
@@ -356,7 +373,7 @@ def acc_pack(a: Acc) -> acc_vec:
 
 @wp.func
 def acc_unpack(v: acc_vec) -> Acc:
-    """Inverse of :func:`acc_pack` (Λ is symmetric)."""
+    """Inverse of :func:`acc_pack`, its :class:`Acc` (Λ is symmetric)."""
     a = Acc()
     a.n_recv = int(v[0])
     a.n_ok = int(v[1])
@@ -370,22 +387,6 @@ def acc_unpack(v: acc_vec) -> Acc:
     a.lam_pp = wp.mat33(v[18], v[21], v[22], v[21], v[19], v[23], v[22], v[23], v[20])
     a.lam_tp = wp.mat33(v[24], v[25], v[26], v[27], v[28], v[29], v[30], v[31], v[32])
     a.info_p = wp.vec3(v[33], v[34], v[35])
-    proj = modes_vec()
-    proj_h = modes_mat()
-    proj_g = modes_mat()
-    for i in range(MAX_MODES):
-        proj[i] = v[ACC_BASE + i]
-        for c in range(3):
-            proj_h[i, c] = v[ACC_BASE + MAX_MODES + 3 * i + c]
-            proj_g[i, c] = v[ACC_BASE + 4 * MAX_MODES + 3 * i + c]
-    a.proj = proj
-    a.proj_h = proj_h
-    a.proj_g = proj_g
-    a.mode_w = modes_vec()
-    a.mode_q = modes_vec()
-    a.mode_mu = modes_vec()
-    a.mode_w0 = modes_vec()
-    a.mode_wa = modes_vec()
     a.gated_ll = v[ACC_LEN - 4]
     a.gated_sq = v[ACC_LEN - 3]
     a.n_gated = int(v[ACC_LEN - 2])
@@ -394,10 +395,29 @@ def acc_unpack(v: acc_vec) -> Acc:
 
 
 @wp.func
-def acc_block_sum(a: Acc) -> Acc:
-    """The sums of every lane of the block (cooperative: every lane must call it; each gets the total)."""
-    total = wp.tile_sum(wp.tile(acc_pack(a), preserve_type=True))
-    return acc_unpack(total[0])
+def modes_unpack(v: acc_vec) -> ModeAcc:
+    """Inverse of :func:`acc_pack`, its :class:`ModeAcc` (the sums; weights zero)."""
+    m = modes_init()
+    proj = modes_vec()
+    proj_h = modes_mat()
+    proj_g = modes_mat()
+    for i in range(MAX_MODES):
+        proj[i] = v[ACC_BASE + i]
+        for c in range(3):
+            proj_h[i, c] = v[ACC_BASE + MAX_MODES + 3 * i + c]
+            proj_g[i, c] = v[ACC_BASE + 4 * MAX_MODES + 3 * i + c]
+    m.proj = proj
+    m.proj_h = proj_h
+    m.proj_g = proj_g
+    return m
+
+
+@wp.func
+def acc_block_total(a: Acc, m: ModeAcc) -> acc_vec:
+    """The sums of every lane of the block, packed (cooperative: every lane must call it; each gets the total:
+    :func:`acc_unpack`, :func:`modes_unpack`)."""
+    total = wp.tile_sum(wp.tile(acc_pack(a, m), preserve_type=True))
+    return total[0]
 
 
 @wp.func
@@ -431,7 +451,8 @@ def mode_prior(table: wp.array(dtype=modes_vec), m: int, mean: modes_vec, var: m
 
 
 @wp.func
-def acc_set_modes(acc: Acc, table: wp.array(dtype=modes_vec), m: int, mean: modes_vec, var: modes_vec) -> Acc:
+def acc_set_modes(acc: ModeAcc, table: wp.array(dtype=modes_vec), m: int, mean: modes_vec,
+                  var: modes_vec) -> ModeAcc:
     """``acc`` (its sums complete) with its map-error modes' prior and posterior (:func:`mode_prior`): the gains
     ``c_i = P⁻_i / (1 + P⁻_i)``, the prior means μ_i, the posterior means ``q_i = μ_i + c_i (p_i − μ_i)``, the
     one-scan weights ``c⁰_i`` and the attitude's ``cᵃ_i``."""
@@ -449,13 +470,13 @@ def acc_set_modes(acc: Acc, table: wp.array(dtype=modes_vec), m: int, mean: mode
 
 
 @wp.func
-def mode_post(acc: Acc, table: wp.array(dtype=modes_vec), m: int) -> modes_vec:
+def mode_post(acc: ModeAcc, table: wp.array(dtype=modes_vec), m: int) -> modes_vec:
     """The particle's mode amplitudes predicted to the next scan, ``ρ_i q_i`` (what the filter stores)."""
     return wp.cw_mul(table[m + MODE_RHO], acc.mode_q)
 
 
 @wp.func
-def modes_lam_info_w(acc: Acc, w: modes_vec, q: modes_vec, n_modes: int):
+def modes_lam_info_w(acc: Acc, macc: ModeAcc, w: modes_vec, q: modes_vec, n_modes: int):
     """(Λ, b) in float64 with the map-error modes counted: ``Hᵀ Σ⁻¹ H`` and ``Hᵀ Σ⁻¹ (z − U μ)`` for ``Σ = I + U P⁻
     Uᵀ`` (whitened; ``U`` the modes, ``μ`` their prior means), by Woodbury ``Λ - Σ_i c_i h_i h_iᵀ``, ``b - Σ_i h_i
     q_i`` with ``q_i = μ_i + c_i (p_i − μ_i)`` (:func:`acc_modes`, :func:`acc_set_modes`), ``c = w`` over the
@@ -463,23 +484,23 @@ def modes_lam_info_w(acc: Acc, w: modes_vec, q: modes_vec, n_modes: int):
     lam = wp.mat33d(acc.lam)
     info = wp.vec3d(acc.info)
     for i in range(n_modes):
-        h = mode_row(acc.proj_h, i)
+        h = mode_row(macc.proj_h, i)
         lam = lam - wp.outer(h, h) * wp.float64(w[i])
         info = info - h * wp.float64(q[i])
     return lam, info
 
 
 @wp.func
-def modes_lam_info(acc: Acc, p: LikParams):
+def modes_lam_info(acc: Acc, macc: ModeAcc, p: LikParams):
     """:func:`modes_lam_info_w` with the modes' gains and posterior means."""
-    return modes_lam_info_w(acc, acc.mode_w, acc.mode_q, p.n_modes)
+    return modes_lam_info_w(acc, macc, macc.mode_w, macc.mode_q, p.n_modes)
 
 
 @wp.func
-def modes_lam_info_fixed(acc: Acc, w: modes_vec, p: LikParams):
+def modes_lam_info_fixed(acc: Acc, macc: ModeAcc, w: modes_vec, p: LikParams):
     """:func:`modes_lam_info_w` with fixed weights ``w`` and no prior mean: the one-scan ``c⁰_i`` (the NIS), the
     attitude's ``cᵃ_i`` (:func:`attitude_information`)."""
-    return modes_lam_info_w(acc, w, wp.cw_mul(w, acc.proj), p.n_modes)
+    return modes_lam_info_w(acc, macc, w, wp.cw_mul(w, macc.proj), p.n_modes)
 
 
 @wp.func
@@ -498,7 +519,7 @@ def attitude_quadratic(lam: wp.mat33d, info: wp.vec3d, att_cov: wp.mat33):
 
 
 @wp.func
-def acc_finish(acc: Acc, p: LikParams, att_cov: wp.mat33):
+def acc_finish(acc: Acc, macc: ModeAcc, p: LikParams, att_cov: wp.mat33):
     """(paper error in m — NaN without a valid point, log-likelihood, normalised squared residual) of a particle
     that could predict ``n_ok`` of the ``n_recv`` received valid points; each unpredictable one scores the floor
     (a ``k_out`` σ residual; see the module docstring for the paper form). The per-point Gaussian is marginalised
@@ -535,16 +556,16 @@ def acc_finish(acc: Acc, p: LikParams, att_cov: wp.mat33):
             # outlier counts k_out² at most)
             mahal = acc.sq_raw
             if p.n_modes > 0:  # the modes' share: (z − Uμ)ᵀΣ⁻¹(z − Uμ) = zᵀz − Σ [p_i² − (1 − c_i)(p_i − μ_i)²]
-                d = acc.proj - acc.mode_mu
-                ll = ll + 0.5 * (wp.dot(acc.proj, acc.proj) - wp.dot(wp.cw_mul(modes_vec(1.0) - acc.mode_w, d), d))
-                mahal = mahal - wp.dot(wp.cw_mul(acc.mode_w0, acc.proj), acc.proj)
+                d = macc.proj - macc.mode_mu
+                ll = ll + 0.5 * (wp.dot(macc.proj, macc.proj) - wp.dot(wp.cw_mul(modes_vec(1.0) - macc.mode_w, d), d))
+                mahal = mahal - wp.dot(wp.cw_mul(macc.mode_w0, macc.proj), macc.proj)
             if n_ok > 0:  # the attitude marginal (Λ and b through the modes; unchanged without them)
-                lam, info = modes_lam_info(acc, p)
+                lam, info = modes_lam_info(acc, macc, p)
                 quad, det = attitude_quadratic(lam, info, att_cov)
                 if det > wp.float64(0.0):
                     ll = ll + float(wp.float64(0.5) * quad - wp.float64(0.5) * wp.log(det))
                 if p.n_modes > 0:  # the NIS's one-scan weights
-                    lam0, info0 = modes_lam_info_fixed(acc, acc.mode_w0, p)
+                    lam0, info0 = modes_lam_info_fixed(acc, macc, macc.mode_w0, p)
                     quad, det = attitude_quadratic(lam0, info0, att_cov)
                 mahal = mahal - float(quad)
             sum_sq = wp.min(sum_sq, wp.max(mahal, 0.0))
@@ -561,7 +582,7 @@ def axis_weights(row: cloud_row) -> wp.vec3:
 
 
 @wp.func
-def attitude_information(acc: Acc, p: LikParams):
+def attitude_information(acc: Acc, macc: ModeAcc, p: LikParams):
     """(Λ, b) the Kalman update of the attitude reads, times ``att_scale``: with ``pos_precision ≥ 0`` the part of
     the residuals' information on dθ that the position cannot explain, the Schur complement
     ``Λ - Λ_θp (Λ_pp + π I)⁻¹ Λ_pθ``, ``b - Λ_θp (Λ_pp + π I)⁻¹ b_p`` (float64).
@@ -579,18 +600,18 @@ def attitude_information(acc: Acc, p: LikParams):
     amplitudes' gains S2 7.7 m and S5 7.6 m, projecting every mode out of the attitude's information 250 m on S2
     (the tactical IMU needs the attitude).
     """
-    lam, info = modes_lam_info_fixed(acc, acc.mode_wa, p)
+    lam, info = modes_lam_info_fixed(acc, macc, macc.mode_wa, p)
     if p.pos_precision >= 0.0:
         lpp = wp.mat33d(acc.lam_pp) + wp.identity(n=3, dtype=wp.float64) * wp.float64(p.pos_precision)
         ltp = wp.mat33d(acc.lam_tp)
         info_p = wp.vec3d(acc.info_p)
         for i in range(p.n_modes):  # the position's sums through the map-error modes likewise
-            h = mode_row(acc.proj_h, i)
-            g = mode_row(acc.proj_g, i)
-            wi = wp.float64(acc.mode_wa[i])
+            h = mode_row(macc.proj_h, i)
+            g = mode_row(macc.proj_g, i)
+            wi = wp.float64(macc.mode_wa[i])
             lpp = lpp - wp.outer(g, g) * wi
             ltp = ltp - wp.outer(h, g) * wi
-            info_p = info_p - g * (wi * wp.float64(acc.proj[i]))
+            info_p = info_p - g * (wi * wp.float64(macc.proj[i]))
         det = wp.determinant(lpp)
         if det > wp.float64(0.0):
             k = ltp * wp.inverse(lpp)
@@ -602,17 +623,18 @@ def attitude_information(acc: Acc, p: LikParams):
 
 
 @wp.func
-def acc_store(t: int, acc: Acc, params: LikParams, att_cov: wp.mat33, err_out: wp.array(dtype=wp.float32),
+def acc_store(t: int, acc: Acc, macc: ModeAcc, params: LikParams, att_cov: wp.mat33,
+              err_out: wp.array(dtype=wp.float32),
               loglik_out: wp.array(dtype=wp.float32), nis_out: wp.array(dtype=wp.float32),
               n_valid_out: wp.array(dtype=wp.int32), lam_out: wp.array(dtype=wp.mat33),
               info_out: wp.array(dtype=wp.vec3)):
     """Finish particle ``t``'s sums (:func:`acc_finish`) and write its outputs."""
-    err, ll, nis = acc_finish(acc, params, att_cov)
+    err, ll, nis = acc_finish(acc, macc, params, att_cov)
     err_out[t] = err
     loglik_out[t] = ll
     nis_out[t] = nis
     n_valid_out[t] = acc.n_ok + acc.n_gated  # predictable (a gross miss was predicted, and scores the floor)
-    lam, info = attitude_information(acc, params)
+    lam, info = attitude_information(acc, macc, params)
     lam_out[t] = lam
     info_out[t] = info
 
@@ -721,30 +743,30 @@ def acc_gated(acc: Acc, p: LikParams, vertical: float, gain: float) -> Acc:
 
 
 @wp.func
-def acc_point(acc: Acc, p: LikParams, modes: wp.array(dtype=modes_vec), j: int, res: float, sigma: float,
-              gain: float, vertical: float, axis_w: wp.vec3, jac: wp.vec3, jac_pos: wp.vec3) -> Acc:
-    """``acc`` plus point ``j`` of a point cloud that the particle predicts: a gross miss (:func:`gross_miss`,
+def acc_point(acc: Acc, p: LikParams, miss: bool, res: float, sigma: float, gain: float, vertical: float,
+              axis_w: wp.vec3, jac: wp.vec3, jac_pos: wp.vec3) -> Acc:
+    """``acc`` plus a point of a point cloud that the particle predicts: a gross miss (``miss``: :func:`gross_miss`,
     ``gain`` its map-error sensitivity) scores its point's height above the map, ``vertical`` (:func:`acc_gated`),
-    else its sums (:func:`acc_add`) and, with modes, its projections on them (:func:`acc_modes`, the table's row
-    ``j``)."""
+    else its sums (:func:`acc_add`); with modes the caller adds the other's projections on them (:func:`acc_modes`,
+    the table's row of the point) to its :class:`ModeAcc`."""
     a = acc
-    if gross_miss(p, res, sigma, gain):
+    if miss:
         a = acc_gated(a, p, vertical, gain)
     else:
         a = acc_add(a, p, res, sigma, axis_w, jac, jac_pos)
-        if p.n_modes > 0:
-            a = acc_modes(a, p, modes[j], res, sigma, jac, jac_pos)
     return a
 
 
 def per_particle_kernels(make):
-    """``{True: tiled kernel, False: one-thread kernel}`` from ``make(tiled)``: the block-reduced form for CUDA, the
-    plain one for the CPU, whose launches :func:`warptan.parallel.launch_rows` splits across threads (Warp's CPU
-    tile storage is one static buffer, which concurrent launches would share)."""
-    return {True: make(True), False: make(False)}
+    """``{(tiled, modes): kernel}`` from ``make(tiled, modes)``: the block-reduced form for CUDA, the plain one for
+    the CPU, whose launches :func:`warptan.parallel.launch_rows` splits across threads (Warp's CPU tile storage is one
+    static buffer, which concurrent launches would share); ``modes``: with the map-error modes' sums
+    (:class:`ModeAcc`), which a kernel without them does not carry through its loop over the points (the CPU copies a
+    loop-carried struct at every point)."""
+    return {(tiled, modes): make(tiled, modes) for tiled in (True, False) for modes in (True, False)}
 
 
-def _reduce_loglik(tiled: bool):
+def _reduce_loglik(tiled: bool, with_modes: bool):
     @wp.kernel
     def reduce_loglik_kernel(
         row0: int,
@@ -782,6 +804,7 @@ def _reduce_loglik(tiled: bool):
         b = (row0 + t) // n_per
         mat = quat_to_mat_wxyz(quat_nb[t])
         acc = acc_init()
+        macc = modes_init()
         for j in range(lane, residual.shape[1], stride):
             row = cloud[b, j]
             res = residual[t, j]
@@ -795,18 +818,26 @@ def _reduce_loglik(tiled: bool):
                     vert = float(wp.nan)
                     if map_not_world(params):  # read only where a gross miss can be scored (acc_gated)
                         vert = vertical[t, j]
-                    acc = acc_point(acc, params, modes, j, res, sigma, ray_nominal_gain(u_down), vert,
-                                    axis_weights(row), jac, jac_pos)
+                    gain = ray_nominal_gain(u_down)
+                    miss = gross_miss(params, res, sigma, gain)
+                    acc = acc_point(acc, params, miss, res, sigma, gain, vert, axis_weights(row), jac, jac_pos)
+                    if wp.static(with_modes):
+                        if not miss:
+                            macc = acc_modes(macc, params, modes[j], res, sigma, jac, jac_pos)
         if wp.static(tiled):
-            acc = acc_block_sum(acc)
+            total = acc_block_total(acc, macc)
+            acc = acc_unpack(total)
+            macc = modes_unpack(total)
         if lane == 0:
-            if params.n_modes > 0:
-                acc = acc_set_modes(acc, modes, residual.shape[1], mode_mean[t], mode_var[b])
-                post_out[t] = mode_post(acc, modes, residual.shape[1])
-            acc_store(t, acc, params, att_cov[b], err_out, loglik_out, nis_out, n_valid_out, lam_out, info_out)
+            if wp.static(with_modes):
+                macc = acc_set_modes(macc, modes, residual.shape[1], mode_mean[t], mode_var[b])
+                post_out[t] = mode_post(macc, modes, residual.shape[1])
+            acc_store(t, acc, macc, params, att_cov[b], err_out, loglik_out, nis_out, n_valid_out, lam_out,
+                      info_out)
 
     return reduce_loglik_kernel
 
 
 reduce_loglik_kernels = per_particle_kernels(_reduce_loglik)
-"""Per-particle reduction of an (N, M) residual array: ``[True]`` tiled (``wp.launch_tiled``), ``[False]`` plain."""
+"""Per-particle reduction of an (N, M) residual array: ``[(True, modes)]`` tiled (``wp.launch_tiled``), ``[(False,
+modes)]`` plain; ``modes``: with the map-error modes (a stated map error)."""

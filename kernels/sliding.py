@@ -21,15 +21,19 @@ from warptan.kernels.likelihood import (
     LIK_PAPER,
     LikParams,
     acc_add,
-    acc_block_sum,
+    acc_block_total,
     acc_finish,
     acc_init,
     acc_modes,
     acc_point,
     acc_set_modes,
     acc_store,
+    acc_unpack,
     cloud_row,
+    gross_miss,
     mode_post,
+    modes_init,
+    modes_unpack,
     modes_vec,
     per_particle_kernels,
     row_dir,
@@ -63,7 +67,7 @@ def sliding_sigma(p: LikParams, g_z: float, slope_dot: float) -> float:
     return wp.max(wp.abs(g_z), 0.2) * wp.sqrt(p.sigma_range * p.sigma_range * geo * geo + p.sigma_map * p.sigma_map)
 
 
-def _sliding_loglik(tiled: bool):
+def _sliding_loglik(tiled: bool, with_modes: bool):
     @wp.kernel
     def sliding_loglik_kernel(
         row0: int,
@@ -103,6 +107,7 @@ def _sliding_loglik(tiled: bool):
         p = pos_n[t]
         ones = wp.vec3(1.0, 1.0, 1.0)
         acc = acc_init()
+        macc = modes_init()
         for j in range(lane, cloud.shape[1], stride):
             row = cloud[b, j]
             res = float(wp.nan)
@@ -117,22 +122,30 @@ def _sliding_loglik(tiled: bool):
                     nabla = wp.vec3(grad[0], grad[1], 1.0)
                     sigma = sliding_sigma(params, mat[2, 2], wp.dot(nabla, mat * row_dir(row)))
                     jac = sliding_jacobian(mat, c, c_hat, grad)
-                    acc = acc_point(acc, params, modes, j, res, sigma, 1.0, wp.nan, ones, jac,
-                                    nabla * (-mat[2, 2]))  # ∂ĉ_z/∂p = -g_z ∇F
+                    jac_pos = nabla * (-mat[2, 2])  # ∂ĉ_z/∂p = -g_z ∇F
+                    miss = gross_miss(params, res, sigma, 1.0)
+                    acc = acc_point(acc, params, miss, res, sigma, 1.0, wp.nan, ones, jac, jac_pos)
+                    if wp.static(with_modes):
+                        if not miss:
+                            macc = acc_modes(macc, params, modes[j], res, sigma, jac, jac_pos)
             residual_out[t, j] = res
         if wp.static(tiled):
-            acc = acc_block_sum(acc)
+            total = acc_block_total(acc, macc)
+            acc = acc_unpack(total)
+            macc = modes_unpack(total)
         if lane == 0:
-            if params.n_modes > 0:
-                acc = acc_set_modes(acc, modes, cloud.shape[1], mode_mean[t], mode_var[b])
-                post_out[t] = mode_post(acc, modes, cloud.shape[1])
-            acc_store(t, acc, params, att_cov[b], err_out, loglik_out, nis_out, n_valid_out, lam_out, info_out)
+            if wp.static(with_modes):
+                macc = acc_set_modes(macc, modes, cloud.shape[1], mode_mean[t], mode_var[b])
+                post_out[t] = mode_post(macc, modes, cloud.shape[1])
+            acc_store(t, acc, macc, params, att_cov[b], err_out, loglik_out, nis_out, n_valid_out, lam_out,
+                      info_out)
 
     return sliding_loglik_kernel
 
 
 sliding_loglik_kernels = per_particle_kernels(_sliding_loglik)
-"""The fused sliding model: ``[True]`` tiled (``wp.launch_tiled``, CUDA), ``[False]`` one thread per particle."""
+"""The fused sliding model: ``[(True, modes)]`` tiled (``wp.launch_tiled``, CUDA), ``[(False, modes)]`` one thread
+per particle; ``modes``: with the map-error modes (a stated map error)."""
 
 
 KERNEL_POINT_SCALE = wp.constant(1.7320508)  # sqrt(n + κ) of the horizontal kernel's unscented points (n = 2, κ = 1)
@@ -207,6 +220,7 @@ def altimeter_loglik_kernel(
     r = reading[b]
     p = pos_n[i]
     acc = acc_init()
+    macc = modes_init()
     res = float(wp.nan)
     info_pos = wp.vec3()
     if r[2] != 0.0:
@@ -229,12 +243,12 @@ def altimeter_loglik_kernel(
                 info_pos = wp.vec3(g[0] * g[0] * iv, g[1] * g[1] * iv, g[0] * g[1] * iv)
             acc = acc_add(acc, params, res, sigma, wp.vec3(1.0, 1.0, 1.0), wp.vec3(), wp.vec3())
             if params.n_modes > 0:
-                acc = acc_modes(acc, params, modes[0], res, sigma, wp.vec3(), wp.vec3())
+                macc = acc_modes(macc, params, modes[0], res, sigma, wp.vec3(), wp.vec3())
     if params.n_modes > 0:
-        acc = acc_set_modes(acc, modes, 1, mode_mean[i], mode_var[b])
-        post_out[i] = mode_post(acc, modes, 1)
+        macc = acc_set_modes(macc, modes, 1, mode_mean[i], mode_var[b])
+        post_out[i] = mode_post(macc, modes, 1)
     residual_out[i, 0] = res
-    err, ll, nis = acc_finish(acc, params, wp.mat33())
+    err, ll, nis = acc_finish(acc, macc, params, wp.mat33())
     if use_baro != 0 and r[2] != 0.0:
         d = r[1] + p[2]
         ll = ll - 0.5 * d * d * r[3]

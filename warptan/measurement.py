@@ -797,7 +797,7 @@ class RaycastModel(_PointCloudModel):
                                   [rows_of(res, a, b), rows_of(nrm, a, b), int(self._gates_misses()),
                                    rows_of(vert, a, b)]),
                     device, cols=res.shape[1], row_cost=20)
-        kernel, block = klik.reduce_loglik_kernels[device.is_cuda], _block_dim(device)
+        kernel, block = klik.reduce_loglik_kernels[device.is_cuda, self._params.n_modes > 0], _block_dim(device)
         launch_rows(kernel, res.shape[0],
                     lambda a, b: ([a or 0, n_per, rows_of(res, a, b), rows_of(quat_nb, a, b), rows_of(nrm, a, b),
                                    rows_of(vert, a, b), cloud, att, self._params, self._modes, rows_of(mean, a, b),
@@ -837,7 +837,7 @@ class SlidingModel(_PointCloudModel):
         grid, surface, cloud, n_per = self.terrain.grid(device), int(self.surface), self._staged, self.n_per
         att = self._attitude_cov(device, self.n_filters)
         mean, var = self._mode_state(device, pos_n.shape[0], self.n_filters)
-        kernel, block = kslide.sliding_loglik_kernels[device.is_cuda], _block_dim(device)
+        kernel, block = kslide.sliding_loglik_kernels[device.is_cuda, self._params.n_modes > 0], _block_dim(device)
         launch_rows(kernel, pos_n.shape[0],
                     lambda a, b: ([a or 0, n_per, grid, surface, rows_of(pos_n, a, b), rows_of(quat_nb, a, b), cloud,
                                    att, self._params, self._modes, rows_of(mean, a, b), var],
