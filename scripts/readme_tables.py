@@ -158,20 +158,25 @@ def long_flight_block() -> str:
     return "\n".join(lines)
 
 
-def step_block() -> str:
-    lines = ["| device | model | likelihood | graph | N | M | step ms | pipelined ms | stages per update |",
-             "|---|---|---|---|---|---|---|---|---|"]
-    sources = []
-    for name in ("filter_step_device_cpu.json", "filter_step_device_h100.json", "filter_step_device_batch_h100.json"):
-        path = f"benchmarks/{name}"
-        sources.append(path)
+def _bench_rows(paths):
+    """(device names, row) of every result of the benchmark JSONs ``paths``."""
+    for path in paths:
         data = _load(path)
         device = ", ".join(data["meta"]["devices"].values())
         for r in data["results"]:
-            pipelined = f"{r['throughput_step_ms']:.2f}" if "throughput_step_ms" in r else "—"
-            lines.append(f"| {device} | {r['model']} | {r['likelihood']} | {'on' if r['graph'] else 'off'} | "
-                         f"{r['B']} × {r['N']} | {r['M']} | {r['step_ms']:.2f} | {pipelined} | "
-                         f"{r['tempering_stages_mean']:.2f} |")
+            yield device, r
+
+
+def step_block() -> str:
+    lines = ["| device | model | likelihood | graph | N | M | step ms | pipelined ms | stages per update |",
+             "|---|---|---|---|---|---|---|---|---|"]
+    sources = [f"benchmarks/{name}" for name in ("filter_step_device_cpu.json", "filter_step_device_h100.json",
+                                                  "filter_step_device_batch_h100.json")]
+    for device, r in _bench_rows(sources):
+        pipelined = f"{r['throughput_step_ms']:.2f}" if "throughput_step_ms" in r else "—"
+        lines.append(f"| {device} | {r['model']} | {r['likelihood']} | {'on' if r['graph'] else 'off'} | "
+                     f"{r['B']} × {r['N']} | {r['M']} | {r['step_ms']:.2f} | {pipelined} | "
+                     f"{r['tempering_stages_mean']:.2f} |")
     commands = "; ".join(f"`{_load(p)['meta']['command']}`" for p in sources)
     return ("The generic configuration (`--models`: a straight flight 600 m over the synthetic rugged terrain, the "
             "likelihood's defaults, bilinear sliding): median whole step (10 IMU samples + one update, synchronised) "
@@ -188,15 +193,12 @@ def scenario_step_block() -> str:
     lines = ["| device | scenario filter | likelihood, surface | N | M | update ms | step ms | pipelined ms | "
              "stages per update | point evaluations per s: achieved / kernel alone | real-time factor |",
              "|---|---|---|---|---|---|---|---|---|---|---|"]
-    for path in sources:
-        data = _load(path)
-        device = ", ".join(data["meta"]["devices"].values())
-        for r in data["results"]:
-            rtf = f"{r['real_time_factor']:.1f}" if "real_time_factor" in r else "—"
-            lines.append(f"| {device} | {r['model']} | {r['likelihood']}, {r['surface']} | {r['B']} × {r['N']} | "
-                         f"{r['M']} | {r['update_ms']:.2f} | {r['step_ms']:.2f} | {r['throughput_step_ms']:.2f} | "
-                         f"{r['tempering_stages_mean']:.2f} | {r['point_evals_per_s'] / 1e6:.1f} M / "
-                         f"{r['kernel_point_evals_per_s'] / 1e6:.1f} M | {rtf} |")
+    for device, r in _bench_rows(sources):
+        rtf = f"{r['real_time_factor']:.1f}" if "real_time_factor" in r else "—"
+        lines.append(f"| {device} | {r['model']} | {r['likelihood']}, {r['surface']} | {r['B']} × {r['N']} | "
+                     f"{r['M']} | {r['update_ms']:.2f} | {r['step_ms']:.2f} | {r['throughput_step_ms']:.2f} | "
+                     f"{r['tempering_stages_mean']:.2f} | {r['point_evals_per_s'] / 1e6:.1f} M / "
+                     f"{r['kernel_point_evals_per_s'] / 1e6:.1f} M | {rtf} |")
     commands = "; ".join(f"`{_load(p)['meta']['command']}`" for p in sources)
     return ("The filter each scenario flies (its map surface, likelihood, scan, rates, tempering and attitude update), "
             "measured on its own flight after its first seconds; the real-time factor is a whole run of the "
