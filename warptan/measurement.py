@@ -748,10 +748,16 @@ class _PointCloudModel(MeasurementModel):
         if host is None or host.shape != (b, m, klik.CLOUD_ROW_LEN):
             host = self._host["cloud"] = np.empty((b, m, klik.CLOUD_ROW_LEN), dtype=np.float32)
         p, d = klik.CR_POINT, klik.CR_DIR
-        ok = np.stack([cloud.valid for cloud in items])  # the batch at once: a loop per cloud cost 2 ms at B = 100
-        host[:, :, p:p + 3] = np.where(ok[:, :, None], np.stack([cloud.points_s for cloud in items]), 0.0)
-        host[:, :, d:d + 3] = np.stack([cloud.dirs_s for cloud in items])
-        host[:, :, klik.CR_RANGE] = np.where(ok, np.stack([cloud.ranges_m for cloud in items]), np.nan)
+        # the batch at once (a loop per cloud cost 2 ms at B = 100), each cloud's arrays read once: its points
+        # r_j d_j as PointCloud.points_s makes them, its validity from its ranges (NaN = invalid)
+        first = items[0].dirs_s
+        same = all(cloud.dirs_s is first for cloud in items)  # one pattern's directions (a sensor's scans share them)
+        dirs = first[None] if same else np.stack([cloud.dirs_s for cloud in items])
+        ranges = np.stack([cloud.ranges_m for cloud in items])
+        ok = np.isfinite(ranges)
+        host[:, :, p:p + 3] = np.where(ok[:, :, None], ranges[:, :, None] * dirs, 0.0)
+        host[:, :, d:d + 3] = dirs
+        host[:, :, klik.CR_RANGE] = ranges
         host[:, :, klik.CR_VALID] = ok
         self._staged.assign(host)
         return host[:, :, klik.CR_VALID].sum(axis=1).astype(np.int64)
