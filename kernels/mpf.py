@@ -534,12 +534,13 @@ def exp_partials_kernel(
     dp: wp.array(dtype=wp.vec3),
     nis: wp.array(dtype=wp.float32),
     lam: wp.array(dtype=wp.mat33),
+    with_ip: int,
     info_pos: wp.array(dtype=wp.vec3),
     stats: wp.array2d(dtype=wp.float64),
     sums_out: wp.array3d(dtype=wp.float64),
 ):
     """Active filter b, chunk c, with ``e_i = exp(lw_i - max)``: partial ``Σe``, ``Σe²``, ``Σe dp``, ``Σe dp dpᵀ``,
-    ``Σe nis``, ``Σe Λ`` and ``Σe I_p`` (``N_CHUNK_SUMS`` values; ``info_pos`` of length 1: no I_p, zeros)."""
+    ``Σe nis``, ``Σe Λ`` and ``Σe I_p`` (``N_CHUNK_SUMS`` values; ``with_ip`` 0: no position information, zeros)."""
     b, c = wp.tid()
     if stats[b, ST_ACTIVE] == wp.float64(0.0):
         return
@@ -554,7 +555,6 @@ def exp_partials_kernel(
     ld = wp.vec3d()
     lo_ = wp.vec3d()
     ip = wp.vec3d()
-    with_ip = info_pos.shape[0] > 1
     for k in range(lo, hi):
         i = b * n_per + k
         x = wp.float64(wp.exp(logw[i] - m))
@@ -570,7 +570,7 @@ def exp_partials_kernel(
         z = nis[i]
         if wp.isfinite(z):
             sz += x * wp.float64(z)
-        if with_ip:
+        if with_ip != 0:
             ip += x * wp.vec3d(info_pos[i])
     sums_out[b, c, 0] = s1
     sums_out[b, c, 1] = s2

@@ -569,11 +569,12 @@ def _weigh_and_resample(device, dp, logw, lam, info, bandwidth):
     d_logw = wp.array(logw, dtype=wp.float32, device=device)
     sums = wp.zeros((1, kmpf.N_CHUNKS, kmpf.N_CHUNK_SUMS), dtype=wp.float64, device=device)
     kernel_chol = wp.zeros(1, dtype=wp.mat33, device=device)
+    with_ip = int(info is not None)
     info = np.zeros((1, 3)) if info is None else info
     wp.launch(kmpf.exp_partials_kernel, dim=(1, kmpf.N_CHUNKS),
               inputs=[n, d_logw, d_dp, wp.ones(n, dtype=wp.float32, device=device),
-                      wp.array(lam, dtype=wp.mat33, device=device), wp.array(info, dtype=wp.vec3, device=device),
-                      stats], outputs=[sums], device=device)
+                      wp.array(lam, dtype=wp.mat33, device=device), with_ip,
+                      wp.array(info, dtype=wp.vec3, device=device), stats], outputs=[sums], device=device)
     wp.launch_tiled(kmpf.weight_stats_kernel, dim=[1], inputs=[n, params, sums], outputs=[stats, kernel_chol],
                     block_dim=kmpf.N_CHUNKS, device=device)
     s = stats.numpy()[0]

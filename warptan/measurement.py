@@ -400,8 +400,8 @@ class ModelOutput:
     info_pos: wp.array | None = None
     """(N,) vec3 horizontal position information of each particle's residuals, ``Σ_j g_j g_jᵀ / σ_j²`` as (nn, ee, ne)
     (m⁻²), g_j the prediction's gradient w.r.t. the horizontal position; written by the models that cannot fix the
-    position with one measurement (the altimeter), zero otherwise: the filter keeps its regularisation jitter within
-    what one measurement resolves (:mod:`warptan.mpf`)."""
+    position with one measurement (the altimeter; None for the models that can, ``fixes_per_scan``): the filter keeps
+    its regularisation jitter within what one measurement resolves (:mod:`warptan.mpf`)."""
     mode_post: wp.array | None = None
     """(N,) modes_vec the particles' map-error mode amplitudes after this scan, predicted to the next (whitened, in
     the modes of the table in use; zero without a stated map error): the filter keeps them as the next prior."""
@@ -566,7 +566,7 @@ class MeasurementModel:
                 normal=wp.empty((n, m), dtype=wp.vec3, device=device) if self.name == "raycast" else None,
                 vertical_m=wp.empty((n, m), dtype=wp.float32, device=device) if self.name == "raycast" else None,
                 mode_post=wp.zeros(n, dtype=klik.modes_vec, device=device),
-                info_pos=wp.zeros(n, dtype=wp.vec3, device=device),
+                info_pos=None if self.fixes_per_scan else wp.zeros(n, dtype=wp.vec3, device=device),
             )
             self._staged = self._staging_buffer(device, b, m)
             self.generation += 1

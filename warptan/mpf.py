@@ -755,7 +755,7 @@ class MarginalizedParticleFilter:
                   outputs=[self._stats], device=d)
         lam, info = self._attitude_info(out)
         launch(kmpf.exp_partials_kernel, dim=(b, kmpf.N_CHUNKS),
-                  inputs=[n, st.logw, st.dp, out.nis, lam, self._position_info(out), self._stats],
+                  inputs=[n, st.logw, st.dp, out.nis, lam, *self._position_info(out), self._stats],
                   outputs=[self._chunk_sums], device=d)
         launch(kmpf.weight_stats_kernel, dim=[b], inputs=[n, self.params, self._chunk_sums],
                         outputs=[self._stats, self._kernel_chol], block_dim=kmpf.N_CHUNKS, device=d)
@@ -765,16 +765,16 @@ class MarginalizedParticleFilter:
                    inputs=[n, self.params, self._stats, self._feedback, self._dev["p_col"], lam, info],
                    outputs=[st.lin], device=d)
 
-    def _position_info(self, out) -> wp.array:
-        """The particles' horizontal position information when the model cannot fix the position with one
-        measurement (it then bounds the regularisation jitter: :data:`warptan.kernels.mpf.JITTER_NIS`), else a
-        one-element array (none)."""
+    def _position_info(self, out) -> tuple[int, wp.array]:
+        """(1, the particles' horizontal position information) when the model gives it (one that cannot fix the
+        position with one measurement: it then bounds the regularisation jitter,
+        :data:`warptan.kernels.mpf.JITTER_NIS`), else (0, a one-element placeholder)."""
         info = getattr(out, "info_pos", None)
-        if info is not None and not getattr(self.model, "fixes_per_scan", False) and info.shape[0] > 1:
-            return info
+        if info is not None:
+            return 1, info
         if self._no_pos_info is None:
             self._no_pos_info = wp.zeros(1, dtype=wp.vec3, device=self.device)
-        return self._no_pos_info
+        return 0, self._no_pos_info
 
     def _attitude_info(self, out) -> tuple[wp.array, wp.array]:
         """The model's per-particle attitude information (Λ_i, b_i); zeros for a model that gives none."""
