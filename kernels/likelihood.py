@@ -166,9 +166,12 @@ class Acc:
 @wp.struct
 class ModeAcc:
     """The map-error modes' running sums and weights of one particle (touched only when modes are in use). Apart from
-    :class:`Acc` because a Warp function takes and returns its structs by value: with these ~200 floats inside, the
+    :class:`Acc` because a loop-carried struct is copied at every point on the CPU: with these ~200 floats inside, the
     per-point ``acc = acc_point(acc, ...)`` copies made the CPU's sliding kernel 2.8× and the ray casts' reduction
-    1.6× slower even where no mode is in use (map = world; S8 / S7, N = 500, 2 threads)."""
+    1.6× slower even where no mode is in use (map = world; S8 / S7, N = 500, 2 threads). The per-point sums now take
+    both structs by reference (``wp.ref``: :func:`acc_point`, :func:`acc_modes`), which removes the copies that were
+    left (the CPU stalled reading back each point's freshly stored ~180-byte :class:`Acc`): S8's sliding kernel
+    20 → 25 M points/s, S7's reduction 9 → 14 (2 threads, same bits)."""
 
     proj: modes_vec  # per map-error mode i: p_i = Σ_j v_ji r_j / σ_j (v_ji: the table's row j)
     proj_h: modes_mat  # per mode: Σ_j v_ji H_j / σ_j
@@ -219,9 +222,9 @@ def modes_init() -> ModeAcc:
 
 
 @wp.func
-def acc_modes(acc: ModeAcc, p: LikParams, v: modes_vec, res: float, sigma: float, jac: wp.vec3,
-              jac_pos: wp.vec3) -> ModeAcc:
-    """``acc`` plus one predictable point's projections on the map-error modes (its table row ``v``; called only when
+def acc_modes(a: wp.ref[ModeAcc], p: LikParams, v: modes_vec, res: float, sigma: float, jac: wp.vec3,
+              jac_pos: wp.vec3):
+    """``a`` += one predictable point's projections on the map-error modes (its table row ``v``; called only when
     modes are in use): the whitened residual ``res / sigma`` and the attitude and position Jacobians over ``sigma``
     (nothing for the paper's form). The rows are the scan's modes for its nominal sensitivities (a range's 1/cos
     of its angle from the vertical over flat ground): scaling them per particle by a ray's actual slope made them
@@ -232,13 +235,11 @@ def acc_modes(acc: ModeAcc, p: LikParams, v: modes_vec, res: float, sigma: float
     modes are then not orthonormal, but ``c_i ≤ 1`` keeps ``Σ c_i p_i² ≤ zᵀz`` over its points (a principal block
     of a projector), so fewer points never score better. Renormalising each mode over the predicted points
     (``k_i / (1 + k_i |u_i|²)``) broke that bound: S5/S6 diverged onto particles that predict fewer points."""
-    a = acc
     if p.lik != LIK_PAPER:
         inv = 1.0 / sigma
         a.proj = a.proj + v * (res * inv)
         a.proj_h = a.proj_h + wp.outer(v, jac * inv)
         a.proj_g = a.proj_g + wp.outer(v, jac_pos * inv)
-    return a
 
 
 @wp.func
@@ -290,10 +291,9 @@ def point_terms(p: LikParams, res: float, sigma: float, jac: wp.vec3, jac_pos: w
 
 
 @wp.func
-def acc_add(acc: Acc, p: LikParams, res: float, sigma: float, axis_w: wp.vec3, jac: wp.vec3, jac_pos: wp.vec3) -> Acc:
-    """``acc`` plus one predictable residual (:func:`point_terms`), weighted by ``axis_w`` per axis for the paper's
-    per-axis error."""
-    a = acc
+def acc_add(a: wp.ref[Acc], p: LikParams, res: float, sigma: float, axis_w: wp.vec3, jac: wp.vec3, jac_pos: wp.vec3):
+    """Add to ``a`` (in place) one predictable residual (:func:`point_terms`), weighted by ``axis_w`` per axis for
+    the paper's per-axis error."""
     z2c, ll, log_ratio, lam, info, lam_pp, lam_tp, info_p = point_terms(p, res, sigma, jac, jac_pos)
     r = wp.abs(res)
     a.n_ok = a.n_ok + 1
@@ -308,7 +308,6 @@ def acc_add(acc: Acc, p: LikParams, res: float, sigma: float, axis_w: wp.vec3, j
     a.lam_pp = a.lam_pp + lam_pp
     a.lam_tp = a.lam_tp + lam_tp
     a.info_p = a.info_p + info_p
-    return a
 
 
 ACC_BASE = 36
@@ -719,8 +718,8 @@ def gross_miss(p: LikParams, res: float, sigma: float, gain: float) -> bool:
 
 
 @wp.func
-def acc_gated(acc: Acc, p: LikParams, vertical: float, gain: float) -> Acc:
-    """``acc`` plus a gross miss (:func:`gross_miss`) of a ray whose received point, placed with the particle's pose,
+def acc_gated(a: wp.ref[Acc], p: LikParams, vertical: float, gain: float):
+    """``a`` += a gross miss (:func:`gross_miss`) of a ray whose received point, placed with the particle's pose,
     lies ``vertical`` m above the map's surface (NaN: unknown, a sliding height). The ray met another surface in the
     world than in the map, so its range says nothing a Gaussian can use; but its point lies on the world's surface,
     which the map holds within the stated error: it scores ``min(z_v, k_out)`` σ with ``z_v = vertical / σ_v``,
@@ -730,7 +729,6 @@ def acc_gated(acc: Acc, p: LikParams, vertical: float, gain: float) -> Acc:
     higher than the map: at the true pose such a ray passes over the map's ridge (a residual of −1.5 km), a
     particle 25 m off meets it (−50 to −100 m, within the gate), and three such rays gave that particle 12 nats
     (S5, world 1003, t = 50 s). The point's height above the map is near zero at either pose."""
-    a = acc
     a.n_gated = a.n_gated + 1
     zc = p.k_out
     if not wp.isnan(vertical):
@@ -739,22 +737,19 @@ def acc_gated(acc: Acc, p: LikParams, vertical: float, gain: float) -> Acc:
         zc = wp.min(wp.abs(vertical) / wp.sqrt(wp.max(var, 1.0e-12)), p.k_out)
     a.gated_ll = a.gated_ll + point_loglik(p.lik, zc * p.sigma, p.sigma, p.nu)
     a.gated_sq = a.gated_sq + zc * zc
-    return a
 
 
 @wp.func
-def acc_point(acc: Acc, p: LikParams, miss: bool, res: float, sigma: float, gain: float, vertical: float,
-              axis_w: wp.vec3, jac: wp.vec3, jac_pos: wp.vec3) -> Acc:
-    """``acc`` plus a point of a point cloud that the particle predicts: a gross miss (``miss``: :func:`gross_miss`,
+def acc_point(a: wp.ref[Acc], p: LikParams, miss: bool, res: float, sigma: float, gain: float, vertical: float,
+              axis_w: wp.vec3, jac: wp.vec3, jac_pos: wp.vec3):
+    """``a`` += a point of a point cloud that the particle predicts: a gross miss (``miss``: :func:`gross_miss`,
     ``gain`` its map-error sensitivity) scores its point's height above the map, ``vertical`` (:func:`acc_gated`),
     else its sums (:func:`acc_add`); with modes the caller adds the other's projections on them (:func:`acc_modes`,
     the table's row of the point) to its :class:`ModeAcc`."""
-    a = acc
     if miss:
-        a = acc_gated(a, p, vertical, gain)
+        acc_gated(a, p, vertical, gain)
     else:
-        a = acc_add(a, p, res, sigma, axis_w, jac, jac_pos)
-    return a
+        acc_add(a, p, res, sigma, axis_w, jac, jac_pos)
 
 
 def per_particle_kernels(make):
@@ -820,10 +815,10 @@ def _reduce_loglik(tiled: bool, with_modes: bool):
                         vert = vertical[t, j]
                     gain = ray_nominal_gain(u_down)
                     miss = gross_miss(params, res, sigma, gain)
-                    acc = acc_point(acc, params, miss, res, sigma, gain, vert, axis_weights(row), jac, jac_pos)
+                    acc_point(acc, params, miss, res, sigma, gain, vert, axis_weights(row), jac, jac_pos)
                     if wp.static(with_modes):
                         if not miss:
-                            macc = acc_modes(macc, params, modes[j], res, sigma, jac, jac_pos)
+                            acc_modes(macc, params, modes[j], res, sigma, jac, jac_pos)
         if wp.static(tiled):
             total = acc_block_total(acc, macc)
             acc = acc_unpack(total)

@@ -124,10 +124,10 @@ def _sliding_loglik(tiled: bool, with_modes: bool):
                     jac = sliding_jacobian(mat, c, c_hat, grad)
                     jac_pos = nabla * (-mat[2, 2])  # ∂ĉ_z/∂p = -g_z ∇F
                     miss = gross_miss(params, res, sigma, 1.0)
-                    acc = acc_point(acc, params, miss, res, sigma, 1.0, wp.nan, ones, jac, jac_pos)
+                    acc_point(acc, params, miss, res, sigma, 1.0, wp.nan, ones, jac, jac_pos)
                     if wp.static(with_modes):
                         if not miss:
-                            macc = acc_modes(macc, params, modes[j], res, sigma, jac, jac_pos)
+                            acc_modes(macc, params, modes[j], res, sigma, jac, jac_pos)
             residual_out[t, j] = res
         if wp.static(tiled):
             total = acc_block_total(acc, macc)
@@ -241,9 +241,9 @@ def altimeter_loglik_kernel(
                 g = grid_gradient(grid, surface, p[0], p[1])
                 iv = 1.0 / (sigma * sigma)
                 info_pos = wp.vec3(g[0] * g[0] * iv, g[1] * g[1] * iv, g[0] * g[1] * iv)
-            acc = acc_add(acc, params, res, sigma, wp.vec3(1.0, 1.0, 1.0), wp.vec3(), wp.vec3())
+            acc_add(acc, params, res, sigma, wp.vec3(1.0, 1.0, 1.0), wp.vec3(), wp.vec3())
             if params.n_modes > 0:
-                macc = acc_modes(macc, params, modes[0], res, sigma, wp.vec3(), wp.vec3())
+                acc_modes(macc, params, modes[0], res, sigma, wp.vec3(), wp.vec3())
     if params.n_modes > 0:
         macc = acc_set_modes(macc, modes, 1, mode_mean[i], mode_var[b])
         post_out[i] = mode_post(macc, modes, 1)
