@@ -133,12 +133,25 @@ class LikParams:
 
 
 @wp.func
-def point_loglik(lik: int, res: float, sigma: float, nu: float) -> float:
-    """Log density (constants dropped) of one residual under the per-point model."""
-    z2 = (res / sigma) * (res / sigma)
+def point_loglik_z(lik: int, z: float, nu: float) -> float:
+    """Log density (constants dropped) of one whitened residual ``z = r / σ`` under the per-point model (less
+    ``log σ``)."""
+    z2 = z * z
     if lik == LIK_STUDENT:
         return -0.5 * (nu + 1.0) * wp.log(1.0 + z2 / nu)
     return -0.5 * z2
+
+
+@wp.func
+def point_loglik(lik: int, res: float, sigma: float, nu: float) -> float:
+    """Log density (constants dropped) of one residual under the per-point model."""
+    return point_loglik_z(lik, res / sigma, nu)
+
+
+SIGMA_RATIO_FOLD_MIN = wp.constant(1.0e-12)
+SIGMA_RATIO_FOLD_MAX = wp.constant(1.0e12)
+"""Bounds of :attr:`Acc.sigma_ratio` outside which :func:`acc_add` folds its log into the sums (float32 keeps ratios
+of per-point σs to ~1e±26 more without overflow or subnormals)."""
 
 
 @wp.struct
@@ -150,7 +163,8 @@ class Acc:
     sum_abs: float  # Σ|r|, m
     sum_axes: wp.vec3  # Σ|r| |d| per axis, m
     last: float  # the last residual, m
-    ll_points: float  # Σ point log-densities
+    ll_points: float  # Σ point log-densities, less the log of ``sigma_ratio`` (:func:`acc_ll_points`)
+    sigma_ratio: float  # Π σ_j / σ over the points since it was last folded into ``ll_points`` (:func:`acc_add`)
     sum_sq: float  # Σ min((r/σ)², k_out²)
     lam: wp.mat33  # Λ = Σ Hᵀ H / σ² (H: the prediction's Jacobian w.r.t. the attitude error dθ, m/rad)
     info: wp.vec3  # b = Σ Hᵀ r / σ²
@@ -193,6 +207,7 @@ def acc_init() -> Acc:
     a.sum_axes = wp.vec3()
     a.last = 0.0
     a.ll_points = 0.0
+    a.sigma_ratio = 1.0
     a.sum_sq = 0.0
     a.lam = wp.mat33()
     a.info = wp.vec3()
@@ -261,53 +276,81 @@ def sym_outer(a: wp.vec3, w: float) -> wp.mat33:
 
 
 @wp.func
-def point_terms(p: LikParams, res: float, sigma: float, jac: wp.vec3, jac_pos: wp.vec3):
-    """What one predictable residual ``res`` (m, finite) of standard deviation ``sigma`` (m; ``p.sigma`` unless the
-    model propagates the sensor's noise per point, which adds ``-log(sigma / p.sigma)``) adds to the running sums,
-    with ``jac`` the prediction's Jacobian w.r.t. dθ (m/rad) and ``jac_pos`` w.r.t. the position (dimensionless):
-    (``min(z², k_out²)``, point log-density, its ``log(sigma / p.sigma)`` (0 when ``sigma == p.sigma``), ``Hᵀ H /
-    σ²``, ``Hᵀ r / σ²``, ``G Gᵀ / σ²``, ``H Gᵀ / σ²``, ``Gᵀ r / σ²``; zeros for the paper's form)."""
-    z = res / sigma
-    z2c = wp.min(z * z, p.k_out * p.k_out)
-    ll = point_loglik(p.lik, res, sigma, p.nu)
-    log_ratio = float(0.0)
-    if sigma != p.sigma:
-        log_ratio = wp.log(sigma / p.sigma)
-    lam = wp.mat33()
-    info = wp.vec3()
-    lam_pp = wp.mat33()
-    lam_tp = wp.mat33()
-    info_p = wp.vec3()
-    if p.lik != LIK_PAPER:  # the paper's scalar error is not a per-point model: its filter keeps C = 0
-        inv_var = 1.0 / (sigma * sigma)
-        if p.lik == LIK_STUDENT:
-            inv_var = inv_var * (p.nu + 1.0) / (p.nu + z * z)
-        lam = sym_outer(jac, inv_var)
-        info = jac * (res * inv_var)
-        lam_pp = sym_outer(jac_pos, inv_var)
-        lam_tp = wp.outer(jac, jac_pos) * inv_var
-        info_p = jac_pos * (res * inv_var)
-    return z2c, ll, log_ratio, lam, info, lam_pp, lam_tp, info_p
+def upper_add(m: wp.ref[wp.mat33], a: wp.vec3):
+    """The upper triangle of ``m`` += ``outer(a, a)`` in place (:func:`acc_symmetric` mirrors it)."""
+    m[0, 0] = m[0, 0] + a[0] * a[0]
+    m[0, 1] = m[0, 1] + a[0] * a[1]
+    m[0, 2] = m[0, 2] + a[0] * a[2]
+    m[1, 1] = m[1, 1] + a[1] * a[1]
+    m[1, 2] = m[1, 2] + a[1] * a[2]
+    m[2, 2] = m[2, 2] + a[2] * a[2]
+
+
+@wp.func
+def outer_add(m: wp.ref[wp.mat33], a: wp.vec3, b: wp.vec3):
+    """``m += outer(a, b)`` in place."""
+    for i in range(3):
+        for j in range(3):
+            m[i, j] = m[i, j] + a[i] * b[j]
+
+
+@wp.func
+def upper_mirrored(m: wp.mat33) -> wp.mat33:
+    """``m`` with its lower triangle set from its upper one."""
+    return wp.mat33(m[0, 0], m[0, 1], m[0, 2], m[0, 1], m[1, 1], m[1, 2], m[0, 2], m[1, 2], m[2, 2])
+
+
+@wp.func
+def acc_symmetric(a: Acc) -> Acc:
+    """``a`` with Λ and Σ G Gᵀ / σ² made whole (:func:`acc_add` sums their upper triangles)."""
+    s = a
+    s.lam = upper_mirrored(a.lam)
+    s.lam_pp = upper_mirrored(a.lam_pp)
+    return s
 
 
 @wp.func
 def acc_add(a: wp.ref[Acc], p: LikParams, res: float, sigma: float, axis_w: wp.vec3, jac: wp.vec3, jac_pos: wp.vec3):
-    """Add to ``a`` (in place) one predictable residual (:func:`point_terms`), weighted by ``axis_w`` per axis for
-    the paper's per-axis error."""
-    z2c, ll, log_ratio, lam, info, lam_pp, lam_tp, info_p = point_terms(p, res, sigma, jac, jac_pos)
+    """``a`` += one predictable residual ``res`` (m, finite) of standard deviation ``sigma`` (m; ``p.sigma`` unless
+    the model propagates the sensor's noise per point, which adds ``-log(sigma / p.sigma)`` to the point's
+    log-density), weighted by ``axis_w`` per axis for the paper's per-axis error, with ``jac`` the prediction's
+    Jacobian w.r.t. dθ (m/rad) and ``jac_pos`` w.r.t. the position (dimensionless): ``min(z², k_out²)``, the point
+    log-density, ``Hᵀ H / σ²``, ``Hᵀ r / σ²``, ``G Gᵀ / σ²``, ``H Gᵀ / σ²``, ``Gᵀ r / σ²`` (not the last five for
+    the paper's form; the two symmetric ones by their upper triangles). In place, from the whitened ``H / σ``,
+    ``G / σ``, ``r / σ``, entry by entry: a matrix built per point and then added cost the CPU its copies."""
+    inv_s = 1.0 / sigma
+    z = res * inv_s
     r = wp.abs(res)
     a.n_ok = a.n_ok + 1
     a.sum_abs = a.sum_abs + r
     a.sum_axes = a.sum_axes + r * axis_w
     a.last = res
-    a.sum_sq = a.sum_sq + z2c
-    a.sq_raw = a.sq_raw + (res / sigma) * (res / sigma)
-    a.ll_points = (a.ll_points + ll) - log_ratio
-    a.lam = a.lam + lam
-    a.info = a.info + info
-    a.lam_pp = a.lam_pp + lam_pp
-    a.lam_tp = a.lam_tp + lam_tp
-    a.info_p = a.info_p + info_p
+    a.sum_sq = a.sum_sq + wp.min(z * z, p.k_out * p.k_out)
+    a.sq_raw = a.sq_raw + z * z
+    a.ll_points = a.ll_points + point_loglik_z(p.lik, z, p.nu)
+    if sigma != p.sigma:  # the density's -log(σ_j / σ), as one log per many points (a log per point cost 9 %)
+        a.sigma_ratio = a.sigma_ratio * (sigma / p.sigma)
+        if not (a.sigma_ratio > SIGMA_RATIO_FOLD_MIN and a.sigma_ratio < SIGMA_RATIO_FOLD_MAX):
+            a.ll_points = a.ll_points - wp.log(a.sigma_ratio)
+            a.sigma_ratio = 1.0
+    if p.lik != LIK_PAPER:  # the paper's scalar error is not a per-point model: its filter keeps C = 0
+        w = inv_s
+        if p.lik == LIK_STUDENT:  # the t's weight (ν + 1)/(ν + z²) on the information
+            w = w * wp.sqrt((p.nu + 1.0) / (p.nu + z * z))
+        h = jac * w
+        g = jac_pos * w
+        zw = res * w
+        upper_add(a.lam, h)
+        a.info = a.info + h * zw
+        upper_add(a.lam_pp, g)
+        outer_add(a.lam_tp, h, g)
+        a.info_p = a.info_p + g * zw
+
+
+@wp.func
+def acc_ll_points(a: Acc) -> float:
+    """Σ point log-densities, ``-log(σ_j / σ)`` included."""
+    return a.ll_points - wp.log(a.sigma_ratio)
 
 
 ACC_BASE = 36
@@ -335,7 +378,7 @@ def acc_pack(a: Acc, m: ModeAcc) -> acc_vec:
     v[4] = a.sum_axes[1]
     v[5] = a.sum_axes[2]
     v[6] = a.last
-    v[7] = a.ll_points
+    v[7] = acc_ll_points(a)
     v[8] = a.sum_sq
     v[9] = a.lam[0, 0]
     v[10] = a.lam[1, 1]
@@ -380,6 +423,7 @@ def acc_unpack(v: acc_vec) -> Acc:
     a.sum_axes = wp.vec3(v[3], v[4], v[5])
     a.last = v[6]
     a.ll_points = v[7]
+    a.sigma_ratio = 1.0
     a.sum_sq = v[8]
     a.lam = wp.mat33(v[9], v[12], v[13], v[12], v[10], v[14], v[13], v[14], v[11])
     a.info = wp.vec3(v[15], v[16], v[17])
@@ -547,7 +591,7 @@ def acc_finish(acc: Acc, macc: ModeAcc, p: LikParams, att_cov: wp.mat33):
                 ll = frac * (-0.5 * err * err / p.r_err) + (1.0 - frac) * floor
         else:  # a gross miss scores its point's height above the map (:func:`acc_gated`), the rest the floor
             n_floor = n_bad - float(acc.n_gated)
-            ll = acc.ll_points + n_floor * point_loglik(p.lik, p.k_out * p.sigma, p.sigma, p.nu) + acc.gated_ll
+            ll = acc_ll_points(acc) + n_floor * point_loglik(p.lik, p.k_out * p.sigma, p.sigma, p.nu) + acc.gated_ll
             # the NIS asks whether this particle, with an attitude within the Kalman's uncertainty A and a map error
             # as stated, explains the scan: the Mahalanobis zᵀ(I + U K⁰ Uᵀ + H̃ A H̃ᵀ)⁻¹z of the unclipped z, with
             # the modes' one-scan weights c⁰_i (not shared along the track: a smooth misfit of tens of metres is
@@ -628,12 +672,13 @@ def acc_store(t: int, acc: Acc, macc: ModeAcc, params: LikParams, att_cov: wp.ma
               n_valid_out: wp.array(dtype=wp.int32), lam_out: wp.array(dtype=wp.mat33),
               info_out: wp.array(dtype=wp.vec3)):
     """Finish particle ``t``'s sums (:func:`acc_finish`) and write its outputs."""
-    err, ll, nis = acc_finish(acc, macc, params, att_cov)
+    whole = acc_symmetric(acc)
+    err, ll, nis = acc_finish(whole, macc, params, att_cov)
     err_out[t] = err
     loglik_out[t] = ll
     nis_out[t] = nis
     n_valid_out[t] = acc.n_ok + acc.n_gated  # predictable (a gross miss was predicted, and scores the floor)
-    lam, info = attitude_information(acc, macc, params)
+    lam, info = attitude_information(whole, macc, params)
     lam_out[t] = lam
     info_out[t] = info
 
