@@ -45,12 +45,13 @@ wp.set_module_options({"enable_backward": False})
 
 
 @wp.func
-def sliding_jacobian(mat: wp.mat33, c: wp.vec3, c_hat: wp.vec3, grad: wp.vec2) -> wp.vec3:
-    """``∂ĉ_z/∂dθ`` of the sliding prediction (SPEC §6b): with ``g = R e₃``, the map gradient ``(h_n, h_e)`` under
-    the point and ``u = (g_n - h_n g_z, g_e - h_e g_z, 0)``: ``H = e₃ × ĉ - (Rᵀu) × c`` (m/rad)."""
-    g = wp.vec3(mat[0, 2], mat[1, 2], mat[2, 2])
-    u = wp.vec3(g[0] - grad[0] * g[2], g[1] - grad[1] * g[2], 0.0)
-    return wp.cross(wp.vec3(0.0, 0.0, 1.0), c_hat) - wp.cross(wp.transpose(mat) * u, c)
+def sliding_jacobian(mat: wp.mat33, c: wp.vec3, gap: float, n_s: wp.vec3) -> wp.vec3:
+    """``∂ĉ_z/∂dθ`` of the sliding prediction (SPEC §6b), m/rad: with ``g = R e₃``, the map gradient ``(h_n, h_e)``
+    under the point and ``u = (g_n - h_n g_z, g_e - h_e g_z, 0)`` it is ``H = e₃ × ĉ - (Rᵀu) × c``; as ``u = g -
+    g_z ∇F`` (``∇F = (h_n, h_e, 1)``) and ``ĉ - c = gap Rᵀe₃``, the same ``H = gap e₃ × Rᵀe₃ + g_z (n_s × c)``
+    with ``n_s = Rᵀ∇F`` (the map's normal in the sensor frame) and ``gap`` the point's height below the map's
+    surface (m)."""
+    return wp.vec3(-gap * mat[2, 1], gap * mat[2, 0], 0.0) + mat[2, 2] * wp.cross(n_s, c)
 
 
 @wp.func
@@ -116,12 +117,14 @@ def _sliding_loglik(tiled: bool, with_modes: bool):
                 c = row_point(row)
                 w = p + mat * c
                 h, grad = grid_height_gradient(grid, surface, w[0], w[1])
-                c_hat = wp.transpose(mat) * (wp.vec3(w[0], w[1], -h) - p)
-                res = c[2] - c_hat[2]
+                # ĉ = Rᵀ((w_n, w_e, -h) - p) = c + gap Rᵀe₃ with gap = -h - w_d: the residual c_z - ĉ_z
+                gap = -h - w[2]
+                res = -gap * mat[2, 2]
                 if not wp.isnan(res):
                     nabla = wp.vec3(grad[0], grad[1], 1.0)
-                    sigma = sliding_sigma(params, mat[2, 2], wp.dot(nabla, mat * row_dir(row)))
-                    jac = sliding_jacobian(mat, c, c_hat, grad)
+                    n_s = wp.transpose(mat) * nabla  # ∇F in the sensor frame: ∇F · (R d) = n_s · d
+                    sigma = sliding_sigma(params, mat[2, 2], wp.dot(n_s, row_dir(row)))
+                    jac = sliding_jacobian(mat, c, gap, n_s)
                     jac_pos = nabla * (-mat[2, 2])  # ∂ĉ_z/∂p = -g_z ∇F
                     miss = gross_miss(params, res, sigma, 1.0)
                     acc_point(acc, params, miss, res, sigma, 1.0, wp.nan, ones, jac, jac_pos)

@@ -132,7 +132,7 @@ def raycast(terrain, origins_n, dirs_n, backend: str = "dda", device=None, *, st
 
 
 def raycast_pattern(terrain, pos_n: wp.array, quat_nb: wp.array, dirs_s: wp.array, caster: RayCaster,
-                    out: wp.array | None = None) -> wp.array:
+                    out: wp.array | None = None, record: bool = False):
     """Cast the M sensor-frame directions from each of N poses: (N, M) ranges in m (NaN = no hit).
 
     Args:
@@ -142,6 +142,7 @@ def raycast_pattern(terrain, pos_n: wp.array, quat_nb: wp.array, dirs_s: wp.arra
         dirs_s: (M,) vec3 unit directions in the sensor frame (FRD).
         caster: Backend and parameters.
         out: Optional (N, M) float32 output.
+        record: Return the launch as a ``warp.Launch`` (run once here) to be replayed on the same arrays.
     """
     device = pos_n.device
     check_same_device(pos_n=pos_n, quat_nb=quat_nb, dirs_s=dirs_s)
@@ -150,8 +151,11 @@ def raycast_pattern(terrain, pos_n: wp.array, quat_nb: wp.array, dirs_s: wp.arra
     shape = (pos_n.shape[0], dirs_s.shape[0])
     if out is None:
         out = wp.empty(shape, dtype=wp.float32, device=device)
-    wp.launch(kray.raycast_pattern_kernel, dim=shape, inputs=[*caster.launch_args(terrain, device), pos_n, quat_nb,
-              dirs_s], outputs=[out], device=device)
+    cmd = wp.launch(kray.raycast_pattern_kernel, dim=shape, inputs=[*caster.launch_args(terrain, device), pos_n,
+                    quat_nb, dirs_s], outputs=[out], device=device, record_cmd=record)
+    if record:
+        cmd.launch()
+        return cmd
     return out
 
 
