@@ -54,6 +54,7 @@ measured range, 1 = valid point).
 import warp as wp
 
 from warptan.kernels.frames import quat_to_mat_wxyz
+from warptan.kernels.terrain import is_nan
 
 wp.set_module_options({"enable_backward": False})
 
@@ -776,7 +777,7 @@ def acc_gated(a: wp.ref[Acc], p: LikParams, vertical: float, gain: float):
     (S5, world 1003, t = 50 s). The point's height above the map is near zero at either pose."""
     a.n_gated = a.n_gated + 1
     zc = p.k_out
-    if not wp.isnan(vertical):
+    if not is_nan(vertical):
         var = p.sigma_err * p.sigma_err + p.sigma_map * p.sigma_map
         var = var + (p.sigma_range / gain) * (p.sigma_range / gain)
         zc = wp.min(wp.abs(vertical) / wp.sqrt(wp.max(var, 1.0e-12)), p.k_out)
@@ -850,7 +851,7 @@ def _reduce_loglik(tiled: bool, with_modes: bool):
             res = residual[t, j]
             if row[CR_VALID] != 0.0:
                 acc.n_recv = acc.n_recv + 1
-                if not wp.isnan(res):
+                if not is_nan(res):
                     s = normal[t, j]
                     jac, jac_pos = ray_jacobians(mat, row, res, s)
                     u_down = (mat * row_dir(row))[2]

@@ -150,21 +150,40 @@ def chunk_range(c: int, n: int):
     return lo, wp.min(lo + size, n)
 
 
+RANDN_EPS = wp.constant(5.96e-8)
+"""Added to the uniform under Box–Muller's logarithm (as ``wp.randn`` does): ``log`` of a number in (0, 1)."""
+
+
+@wp.func
+def normal_pair(u1: float, u2: float):
+    """Two independent standard normal numbers from two uniforms in [0, 1) (Box–Muller, both of its outputs: one
+    logarithm and square root for two draws where ``wp.randn`` takes one each)."""
+    r = wp.sqrt(-2.0 * wp.log(u1 + RANDN_EPS))
+    a = 2.0 * wp.pi * u2
+    return r * wp.cos(a), r * wp.sin(a)
+
+
 @wp.func
 def gaussian3(state: wp.uint32) -> wp.vec3:
     """Three independent standard normal numbers."""
-    return wp.vec3(wp.randn(state), wp.randn(state), wp.randn(state))
+    a, b = normal_pair(wp.randf(state), wp.randf(state))
+    c, _ = normal_pair(wp.randf(state), wp.randf(state))
+    return wp.vec3(a, b, c)
 
 
 @wp.func
 def gaussian_blocks(state: wp.uint32):
-    """Five independent standard normal vec3 (one state: the draws must share it)."""
-    z0 = wp.vec3(wp.randn(state), wp.randn(state), wp.randn(state))
-    z1 = wp.vec3(wp.randn(state), wp.randn(state), wp.randn(state))
-    z2 = wp.vec3(wp.randn(state), wp.randn(state), wp.randn(state))
-    z3 = wp.vec3(wp.randn(state), wp.randn(state), wp.randn(state))
-    z4 = wp.vec3(wp.randn(state), wp.randn(state), wp.randn(state))
-    return z0, z1, z2, z3, z4
+    """Five independent standard normal vec3 (one state: the draws must share it), from eight Box–Muller pairs (the
+    time update drew 15 ``wp.randn``, 170 µs of a 500-particle CPU update)."""
+    a0, a1 = normal_pair(wp.randf(state), wp.randf(state))
+    a2, b0 = normal_pair(wp.randf(state), wp.randf(state))
+    b1, b2 = normal_pair(wp.randf(state), wp.randf(state))
+    c0, c1 = normal_pair(wp.randf(state), wp.randf(state))
+    c2, d0 = normal_pair(wp.randf(state), wp.randf(state))
+    d1, d2 = normal_pair(wp.randf(state), wp.randf(state))
+    e0, e1 = normal_pair(wp.randf(state), wp.randf(state))
+    e2, _ = normal_pair(wp.randf(state), wp.randf(state))
+    return wp.vec3(a0, a1, a2), wp.vec3(b0, b1, b2), wp.vec3(c0, c1, c2), wp.vec3(d0, d1, d2), wp.vec3(e0, e1, e2)
 
 
 @wp.kernel

@@ -22,7 +22,7 @@ import warp as wp
 
 from warptan.kernels.frames import quat_to_mat_wxyz
 from warptan.kernels.likelihood import CR_RANGE, CR_VALID, cloud_row, row_dir
-from warptan.kernels.terrain import HeightGrid, grid_gradient, grid_surface
+from warptan.kernels.terrain import HeightGrid, grid_gradient, grid_surface, is_finite, is_nan
 
 wp.set_module_options({"enable_backward": False})
 
@@ -45,7 +45,7 @@ def origin_blocked(grid: HeightGrid, o: wp.vec3) -> bool:
     if not (u >= 0.0 and u <= float(rows - 1) and v >= 0.0 and v <= float(cols - 1) and o[2] == o[2]):
         return True
     h = grid_surface(grid, o[0], o[1])
-    if not wp.isnan(h):
+    if not is_nan(h):
         if o[2] > -h:
             return True
     return False
@@ -210,7 +210,7 @@ def cast_bisection(grid: HeightGrid, o: wp.vec3, d: wp.vec3, step_m: float, n_bi
         t_cur = wp.min(t_prev + t_step, t_end)
         p = o + t_cur * d
         h = grid_surface(grid, p[0], p[1])
-        if wp.isnan(h):
+        if is_nan(h):
             return wp.nan  # left the map or met nodata
         if p[2] + h >= 0.0:
             lo = t_prev
@@ -219,7 +219,7 @@ def cast_bisection(grid: HeightGrid, o: wp.vec3, d: wp.vec3, step_m: float, n_bi
                 mid = 0.5 * (lo + hi)
                 q = o + mid * d
                 hq = grid_surface(grid, q[0], q[1])
-                if wp.isnan(hq) or q[2] + hq >= 0.0:
+                if is_nan(hq) or q[2] + hq >= 0.0:
                     hi = mid
                 else:
                     lo = mid
@@ -337,10 +337,10 @@ def raycast_residual_kernel(
     if want_vertical != 0:
         q = p + row[CR_RANGE] * d
         vertical_out[i, j] = -q[2] - grid_surface(grid, q[0], q[1])
-    if not wp.isnan(t):
+    if not is_nan(t):
         hit = p + t * d
         grad = grid_gradient(grid, 1, hit[0], hit[1])
         nrm = wp.vec3(grad[0], grad[1], 1.0)
         den = wp.dot(nrm, d)
-        if wp.isfinite(den) and wp.abs(den) > 1.0e-3:
+        if is_finite(den) and wp.abs(den) > 1.0e-3:
             normal_out[i, j] = nrm / den

@@ -39,7 +39,7 @@ from warptan.kernels.likelihood import (
     row_dir,
     row_point,
 )
-from warptan.kernels.terrain import HeightGrid, grid_gradient, grid_height, grid_height_gradient
+from warptan.kernels.terrain import HeightGrid, grid_gradient, grid_height, grid_height_gradient, is_nan
 
 wp.set_module_options({"enable_backward": False})
 
@@ -120,7 +120,7 @@ def _sliding_loglik(tiled: bool, with_modes: bool):
                 # ĉ = Rᵀ((w_n, w_e, -h) - p) = c + gap Rᵀe₃ with gap = -h - w_d: the residual c_z - ĉ_z
                 gap = -h - w[2]
                 res = -gap * mat[2, 2]
-                if not wp.isnan(res):
+                if not is_nan(res):
                     nabla = wp.vec3(grad[0], grad[1], 1.0)
                     n_s = wp.transpose(mat) * nabla  # ∇F in the sensor frame: ∇F · (R d) = n_s · d
                     sigma = sliding_sigma(params, mat[2, 2], wp.dot(n_s, row_dir(row)))
@@ -164,7 +164,7 @@ def kernel_height(grid: HeightGrid, surface: int, p: wp.vec3, chol: wp.mat33):
     h0 = grid_height(grid, surface, p[0], p[1])
     c0 = wp.vec2(chol[0, 0], chol[1, 0])
     c1 = wp.vec2(0.0, chol[1, 1])
-    if wp.isnan(h0) or (c0[0] == 0.0 and c0[1] == 0.0 and c1[1] == 0.0):
+    if is_nan(h0) or (c0[0] == 0.0 and c0[1] == 0.0 and c1[1] == 0.0):
         return h0, float(0.0)
     sw = 1.0 / 3.0
     s1 = float(0.0)
@@ -178,7 +178,7 @@ def kernel_height(grid: HeightGrid, surface: int, p: wp.vec3, chol: wp.mat33):
             sign = -1.0
         d = (sign * KERNEL_POINT_SCALE) * c
         dh = grid_height(grid, surface, p[0] + d[0], p[1] + d[1]) - h0
-        if not wp.isnan(dh):
+        if not is_nan(dh):
             sw += 1.0 / 6.0
             s1 += dh / 6.0
             s2 += dh * dh / 6.0
@@ -236,7 +236,7 @@ def altimeter_loglik_kernel(
             kernel = wp.mat33()
         h, var = kernel_height(grid, surface, p, kernel)
         res = r[0] - (alt - h)
-        if not wp.isnan(res):
+        if not is_nan(res):
             sigma = params.sigma
             if var > 0.0:
                 sigma = wp.sqrt(sigma * sigma + var)

@@ -20,6 +20,20 @@ import warp as wp
 wp.set_module_options({"enable_backward": False})
 
 
+@wp.func
+def is_nan(x: float) -> bool:
+    """``x`` is NaN, as ``x != x`` inline: ``wp.isnan`` is an out-of-line call on the CPU (Warp's ``_wp_isnan`` of a
+    double), whose saved and restored registers cost the sliding kernel's loop, two tests a point, ~15 %."""
+    return x != x
+
+
+@wp.func
+def is_finite(x: float) -> bool:
+    """``x`` is neither NaN nor infinite, inline (``x - x`` is 0 exactly for a finite ``x``, NaN otherwise; see
+    :func:`is_nan`)."""
+    return x - x == 0.0
+
+
 @wp.struct
 class HeightGrid:
     """A regular height grid on the device (all lengths in metres, NED horizontal coordinates)."""
@@ -81,7 +95,7 @@ def grid_cell(grid: HeightGrid, north: float, east: float):
 def grid_surface(grid: HeightGrid, north: float, east: float) -> float:
     """Height in m of the triangulated surface (the mesh) at ``(north, east)``; NaN where invalid."""
     inside, fu, fv, h00, h10, h01, h11 = grid_cell(grid, north, east)
-    if not inside or wp.isnan(h00 + h10 + h01 + h11):
+    if not inside or is_nan(h00 + h10 + h01 + h11):
         return wp.nan
     if fu >= fv:
         # triangle (i,j) (i+1,j) (i+1,j+1)
@@ -124,7 +138,7 @@ def grid_height_gradient(grid: HeightGrid, surface: int, north: float, east: flo
         h = (1.0 - fu) * ((1.0 - fv) * h00 + fv * h01) + fu * ((1.0 - fv) * h10 + fv * h11)
         return h, wp.vec2(((1.0 - fv) * (h10 - h00) + fv * (h11 - h01)) / grid.dn,
                           ((1.0 - fu) * (h01 - h00) + fu * (h11 - h10)) / grid.de)
-    if wp.isnan(h00 + h10 + h01 + h11):
+    if is_nan(h00 + h10 + h01 + h11):
         return float(wp.nan), wp.vec2(wp.nan, wp.nan)
     if fu >= fv:
         return h00 + fu * (h10 - h00) + fv * (h11 - h10), wp.vec2((h10 - h00) / grid.dn, (h11 - h10) / grid.de)
