@@ -54,6 +54,12 @@ class HeightGrid:
     """Lowest valid post in m."""
     h_max: wp.float32
     """Highest valid post in m."""
+    inv_dn: wp.float32
+    """``1 / dn`` in 1/m: the gradients multiply by it (a division sat on the CPU sliding kernel's per-point path from
+    the slope to the point's σ). The cell is still located by dividing: exactly on the last post a product may
+    round past the grid's edge."""
+    inv_de: wp.float32
+    """``1 / de`` in 1/m."""
 
 
 @wp.func
@@ -120,11 +126,11 @@ def grid_gradient(grid: HeightGrid, surface: int, north: float, east: float) -> 
     if not inside:
         return wp.vec2(wp.nan, wp.nan)
     if surface == 0:
-        return wp.vec2(((1.0 - fv) * (h10 - h00) + fv * (h11 - h01)) / grid.dn,
-                       ((1.0 - fu) * (h01 - h00) + fu * (h11 - h10)) / grid.de)
+        return wp.vec2(((1.0 - fv) * (h10 - h00) + fv * (h11 - h01)) * grid.inv_dn,
+                       ((1.0 - fu) * (h01 - h00) + fu * (h11 - h10)) * grid.inv_de)
     if fu >= fv:
-        return wp.vec2((h10 - h00) / grid.dn, (h11 - h10) / grid.de)
-    return wp.vec2((h11 - h01) / grid.dn, (h01 - h00) / grid.de)
+        return wp.vec2((h10 - h00) * grid.inv_dn, (h11 - h10) * grid.inv_de)
+    return wp.vec2((h11 - h01) * grid.inv_dn, (h01 - h00) * grid.inv_de)
 
 
 @wp.func
@@ -136,13 +142,13 @@ def grid_height_gradient(grid: HeightGrid, surface: int, north: float, east: flo
         return float(wp.nan), wp.vec2(wp.nan, wp.nan)
     if surface == 0:
         h = (1.0 - fu) * ((1.0 - fv) * h00 + fv * h01) + fu * ((1.0 - fv) * h10 + fv * h11)
-        return h, wp.vec2(((1.0 - fv) * (h10 - h00) + fv * (h11 - h01)) / grid.dn,
-                          ((1.0 - fu) * (h01 - h00) + fu * (h11 - h10)) / grid.de)
+        return h, wp.vec2(((1.0 - fv) * (h10 - h00) + fv * (h11 - h01)) * grid.inv_dn,
+                          ((1.0 - fu) * (h01 - h00) + fu * (h11 - h10)) * grid.inv_de)
     if is_nan(h00 + h10 + h01 + h11):
         return float(wp.nan), wp.vec2(wp.nan, wp.nan)
     if fu >= fv:
-        return h00 + fu * (h10 - h00) + fv * (h11 - h10), wp.vec2((h10 - h00) / grid.dn, (h11 - h10) / grid.de)
-    return h00 + fv * (h01 - h00) + fu * (h11 - h01), wp.vec2((h11 - h01) / grid.dn, (h01 - h00) / grid.de)
+        return h00 + fu * (h10 - h00) + fv * (h11 - h10), wp.vec2((h10 - h00) * grid.inv_dn, (h11 - h10) * grid.inv_de)
+    return h00 + fv * (h01 - h00) + fu * (h11 - h01), wp.vec2((h11 - h01) * grid.inv_dn, (h01 - h00) * grid.inv_de)
 
 
 @wp.kernel

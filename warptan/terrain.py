@@ -480,6 +480,7 @@ class Terrain:
             g.cell_max = wp.array(self.cell_max_m.astype(np.float32), dtype=wp.float32, device=entry["device"])
             g.n0, g.e0, g.dn, g.de = self.n0, self.e0, self.dn, self.de
             g.h_min, g.h_max = self.h_min, self.h_max
+            g.inv_dn, g.inv_de = 1.0 / self.dn, 1.0 / self.de
             entry["grid"] = g
         return entry["grid"]
 
