@@ -28,12 +28,11 @@ from warptan.kernels.likelihood import (
     acc_point,
     acc_set_modes,
     acc_store,
-    acc_unpack,
     cloud_row,
     gross_miss,
     mode_post,
+    modes_block_total,
     modes_init,
-    modes_unpack,
     modes_vec,
     per_particle_kernels,
     row_dir,
@@ -133,9 +132,9 @@ def _sliding_loglik(tiled: bool, with_modes: bool):
                             acc_modes(macc, params, modes[j], res, sigma, jac, jac_pos)
             residual_out[t, j] = res
         if wp.static(tiled):
-            total = acc_block_total(acc, macc)
-            acc = acc_unpack(total)
-            macc = modes_unpack(total)
+            acc = acc_block_total(acc)
+            if wp.static(with_modes):
+                macc = modes_block_total(macc)
         if lane == 0:
             if wp.static(with_modes):
                 macc = acc_set_modes(macc, modes, cloud.shape[1], mode_mean[t], mode_var[b])

@@ -729,12 +729,12 @@ class _PointCloudModel(MeasurementModel):
     def _scan_geometry(self, quat: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         from warptan.frames import quat_to_mat
 
-        host = self._host["cloud"][0]
+        dirs, rng = self._host["first"]  # the first filter's cloud as staged (float32)
         rot = quat_to_mat(quat / max(float(np.linalg.norm(quat)), 1e-12))
-        u = host[:, klik.CR_DIR:klik.CR_DIR + 3].astype(np.float64) @ rot.T  # the rays in the navigation frame
-        rng = host[:, klik.CR_RANGE].astype(np.float64)
+        u = dirs.astype(np.float64) @ rot.T  # the rays in the navigation frame
+        rng = rng.astype(np.float64)
         down = np.maximum(u[:, 2], 0.1)
-        ok = (host[:, klik.CR_VALID] != 0) & (u[:, 2] > 0.1) & np.isfinite(rng)
+        ok = (u[:, 2] > 0.1) & np.isfinite(rng)
         agl = float(np.median((rng * u[:, 2])[ok])) if ok.any() else 1.0
         # the nominal footprint: every ray meets the scan's median ground level (a smooth function of the altitude
         # and attitude; the points' own ranges moved it with every hill, and the modes with it)
@@ -744,23 +744,37 @@ class _PointCloudModel(MeasurementModel):
 
     def _fill(self, items) -> np.ndarray:
         b, m = self._staged.shape
-        host = self._host.get("cloud")
-        if host is None or host.shape != (b, m, klik.CLOUD_ROW_LEN):
-            host = self._host["cloud"] = np.empty((b, m, klik.CLOUD_ROW_LEN), dtype=np.float32)
-        p, d = klik.CR_POINT, klik.CR_DIR
-        # the batch at once (a loop per cloud cost 2 ms at B = 100), each cloud's arrays read once: its points
-        # r_j d_j as PointCloud.points_s makes them, its validity from its ranges (NaN = invalid)
+        device = self._staged.device
+        # the batch at once: the ranges go up, a kernel writes the rows (:func:`cloud_rows_kernel`); the directions
+        # of one pattern that every cloud shares (a sensor's scans) go up once
         first = items[0].dirs_s
-        same = all(cloud.dirs_s is first for cloud in items)  # one pattern's directions (a sensor's scans share them)
-        dirs = first[None] if same else np.stack([cloud.dirs_s for cloud in items])
-        ranges = np.stack([cloud.ranges_m for cloud in items])
-        ok = np.isfinite(ranges)
-        host[:, :, p:p + 3] = np.where(ok[:, :, None], ranges[:, :, None] * dirs, 0.0)
-        host[:, :, d:d + 3] = dirs
-        host[:, :, klik.CR_RANGE] = ranges
-        host[:, :, klik.CR_VALID] = ok
-        self._staged.assign(host)
-        return host[:, :, klik.CR_VALID].sum(axis=1).astype(np.int64)
+        same = all(cloud.dirs_s is first for cloud in items)
+        ranges = self._host.get("ranges")
+        if ranges is None or ranges.shape != (b, m):
+            ranges = self._host["ranges"] = np.empty((b, m), dtype=np.float32)
+        for k, cloud in enumerate(items):
+            ranges[k] = cloud.ranges_m
+        dev_ranges = self._host.get("dev_ranges")
+        if dev_ranges is None or dev_ranges.shape != (b, m) or dev_ranges.device != device:
+            dev_ranges = self._host["dev_ranges"] = wp.empty((b, m), dtype=wp.float32, device=device)
+        dev_ranges.assign(ranges)
+        if same:
+            held = self._host.get("dirs")
+            if held is None or held[0] is not first or held[1].device != device:
+                held = self._host["dirs"] = (first, wp.array(first[None].astype(np.float32), dtype=wp.vec3,
+                                                              device=device))
+            dirs = held[1]
+        else:
+            dirs = wp.array(np.stack([cloud.dirs_s for cloud in items]).astype(np.float32), dtype=wp.vec3,
+                            device=device)
+        cmd = self._host.get("rows_cmd")  # recorded once for these arrays (a launch packs its arguments every time)
+        if cmd is None or cmd[0] is not dirs or cmd[1] is not dev_ranges or cmd[2] is not self._staged:
+            cmd = self._host["rows_cmd"] = (dirs, dev_ranges, self._staged, wp.launch(
+                klik.cloud_rows_kernel, dim=(b, m), inputs=[dev_ranges, dirs], outputs=[self._staged], device=device,
+                record_cmd=True))
+        cmd[3].launch()
+        self._host["first"] = (first.astype(np.float32), ranges[0].copy())
+        return np.isfinite(ranges).sum(axis=1).astype(np.int64)
 
 
 def _forward(quat: np.ndarray) -> np.ndarray:

@@ -679,12 +679,14 @@ class MarginalizedParticleFilter:
             wp.copy(self._ints, self._ints_host[self._set])
         nav, out = self._nav, self._dev
         phi, noise, scratch = self._scratch
-        launch_rows(knav.nav_interval_kernel, self.n_filters,
+        tiled = self.device.is_cuda
+        launch_rows(knav.nav_interval_kernels[tiled], self.n_filters,
                     lambda a, b: ([a or 0, self._ints, self.dt, self._q_dev[0], self.q_rough, self._q_lin,
                                    self._q_dev[1], self._imu, nav["pos"], nav["vel"], nav["quat"], nav["ba"],
                                    nav["bg"], nav["cov"], phi, noise, scratch],
                                   [out["phi"], out["chol"], out["pose"], out["att_cov"], out["p_col"]]),
-                    self.device, row_cost=4000 * max(self._interval_k, 1))
+                    self.device, row_cost=4000 * max(self._interval_k, 1),
+                    block_dim=knav.NAV_BLOCK_DIM if tiled else None)
 
     def _next_set(self) -> None:
         """After the device work that reads the current staging set is queued: switch sets (CUDA), first waiting
