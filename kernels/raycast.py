@@ -100,25 +100,25 @@ def cell_hit(grid: HeightGrid, i: int, j: int, o: wp.vec3, d: wp.vec3) -> float:
     b = o[1] - (grid.e0 + float(j) * grid.de)
     best = float(-1.0)
     # Triangle A, U >= V: h = h00 + U (h10 - h00) + V (h11 - h10); f(t) = z(t) + h(t), above the surface f < 0.
-    su = (h10 - h00) / grid.dn
-    sv = (h11 - h10) / grid.de
+    su = (h10 - h00) * grid.inv_dn
+    sv = (h11 - h10) * grid.inv_de
     f1 = d[2] + d[0] * su + d[1] * sv
     if f1 > 0.0:
         t = -(o[2] + h00 + a * su + b * sv) / f1
         if t >= 0.0:
-            uu = (a + t * d[0]) / grid.dn
-            vv = (b + t * d[1]) / grid.de
+            uu = (a + t * d[0]) * grid.inv_dn
+            vv = (b + t * d[1]) * grid.inv_de
             if vv >= -EDGE_EPS and uu <= 1.0 + EDGE_EPS and uu >= vv - EDGE_EPS:
                 best = t
     # Triangle B, V >= U: h = h00 + V (h01 - h00) + U (h11 - h01).
-    su = (h11 - h01) / grid.dn
-    sv = (h01 - h00) / grid.de
+    su = (h11 - h01) * grid.inv_dn
+    sv = (h01 - h00) * grid.inv_de
     f1 = d[2] + d[0] * su + d[1] * sv
     if f1 > 0.0:
         t = -(o[2] + h00 + a * su + b * sv) / f1
         if t >= 0.0 and (best < 0.0 or t < best):
-            uu = (a + t * d[0]) / grid.dn
-            vv = (b + t * d[1]) / grid.de
+            uu = (a + t * d[0]) * grid.inv_dn
+            vv = (b + t * d[1]) * grid.inv_de
             if uu >= -EDGE_EPS and vv <= 1.0 + EDGE_EPS and vv >= uu - EDGE_EPS:
                 best = t
     return best
@@ -142,8 +142,8 @@ def cast_dda(grid: HeightGrid, o: wp.vec3, d: wp.vec3) -> float:
         return wp.nan  # the ray leaves the map before it comes down to the terrain
     i = wp.min(int(wp.floor(u)), rows - 2)
     j = wp.min(int(wp.floor(v)), cols - 2)
-    du = d[0] / grid.dn
-    dv = d[1] / grid.de
+    du = d[0] * grid.inv_dn
+    dv = d[1] * grid.inv_de
     step_i = int(1)
     step_j = int(1)
     t_next_u = float(BIG)
