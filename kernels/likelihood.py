@@ -151,10 +151,9 @@ class LikParams:
 
 
 @wp.func
-def point_loglik_z(lik: int, z: float, nu: float) -> float:
-    """Log density (constants dropped) of one whitened residual ``z = r / σ`` under the per-point model (less
-    ``log σ``)."""
-    z2 = z * z
+def point_loglik_z2(lik: int, z2: float, nu: float) -> float:
+    """Log density (constants dropped) of one residual of squared whitened size ``z² = r² / σ²`` under the per-point
+    model (less ``log σ``)."""
     if lik == LIK_STUDENT:
         return -0.5 * (nu + 1.0) * wp.log(1.0 + z2 / nu)
     return -0.5 * z2
@@ -163,12 +162,12 @@ def point_loglik_z(lik: int, z: float, nu: float) -> float:
 @wp.func
 def point_loglik(lik: int, res: float, sigma: float, nu: float) -> float:
     """Log density (constants dropped) of one residual under the per-point model."""
-    return point_loglik_z(lik, res / sigma, nu)
+    return point_loglik_z2(lik, (res / sigma) * (res / sigma), nu)
 
 
-SIGMA_RATIO_FOLD_MIN = wp.constant(1.0e-12)
-SIGMA_RATIO_FOLD_MAX = wp.constant(1.0e12)
-"""Bounds of :attr:`Acc.sigma_ratio` outside which :func:`acc_add` folds its log into the sums (float32 keeps ratios
+VAR_RATIO_FOLD_MIN = wp.constant(1.0e-12)
+VAR_RATIO_FOLD_MAX = wp.constant(1.0e12)
+"""Bounds of :attr:`Acc.var_ratio` outside which :func:`acc_add` folds its log into the sums (float32 keeps ratios
 of per-point σs to ~1e±26 more without overflow or subnormals)."""
 
 
@@ -181,8 +180,8 @@ class Acc:
     sum_abs: float  # Σ|r|, m
     sum_axes: wp.vec3  # Σ|r| |d| per axis, m
     last: float  # the last residual, m
-    ll_points: float  # Σ point log-densities, less the log of ``sigma_ratio`` (:func:`acc_ll_points`)
-    sigma_ratio: float  # Π σ_j / σ over the points since it was last folded into ``ll_points`` (:func:`acc_add`)
+    ll_points: float  # Σ point log-densities, less half the log of ``var_ratio`` (:func:`acc_ll_points`)
+    var_ratio: float  # Π σ_j² / σ² over the points since it was last folded into ``ll_points`` (:func:`acc_add`)
     sum_sq: float  # Σ min((r/σ)², k_out²)
     lam: wp.mat33  # Λ = Σ Hᵀ H / σ² (H: the prediction's Jacobian w.r.t. the attitude error dθ, m/rad)
     info: wp.vec3  # b = Σ Hᵀ r / σ²
@@ -225,7 +224,7 @@ def acc_init() -> Acc:
     a.sum_axes = wp.vec3()
     a.last = 0.0
     a.ll_points = 0.0
-    a.sigma_ratio = 1.0
+    a.var_ratio = 1.0
     a.sum_sq = 0.0
     a.lam = wp.mat33()
     a.info = wp.vec3()
@@ -255,7 +254,7 @@ def modes_init() -> ModeAcc:
 
 
 @wp.func
-def acc_modes(a: wp.ref[ModeAcc], p: LikParams, v: modes_vec, res: float, sigma: float, jac: wp.vec3,
+def acc_modes(a: wp.ref[ModeAcc], p: LikParams, v: modes_vec, res: float, var: float, jac: wp.vec3,
               jac_pos: wp.vec3):
     """``a`` += one predictable point's projections on the map-error modes (its table row ``v``; called only when
     modes are in use): the whitened residual ``res / sigma`` and the attitude and position Jacobians over ``sigma``
@@ -269,7 +268,7 @@ def acc_modes(a: wp.ref[ModeAcc], p: LikParams, v: modes_vec, res: float, sigma:
     of a projector), so fewer points never score better. Renormalising each mode over the predicted points
     (``k_i / (1 + k_i |u_i|²)``) broke that bound: S5/S6 diverged onto particles that predict fewer points."""
     if p.lik != LIK_PAPER:
-        inv = 1.0 / sigma
+        inv = 1.0 / wp.sqrt(var)
         a.proj = a.proj + v * (res * inv)
         a.proj_h = a.proj_h + wp.outer(v, jac * inv)
         a.proj_g = a.proj_g + wp.outer(v, jac_pos * inv)
@@ -294,14 +293,15 @@ def sym_outer(a: wp.vec3, w: float) -> wp.mat33:
 
 
 @wp.func
-def upper_add(m: wp.ref[wp.mat33], a: wp.vec3):
-    """The upper triangle of ``m`` += ``outer(a, a)`` in place (:func:`acc_symmetric` mirrors it)."""
-    m[0, 0] = m[0, 0] + a[0] * a[0]
-    m[0, 1] = m[0, 1] + a[0] * a[1]
-    m[0, 2] = m[0, 2] + a[0] * a[2]
-    m[1, 1] = m[1, 1] + a[1] * a[1]
-    m[1, 2] = m[1, 2] + a[1] * a[2]
-    m[2, 2] = m[2, 2] + a[2] * a[2]
+def upper_add(m: wp.ref[wp.mat33], a: wp.vec3, b: wp.vec3):
+    """The upper triangle of ``m`` += ``outer(a, b)`` in place, ``a`` a multiple of ``b`` (the product symmetric;
+    :func:`acc_symmetric` mirrors it)."""
+    m[0, 0] = m[0, 0] + a[0] * b[0]
+    m[0, 1] = m[0, 1] + a[0] * b[1]
+    m[0, 2] = m[0, 2] + a[0] * b[2]
+    m[1, 1] = m[1, 1] + a[1] * b[1]
+    m[1, 2] = m[1, 2] + a[1] * b[2]
+    m[2, 2] = m[2, 2] + a[2] * b[2]
 
 
 @wp.func
@@ -328,47 +328,48 @@ def acc_symmetric(a: Acc) -> Acc:
 
 
 @wp.func
-def acc_add(a: wp.ref[Acc], p: LikParams, res: float, sigma: float, axis_w: wp.vec3, jac: wp.vec3, jac_pos: wp.vec3):
-    """``a`` += one predictable residual ``res`` (m, finite) of standard deviation ``sigma`` (m; ``p.sigma`` unless
-    the model propagates the sensor's noise per point, which adds ``-log(sigma / p.sigma)`` to the point's
-    log-density), weighted by ``axis_w`` per axis for the paper's per-axis error, with ``jac`` the prediction's
-    Jacobian w.r.t. dθ (m/rad) and ``jac_pos`` w.r.t. the position (dimensionless): ``min(z², k_out²)``, the point
-    log-density, ``Hᵀ H / σ²``, ``Hᵀ r / σ²``, ``G Gᵀ / σ²``, ``H Gᵀ / σ²``, ``Gᵀ r / σ²`` (not the last five for
-    the paper's form; the two symmetric ones by their upper triangles). In place, from the whitened ``H / σ``,
-    ``G / σ``, ``r / σ``, entry by entry: a matrix built per point and then added cost the CPU its copies."""
-    inv_s = 1.0 / sigma
-    z = res * inv_s
+def acc_add(a: wp.ref[Acc], p: LikParams, res: float, var: float, axis_w: wp.vec3, jac: wp.vec3, jac_pos: wp.vec3):
+    """``a`` += one predictable residual ``res`` (m, finite) of variance ``var`` (m²; ``p.sigma²`` unless the model
+    propagates the sensor's noise per point, which adds ``-log(σ_j / p.sigma)`` to the point's log-density), weighted
+    by ``axis_w`` per axis for the paper's per-axis error, with ``jac`` the prediction's Jacobian w.r.t. dθ (m/rad)
+    and ``jac_pos`` w.r.t. the position (dimensionless): ``min(z², k_out²)``, the point log-density, ``Hᵀ H / σ²``,
+    ``Hᵀ r / σ²``, ``G Gᵀ / σ²``, ``H Gᵀ / σ²``, ``Gᵀ r / σ²`` (not the last five for the paper's form; the two
+    symmetric ones by their upper triangles). In place, entry by entry (a matrix built per point and then added cost
+    the CPU its copies), from the variance: no square root on the per-point path (it was the CPU sliding kernel's
+    hottest instruction)."""
+    inv_var = 1.0 / var
+    z2 = res * res * inv_var
     r = wp.abs(res)
     a.n_ok = a.n_ok + 1
     a.sum_abs = a.sum_abs + r
     a.sum_axes = a.sum_axes + r * axis_w
     a.last = res
-    a.sum_sq = a.sum_sq + wp.min(z * z, p.k_out * p.k_out)
-    a.sq_raw = a.sq_raw + z * z
-    a.ll_points = a.ll_points + point_loglik_z(p.lik, z, p.nu)
-    if sigma != p.sigma:  # the density's -log(σ_j / σ), as one log per many points (a log per point cost 9 %)
-        a.sigma_ratio = a.sigma_ratio * (sigma / p.sigma)
-        if not (a.sigma_ratio > SIGMA_RATIO_FOLD_MIN and a.sigma_ratio < SIGMA_RATIO_FOLD_MAX):
-            a.ll_points = a.ll_points - wp.log(a.sigma_ratio)
-            a.sigma_ratio = 1.0
+    a.sum_sq = a.sum_sq + wp.min(z2, p.k_out * p.k_out)
+    a.sq_raw = a.sq_raw + z2
+    a.ll_points = a.ll_points + point_loglik_z2(p.lik, z2, p.nu)
+    var0 = p.sigma * p.sigma
+    if var != var0:  # the density's -log(σ_j / σ), as one log per many points (a log per point cost 9 %)
+        a.var_ratio = a.var_ratio * (var / var0)
+        if not (a.var_ratio > VAR_RATIO_FOLD_MIN and a.var_ratio < VAR_RATIO_FOLD_MAX):
+            a.ll_points = a.ll_points - 0.5 * wp.log(a.var_ratio)
+            a.var_ratio = 1.0
     if p.lik != LIK_PAPER:  # the paper's scalar error is not a per-point model: its filter keeps C = 0
-        w = inv_s
+        w = inv_var
         if p.lik == LIK_STUDENT:  # the t's weight (ν + 1)/(ν + z²) on the information
-            w = w * wp.sqrt((p.nu + 1.0) / (p.nu + z * z))
+            w = w * (p.nu + 1.0) / (p.nu + z2)
         h = jac * w
         g = jac_pos * w
-        zw = res * w
-        upper_add(a.lam, h)
-        a.info = a.info + h * zw
-        upper_add(a.lam_pp, g)
-        outer_add(a.lam_tp, h, g)
-        a.info_p = a.info_p + g * zw
+        upper_add(a.lam, h, jac)
+        a.info = a.info + h * res
+        upper_add(a.lam_pp, g, jac_pos)
+        outer_add(a.lam_tp, h, jac_pos)
+        a.info_p = a.info_p + g * res
 
 
 @wp.func
 def acc_ll_points(a: Acc) -> float:
     """Σ point log-densities, ``-log(σ_j / σ)`` included."""
-    return a.ll_points - wp.log(a.sigma_ratio)
+    return a.ll_points - 0.5 * wp.log(a.var_ratio)
 
 
 ACC_BASE = 36
@@ -439,7 +440,7 @@ def acc_unpack(v: acc_vec) -> Acc:
     a.sum_axes = wp.vec3(v[3], v[4], v[5])
     a.last = v[6]
     a.ll_points = v[7]
-    a.sigma_ratio = 1.0
+    a.var_ratio = 1.0
     a.sum_sq = v[8]
     a.lam = wp.mat33(v[9], v[12], v[13], v[12], v[10], v[14], v[13], v[14], v[11])
     a.info = wp.vec3(v[15], v[16], v[17])
@@ -740,8 +741,8 @@ def ray_nominal_gain(u_down: float) -> float:
 
 
 @wp.func
-def ray_sigma(p: LikParams, s: wp.vec3, u_down: float) -> float:
-    """σ of one range residual (m): the range noise and a vertical map error ``δh``, which moves the predicted range
+def ray_var(p: LikParams, s: wp.vec3, u_down: float) -> float:
+    """σ² of one range residual (m²): the range noise and a vertical map error ``δh``, which moves the predicted range
     by ``s_z δh`` (``s = ∇F / (∇F · u)`` the scaled normal, ``s_z = 1 / (∇F · u)``: 1 at nadir over flat ground,
     large where the ray meets the slope at a glancing angle): ``σ_j = sqrt(σ_range² + σ_map² s_z²)``. Not capped:
     the range's Jacobians grow with ``s`` as well (:func:`ray_jacobians`), so a ray along a slope carries no more
@@ -751,9 +752,9 @@ def ray_sigma(p: LikParams, s: wp.vec3, u_down: float) -> float:
     ``1/u_z`` (``u_down``: the ray's down component, at least 0.1; :meth:`warptan.measurement.Likelihood.error_modes`);
     what the ray's own gain adds or lacks, ``(s_z − 1/u_z) e``, the modes cannot hold, and it is counted here as
     the ray's own: ``+ σ_e² (s_z − 1/u_z)²``. Without a map part (σ_map = 0 and no stated
-    error: the map is the world) or with a fixed σ (σ_range = 0) it is the likelihood's own σ."""
+    error: the map is the world) or with a fixed σ (σ_range = 0) it is the likelihood's own σ²."""
     if p.sigma_range <= 0.0 or (p.sigma_map <= 0.0 and p.sigma_err <= 0.0):
-        return p.sigma
+        return p.sigma * p.sigma
     gain = wp.float32(RAY_MAP_GAIN_MAX)
     if s[2] != 0.0:
         gain = wp.min(wp.abs(s[2]), gain)
@@ -761,7 +762,7 @@ def ray_sigma(p: LikParams, s: wp.vec3, u_down: float) -> float:
     if p.sigma_err > 0.0:
         excess = gain - ray_nominal_gain(u_down)
         var = var + p.sigma_err * p.sigma_err * excess * excess
-    return wp.sqrt(var)
+    return var
 
 
 @wp.func
@@ -773,7 +774,7 @@ def map_not_world(p: LikParams) -> bool:
 
 
 @wp.func
-def gross_miss(p: LikParams, res: float, sigma: float, gain: float) -> bool:
+def gross_miss(p: LikParams, res: float, var: float, gain: float) -> bool:
     """A point-cloud residual the map as stated cannot make: ``|res| > k_out sqrt(σ_j² + (σ_e gain)²)``, with
     ``σ_j`` the point's own σ, ``σ_e`` the stated correlated map error (``sigma_err``, which the modes may hold)
     and ``gain`` the residual's change per metre of vertical map error (a range: ``1/u_z``, at most 10; a sliding
@@ -793,7 +794,7 @@ def gross_miss(p: LikParams, res: float, sigma: float, gain: float) -> bool:
     if not map_not_world(p):
         return False
     e = p.sigma_err * gain
-    return res * res > p.k_out * p.k_out * (sigma * sigma + e * e)
+    return res * res > p.k_out * p.k_out * (var + e * e)
 
 
 @wp.func
@@ -819,7 +820,7 @@ def acc_gated(a: wp.ref[Acc], p: LikParams, vertical: float, gain: float):
 
 
 @wp.func
-def acc_point(a: wp.ref[Acc], p: LikParams, miss: bool, res: float, sigma: float, gain: float, vertical: float,
+def acc_point(a: wp.ref[Acc], p: LikParams, miss: bool, res: float, var: float, gain: float, vertical: float,
               axis_w: wp.vec3, jac: wp.vec3, jac_pos: wp.vec3):
     """``a`` += a point of a point cloud that the particle predicts: a gross miss (``miss``: :func:`gross_miss`,
     ``gain`` its map-error sensitivity) scores its point's height above the map, ``vertical`` (:func:`acc_gated`),
@@ -828,7 +829,7 @@ def acc_point(a: wp.ref[Acc], p: LikParams, miss: bool, res: float, sigma: float
     if miss:
         acc_gated(a, p, vertical, gain)
     else:
-        acc_add(a, p, res, sigma, axis_w, jac, jac_pos)
+        acc_add(a, p, res, var, axis_w, jac, jac_pos)
 
 
 def per_particle_kernels(make):
@@ -888,16 +889,16 @@ def _reduce_loglik(tiled: bool, with_modes: bool):
                     s = normal[t, j]
                     jac, jac_pos = ray_jacobians(mat, row, res, s)
                     u_down = (mat * row_dir(row))[2]
-                    sigma = ray_sigma(params, s, u_down)
+                    var = ray_var(params, s, u_down)
                     vert = float(wp.nan)
                     if map_not_world(params):  # read only where a gross miss can be scored (acc_gated)
                         vert = vertical[t, j]
                     gain = ray_nominal_gain(u_down)
-                    miss = gross_miss(params, res, sigma, gain)
-                    acc_point(acc, params, miss, res, sigma, gain, vert, axis_weights(row), jac, jac_pos)
+                    miss = gross_miss(params, res, var, gain)
+                    acc_point(acc, params, miss, res, var, gain, vert, axis_weights(row), jac, jac_pos)
                     if wp.static(with_modes):
                         if not miss:
-                            acc_modes(macc, params, modes[j], res, sigma, jac, jac_pos)
+                            acc_modes(macc, params, modes[j], res, var, jac, jac_pos)
         if wp.static(tiled):
             acc = acc_block_total(acc)
             if wp.static(with_modes):

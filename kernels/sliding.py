@@ -54,17 +54,18 @@ def sliding_jacobian(mat: wp.mat33, c: wp.vec3, gap: float, n_s: wp.vec3) -> wp.
 
 
 @wp.func
-def sliding_sigma(p: LikParams, g_z: float, slope_dot: float) -> float:
-    """σ of one sliding residual (m): range noise e along the ray ``u = R d`` moves the point by ``e u`` and the
+def sliding_var(p: LikParams, g_z: float, slope_dot: float) -> float:
+    """σ² of one sliding residual (m²): range noise e along the ray ``u = R d`` moves the point by ``e u`` and the
     map height under it, so the residual ``c_z - ĉ_z = g_z × (vertical gap)`` moves by ``g_z (∇F · u) e``
     (``∇F = (h_n, h_e, 1)``, ``g_z = (R e₃)_z``); a vertical map error ``g_z`` times itself:
     ``σ_j = |g_z| sqrt(σ_range² (∇F · u)² + σ_map²)``, with ``|g_z| ≥ 0.2`` and ``|∇F · u| ≥ 0.25`` (a ray
     grazing the slope: the linear propagation no longer holds). A noiseless sensor (σ_range = 0) keeps the
     likelihood's own σ (its floor)."""
     if p.sigma_range <= 0.0:
-        return p.sigma
+        return p.sigma * p.sigma
     geo = wp.max(wp.abs(slope_dot), 0.25)
-    return wp.max(wp.abs(g_z), 0.2) * wp.sqrt(p.sigma_range * p.sigma_range * geo * geo + p.sigma_map * p.sigma_map)
+    g = wp.max(wp.abs(g_z), 0.2)
+    return g * g * (p.sigma_range * p.sigma_range * geo * geo + p.sigma_map * p.sigma_map)
 
 
 def _sliding_loglik(tiled: bool, with_modes: bool):
@@ -122,14 +123,14 @@ def _sliding_loglik(tiled: bool, with_modes: bool):
                 if not is_nan(res):
                     nabla = wp.vec3(grad[0], grad[1], 1.0)
                     n_s = wp.transpose(mat) * nabla  # ∇F in the sensor frame: ∇F · (R d) = n_s · d
-                    sigma = sliding_sigma(params, mat[2, 2], wp.dot(n_s, row_dir(row)))
+                    var = sliding_var(params, mat[2, 2], wp.dot(n_s, row_dir(row)))
                     jac = sliding_jacobian(mat, c, gap, n_s)
                     jac_pos = nabla * (-mat[2, 2])  # ∂ĉ_z/∂p = -g_z ∇F
-                    miss = gross_miss(params, res, sigma, 1.0)
-                    acc_point(acc, params, miss, res, sigma, 1.0, wp.nan, ones, jac, jac_pos)
+                    miss = gross_miss(params, res, var, 1.0)
+                    acc_point(acc, params, miss, res, var, 1.0, wp.nan, ones, jac, jac_pos)
                     if wp.static(with_modes):
                         if not miss:
-                            acc_modes(macc, params, modes[j], res, sigma, jac, jac_pos)
+                            acc_modes(macc, params, modes[j], res, var, jac, jac_pos)
             residual_out[t, j] = res
         if wp.static(tiled):
             acc = acc_block_total(acc)
@@ -236,16 +237,16 @@ def altimeter_loglik_kernel(
         h, var = kernel_height(grid, surface, p, kernel)
         res = r[0] - (alt - h)
         if not is_nan(res):
-            sigma = params.sigma
+            res_var = params.sigma * params.sigma
             if var > 0.0:
-                sigma = wp.sqrt(sigma * sigma + var)
+                res_var = res_var + var
             if params.lik != LIK_PAPER:
                 g = grid_gradient(grid, surface, p[0], p[1])
-                iv = 1.0 / (sigma * sigma)
+                iv = 1.0 / res_var
                 info_pos = wp.vec3(g[0] * g[0] * iv, g[1] * g[1] * iv, g[0] * g[1] * iv)
-            acc_add(acc, params, res, sigma, wp.vec3(1.0, 1.0, 1.0), wp.vec3(), wp.vec3())
+            acc_add(acc, params, res, res_var, wp.vec3(1.0, 1.0, 1.0), wp.vec3(), wp.vec3())
             if params.n_modes > 0:
-                acc_modes(macc, params, modes[0], res, sigma, wp.vec3(), wp.vec3())
+                acc_modes(macc, params, modes[0], res, res_var, wp.vec3(), wp.vec3())
     if params.n_modes > 0:
         macc = acc_set_modes(macc, modes, 1, mode_mean[i], mode_var[b])
         post_out[i] = mode_post(macc, modes, 1)

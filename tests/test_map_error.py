@@ -111,7 +111,7 @@ def _scan_over_a_world():
 
 
 def _ray_sigmas(model, out, cloud):
-    """σ_j of every (particle, ray) as :func:`warptan.kernels.likelihood.ray_sigma` has it, float64 (level
+    """σ_j of every (particle, ray) as :func:`warptan.kernels.likelihood.ray_var` has it (its root), float64 (level
     attitude: a ray's down component is its sensor-frame one)."""
     p = model.params()
     s_z = out.normal.numpy()[:, :, 2].astype(np.float64)

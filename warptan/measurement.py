@@ -832,7 +832,7 @@ class SlidingModel(_PointCloudModel):
     """The sliding grid: read the map under each received point placed with the particle's pose (eq. 14, 16).
 
     Each residual has its own σ: the sensor's range noise propagated to it, ``|g_z| sqrt(σ_range² (∇F · u)² +
-    σ_map²)`` (:func:`warptan.kernels.sliding.sliding_sigma`; σ_range = the likelihood's ``sensor_sigma_m``, or its
+    σ_map²)`` (:func:`warptan.kernels.sliding.sliding_var`; σ_range = the likelihood's ``sensor_sigma_m``, or its
     ``sigma_m`` when given, σ_map its map and surface-mismatch part). With the range σ itself the best particle's NIS
     was 0.08 in S6 (60° bank, low) and 0.5 in S4, and the position bounds 4× and 1.7× the error; now 0.90–0.97.
 
