@@ -201,8 +201,9 @@ def scenario_step_block() -> str:
                      f"{r['kernel_point_evals_per_s'] / 1e6:.1f} M | {rtf} |")
     commands = "; ".join(f"`{_load(p)['meta']['command']}`" for p in sources)
     return ("The filter each scenario flies (its map surface, likelihood, scan, rates, tempering and attitude update), "
-            "measured on its own flight after its first seconds; the real-time factor is a whole run of the "
-            "scenario (flight time over wall time, seed 0). " + _provenance(*sources) + " Commands: " + commands
+            "measured on its own flight after its first seconds; the real-time factor is flight time over the median "
+            "wall time of whole runs of the scenario (seed 0; one run where the artifact has no rtf_walls_s). "
+            + _provenance(*sources) + " Commands: " + commands
             + ".\n\n" + "\n".join(lines))
 
 
