@@ -256,17 +256,17 @@ def modes_init() -> ModeAcc:
 @wp.func
 def acc_modes(a: wp.ref[ModeAcc], p: LikParams, v: modes_vec, res: float, var: float, jac: wp.vec3,
               jac_pos: wp.vec3):
-    """``a`` += one predictable point's projections on the map-error modes (its table row ``v``; called only when
-    modes are in use): the whitened residual ``res / sigma`` and the attitude and position Jacobians over ``sigma``
-    (nothing for the paper's form). The rows are the scan's modes for its nominal sensitivities (a range's 1/cos
+    """``a`` += one predictable point's projections on the map-error modes (its table row ``v``; called only when modes
+    are in use; ``var`` = σ_j², m²): the whitened residual ``res / σ_j`` and the attitude and position Jacobians over
+    ``σ_j`` (nothing for the paper's form). The rows are the scan's modes for its nominal sensitivities (a range's 1/cos
     of its angle from the vertical over flat ground): scaling them per particle by a ray's actual slope made them
     non-orthogonal, and the Woodbury with fixed weights then over-subtracted (Λ indefinite, S7 diverged).
 
-    The gains ``c_i ≤ 1`` are the same for every particle of a filter: with the scan's orthonormal modes, Woodbury
-    gives ``(I + Σ P_i u_i u_iᵀ)⁻¹ = I − Σ c_i u_i u_iᵀ``. A particle that predicts only some points keeps them: its
-    modes are then not orthonormal, but ``c_i ≤ 1`` keeps ``Σ c_i p_i² ≤ zᵀz`` over its points (a principal block
-    of a projector), so fewer points never score better. Renormalising each mode over the predicted points
-    (``k_i / (1 + k_i |u_i|²)``) broke that bound: S5/S6 diverged onto particles that predict fewer points."""
+    The gains ``c_i ≤ 1`` are the same for every particle of a filter: with the scan's orthonormal modes, Woodbury gives
+    ``(I + Σ P_i u_i u_iᵀ)⁻¹ = I − Σ c_i u_i u_iᵀ``. A particle that predicts only some points keeps them: its modes are
+    then not orthonormal, but ``c_i ≤ 1`` keeps ``Σ c_i p_i² ≤ zᵀz`` over its points (a principal block of a projector),
+    so fewer points never score better. Renormalising each mode over the predicted points (``k_i / (1 + k_i |u_i|²)``)
+    broke that bound: S5/S6 diverged onto particles that predict fewer points."""
     if p.lik != LIK_PAPER:
         inv = 1.0 / wp.sqrt(var)
         a.proj = a.proj + v * (res * inv)
@@ -775,22 +775,21 @@ def map_not_world(p: LikParams) -> bool:
 
 @wp.func
 def gross_miss(p: LikParams, res: float, var: float, gain: float) -> bool:
-    """A point-cloud residual the map as stated cannot make: ``|res| > k_out sqrt(σ_j² + (σ_e gain)²)``, with
-    ``σ_j`` the point's own σ, ``σ_e`` the stated correlated map error (``sigma_err``, which the modes may hold)
+    """A point-cloud residual the map as stated cannot make: ``|res| > k_out sqrt(σ_j² + (σ_e gain)²)``, with ``σ_j² =
+    var`` the point's own variance, ``σ_e`` the stated correlated map error (``sigma_err``, which the modes may hold)
     and ``gain`` the residual's change per metre of vertical map error (a range: ``1/u_z``, at most 10; a sliding
-    height: 1). Only for the per-point forms told that the map is not the world (:func:`map_not_world`: a stated
-    error, or a map σ of the map's own — without a stated error the Gaussian took a ray that met a sub-post bump
-    the map lacks at full weight: S5 over a world with sub-post relief only, world 1002, seeds 10 and 0, CPU: north
-    RMSE 1.15/1.07 m at 1.8/1.7 σ; gated 0.68/0.73 m at 0.8/0.9 σ). Such a residual is a ray that met another
-    surface in the world than in the particle's map (it clears a ridge in one and meets it in the other; relief
-    under the map's posts shadows it at a glancing angle): its size, tens to hundreds of metres, is not a
-    Gaussian error, and the Gaussian gave the one or two such rays of a scan the whole weight (S5, the 60° bank
-    whose rays reach the horizon, 5 m / 1 km world of seed 1003, seed 15, CPU: the particles jumped 25–30 m
-    north at the same place of every orbit with a 3σ of 2–6 m, 3σ coverage N/E 49/72 %; gated 75/92 %;
-    ``results/world``, 20 seeds: 21.8 → 7.3 m, no seed lost; a world without the sub-post relief, 81/85 → 87/92 %,
-    is another error field too: the world draws its error after its relief from one generator). It scores its
-    point's height above the map (:func:`acc_gated`, at most the floor of a point the particle cannot predict) and
-    adds nothing to the attitude's information or the modes."""
+    height: 1). Only for the per-point forms told that the map is not the world (:func:`map_not_world`: a stated error,
+    or a map σ of the map's own — without a stated error the Gaussian took a ray that met a sub-post bump the map lacks
+    at full weight: S5 over a world with sub-post relief only, world 1002, seeds 10 and 0, CPU: north RMSE 1.15/1.07 m
+    at 1.8/1.7 σ; gated 0.68/0.73 m at 0.8/0.9 σ). Such a residual is a ray that met another surface in the world than
+    in the particle's map (it clears a ridge in one and meets it in the other; relief under the map's posts shadows it
+    at a glancing angle): its size, tens to hundreds of metres, is not a Gaussian error, and the Gaussian gave the one
+    or two such rays of a scan the whole weight (S5, the 60° bank whose rays reach the horizon, 5 m / 1 km world of seed
+    1003, seed 15, CPU: the particles jumped 25–30 m north at the same place of every orbit with a 3σ of 2–6 m, 3σ
+    coverage N/E 49/72 %; gated 75/92 %; ``results/world``, 20 seeds: 21.8 → 7.3 m, no seed lost; a world without the
+    sub-post relief, 81/85 → 87/92 %, is another error field too: the world draws its error after its relief from one
+    generator). It scores its point's height above the map (:func:`acc_gated`, at most the floor of a point the particle
+    cannot predict) and adds nothing to the attitude's information or the modes."""
     if not map_not_world(p):
         return False
     e = p.sigma_err * gain
@@ -822,10 +821,10 @@ def acc_gated(a: wp.ref[Acc], p: LikParams, vertical: float, gain: float):
 @wp.func
 def acc_point(a: wp.ref[Acc], p: LikParams, miss: bool, res: float, var: float, gain: float, vertical: float,
               axis_w: wp.vec3, jac: wp.vec3, jac_pos: wp.vec3):
-    """``a`` += a point of a point cloud that the particle predicts: a gross miss (``miss``: :func:`gross_miss`,
-    ``gain`` its map-error sensitivity) scores its point's height above the map, ``vertical`` (:func:`acc_gated`),
-    else its sums (:func:`acc_add`); with modes the caller adds the other's projections on them (:func:`acc_modes`,
-    the table's row of the point) to its :class:`ModeAcc`."""
+    """``a`` += a point of a point cloud that the particle predicts (``var``: its σ_j², m²): a gross miss (``miss``:
+    :func:`gross_miss`, ``gain`` its map-error sensitivity) scores its point's height above the map, ``vertical``
+    (:func:`acc_gated`), else its sums (:func:`acc_add`); with modes the caller adds the other's projections on them
+    (:func:`acc_modes`, the table's row of the point) to its :class:`ModeAcc`."""
     if miss:
         acc_gated(a, p, vertical, gain)
     else:
