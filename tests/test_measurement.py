@@ -295,6 +295,39 @@ def test_nan_samples_are_excluded(device):
     np.testing.assert_allclose(a, b, rtol=1e-5)
 
 
+def test_staged_cloud_rows_are_the_clouds(device):
+    """The staged rows (the ranges uploaded, a kernel writing the rows) are each cloud's point ``r d`` (0 where
+    invalid), direction, range and validity, as NumPy builds them: for a batch sharing one pattern, for clouds with
+    their own directions (``PointCloud.from_points``), and again after the batch changes."""
+    from warptan.kernels import likelihood as klik
+
+    rng = np.random.default_rng(3)
+    terrain = wt.Terrain.synthetic("rugged", size_m=4000.0, spacing=30.0, seed=6)
+    pattern = wt.ScanPattern.grid(4, 3, 25.0)
+    shared = [wt.PointCloud(pattern.dirs_s, rng.uniform(500.0, 900.0, pattern.m)) for _ in range(3)]
+    shared[1].ranges_m[[0, 5]] = np.nan
+    below = np.array([0.0, 0.0, 700.0])
+    own = [wt.PointCloud.from_points(rng.normal(0.0, 300.0, (pattern.m, 3)) + below) for _ in range(3)]
+    own[2].ranges_m[4] = np.nan
+    model = wt.SlidingModel(terrain, wt.Likelihood("gaussian", sigma_m=2.0))
+    for clouds in (shared, own, shared[:1]):
+        n = 2 * len(clouds)
+        pos = wp.array(np.zeros((n, 3), np.float32), dtype=wp.vec3, device=device)
+        quat = wp.array(np.tile([1.0, 0.0, 0.0, 0.0], (n, 1)).astype(np.float32), dtype=wp.vec4, device=device)
+        out = model.stage(clouds if len(clouds) > 1 else clouds[0], pos, quat)
+        rows = model._staged.numpy()
+        for k, cloud in enumerate(clouds):
+            r = cloud.ranges_m.astype(np.float32)
+            ok = np.isfinite(r)
+            d = cloud.dirs_s.astype(np.float32)
+            np.testing.assert_allclose(rows[k, :, klik.CR_POINT:klik.CR_POINT + 3],
+                                       np.where(ok[:, None], r[:, None] * d, 0.0), rtol=1e-6, atol=1e-4)
+            np.testing.assert_array_equal(rows[k, :, klik.CR_DIR:klik.CR_DIR + 3], d)
+            np.testing.assert_array_equal(rows[k, :, klik.CR_RANGE], r)
+            np.testing.assert_array_equal(rows[k, :, klik.CR_VALID], ok.astype(np.float32))
+            assert out.n_received[k] == ok.sum()
+
+
 def test_altimeter_model(device):
     """Altimeter residual a - (h_baro - h(p_i)) matches NumPy, plus the barometer's altitude term; an off-map
     particle gets the floor (no NaN); without a barometer each particle's own altitude is used."""
