@@ -281,18 +281,6 @@ def mode_row(m: modes_mat, i: int) -> wp.vec3d:
 
 
 @wp.func
-def sym_outer(a: wp.vec3, w: float) -> wp.mat33:
-    """``outer(a, a) * w`` from its six distinct products (the same values: ``a_i a_j = a_j a_i`` exactly)."""
-    m00 = a[0] * a[0] * w
-    m11 = a[1] * a[1] * w
-    m22 = a[2] * a[2] * w
-    m01 = a[0] * a[1] * w
-    m02 = a[0] * a[2] * w
-    m12 = a[1] * a[2] * w
-    return wp.mat33(m00, m01, m02, m01, m11, m12, m02, m12, m22)
-
-
-@wp.func
 def upper_add(m: wp.ref[wp.mat33], a: wp.vec3, b: wp.vec3):
     """The upper triangle of ``m`` += ``outer(a, b)`` in place, ``a`` a multiple of ``b`` (the product symmetric;
     :func:`acc_symmetric` mirrors it)."""

@@ -22,6 +22,15 @@ def resolve_device(device=None) -> wp.Device:
         raise ValueError(f"unknown or absent device {device!r} (present: {present}): {err}") from None
 
 
+def upload(array: wp.array, values) -> None:
+    """``array.assign(values)``; on the CPU written through the array's own memory (``assign`` makes a temporary
+    array and copies: ~10 µs, several times a filter step). ``values`` has the array's shape (NumPy casts its dtype)."""
+    if array.device.is_cpu:
+        array.numpy()[...] = values
+    else:
+        array.assign(values)
+
+
 def quiet_warp() -> None:
     """Silence Warp's start-up banner and per-module load messages (for the CLI, scripts and tests)."""
     wp.config.quiet = True

@@ -34,6 +34,7 @@ import numpy as np
 import warp as wp
 
 from warptan.checks import FilterError
+from warptan.device import upload
 from warptan.kernels import likelihood as klik
 from warptan.kernels import raycast as kray
 from warptan.kernels import sliding as kslide
@@ -603,7 +604,7 @@ class MeasurementModel:
         meta = np.empty((b, 2), dtype=np.float32)
         meta[:, klik.META_RECEIVED] = n_received
         meta[:, klik.META_FLOOR] = -0.5 * k * k * np.maximum(1, n_received)
-        _upload(out.meta, meta)
+        upload(out.meta, meta)
         self.n_per = n // b
         self.n_filters = b
         self._ensure_modes(device, quat_nb, attitude)
@@ -757,7 +758,7 @@ class _PointCloudModel(MeasurementModel):
         dev_ranges = self._host.get("dev_ranges")
         if dev_ranges is None or dev_ranges.shape != (b, m) or dev_ranges.device != device:
             dev_ranges = self._host["dev_ranges"] = wp.empty((b, m), dtype=wp.float32, device=device)
-        _upload(dev_ranges, ranges)
+        upload(dev_ranges, ranges)
         if same:
             held = self._host.get("dirs")
             if held is None or held[0] is not first or held[1].device != device:
@@ -776,15 +777,6 @@ class _PointCloudModel(MeasurementModel):
         if self.likelihood.models_map_error:  # the modes' scan geometry reads it (:meth:`_scan_geometry`)
             self._host["first"] = (first.astype(np.float32), ranges[0].copy())
         return np.isfinite(ranges).sum(axis=1).astype(np.int64)
-
-
-def _upload(array: wp.array, values: np.ndarray) -> None:
-    """``array.assign(values)``; on the CPU through the array's own memory (``assign`` costs ~10 µs, twice a
-    staging). The values must have the array's shape and a dtype NumPy casts to its own."""
-    if array.device.is_cpu:
-        array.numpy()[...] = values
-    else:
-        array.assign(values)
 
 
 def _forward(quat: np.ndarray) -> np.ndarray:
