@@ -121,10 +121,159 @@ def block_of(k: int, m0: wp.mat33d, m1: wp.mat33d, m2: wp.mat33d, m3: wp.mat33d,
 
 
 NAV_BLOCK_DIM = 32
-"""Threads of a CUDA block that runs one filter's interval (:data:`nav_interval_kernels`): one works, the others
-return at once, so each filter has a multiprocessor and its L1 cache to itself. As 100 threads of one launch, the
-filters' ~7 KB working sets shared the caches of a few multiprocessors: 100 filters took 1.9 ms on an H100 where
-one took 0.27 ms."""
+"""Threads of a CUDA block that runs one filter's interval (:data:`nav_interval_kernels`; at least 25): the lanes
+share the 3×3 blocks of the interval's matrices (:func:`span`) and meet at :func:`block_sync` between the phases of
+a step. One thread per filter took 0.27 ms for a 10-sample interval on an H100 (a chain of ~270 dependent 3×3
+products a sample, each waiting on its loads); as 100 threads of one launch the filters' ~7 KB working sets shared
+the caches of a few multiprocessors (1.9 ms for 100 filters): a block per filter keeps a multiprocessor each."""
+
+
+@wp.func_native("""
+#if defined(__CUDA_ARCH__)
+__syncthreads();
+#endif
+""")
+def block_sync():
+    """A barrier of the CUDA block (nothing on the CPU, where one thread does every lane's work in order)."""
+    ...
+
+
+@wp.func
+def span(sh: int, piece: int, lo: int, hi: int):
+    """The pieces ``[start, stop)`` of ``[lo, hi)`` a thread does: all of them on the CPU (``sh`` = 0, one thread per
+    filter), else (a CUDA block per filter) the lane's own piece ``piece`` when it is in range. The lanes then run
+    one loop body side by side (a branch per lane would run them one after the other)."""
+    if sh == 0:
+        return lo, hi
+    if piece >= lo and piece < hi:
+        return piece, piece + 1
+    return 0, 0
+
+
+COV_AT = wp.constant(0)
+"""Where the tiled kernel keeps each matrix in the block's shared memory (float64 slots): P (4×4 blocks), Φ and S
+(5×5 blocks), the 15×15 Cholesky scratch."""
+PHI_AT = wp.constant(144)
+NOISE_AT = wp.constant(369)
+CHOL_AT = wp.constant(594)
+NAV_SHARED_SLOTS = 819
+
+
+@wp.func_native("""
+#if defined(__CUDA_ARCH__)
+__shared__ double nav_slots[819];
+if (store) nav_slots[i] = v;
+return nav_slots[i];
+#else
+return v;
+#endif
+""")
+def shared_slot(i: int, v: wp.float64, store: int) -> wp.float64:
+    """Slot ``i`` of the block's shared float64 buffer (:data:`NAV_SHARED_SLOTS`), written first when ``store``
+    (CUDA; one buffer per block). The nav kernel's matrices live there while it runs: a global array read back
+    right after it was written is an L2 round trip (~200 cycles), which made the interval's chain of dependent 3×3
+    products latency-bound (0.3–0.4 ms on an H100 for 10 samples, 35 µs a sample)."""
+    ...
+
+
+@wp.func
+def get_blk(a: wp.array3d(dtype=wp.mat33d), b: int, r: int, c: int, at: int, ncol: int, sh: int) -> wp.mat33d:
+    """Block (r, c) of filter b's matrix: from the shared slots at ``at`` (``ncol`` blocks a row) when ``sh``, else
+    from the global array."""
+    if sh == 0:
+        return a[b, r, c]
+    o = at + 9 * (r * ncol + c)
+    z = wp.float64(0.0)
+    return wp.mat33d(shared_slot(o, z, 0), shared_slot(o + 1, z, 0), shared_slot(o + 2, z, 0),
+                     shared_slot(o + 3, z, 0), shared_slot(o + 4, z, 0), shared_slot(o + 5, z, 0),
+                     shared_slot(o + 6, z, 0), shared_slot(o + 7, z, 0), shared_slot(o + 8, z, 0))
+
+
+@wp.func
+def put_blk(a: wp.array3d(dtype=wp.mat33d), b: int, r: int, c: int, at: int, ncol: int, sh: int, m: wp.mat33d):
+    """Write block (r, c) (see :func:`get_blk`)."""
+    if sh == 0:
+        a[b, r, c] = m
+    else:
+        o = at + 9 * (r * ncol + c)
+        for i in range(3):
+            for j in range(3):
+                shared_slot(o + 3 * i + j, m[i, j], 1)
+
+
+@wp.func
+def get_f64(a: wp.array3d(dtype=wp.float64), b: int, i: int, j: int, sh: int) -> wp.float64:
+    """Entry (i, j) of filter b's 15×15 Cholesky scratch (shared slots when ``sh``)."""
+    if sh == 0:
+        return a[b, i, j]
+    return shared_slot(CHOL_AT + 15 * i + j, wp.float64(0.0), 0)
+
+
+@wp.func
+def put_f64(a: wp.array3d(dtype=wp.float64), b: int, i: int, j: int, sh: int, v: wp.float64):
+    if sh == 0:
+        a[b, i, j] = v
+    else:
+        shared_slot(CHOL_AT + 15 * i + j, v, 1)
+
+
+@wp.func
+def p_get(a: wp.array3d(dtype=wp.mat33d), b: int, r: int, c: int, sh: int) -> wp.mat33d:
+    """Block (r, c) of P (4×4 blocks; :func:`get_blk`)."""
+    return get_blk(a, b, r, c, COV_AT, 4, sh)
+
+
+@wp.func
+def p_put(a: wp.array3d(dtype=wp.mat33d), b: int, r: int, c: int, sh: int, m: wp.mat33d):
+    put_blk(a, b, r, c, COV_AT, 4, sh, m)
+
+
+@wp.func
+def phi_get(a: wp.array3d(dtype=wp.mat33d), b: int, r: int, c: int, sh: int) -> wp.mat33d:
+    """Block (r, c) of Φ (5×5 blocks)."""
+    return get_blk(a, b, r, c, PHI_AT, 5, sh)
+
+
+@wp.func
+def phi_put(a: wp.array3d(dtype=wp.mat33d), b: int, r: int, c: int, sh: int, m: wp.mat33d):
+    put_blk(a, b, r, c, PHI_AT, 5, sh, m)
+
+
+@wp.func
+def s_get(a: wp.array3d(dtype=wp.mat33d), b: int, r: int, c: int, sh: int) -> wp.mat33d:
+    """Block (r, c) of S (5×5 blocks)."""
+    return get_blk(a, b, r, c, NOISE_AT, 5, sh)
+
+
+@wp.func
+def s_put(a: wp.array3d(dtype=wp.mat33d), b: int, r: int, c: int, sh: int, m: wp.mat33d):
+    put_blk(a, b, r, c, NOISE_AT, 5, sh, m)
+
+
+@wp.func
+def ps_get(phi: wp.array3d(dtype=wp.mat33d), noise: wp.array3d(dtype=wp.mat33d), which: int, b: int, r: int, c: int,
+           sh: int) -> wp.mat33d:
+    """Block (r, c) of Φ (``which`` = 0) or S (1); in shared memory the choice is an offset, not a branch."""
+    if sh == 1 or which == 0:
+        return get_blk(phi, b, r, c, PHI_AT + which * (NOISE_AT - PHI_AT), 5, sh)
+    return get_blk(noise, b, r, c, NOISE_AT, 5, sh)
+
+
+@wp.func
+def ps_put(phi: wp.array3d(dtype=wp.mat33d), noise: wp.array3d(dtype=wp.mat33d), which: int, b: int, r: int, c: int,
+           sh: int, m: wp.mat33d):
+    if sh == 1 or which == 0:
+        put_blk(phi, b, r, c, PHI_AT + which * (NOISE_AT - PHI_AT), 5, sh, m)
+    else:
+        put_blk(noise, b, r, c, NOISE_AT, 5, sh, m)
+
+
+@wp.func
+def p_times_an(a: wp.array3d(dtype=wp.mat33d), b: int, r: int, sh: int, dt: wp.float64, am: wp.mat33d,
+               bm: wp.mat33d) -> wp.mat33d:
+    """Block row r of ``P A^nᵀ``: ``dt P_r0 + dt/2 (P_r1 Aᵀ + P_r2 Bᵀ)``."""
+    return dt * p_get(a, b, r, 0, sh) + wp.float64(0.5) * dt * (p_get(a, b, r, 1, sh) * wp.transpose(am)
+                                                               + p_get(a, b, r, 2, sh) * wp.transpose(bm))
 
 
 def _nav_interval(tiled: bool):
@@ -153,32 +302,45 @@ def _nav_interval(tiled: bool):
         att_cov_out: wp.array(dtype=wp.mat33),
         p_col_out: wp.array2d(dtype=wp.mat33),
     ):
-        """Thread b: K = ``counts[b, INT_STEPS]`` IMU samples (specific force ``imu[b, k, 0]``, body rate
-        ``imu[b, k, 1]``, step length ``imu[b, k, 2][0]`` in s; ``nominal_dt`` is the step the noise terms are given
-        for) of filter ``b = row0 + t``: advances its nominal state and ``cov`` (P, 4×4 blocks) in place;
-        writes Φ and the lower Cholesky factor of S (5×5 blocks, float32), the nominal pose ``[p (3), q (4)]`` at the
-        end of the interval, and what the update's kernels read of P: ``P_θθ`` (``att_cov_out``) and the column blocks
-        ``P_:θ`` (``p_col_out``).
+        """Filter ``b = row0 + t``: K = ``counts[b, INT_STEPS]`` IMU samples (specific force ``imu[b, k, 0]``, body
+        rate ``imu[b, k, 1]``, step length ``imu[b, k, 2][0]`` in s; ``nominal_dt`` is the step the noise terms are
+        given for): advances its nominal state and ``cov`` (P, 4×4 blocks) in place; writes Φ and the lower Cholesky
+        factor of S (5×5 blocks, float32), the nominal pose ``[p (3), q (4)]`` at the end of the interval, and what
+        the update's kernels read of P: ``P_θθ`` (``att_cov_out``) and the column blocks ``P_:θ`` (``p_col_out``).
         ``q_lin`` = diagonal of Q^l per block (dv, dth, dba, dbg); ``q_pos[b]`` = diagonal of Q^n (the position noise
         the Kalman part models, in N_k and L_k); ``q_rough`` = per-step variance of the roughening, added to the
         particles' dp only (``S_dpdp += K q_rough I``: T_k leaves a dp-only noise on dp), so that L_k never reads it
         as velocity. ``q_vel_down[b]`` is added to the down velocity's Q^l (a map-error offset's change along the track,
-        :meth:`warptan.measurement.Likelihood.offset_process`; 0 without one)."""
+        :meth:`warptan.measurement.Likelihood.offset_process`; 0 without one).
+
+        Tiled (CUDA): P, Φ, S and the Cholesky scratch live in the block's shared memory (:func:`shared_slot`); the
+        lanes share each phase's independent pieces (a block column, a block row, one block, one row of the
+        Cholesky; :func:`span`), every lane computes the step's small terms (rotation, N_k, the gains) itself, and
+        :func:`block_sync` separates the phases. On the CPU one thread does every piece in the same order: each
+        block sees the same operations in either form."""
         if wp.static(tiled):
             t, lane = wp.tid()
-            if lane != 0:
-                return
+            sh = 1
         else:
             t = wp.tid()
+            lane = 0
+            sh = 0
         b = row0 + t
+        if wp.static(tiled):  # P into the block's shared slots (lane 4 r + c: block (r, c)), back at the end
+            if lane < 16:
+                p_put(cov, b, lane // 4, lane % 4, sh, cov[b, lane // 4, lane % 4])
         zero = wp.mat33d()
         eye = wp.identity(n=3, dtype=wp.float64)
         half = wp.float64(0.5)
-        for r in range(5):
-            for c in range(5):
-                phi[b, r, c] = zero
-                noise[b, r, c] = zero
-            phi[b, r, r] = eye
+        i0, i1 = span(sh, lane, 0, 25)
+        for idx in range(i0, i1):
+            r = idx // 5
+            c = idx % 5
+            s_put(noise, b, r, c, sh, zero)
+            if r == c:
+                phi_put(phi, b, r, c, sh, eye)
+            else:
+                phi_put(phi, b, r, c, sh, zero)
         p = pos[b]
         v = vel[b]
         q = quat[b]
@@ -211,11 +373,12 @@ def _nav_interval(tiled: bool):
                 j2 = (angle - wp.sin(angle)) / (angle * angle * angle)
             e = wp.transpose(eye + c1 * kx + c2 * kk)
             jm = -(eye - j1 * kx + j2 * kk) * dt
-            # ---- Riccati (P in 4×4 blocks: dv, dth, dba, dbg)
-            pa0 = dt * cov[b, 0, 0] + half * dt * (cov[b, 0, 1] * wp.transpose(a) + cov[b, 0, 2] * wp.transpose(bm))
-            pa1 = dt * cov[b, 1, 0] + half * dt * (cov[b, 1, 1] * wp.transpose(a) + cov[b, 1, 2] * wp.transpose(bm))
-            pa2 = dt * cov[b, 2, 0] + half * dt * (cov[b, 2, 1] * wp.transpose(a) + cov[b, 2, 2] * wp.transpose(bm))
-            pa3 = dt * cov[b, 3, 0] + half * dt * (cov[b, 3, 1] * wp.transpose(a) + cov[b, 3, 2] * wp.transpose(bm))
+            block_sync()  # the previous step's P and S are written
+            # ---- Riccati (P in 4×4 blocks: dv, dth, dba, dbg); every lane forms N_k and the gains
+            pa0 = p_times_an(cov, b, 0, sh, dt, a, bm)
+            pa1 = p_times_an(cov, b, 1, sh, dt, a, bm)
+            pa2 = p_times_an(cov, b, 2, sh, dt, a, bm)
+            pa3 = p_times_an(cov, b, 3, sh, dt, a, bm)
             nk = sym_d(dt * pa0 + half * dt * (a * pa1 + bm * pa2) + (q_pos[b] * scale) * eye)
             l0, l1 = apply_l(pa0, pa1, pa2, pa3, a, bm, e, jm)
             inv_nk = wp.inverse(nk)
@@ -223,105 +386,140 @@ def _nav_interval(tiled: bool):
             g1 = l1 * inv_nk
             g2 = pa2 * inv_nk
             g3 = pa3 * inv_nk
-            # P <- A^l P A^lᵀ: A^l on the block columns, then on the rows (transposed)
-            for c in range(4):
-                y0, y1 = apply_l(cov[b, 0, c], cov[b, 1, c], cov[b, 2, c], cov[b, 3, c], a, bm, e, jm)
-                cov[b, 0, c] = y0
-                cov[b, 1, c] = y1
-            for r in range(4):
-                y0, y1 = apply_l(wp.transpose(cov[b, r, 0]), wp.transpose(cov[b, r, 1]), wp.transpose(cov[b, r, 2]),
-                                 wp.transpose(cov[b, r, 3]), a, bm, e, jm)
-                cov[b, r, 0] = wp.transpose(y0)
-                cov[b, r, 1] = wp.transpose(y1)
-            # - L N Lᵀ + Q^l, symmetrised
-            for r in range(4):
+            block_sync()  # every lane has read P
+            # P <- A^l P A^lᵀ: A^l on the block columns, then on the rows (transposed); Φ <- T Φ and S <- T S Tᵀ
+            # alike (pieces 0..4 Φ's columns, 5..9 S's)
+            i0, i1 = span(sh, lane, 0, 4)
+            for c in range(i0, i1):
+                y0, y1 = apply_l(p_get(cov, b, 0, c, sh), p_get(cov, b, 1, c, sh), p_get(cov, b, 2, c, sh),
+                                 p_get(cov, b, 3, c, sh), a, bm, e, jm)
+                p_put(cov, b, 0, c, sh, y0)
+                p_put(cov, b, 1, c, sh, y1)
+            i0, i1 = span(sh, lane, 0, 10)
+            for idx in range(i0, i1):
+                which = idx // 5
+                c = idx % 5
+                y0, y1, y2 = apply_t(ps_get(phi, noise, which, b, 0, c, sh), ps_get(phi, noise, which, b, 1, c, sh),
+                                     ps_get(phi, noise, which, b, 2, c, sh), ps_get(phi, noise, which, b, 3, c, sh),
+                                     ps_get(phi, noise, which, b, 4, c, sh), dt, a, bm, e, jm)
+                ps_put(phi, noise, which, b, 0, c, sh, y0)
+                ps_put(phi, noise, which, b, 1, c, sh, y1)
+                ps_put(phi, noise, which, b, 2, c, sh, y2)
+            block_sync()
+            i0, i1 = span(sh, lane, 0, 4)
+            for r in range(i0, i1):
+                y0, y1 = apply_l(wp.transpose(p_get(cov, b, r, 0, sh)), wp.transpose(p_get(cov, b, r, 1, sh)),
+                                 wp.transpose(p_get(cov, b, r, 2, sh)), wp.transpose(p_get(cov, b, r, 3, sh)),
+                                 a, bm, e, jm)
+                p_put(cov, b, r, 0, sh, wp.transpose(y0))
+                p_put(cov, b, r, 1, sh, wp.transpose(y1))
+            i0, i1 = span(sh, lane, 0, 5)
+            for r in range(i0, i1):
+                y0, y1, y2 = apply_t(wp.transpose(s_get(noise, b, r, 0, sh)), wp.transpose(s_get(noise, b, r, 1, sh)),
+                                     wp.transpose(s_get(noise, b, r, 2, sh)), wp.transpose(s_get(noise, b, r, 3, sh)),
+                                     wp.transpose(s_get(noise, b, r, 4, sh)), dt, a, bm, e, jm)
+                s_put(noise, b, r, 0, sh, wp.transpose(y0))
+                s_put(noise, b, r, 1, sh, wp.transpose(y1))
+                s_put(noise, b, r, 2, sh, wp.transpose(y2))
+            block_sync()
+            # P += - L N Lᵀ + Q^l (block (r, c): piece 4 r + c); S += G N Gᵀ, G = [I; L] (piece 5 r + c)
+            i0, i1 = span(sh, lane, 0, 16)
+            for idx in range(i0, i1):
+                r = idx // 4
+                c = idx % 4
                 gn = block_of(r + 1, eye, g0, g1, g2, g3) * nk
-                for c in range(4):
-                    cov[b, r, c] = cov[b, r, c] - gn * wp.transpose(block_of(c + 1, eye, g0, g1, g2, g3))
-                cov[b, r, r] = cov[b, r, r] + (q_lin[r] * scale) * eye
-            if q_vel_down[b] > wp.float64(0.0):
-                dv = cov[b, 0, 0]
-                dv[2, 2] = dv[2, 2] + q_vel_down[b] * scale
-                cov[b, 0, 0] = dv
-            for r in range(4):
-                cov[b, r, r] = sym_d(cov[b, r, r])
-                for c in range(r + 1, 4):
-                    m = half * (cov[b, r, c] + wp.transpose(cov[b, c, r]))
-                    cov[b, r, c] = m
-                    cov[b, c, r] = wp.transpose(m)
-            # ---- interval composition: Φ <- T Φ, S <- T S Tᵀ + G N Gᵀ, G = [I; L]
-            for c in range(5):
-                y0, y1, y2 = apply_t(phi[b, 0, c], phi[b, 1, c], phi[b, 2, c], phi[b, 3, c], phi[b, 4, c], dt, a, bm, e,
-                                     jm)
-                phi[b, 0, c] = y0
-                phi[b, 1, c] = y1
-                phi[b, 2, c] = y2
-                y0, y1, y2 = apply_t(noise[b, 0, c], noise[b, 1, c], noise[b, 2, c], noise[b, 3, c], noise[b, 4, c], dt,
-                                     a, bm, e, jm)
-                noise[b, 0, c] = y0
-                noise[b, 1, c] = y1
-                noise[b, 2, c] = y2
-            for r in range(5):
-                y0, y1, y2 = apply_t(wp.transpose(noise[b, r, 0]), wp.transpose(noise[b, r, 1]),
-                                     wp.transpose(noise[b, r, 2]), wp.transpose(noise[b, r, 3]),
-                                     wp.transpose(noise[b, r, 4]), dt, a, bm, e, jm)
-                noise[b, r, 0] = wp.transpose(y0)
-                noise[b, r, 1] = wp.transpose(y1)
-                noise[b, r, 2] = wp.transpose(y2)
-            for r in range(5):
+                m = p_get(cov, b, r, c, sh) - gn * wp.transpose(block_of(c + 1, eye, g0, g1, g2, g3))
+                if r == c:
+                    m = m + (q_lin[r] * scale) * eye
+                    if r == 0 and q_vel_down[b] > wp.float64(0.0):
+                        m[2, 2] = m[2, 2] + q_vel_down[b] * scale
+                p_put(cov, b, r, c, sh, m)
+            i0, i1 = span(sh, lane, 0, 25)
+            for idx in range(i0, i1):
+                r = idx // 5
+                c = idx % 5
                 gn = block_of(r, eye, g0, g1, g2, g3) * nk
-                for c in range(5):
-                    noise[b, r, c] = noise[b, r, c] + gn * wp.transpose(block_of(c, eye, g0, g1, g2, g3))
-            # ---- mechanization (warptan.ins._step_inplace)
+                s_put(noise, b, r, c, sh, s_get(noise, b, r, c, sh) + gn * wp.transpose(block_of(c, eye, g0, g1, g2,
+                                                                                                    g3)))
+            block_sync()
+            # P symmetrised (piece 4 r + c, r ≤ c, writes both of a pair)
+            i0, i1 = span(sh, lane, 0, 16)
+            for idx in range(i0, i1):
+                r = idx // 4
+                c = idx % 4
+                if r == c:
+                    p_put(cov, b, r, r, sh, sym_d(p_get(cov, b, r, r, sh)))
+                elif r < c:
+                    m = half * (p_get(cov, b, r, c, sh) + wp.transpose(p_get(cov, b, c, r, sh)))
+                    p_put(cov, b, r, c, sh, m)
+                    p_put(cov, b, c, r, sh, wp.transpose(m))
+            # ---- mechanization (warptan.ins._step_inplace), every lane
             an = rot * acc + wp.vec3d(wp.float64(0.0), wp.float64(0.0), wp.float64(GRAVITY_D))
             p = p + v * dt + half * dt * dt * an
             v = v + an * dt
             q = quat_mul_exp_d(q, wdt)
-        pos[b] = p
-        vel[b] = v
-        quat[b] = q
-        noise[b, 0, 0] = noise[b, 0, 0] + steps * q_rough * eye
+        if lane == 0:
+            pos[b] = p
+            vel[b] = v
+            quat[b] = q
+            s_put(noise, b, 0, 0, sh, s_get(noise, b, 0, 0, sh) + steps * q_rough * eye)
+            for i in range(3):
+                pose_out[b, i] = p[i]
+            for i in range(4):
+                pose_out[b, 3 + i] = q[i]
+        block_sync()
         # ---- outputs: Φ (float32) and chol(S), scalar Cholesky on a 15×15 scratch (semi-definite safe)
-        for r in range(5):
-            for c in range(5):
-                phi_out[b, r, c] = wp.mat33(phi[b, r, c])
-                blk = half * (noise[b, r, c] + wp.transpose(noise[b, c, r]))
-                for i in range(3):
-                    for j in range(3):
-                        chol_scratch[b, 3 * r + i, 3 * c + j] = blk[i, j]
-        for jj in range(15):
-            dd = chol_scratch[b, jj, jj]
+        i0, i1 = span(sh, lane, 0, 25)
+        for idx in range(i0, i1):
+            r = idx // 5
+            c = idx % 5
+            phi_out[b, r, c] = wp.mat33(phi_get(phi, b, r, c, sh))
+            blk = half * (s_get(noise, b, r, c, sh) + wp.transpose(s_get(noise, b, c, r, sh)))
+            for i in range(3):
+                for j in range(3):
+                    put_f64(chol_scratch, b, 3 * r + i, 3 * c + j, sh, blk[i, j])
+        i0, i1 = span(sh, lane, 0, 4)
+        for r in range(i0, i1):
+            p_col_out[b, r] = wp.mat33(p_get(cov, b, r, 1, sh))
+            if r == 1:
+                att_cov_out[b] = wp.mat33(p_get(cov, b, 1, 1, sh))
+        for jj in range(15):  # column jj: every lane forms its diagonal, piece ii its row ii
+            block_sync()
+            dd = get_f64(chol_scratch, b, jj, jj, sh)
             for m1 in range(jj):
-                dd -= chol_scratch[b, jj, m1] * chol_scratch[b, jj, m1]
+                dd -= get_f64(chol_scratch, b, jj, m1, sh) * get_f64(chol_scratch, b, jj, m1, sh)
             if dd > wp.float64(1.0e-30):
                 dd = wp.sqrt(dd)
             else:
                 dd = wp.float64(0.0)
-            chol_scratch[b, jj, jj] = dd
-            for ii in range(jj + 1, 15):
-                s = chol_scratch[b, ii, jj]
+            block_sync()
+            if lane == 0:
+                put_f64(chol_scratch, b, jj, jj, sh, dd)
+            i0, i1 = span(sh, lane, jj + 1, 15)
+            for ii in range(i0, i1):
+                s = get_f64(chol_scratch, b, ii, jj, sh)
                 for m2 in range(jj):
-                    s -= chol_scratch[b, ii, m2] * chol_scratch[b, jj, m2]
+                    s -= get_f64(chol_scratch, b, ii, m2, sh) * get_f64(chol_scratch, b, jj, m2, sh)
                 if dd > wp.float64(0.0):
-                    chol_scratch[b, ii, jj] = s / dd
+                    put_f64(chol_scratch, b, ii, jj, sh, s / dd)
                 else:
-                    chol_scratch[b, ii, jj] = wp.float64(0.0)
-            for i2 in range(jj):
-                chol_scratch[b, i2, jj] = wp.float64(0.0)
-        for r in range(5):
-            for c in range(5):
-                lo = wp.mat33d()
-                for i in range(3):
-                    for j in range(3):
-                        lo[i, j] = chol_scratch[b, 3 * r + i, 3 * c + j]
-                chol_out[b, r, c] = wp.mat33(lo)
-        for i in range(3):
-            pose_out[b, i] = p[i]
-        for i in range(4):
-            pose_out[b, 3 + i] = q[i]
-        att_cov_out[b] = wp.mat33(cov[b, 1, 1])
-        for r in range(4):
-            p_col_out[b, r] = wp.mat33(cov[b, r, 1])
+                    put_f64(chol_scratch, b, ii, jj, sh, wp.float64(0.0))
+            i0, i1 = span(sh, lane, 0, jj)
+            for i2 in range(i0, i1):
+                put_f64(chol_scratch, b, i2, jj, sh, wp.float64(0.0))
+        block_sync()
+        i0, i1 = span(sh, lane, 0, 25)
+        for idx in range(i0, i1):
+            r = idx // 5
+            c = idx % 5
+            lo = wp.mat33d()
+            for i in range(3):
+                for j in range(3):
+                    lo[i, j] = get_f64(chol_scratch, b, 3 * r + i, 3 * c + j, sh)
+            chol_out[b, r, c] = wp.mat33(lo)
+        if wp.static(tiled):
+            if lane < 16:
+                cov[b, lane // 4, lane % 4] = p_get(cov, b, lane // 4, lane % 4, sh)
 
     return nav_interval_kernel
 
@@ -330,3 +528,4 @@ nav_interval_kernels = {tiled: _nav_interval(tiled) for tiled in (True, False)}
 """The interval kernel: ``[True]`` one CUDA block of :data:`NAV_BLOCK_DIM` threads per filter
 (``wp.launch_tiled``), ``[False]`` one thread per filter (the CPU, whose launches are split across cores)."""
 nav_interval_kernel = nav_interval_kernels[False]
+assert NAV_SHARED_SLOTS == CHOL_AT + 15 * 15, "the slots of nav_slots (shared_slot's snippet) must hold P, Φ, S, chol"

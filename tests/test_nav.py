@@ -45,8 +45,14 @@ def _blocks(a):
 @pytest.mark.parametrize("uneven", [False, True])
 def test_nav_kernel_matches_python(device, uneven):
     """The interval kernel (nominal INS, Riccati, interval composition; float64 on the filter's device) against
-    the Python INS and a NumPy Riccati, on the CPU and on CUDA; evenly spaced samples and samples with their own
-    steps (a recorded flight's jitter, ±40 %)."""
+    the Python INS and a NumPy Riccati, on the CPU and on CUDA (one thread per filter, and the block of lanes per
+    filter the filter launches there); evenly spaced samples and samples with their own steps (a recorded flight's
+    jitter, ±40 %)."""
+    for tiled in (False, True) if wp.get_device(device).is_cuda else (False,):
+        _check_nav_kernel(device, uneven, tiled)
+
+
+def _check_nav_kernel(device, uneven, tiled):
     rate, k_steps = 100.0, 10
     dt = 1.0 / rate
     truth = Trajectory.build([Straight(0.05), Turn(20, bank_deg=30)], rate, [0, 0, -1000.0])
@@ -83,12 +89,15 @@ def test_nav_kernel_matches_python(device, uneven):
     step_col = np.zeros((B, k_steps, 3))
     step_col[:, :, 0] = steps.reshape(B, k_steps)
     counts = wp.array(np.full((B, 3), k_steps, dtype=np.int32), dtype=wp.int32, device=d)
-    wp.launch(knav.nav_interval_kernel, dim=B,
-              inputs=[0, counts, dt, wp.full(B, 0.25 * dt, dtype=wp.float64, device=d), 0.0,
-                      wp.vec4d(qd[0], qd[3], qd[6], qd[9]), wp.full(B, q_vel_down * dt, dtype=wp.float64, device=d),
-                      wp.array(np.stack([fb, wb, step_col], axis=2), dtype=wp.vec3d, device=d),
-                      pos, vel, quat, ba, bg, cov, phi, noise, scratch],
-              outputs=[phi_out, chol_out, pose_out, att_cov, p_col], device=d)
+    kernel = knav.nav_interval_kernels[tiled]
+    launch = wp.launch_tiled if tiled else wp.launch
+    extra = {"block_dim": knav.NAV_BLOCK_DIM} if tiled else {}
+    launch(kernel, dim=[B], **extra,
+           inputs=[0, counts, dt, wp.full(B, 0.25 * dt, dtype=wp.float64, device=d), 0.0,
+                   wp.vec4d(qd[0], qd[3], qd[6], qd[9]), wp.full(B, q_vel_down * dt, dtype=wp.float64, device=d),
+                   wp.array(np.stack([fb, wb, step_col], axis=2), dtype=wp.vec3d, device=d),
+                   pos, vel, quat, ba, bg, cov, phi, noise, scratch],
+           outputs=[phi_out, chol_out, pose_out, att_cov, p_col], device=d)
     covs = _blocks(cov.numpy())
     phis = _blocks(phi_out.numpy().astype(np.float64))
     chols = _blocks(chol_out.numpy().astype(np.float64))
