@@ -16,6 +16,7 @@ can be captured in a graph.
 
 import warp as wp
 
+from warptan.kernels.block import block_sync
 from warptan.kernels.frames import quat_exp_wxyz, quat_log_wxyz, quat_mul_wxyz
 from warptan.kernels.likelihood import MAX_MODES, META_FLOOR, META_RECEIVED, MODE_K0, MODE_RHO, mode_prior, modes_vec
 from warptan.kernels.nav import block_of, quat_mul_exp_d, skew_d
@@ -419,8 +420,9 @@ def temper_search_kernel(
             break
 
 
-@wp.kernel
-def temper_select_kernel(
+@wp.func
+def temper_select(
+    b: int,
     n_per: int,
     stage: int,
     last_stage: int,
@@ -435,7 +437,6 @@ def temper_select_kernel(
     with no valid received point, or one whose predictions are mostly impossible (``max_unpredictable``: the
     map does not cover the scan), is skipped: exponent 0. At the last stage what remains is dropped (the
     update is then softer than the likelihood, never sharper)."""
-    b = wp.tid()
     rem = stats[b, ST_REMAIN]
     stats[b, ST_RESAMPLE] = wp.float64(0.0)
     stats[b, ST_GAMMA] = wp.float64(0.0)
@@ -471,9 +472,27 @@ def temper_select_kernel(
     stats[b, ST_APPLIED] = stats[b, ST_APPLIED] + gamma
     stats[b, ST_STAGES] = stats[b, ST_STAGES] + wp.float64(1.0)
 
-
 @wp.kernel
-def add_loglik_partials_kernel(
+def temper_select_kernel(
+    n_per: int,
+    stage: int,
+    last_stage: int,
+    params: UpdateParams,
+    meta: wp.array2d(dtype=wp.float32),
+    ess_in: wp.array2d(dtype=wp.float64),
+    unpred_in: wp.array2d(dtype=wp.float64),
+    stats: wp.array2d(dtype=wp.float64),
+):
+    """One thread per (b): :func:`temper_select`."""
+    b = wp.tid()
+    temper_select(b, n_per, stage, last_stage, params, meta, ess_in, unpred_in, stats)
+
+
+
+@wp.func
+def add_loglik_partial(
+    b: int,
+    c: int,
     n_per: int,
     loglik: wp.array(dtype=wp.float32),
     n_valid: wp.array(dtype=wp.int32),
@@ -488,7 +507,6 @@ def add_loglik_partials_kernel(
     """Filter b (active in this stage), chunk c: ``logw_i += γ loglik_i`` (a non-finite loglik counts as bad
     and scores the filter's floor ``meta[b, META_FLOOR]``), partial maximum, the chunk's counts [bad logliks,
     particles with no valid point] and its smallest NIS."""
-    b, c = wp.tid()
     if stats[b, ST_ACTIVE] == wp.float64(0.0):
         return
     gamma = wp.float32(stats[b, ST_GAMMA])
@@ -516,13 +534,30 @@ def add_loglik_partials_kernel(
     counts_out[b, c, 1] = unpredictable
     min_nis_out[b, c] = least
 
-
 @wp.kernel
-def max_of_partials_kernel(max_in: wp.array2d(dtype=wp.float32), counts_in: wp.array3d(dtype=wp.int32),
-                           min_nis_in: wp.array2d(dtype=wp.float32), stats: wp.array2d(dtype=wp.float64)):
+def add_loglik_partials_kernel(
+    n_per: int,
+    loglik: wp.array(dtype=wp.float32),
+    n_valid: wp.array(dtype=wp.int32),
+    meta: wp.array2d(dtype=wp.float32),
+    stats: wp.array2d(dtype=wp.float64),
+    nis: wp.array(dtype=wp.float32),
+    logw: wp.array(dtype=wp.float32),
+    max_out: wp.array2d(dtype=wp.float32),
+    counts_out: wp.array3d(dtype=wp.int32),
+    min_nis_out: wp.array2d(dtype=wp.float32),
+):
+    """One thread per (b, c): :func:`add_loglik_partial`."""
+    b, c = wp.tid()
+    add_loglik_partial(b, c, n_per, loglik, n_valid, meta, stats, nis, logw, max_out, counts_out, min_nis_out)
+
+
+
+@wp.func
+def max_of_partials(b: int, max_in: wp.array2d(dtype=wp.float32), counts_in: wp.array3d(dtype=wp.int32),
+                    min_nis_in: wp.array2d(dtype=wp.float32), stats: wp.array2d(dtype=wp.float64)):
     """One thread per active filter: the maximum log-weight, bad log-likelihoods, unpredictable particles, the
     smallest NIS."""
-    b = wp.tid()
     if stats[b, ST_ACTIVE] == wp.float64(0.0):
         return
     m = max_in[b, 0]
@@ -539,6 +574,14 @@ def max_of_partials_kernel(max_in: wp.array2d(dtype=wp.float32), counts_in: wp.a
     stats[b, ST_UNPREDICTABLE] = wp.float64(unpredictable)
     stats[b, ST_MAX] = wp.float64(m)
 
+@wp.kernel
+def max_of_partials_kernel(max_in: wp.array2d(dtype=wp.float32), counts_in: wp.array3d(dtype=wp.int32),
+                           min_nis_in: wp.array2d(dtype=wp.float32), stats: wp.array2d(dtype=wp.float64)):
+    """One thread per (b): :func:`max_of_partials`."""
+    b = wp.tid()
+    max_of_partials(b, max_in, counts_in, min_nis_in, stats)
+
+
 
 @wp.func
 def pair_products(d: wp.vec3d) -> wp.vec3d:
@@ -546,8 +589,10 @@ def pair_products(d: wp.vec3d) -> wp.vec3d:
     return wp.vec3d(d[0] * d[1], d[0] * d[2], d[1] * d[2])
 
 
-@wp.kernel
-def exp_partials_kernel(
+@wp.func
+def exp_partial(
+    b: int,
+    c: int,
     n_per: int,
     logw: wp.array(dtype=wp.float32),
     dp: wp.array(dtype=wp.vec3),
@@ -560,7 +605,6 @@ def exp_partials_kernel(
 ):
     """Active filter b, chunk c, with ``e_i = exp(lw_i - max)``: partial ``Σe``, ``Σe²``, ``Σe dp``, ``Σe dp dpᵀ``,
     ``Σe nis``, ``Σe Λ`` and ``Σe I_p`` (``N_CHUNK_SUMS`` values; ``with_ip`` 0: no position information, zeros)."""
-    b, c = wp.tid()
     if stats[b, ST_ACTIVE] == wp.float64(0.0):
         return
     lo, hi = chunk_range(c, n_per)
@@ -602,6 +646,23 @@ def exp_partials_kernel(
         sums_out[b, c, 18 + a] = ip[a]
     sums_out[b, c, 11] = sz
 
+@wp.kernel
+def exp_partials_kernel(
+    n_per: int,
+    logw: wp.array(dtype=wp.float32),
+    dp: wp.array(dtype=wp.vec3),
+    nis: wp.array(dtype=wp.float32),
+    lam: wp.array(dtype=wp.mat33),
+    with_ip: int,
+    info_pos: wp.array(dtype=wp.vec3),
+    stats: wp.array2d(dtype=wp.float64),
+    sums_out: wp.array3d(dtype=wp.float64),
+):
+    """One thread per (b, c): :func:`exp_partial`."""
+    b, c = wp.tid()
+    exp_partial(b, c, n_per, logw, dp, nis, lam, with_ip, info_pos, stats, sums_out)
+
+
 
 @wp.func
 def weighted_cov(s: wp.float64, m1: wp.vec3d, m2: wp.vec3d, m3: wp.vec3d) -> wp.mat33d:
@@ -635,8 +696,10 @@ def chol3(a: wp.mat33d) -> wp.mat33d:
     return lo
 
 
-@wp.kernel
-def weight_stats_kernel(
+@wp.func
+def weight_stats(
+    b: int,
+    lane: int,
     n_per: int,
     params: UpdateParams,
     sums_in: wp.array3d(dtype=wp.float64),
@@ -648,7 +711,6 @@ def weight_stats_kernel(
     weighted mean Λ̄, the bandwidth's factor ``ST_JITTER`` (:data:`JITTER_NIS`; 1 without position information) and
     the kernel factor ``kernel_chol[b] = h · ST_JITTER · chol(Σ̂)`` the altimeter scores with, and the decision to
     resample: when ESS < threshold · n, or when exponent remains (between tempering stages)."""
-    b, lane = wp.tid()
     if stats[b, ST_ACTIVE] == wp.float64(0.0):
         return
     part = chunk_vec()
@@ -688,14 +750,33 @@ def weight_stats_kernel(
         stats[b, ST_RESAMPLE] = wp.float64(1.0)
         stats[b, ST_RESAMPLES] = stats[b, ST_RESAMPLES] + wp.float64(1.0)
 
-
 @wp.kernel
-def normalize_weights_kernel(n_per: int, stats: wp.array2d(dtype=wp.float64), logw: wp.array(dtype=wp.float32)):
+def weight_stats_kernel(
+    n_per: int,
+    params: UpdateParams,
+    sums_in: wp.array3d(dtype=wp.float64),
+    stats: wp.array2d(dtype=wp.float64),
+    kernel_chol: wp.array(dtype=wp.mat33),
+):
+    """One thread per (b, lane): :func:`weight_stats`."""
+    b, lane = wp.tid()
+    weight_stats(b, lane, n_per, params, sums_in, stats, kernel_chol)
+
+
+
+@wp.func
+def normalize_weight(i: int, n_per: int, stats: wp.array2d(dtype=wp.float64), logw: wp.array(dtype=wp.float32)):
     """``lw_i -= log-normaliser`` in the active filters: the weights of each filter sum to one."""
-    i = wp.tid()
     b = i // n_per
     if stats[b, ST_ACTIVE] != wp.float64(0.0):
         logw[i] = wp.float32(wp.float64(logw[i]) - stats[b, ST_LOGNORM])
+
+@wp.kernel
+def normalize_weights_kernel(n_per: int, stats: wp.array2d(dtype=wp.float64), logw: wp.array(dtype=wp.float32)):
+    """One thread per (i): :func:`normalize_weight`."""
+    i = wp.tid()
+    normalize_weight(i, n_per, stats, logw)
+
 
 
 @wp.func
@@ -707,8 +788,9 @@ def sym_from(stats: wp.array2d(dtype=wp.float64), b: int, col: int) -> wp.mat33d
     return wp.mat33d(stats[b, col], xy, xz, xy, stats[b, col + 1], yz, xz, yz, stats[b, col + 2])
 
 
-@wp.kernel
-def kalman_update_kernel(
+@wp.func
+def kalman_update(
+    i: int,
     n_per: int,
     params: UpdateParams,
     stats: wp.array2d(dtype=wp.float64),
@@ -724,7 +806,6 @@ def kalman_update_kernel(
     applied), ``l_i += P_:θ (I + Λ_i A)⁻¹ b_i`` — 3×3 work per particle whatever the number of points.
     ``p_col[b, r]`` is the block ``P_rθ`` of filter b (r = dv, dθ, dba, dbg). With ``params.gate_linear`` only in a
     filter whose integrity monitor judged it consistent at the previous update (FB_CONVERGED)."""
-    i = wp.tid()
     b = i // n_per
     if stats[b, ST_ACTIVE] == wp.float64(0.0) or stats[b, ST_REMAIN] > wp.float64(0.0):
         return
@@ -747,12 +828,27 @@ def kalman_update_kernel(
     d3 = p_col[b, 3] * x
     lin[i] = lin[i] + vec12(d0[0], d0[1], d0[2], d1[0], d1[1], d1[2], d2[0], d2[1], d2[2], d3[0], d3[1], d3[2])
 
-
 @wp.kernel
-def cdf_partials_kernel(n_per: int, logw: wp.array(dtype=wp.float32), stats: wp.array2d(dtype=wp.float64),
-                        sums_out: wp.array2d(dtype=wp.float64)):
+def kalman_update_kernel(
+    n_per: int,
+    params: UpdateParams,
+    stats: wp.array2d(dtype=wp.float64),
+    feedback: wp.array2d(dtype=wp.float64),
+    p_col: wp.array2d(dtype=wp.mat33),
+    lam: wp.array(dtype=wp.mat33),
+    info: wp.array(dtype=wp.vec3),
+    lin: wp.array(dtype=vec12),
+):
+    """One thread per (i): :func:`kalman_update`."""
+    i = wp.tid()
+    kalman_update(i, n_per, params, stats, feedback, p_col, lam, info, lin)
+
+
+
+@wp.func
+def cdf_partial(b: int, c: int, n_per: int, logw: wp.array(dtype=wp.float32), stats: wp.array2d(dtype=wp.float64),
+                sums_out: wp.array2d(dtype=wp.float64)):
     """Filter b (resampling only), chunk c: ``Σ w_i`` over the chunk."""
-    b, c = wp.tid()
     if stats[b, ST_RESAMPLE] == wp.float64(0.0):
         return
     lo, hi = chunk_range(c, n_per)
@@ -761,12 +857,19 @@ def cdf_partials_kernel(n_per: int, logw: wp.array(dtype=wp.float32), stats: wp.
         s += wp.float64(wp.exp(logw[b * n_per + k]))
     sums_out[b, c] = s
 
-
 @wp.kernel
-def cdf_kernel(n_per: int, logw: wp.array(dtype=wp.float32), stats: wp.array2d(dtype=wp.float64),
-               sums_in: wp.array2d(dtype=wp.float64), cdf_out: wp.array(dtype=wp.float32)):
-    """Filter b (resampling only), chunk c: the inclusive cumulative weights of its particles (float64 sums)."""
+def cdf_partials_kernel(n_per: int, logw: wp.array(dtype=wp.float32), stats: wp.array2d(dtype=wp.float64),
+                        sums_out: wp.array2d(dtype=wp.float64)):
+    """One thread per (b, c): :func:`cdf_partial`."""
     b, c = wp.tid()
+    cdf_partial(b, c, n_per, logw, stats, sums_out)
+
+
+
+@wp.func
+def cdf_chunk(b: int, c: int, n_per: int, logw: wp.array(dtype=wp.float32), stats: wp.array2d(dtype=wp.float64),
+              sums_in: wp.array2d(dtype=wp.float64), cdf_out: wp.array(dtype=wp.float32)):
+    """Filter b (resampling only), chunk c: the inclusive cumulative weights of its particles (float64 sums)."""
     if stats[b, ST_RESAMPLE] == wp.float64(0.0):
         return
     lo, hi = chunk_range(c, n_per)
@@ -776,6 +879,14 @@ def cdf_kernel(n_per: int, logw: wp.array(dtype=wp.float32), stats: wp.array2d(d
     for k in range(lo, hi):
         s += wp.float64(wp.exp(logw[b * n_per + k]))
         cdf_out[b * n_per + k] = wp.float32(s)
+
+@wp.kernel
+def cdf_kernel(n_per: int, logw: wp.array(dtype=wp.float32), stats: wp.array2d(dtype=wp.float64),
+               sums_in: wp.array2d(dtype=wp.float64), cdf_out: wp.array(dtype=wp.float32)):
+    """One thread per (b, c): :func:`cdf_chunk`."""
+    b, c = wp.tid()
+    cdf_chunk(b, c, n_per, logw, stats, sums_in, cdf_out)
+
 
 
 @wp.func
@@ -792,8 +903,9 @@ def search_cdf(cdf: wp.array(dtype=wp.float32), lo_in: int, hi_in: int, u: float
     return lo
 
 
-@wp.kernel
-def ancestors_kernel(
+@wp.func
+def ancestor(
+    i: int,
     n_per: int,
     stage: int,
     seeds: wp.array(dtype=wp.int32),
@@ -805,7 +917,6 @@ def ancestors_kernel(
     """Ancestor of slot j of a resampling filter: 0 systematic ``(j + U)/n`` (one U), 1 stratified
     ``(j + U_j)/n``, 2 multinomial ``U_j``; a filter that does not resample keeps its particles. Random
     streams: ``stage · 2n + j``."""
-    i = wp.tid()
     b = i // n_per
     j = i % n_per
     if stats[b, ST_RESAMPLE] == wp.float64(0.0):
@@ -826,6 +937,21 @@ def ancestors_kernel(
         u = wp.randf(own)
     ancestors_out[i] = search_cdf(cdf, lo, lo + n_per, u * total)
 
+@wp.kernel
+def ancestors_kernel(
+    n_per: int,
+    stage: int,
+    seeds: wp.array(dtype=wp.int32),
+    scheme: int,
+    stats: wp.array2d(dtype=wp.float64),
+    cdf: wp.array(dtype=wp.float32),
+    ancestors_out: wp.array(dtype=wp.int32),
+):
+    """One thread per (i): :func:`ancestor`."""
+    i = wp.tid()
+    ancestor(i, n_per, stage, seeds, scheme, stats, cdf, ancestors_out)
+
+
 
 @wp.func
 def stats_chol(stats: wp.array2d(dtype=wp.float64), b: int) -> wp.mat33:
@@ -836,8 +962,9 @@ def stats_chol(stats: wp.array2d(dtype=wp.float64), b: int) -> wp.mat33:
                     wp.float32(stats[b, ST_CHOL + 5]))
 
 
-@wp.kernel
-def gather_kernel(
+@wp.func
+def gather(
+    i: int,
     n_per: int,
     stage: int,
     seeds: wp.array(dtype=wp.int32),
@@ -857,7 +984,6 @@ def gather_kernel(
     weighted covariance and mean of dp before resampling (stream
     ``stage · 2n + n + j``): the mean is kept and the covariance grows by ``1 + (1 - s) h²``.
     The Kalman mean is the ancestor's (see :mod:`warptan.mpf`). Other filters copy."""
-    i = wp.tid()
     b = i // n_per
     a = ancestors[i]
     d = dp_in[a]
@@ -875,15 +1001,157 @@ def gather_kernel(
     lin_out[i] = lin_in[a]
     logw_out[i] = lw
 
+@wp.kernel
+def gather_kernel(
+    n_per: int,
+    stage: int,
+    seeds: wp.array(dtype=wp.int32),
+    params: UpdateParams,
+    stats: wp.array2d(dtype=wp.float64),
+    ancestors: wp.array(dtype=wp.int32),
+    dp_in: wp.array(dtype=wp.vec3),
+    lin_in: wp.array(dtype=vec12),
+    logw_in: wp.array(dtype=wp.float32),
+    dp_out: wp.array(dtype=wp.vec3),
+    lin_out: wp.array(dtype=vec12),
+    logw_out: wp.array(dtype=wp.float32),
+):
+    """One thread per (i): :func:`gather`."""
+    i = wp.tid()
+    gather(i, n_per, stage, seeds, params, stats, ancestors, dp_in, lin_in, logw_in, dp_out, lin_out, logw_out)
+
+
+
+@wp.func
+def copy_particle(i: int, dp_in: wp.array(dtype=wp.vec3), lin_in: wp.array(dtype=vec12),
+                  logw_in: wp.array(dtype=wp.float32), dp_out: wp.array(dtype=wp.vec3),
+                  lin_out: wp.array(dtype=vec12), logw_out: wp.array(dtype=wp.float32)):
+    dp_out[i] = dp_in[i]
+    lin_out[i] = lin_in[i]
+    logw_out[i] = logw_in[i]
 
 @wp.kernel
 def copy_particles_kernel(dp_in: wp.array(dtype=wp.vec3), lin_in: wp.array(dtype=vec12),
                           logw_in: wp.array(dtype=wp.float32), dp_out: wp.array(dtype=wp.vec3),
                           lin_out: wp.array(dtype=vec12), logw_out: wp.array(dtype=wp.float32)):
+    """:func:`copy_particle`, one thread per i."""
     i = wp.tid()
-    dp_out[i] = dp_in[i]
-    lin_out[i] = lin_in[i]
-    logw_out[i] = logw_in[i]
+    copy_particle(i, dp_in, lin_in, logw_in, dp_out, lin_out, logw_out)
+
+
+
+STAGE_BLOCK_DIM = 64
+"""Threads of the block that runs one filter's tempering stage on CUDA (:data:`stage_block_kernel`): one lane per
+chunk (``N_CHUNKS``), so the weight statistics' block sum is the one :data:`weight_stats_kernel` makes (the same
+bits as the separate kernels)."""
+RESAMPLE_BLOCK_DIM = 256
+"""Threads of the block that resamples one filter on CUDA (:data:`resample_block_kernel`): a particle or two each
+(each ancestor is a binary search of dependent loads)."""
+
+
+@wp.kernel
+def stage_block_kernel(
+    n_per: int,
+    stage: int,
+    last_stage: int,
+    params: UpdateParams,
+    loglik: wp.array(dtype=wp.float32),
+    n_valid: wp.array(dtype=wp.int32),
+    meta: wp.array2d(dtype=wp.float32),
+    nis: wp.array(dtype=wp.float32),
+    dp: wp.array(dtype=wp.vec3),
+    lam: wp.array(dtype=wp.mat33),
+    info: wp.array(dtype=wp.vec3),
+    with_ip: int,
+    info_pos: wp.array(dtype=wp.vec3),
+    kalman: int,
+    feedback: wp.array2d(dtype=wp.float64),
+    p_col: wp.array2d(dtype=wp.mat33),
+    partials: wp.array4d(dtype=wp.float64),
+    unpred: wp.array2d(dtype=wp.float64),
+    ess: wp.array2d(dtype=wp.float64),
+    chunk_max: wp.array2d(dtype=wp.float32),
+    chunk_counts: wp.array3d(dtype=wp.int32),
+    chunk_min_nis: wp.array2d(dtype=wp.float32),
+    chunk_sums: wp.array3d(dtype=wp.float64),
+    logw: wp.array(dtype=wp.float32),
+    stats: wp.array2d(dtype=wp.float64),
+    kernel_chol: wp.array(dtype=wp.mat33),
+    lin: wp.array(dtype=vec12),
+):
+    """One tempering stage of filter b after :data:`temper_partials_kernel`, in one CUDA block (``wp.launch_tiled``,
+    :data:`STAGE_BLOCK_DIM` lanes): the pieces of :data:`temper_ess_kernel`, :data:`temper_select_kernel`,
+    :data:`add_loglik_partials_kernel`, :data:`max_of_partials_kernel`, :data:`exp_partials_kernel`,
+    :data:`weight_stats_kernel`, :data:`normalize_weights_kernel` and (``kalman``) :data:`kalman_update_kernel`, in
+    that order, the block's lanes sharing each one's threads with a barrier between them: the same functions on the
+    same values (the same bits) in one launch instead of eight, each of which cost a graph node's few µs for a few
+    hundred particles. The candidates' partials stay a launch of their own: 1 280 float64 log-sum-exp streams a
+    filter, which 64 lanes would run 20 deep."""
+    b, lane = wp.tid()
+    bd = wp.block_dim()
+    for g in range(lane, N_TEMPER, bd):
+        temper_ess_of(b, g, partials, ess)
+    block_sync()
+    if lane == 0:
+        temper_select(b, n_per, stage, last_stage, params, meta, ess, unpred, stats)
+    block_sync()
+    for c in range(lane, N_CHUNKS, bd):
+        add_loglik_partial(b, c, n_per, loglik, n_valid, meta, stats, nis, logw, chunk_max, chunk_counts,
+                           chunk_min_nis)
+    block_sync()
+    if lane == 0:
+        max_of_partials(b, chunk_max, chunk_counts, chunk_min_nis, stats)
+    block_sync()
+    for c in range(lane, N_CHUNKS, bd):
+        exp_partial(b, c, n_per, logw, dp, nis, lam, with_ip, info_pos, stats, chunk_sums)
+    block_sync()
+    weight_stats(b, lane, n_per, params, chunk_sums, stats, kernel_chol)
+    block_sync()
+    for k in range(lane, n_per, bd):
+        i = b * n_per + k
+        normalize_weight(i, n_per, stats, logw)
+        if kalman != 0:
+            kalman_update(i, n_per, params, stats, feedback, p_col, lam, info, lin)
+
+
+@wp.kernel
+def resample_block_kernel(
+    n_per: int,
+    stage: int,
+    seeds: wp.array(dtype=wp.int32),
+    scheme: int,
+    params: UpdateParams,
+    stats: wp.array2d(dtype=wp.float64),
+    cdf_sums: wp.array2d(dtype=wp.float64),
+    cdf: wp.array(dtype=wp.float32),
+    ancestors: wp.array(dtype=wp.int32),
+    dp: wp.array(dtype=wp.vec3),
+    lin: wp.array(dtype=vec12),
+    logw: wp.array(dtype=wp.float32),
+    dp_spare: wp.array(dtype=wp.vec3),
+    lin_spare: wp.array(dtype=vec12),
+    logw_spare: wp.array(dtype=wp.float32),
+):
+    """Resampling of filter b in one CUDA block (:data:`RESAMPLE_BLOCK_DIM` lanes): :data:`cdf_partials_kernel`,
+    :data:`cdf_kernel`, :data:`ancestors_kernel`, :data:`gather_kernel` (into the spare arrays) and
+    :data:`copy_particles_kernel` (back), a barrier between them; the same bits in one launch instead of five."""
+    b, lane = wp.tid()
+    bd = wp.block_dim()
+    for c in range(lane, N_CHUNKS, bd):
+        cdf_partial(b, c, n_per, logw, stats, cdf_sums)
+    block_sync()
+    for c in range(lane, N_CHUNKS, bd):
+        cdf_chunk(b, c, n_per, logw, stats, cdf_sums, cdf)
+    block_sync()
+    for k in range(lane, n_per, bd):
+        ancestor(b * n_per + k, n_per, stage, seeds, scheme, stats, cdf, ancestors)
+    block_sync()
+    for k in range(lane, n_per, bd):
+        gather(b * n_per + k, n_per, stage, seeds, params, stats, ancestors, dp, lin, logw, dp_spare, lin_spare,
+               logw_spare)
+    block_sync()
+    for k in range(lane, n_per, bd):
+        copy_particle(b * n_per + k, dp_spare, lin_spare, logw_spare, dp, lin, logw)
 
 
 @wp.kernel

@@ -26,6 +26,8 @@ the sparse structure of ``T_k`` is used.
 
 import warp as wp
 
+from warptan.kernels.block import block_sync, span
+
 wp.set_module_options({"enable_backward": False, "max_unroll": 4})
 
 GRAVITY_D = wp.constant(9.80665)
@@ -126,28 +128,6 @@ share the 3×3 blocks of the interval's matrices (:func:`span`) and meet at :fun
 a step. One thread per filter took 0.27 ms for a 10-sample interval on an H100 (a chain of ~270 dependent 3×3
 products a sample, each waiting on its loads); as 100 threads of one launch the filters' ~7 KB working sets shared
 the caches of a few multiprocessors (1.9 ms for 100 filters): a block per filter keeps a multiprocessor each."""
-
-
-@wp.func_native("""
-#if defined(__CUDA_ARCH__)
-__syncthreads();
-#endif
-""")
-def block_sync():
-    """A barrier of the CUDA block (nothing on the CPU, where one thread does every lane's work in order)."""
-    ...
-
-
-@wp.func
-def span(sh: int, piece: int, lo: int, hi: int):
-    """The pieces ``[start, stop)`` of ``[lo, hi)`` a thread does: all of them on the CPU (``sh`` = 0, one thread per
-    filter), else (a CUDA block per filter) the lane's own piece ``piece`` when it is in range. The lanes then run
-    one loop body side by side (a branch per lane would run them one after the other)."""
-    if sh == 0:
-        return lo, hi
-    if piece >= lo and piece < hi:
-        return piece, piece + 1
-    return 0, 0
 
 
 COV_AT = wp.constant(0)

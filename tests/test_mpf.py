@@ -491,6 +491,29 @@ def test_graph_replay_equals_eager(device, rugged, model_name):
         np.testing.assert_array_equal(eager.ess, replay.ess)
 
 
+@pytest.mark.parametrize("model_name", ["sliding", "altimeter"])
+def test_block_stages_equal_the_separate_kernels(device, rugged, monkeypatch, model_name):
+    """A tempering stage and a resampling as one block per filter (``stage_block_kernel``, ``resample_block_kernel``:
+    the CUDA default) give bit-identical runs to their pieces launched one by one (the CPU default); on the CPU a
+    block is one thread doing every piece in order, on CUDA its lanes share them between barriers."""
+    truth = Trajectory.build([Straight(3.0)], 100.0, [-3000.0, 0.0, -(rugged.h_max + 600.0)])
+    model = wt.make_model(model_name, rugged, wt.Likelihood("gaussian"))
+    sensor = None if model_name == "altimeter" else wt.PointCloudSensor(wt.ScanPattern.grid(5, 5, 30.0))
+    init = MarginalizedParticleFilter.__init__
+    runs = []
+    for block in (False, True):
+        def init_with(self, *args, _block=block, **kwargs):
+            init(self, *args, **kwargs)
+            self._block_stages = _block
+        monkeypatch.setattr(MarginalizedParticleFilter, "__init__", init_with)
+        runs.append(run_filter(truth, rugged, model, ImuModel("navigation", 100.0, seed=2), sensor, n_particles=256,
+                               device=device, seed=[2, 7]))
+    for pieces, block in zip(*runs, strict=True):
+        assert pieces.resampled.any() and pieces.stages.max() > 1
+        np.testing.assert_array_equal(pieces.est_pos, block.est_pos)
+        np.testing.assert_array_equal(pieces.ess, block.ess)
+
+
 def test_rejected_measurement_loses_nothing(rugged):
     """A measurement the model rejects raises before the filter moves: the buffered IMU samples, the nominal
     INS and the particles are as if it had never been offered."""

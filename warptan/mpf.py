@@ -494,6 +494,7 @@ class MarginalizedParticleFilter:
         self._no_info: tuple[wp.array, wp.array] | None = None
         self._no_pos_info: wp.array | None = None
         self.graph = self.device.is_cuda if graph is None else bool(graph)
+        self._block_stages = self.device.is_cuda  # a stage / a resampling as one block per filter (same bits)
         self._recorder = Recorder() if self.device.is_cpu and not self.graph else None
         """Eager CPU updates replay their fixed pieces from recorded launches (:class:`warptan.parallel.Recorder`);
         None launches every kernel anew (CUDA eager, or set to None to compare)."""
@@ -756,6 +757,19 @@ class MarginalizedParticleFilter:
     def _launch_stage(self, out, stage: int) -> None:
         """One tempering stage: choose the exponent, weight, normalise and decide to resample (device)."""
         d, b, n, st = self.device, self.n_filters, self.n, self.state
+        lam, info = self._attitude_info(out)
+        if self._block_stages:  # CUDA: the candidates' partials, then the stage's eight other pieces in one block
+            launch(kmpf.temper_partials_kernel, dim=(b, kmpf.N_CHUNKS, kmpf.N_TEMPER),
+                   inputs=[n, stage, out.loglik, out.n_valid, out.meta, st.logw, self._stats],
+                   outputs=[self._temper_partials, self._unpred_partials], device=d)
+            launch(kmpf.stage_block_kernel, dim=[b],
+                   inputs=[n, stage, int(stage == self.max_stages - 1), self.params, out.loglik, out.n_valid, out.meta,
+                           out.nis, st.dp, lam, info, *self._position_info(out), int(self.measurement_update),
+                           self._feedback, self._dev["p_col"]],
+                   outputs=[self._temper_partials, self._unpred_partials, self._temper_ess, self._chunk_max,
+                            self._chunk_counts, self._chunk_min_nis, self._chunk_sums, st.logw, self._stats,
+                            self._kernel_chol, st.lin], block_dim=kmpf.STAGE_BLOCK_DIM, device=d)
+            return
         if d.is_cpu:  # candidates in order until one is taken (same bits, usually 1 of 20 evaluated)
             launch(kmpf.temper_search_kernel, dim=b,
                    inputs=[n, stage, self.params, out.loglik, out.n_valid, out.meta, st.logw, self._stats],
@@ -774,7 +788,6 @@ class MarginalizedParticleFilter:
                   outputs=[st.logw, self._chunk_max, self._chunk_counts, self._chunk_min_nis], device=d)
         launch(kmpf.max_of_partials_kernel, dim=b, inputs=[self._chunk_max, self._chunk_counts, self._chunk_min_nis],
                   outputs=[self._stats], device=d)
-        lam, info = self._attitude_info(out)
         launch(kmpf.exp_partials_kernel, dim=(b, kmpf.N_CHUNKS),
                   inputs=[n, st.logw, st.dp, out.nis, lam, *self._position_info(out), self._stats],
                   outputs=[self._chunk_sums], device=d)
@@ -811,16 +824,21 @@ class MarginalizedParticleFilter:
         """Resample and regularise the filters whose flags say so (device decisions; others are copied)."""
         d, b, n, st, sp = self.device, self.n_filters, self.n, self.state, self._spare
         seeds = self._dev["resample_seeds"]
-        launch(kmpf.cdf_partials_kernel, dim=(b, kmpf.N_CHUNKS), inputs=[n, st.logw, self._stats],
-                  outputs=[self._cdf_sums], device=d)
-        launch(kmpf.cdf_kernel, dim=(b, kmpf.N_CHUNKS), inputs=[n, st.logw, self._stats, self._cdf_sums],
-                  outputs=[self._cdf], device=d)
-        launch(kmpf.ancestors_kernel, dim=b * n, inputs=[n, stage, seeds, self.scheme, self._stats, self._cdf],
-                  outputs=[self._ancestors], device=d)
-        launch(kmpf.gather_kernel, dim=b * n, inputs=[n, stage, seeds, self.params, self._stats, self._ancestors,
-                  st.dp, st.lin, st.logw], outputs=[sp.dp, sp.lin, sp.logw], device=d)
-        launch(kmpf.copy_particles_kernel, dim=b * n, inputs=[sp.dp, sp.lin, sp.logw],
-                  outputs=[st.dp, st.lin, st.logw], device=d)
+        if self._block_stages:  # CUDA: the five pieces in one block per filter (same bits)
+            launch(kmpf.resample_block_kernel, dim=[b], inputs=[n, stage, seeds, self.scheme, self.params, self._stats],
+                   outputs=[self._cdf_sums, self._cdf, self._ancestors, st.dp, st.lin, st.logw, sp.dp, sp.lin,
+                            sp.logw], block_dim=kmpf.RESAMPLE_BLOCK_DIM, device=d)
+        else:
+            launch(kmpf.cdf_partials_kernel, dim=(b, kmpf.N_CHUNKS), inputs=[n, st.logw, self._stats],
+                   outputs=[self._cdf_sums], device=d)
+            launch(kmpf.cdf_kernel, dim=(b, kmpf.N_CHUNKS), inputs=[n, st.logw, self._stats, self._cdf_sums],
+                   outputs=[self._cdf], device=d)
+            launch(kmpf.ancestors_kernel, dim=b * n, inputs=[n, stage, seeds, self.scheme, self._stats, self._cdf],
+                   outputs=[self._ancestors], device=d)
+            launch(kmpf.gather_kernel, dim=b * n, inputs=[n, stage, seeds, self.params, self._stats, self._ancestors,
+                   st.dp, st.lin, st.logw], outputs=[sp.dp, sp.lin, sp.logw], device=d)
+            launch(kmpf.copy_particles_kernel, dim=b * n, inputs=[sp.dp, sp.lin, sp.logw],
+                   outputs=[st.dp, st.lin, st.logw], device=d)
         if self._mode_table() is not None:
             post, spare = self._out.mode_post, self._mode_spare
             launch(kmpf.gather_modes_kernel, dim=b * n, inputs=[self._ancestors, self._mode_mean, post],
