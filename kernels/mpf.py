@@ -204,8 +204,9 @@ def init_particles_kernel(
     logw_out[i] = -wp.log(float(n_per))
 
 
-@wp.kernel
-def time_update_kernel(
+@wp.func
+def move_particle(
+    t: int,
     row0: int,
     n_per: int,
     seeds: wp.array(dtype=wp.int32),
@@ -218,7 +219,6 @@ def time_update_kernel(
     :mod:`warptan.kernels.nav`): ``x = [dp, l] <- Φ x + C z``, ``z ~ N(0, I15)``, in 3×3 blocks.
     ``row0`` is the global index of this launch's first particle (the random stream does not depend on
     chunking)."""
-    t = wp.tid()
     g = row0 + t
     b = g // n_per
     state = wp.rand_init(seeds[b], g % n_per)
@@ -240,9 +240,25 @@ def time_update_kernel(
     dp[t] = y0
     lin[t] = vec12(y1[0], y1[1], y1[2], y2[0], y2[1], y2[2], y3[0], y3[1], y3[2], y4[0], y4[1], y4[2])
 
-
 @wp.kernel
-def particle_poses_kernel(
+def time_update_kernel(
+    row0: int,
+    n_per: int,
+    seeds: wp.array(dtype=wp.int32),
+    phi: wp.array3d(dtype=wp.mat33),
+    chol: wp.array3d(dtype=wp.mat33),
+    dp: wp.array(dtype=wp.vec3),
+    lin: wp.array(dtype=vec12),
+):
+    """One thread per (t): :func:`move_particle`."""
+    t = wp.tid()
+    move_particle(t, row0, n_per, seeds, phi, chol, dp, lin)
+
+
+
+@wp.func
+def pose_of_particle(
+    i: int,
     n_per: int,
     pose: wp.array2d(dtype=wp.float64),
     dp: wp.array(dtype=wp.vec3),
@@ -252,7 +268,6 @@ def particle_poses_kernel(
 ):
     """Hypothetical poses ``p_i = p_nom + dp_i`` (sum in float64), ``q_i = q_nom ⊗ Exp(dth_i)``;
     ``pose[b] = [p_nom (3), q_nom (4)]`` of the particle's filter."""
-    i = wp.tid()
     b = i // n_per
     d = dp[i]
     lm = lin[i]
@@ -264,15 +279,35 @@ def particle_poses_kernel(
     q_nom = wp.vec4(wp.float32(pose[b, 3]), wp.float32(pose[b, 4]), wp.float32(pose[b, 5]), wp.float32(pose[b, 6]))
     quat_out[i] = wp.normalize(quat_mul_wxyz(q_nom, quat_exp_wxyz(wp.vec3(lm[3], lm[4], lm[5]))))
 
-
 @wp.kernel
-def begin_update_kernel(exponent: wp.array(dtype=wp.float32), stats: wp.array2d(dtype=wp.float64)):
+def particle_poses_kernel(
+    n_per: int,
+    pose: wp.array2d(dtype=wp.float64),
+    dp: wp.array(dtype=wp.vec3),
+    lin: wp.array(dtype=vec12),
+    pos_out: wp.array(dtype=wp.vec3),
+    quat_out: wp.array(dtype=wp.vec4),
+):
+    """One thread per (i): :func:`pose_of_particle`."""
+    i = wp.tid()
+    pose_of_particle(i, n_per, pose, dp, lin, pos_out, quat_out)
+
+
+
+@wp.func
+def begin_stats(b: int, exponent: wp.array(dtype=wp.float32), stats: wp.array2d(dtype=wp.float64)):
     """One thread per filter: the log-likelihood's exponent ``exponent[b]`` (1, or less over ground whose map error
     the filter has read before: :class:`warptan.measurement.RevisitMemory`) is still to apply; counters reset."""
-    b = wp.tid()
     for k in range(N_STATS):
         stats[b, k] = wp.float64(0.0)
     stats[b, ST_REMAIN] = wp.float64(exponent[b])
+
+@wp.kernel
+def begin_update_kernel(exponent: wp.array(dtype=wp.float32), stats: wp.array2d(dtype=wp.float64)):
+    """One thread per (b): :func:`begin_stats`."""
+    b = wp.tid()
+    begin_stats(b, exponent, stats)
+
 
 
 @wp.kernel
@@ -1222,16 +1257,15 @@ def modes_variance_kernel(m: int, table: wp.array(dtype=modes_vec), stats: wp.ar
     var[b] = v
 
 
-@wp.kernel
-def integrity_kernel(params: UpdateParams, stats: wp.array2d(dtype=wp.float64),
-                     integrity: wp.array2d(dtype=wp.float64), kernel_chol: wp.array(dtype=wp.mat33)):
+@wp.func
+def integrity_step(b: int, params: UpdateParams, stats: wp.array2d(dtype=wp.float64),
+                   integrity: wp.array2d(dtype=wp.float64), kernel_chol: wp.array(dtype=wp.mat33)):
     """One thread per filter, after the last stage (MBARI TRN style): the mean over the last ``integrity_window``
     informative updates of the smallest NIS of any particle — large only when no hypothesis explains the scan,
     whereas a wide but healthy cloud (acquisition, a flat likelihood) still holds particles that do; above
     ``integrity_threshold`` (after ``integrity_min_updates``
     informative updates, so that acquisition is not judged) the filter is lost: flag it for a re-spread and
     restart the window."""
-    b = wp.tid()
     if stats[b, ST_SKIP] != wp.float64(0.0):
         return
     w = params.integrity_window
@@ -1251,6 +1285,36 @@ def integrity_kernel(params: UpdateParams, stats: wp.array2d(dtype=wp.float64),
         k = 0
     integrity[b, IN_SINCE] = wp.float64(k)
 
+@wp.kernel
+def integrity_kernel(params: UpdateParams, stats: wp.array2d(dtype=wp.float64),
+                     integrity: wp.array2d(dtype=wp.float64), kernel_chol: wp.array(dtype=wp.mat33)):
+    """One thread per (b): :func:`integrity_step`."""
+    b = wp.tid()
+    integrity_step(b, params, stats, integrity, kernel_chol)
+
+
+
+@wp.func
+def respread_particle(
+    i: int,
+    n_per: int,
+    offset: int,
+    seeds: wp.array(dtype=wp.int32),
+    params: UpdateParams,
+    stats: wp.array2d(dtype=wp.float64),
+    dp: wp.array(dtype=wp.vec3),
+    logw: wp.array(dtype=wp.float32),
+):
+    """A filter flagged lost re-spreads dp around its weighted mean with the re-spread covariance, uniform
+    weights (Kalman means kept); stream ``offset + j``."""
+    b = i // n_per
+    if stats[b, ST_RESPREAD] == wp.float64(0.0):
+        return
+    state = wp.rand_init(seeds[b], offset + i % n_per)
+    centre = wp.vec3(wp.float32(stats[b, ST_MEAN_DP]), wp.float32(stats[b, ST_MEAN_DP + 1]),
+                     wp.float32(stats[b, ST_MEAN_DP + 2]))
+    dp[i] = centre + params.respread_chol * gaussian3(state)
+    logw[i] = -wp.log(float(n_per))
 
 @wp.kernel
 def respread_kernel(
@@ -1262,25 +1326,17 @@ def respread_kernel(
     dp: wp.array(dtype=wp.vec3),
     logw: wp.array(dtype=wp.float32),
 ):
-    """A filter flagged lost re-spreads dp around its weighted mean with the re-spread covariance, uniform
-    weights (Kalman means kept); stream ``offset + j``."""
+    """One thread per (i): :func:`respread_particle`."""
     i = wp.tid()
-    b = i // n_per
-    if stats[b, ST_RESPREAD] == wp.float64(0.0):
-        return
-    state = wp.rand_init(seeds[b], offset + i % n_per)
-    centre = wp.vec3(wp.float32(stats[b, ST_MEAN_DP]), wp.float32(stats[b, ST_MEAN_DP + 1]),
-                     wp.float32(stats[b, ST_MEAN_DP + 2]))
-    dp[i] = centre + params.respread_chol * gaussian3(state)
-    logw[i] = -wp.log(float(n_per))
+    respread_particle(i, n_per, offset, seeds, params, stats, dp, logw)
 
 
-@wp.kernel
-def summary_partials_kernel(n_per: int, logw: wp.array(dtype=wp.float32), dp: wp.array(dtype=wp.vec3),
-                            lin: wp.array(dtype=vec12), partial_out: wp.array3d(dtype=wp.float64)):
+
+@wp.func
+def summary_partial(b: int, c: int, n_per: int, logw: wp.array(dtype=wp.float32), dp: wp.array(dtype=wp.vec3),
+                    lin: wp.array(dtype=vec12), partial_out: wp.array3d(dtype=wp.float64)):
     """Filter b, chunk c, after the update (``N_SUMMARY_SUMS`` values): Σw, Σw dp (3), Σw dp∘dp (3),
     Σw (xy, xz, yz), Σw l (12), Σw l∘l (12)."""
-    b, c = wp.tid()
     lo, hi = chunk_range(c, n_per)
     s = wp.float64(0.0)
     m1 = wp.vec3d()
@@ -1310,15 +1366,30 @@ def summary_partials_kernel(n_per: int, logw: wp.array(dtype=wp.float32), dp: wp
         partial_out[b, c, 10 + a] = l1[a]
         partial_out[b, c, 22 + a] = l2[a]
 
-
 @wp.kernel
-def summary_kernel(params: UpdateParams, partial_in: wp.array3d(dtype=wp.float64), stats: wp.array2d(dtype=wp.float64),
-                   integrity: wp.array2d(dtype=wp.float64), slot: wp.array(dtype=wp.int32),
-                   history: wp.array3d(dtype=wp.float64), feedback: wp.array2d(dtype=wp.float64)):
+def summary_partials_kernel(n_per: int, logw: wp.array(dtype=wp.float32), dp: wp.array(dtype=wp.vec3),
+                            lin: wp.array(dtype=vec12), partial_out: wp.array3d(dtype=wp.float64)):
+    """One thread per (b, c): :func:`summary_partial`."""
+    b, c = wp.tid()
+    summary_partial(b, c, n_per, logw, dp, lin, partial_out)
+
+
+
+@wp.func
+def record_summary(
+    b: int,
+    lane: int,
+    params: UpdateParams,
+    partial_in: wp.array3d(dtype=wp.float64),
+    stats: wp.array2d(dtype=wp.float64),
+    integrity: wp.array2d(dtype=wp.float64),
+    slot: wp.array(dtype=wp.int32),
+    history: wp.array3d(dtype=wp.float64),
+    feedback: wp.array2d(dtype=wp.float64),
+):
     """One block per filter (``wp.launch_tiled``, lanes over the chunks): the update's record in
     ``history[slot[0], b]`` (``H_*`` columns) and ``feedback[b]`` (``FB_*`` columns: what the covariance update and
     the closed loop read)."""
-    b, lane = wp.tid()
     part = summary_vec()
     for c in range(lane, N_CHUNKS, wp.block_dim()):
         for a in range(34):
@@ -1371,9 +1442,19 @@ def summary_kernel(params: UpdateParams, partial_in: wp.array3d(dtype=wp.float64
         history[t, b, H_MEAN_L + a] = mean
         history[t, b, H_VAR_L + a] = wp.max(tot[22 + a] / s - mean * mean, wp.float64(0.0))
 
-
 @wp.kernel
-def covariance_update_kernel(
+def summary_kernel(params: UpdateParams, partial_in: wp.array3d(dtype=wp.float64), stats: wp.array2d(dtype=wp.float64),
+                   integrity: wp.array2d(dtype=wp.float64), slot: wp.array(dtype=wp.int32),
+                   history: wp.array3d(dtype=wp.float64), feedback: wp.array2d(dtype=wp.float64)):
+    """One thread per (b, lane): :func:`record_summary`."""
+    b, lane = wp.tid()
+    record_summary(b, lane, params, partial_in, stats, integrity, slot, history, feedback)
+
+
+
+@wp.func
+def update_covariance(
+    b: int,
     measurement_update: int,
     closed_loop: int,
     feedback: wp.array2d(dtype=wp.float64),
@@ -1398,7 +1479,6 @@ def covariance_update_kernel(
        mean error (position, velocity, attitude ``q ⊗ Exp(θ̂)``, biases), ``P <- G P Gᵀ``,
        ``G = diag(I, I - [θ̂/2]×, I, I)`` (Solà 2017 §6.3), ``injections[b] += 1``; :func:`reset_kernel` then
        re-expresses the particles."""
-    b = wp.tid()
     t = slot[0]
     record = t < nominal_hist.shape[0]
     if record:
@@ -1449,9 +1529,32 @@ def covariance_update_kernel(
         cov[b, r, 1] = cov[b, r, 1] * wp.transpose(g)
     injections[b] = injections[b] + 1
 
-
 @wp.kernel
-def reset_kernel(
+def covariance_update_kernel(
+    measurement_update: int,
+    closed_loop: int,
+    feedback: wp.array2d(dtype=wp.float64),
+    slot: wp.array(dtype=wp.int32),
+    cov: wp.array3d(dtype=wp.mat33d),
+    pos: wp.array(dtype=wp.vec3d),
+    vel: wp.array(dtype=wp.vec3d),
+    quat: wp.array(dtype=wp.vec4d),
+    accel_bias: wp.array(dtype=wp.vec3d),
+    gyro_bias: wp.array(dtype=wp.vec3d),
+    injections: wp.array(dtype=wp.int32),
+    nominal_hist: wp.array3d(dtype=wp.float64),
+    p_hist: wp.array3d(dtype=wp.float64),
+):
+    """One thread per (b): :func:`update_covariance`."""
+    b = wp.tid()
+    update_covariance(b, measurement_update, closed_loop, feedback, slot, cov, pos, vel, quat, accel_bias, gyro_bias,
+                      injections, nominal_hist, p_hist)
+
+
+
+@wp.func
+def reset_particle(
+    i: int,
     n_per: int,
     feedback: wp.array2d(dtype=wp.float64),
     dp: wp.array(dtype=wp.vec3),
@@ -1462,7 +1565,6 @@ def reset_kernel(
     particle's total state is unchanged: additive parts minus the mean, the attitude
     ``dθ_i <- Log(Exp(θ̂)⁻¹ Exp(dθ_i))`` (right perturbations, SPEC §3). Filters not injected (FB_CONVERGED = 0)
     are left alone."""
-    i = wp.tid()
     b = i // n_per
     if feedback[b, FB_CONVERGED] == wp.float64(0.0):
         return
@@ -1480,6 +1582,18 @@ def reset_kernel(
     out[4] = rel[1]
     out[5] = rel[2]
     lin[i] = out
+
+@wp.kernel
+def reset_kernel(
+    n_per: int,
+    feedback: wp.array2d(dtype=wp.float64),
+    dp: wp.array(dtype=wp.vec3),
+    lin: wp.array(dtype=vec12),
+):
+    """One thread per (i): :func:`reset_particle`."""
+    i = wp.tid()
+    reset_particle(i, n_per, feedback, dp, lin)
+
 
 
 @wp.kernel
@@ -1526,3 +1640,97 @@ def combine_partials_kernel(partial_in: wp.array3d(dtype=wp.float64), total_out:
     for c in range(partial_in.shape[1]):
         s += partial_in[b, c, k]
     total_out[b, k] = s
+
+
+@wp.kernel
+def move_pose_kernel(
+    n_per: int,
+    seeds: wp.array(dtype=wp.int32),
+    phi: wp.array3d(dtype=wp.mat33),
+    chol: wp.array3d(dtype=wp.mat33),
+    pose: wp.array2d(dtype=wp.float64),
+    exponent: wp.array(dtype=wp.float32),
+    dp: wp.array(dtype=wp.vec3),
+    lin: wp.array(dtype=vec12),
+    pos_out: wp.array(dtype=wp.vec3),
+    quat_out: wp.array(dtype=wp.vec4),
+    stats: wp.array2d(dtype=wp.float64),
+):
+    """The head of an update on CUDA, one thread per particle: :func:`move_particle` (the interval), then
+    :func:`pose_of_particle` (its pose for the model), and the first particle of each filter :func:`begin_stats` (no
+    model reads the statistics): :data:`time_update_kernel`, :data:`particle_poses_kernel` and
+    :data:`begin_update_kernel` in one launch, the same bits."""
+    i = wp.tid()
+    move_particle(i, 0, n_per, seeds, phi, chol, dp, lin)
+    pose_of_particle(i, n_per, pose, dp, lin, pos_out, quat_out)
+    if i % n_per == 0:
+        begin_stats(i // n_per, exponent, stats)
+
+
+@wp.kernel
+def integrity_block_kernel(
+    n_per: int,
+    offset: int,
+    seeds: wp.array(dtype=wp.int32),
+    params: UpdateParams,
+    stats: wp.array2d(dtype=wp.float64),
+    integrity: wp.array2d(dtype=wp.float64),
+    kernel_chol: wp.array(dtype=wp.mat33),
+    dp: wp.array(dtype=wp.vec3),
+    logw: wp.array(dtype=wp.float32),
+):
+    """The integrity monitor of filter b in one CUDA block (:data:`STAGE_BLOCK_DIM` lanes): :func:`integrity_step`
+    (lane 0), a barrier, :func:`respread_particle` (:data:`integrity_kernel` + :data:`respread_kernel`, the same
+    bits)."""
+    b, lane = wp.tid()
+    if lane == 0:
+        integrity_step(b, params, stats, integrity, kernel_chol)
+    block_sync()
+    for k in range(lane, n_per, wp.block_dim()):
+        respread_particle(b * n_per + k, n_per, offset, seeds, params, stats, dp, logw)
+
+
+@wp.kernel
+def record_block_kernel(
+    n_per: int,
+    params: UpdateParams,
+    measurement_update: int,
+    closed_loop: int,
+    logw: wp.array(dtype=wp.float32),
+    stats: wp.array2d(dtype=wp.float64),
+    integrity: wp.array2d(dtype=wp.float64),
+    slot: wp.array(dtype=wp.int32),
+    summary_sums: wp.array3d(dtype=wp.float64),
+    history: wp.array3d(dtype=wp.float64),
+    feedback: wp.array2d(dtype=wp.float64),
+    cov: wp.array3d(dtype=wp.mat33d),
+    pos: wp.array(dtype=wp.vec3d),
+    vel: wp.array(dtype=wp.vec3d),
+    quat: wp.array(dtype=wp.vec4d),
+    accel_bias: wp.array(dtype=wp.vec3d),
+    gyro_bias: wp.array(dtype=wp.vec3d),
+    injections: wp.array(dtype=wp.int32),
+    nominal_hist: wp.array3d(dtype=wp.float64),
+    p_hist: wp.array3d(dtype=wp.float64),
+    dp: wp.array(dtype=wp.vec3),
+    lin: wp.array(dtype=vec12),
+):
+    """The record and feedback of filter b in one CUDA block (:data:`STAGE_BLOCK_DIM` lanes, so the block sum is
+    :data:`summary_kernel`'s): :func:`summary_partial` (lane per chunk), :func:`record_summary`,
+    :func:`update_covariance` (lane 0) and in closed loop :func:`reset_particle`, barriers between
+    (:data:`summary_partials_kernel`, :data:`summary_kernel`, :data:`covariance_update_kernel`,
+    :data:`reset_kernel`: the same bits). The slot advances after, in a launch of its own (every filter reads it)."""
+    b, lane = wp.tid()
+    bd = wp.block_dim()
+    for c in range(lane, N_CHUNKS, bd):
+        summary_partial(b, c, n_per, logw, dp, lin, summary_sums)
+    block_sync()
+    record_summary(b, lane, params, summary_sums, stats, integrity, slot, history, feedback)
+    block_sync()
+    if lane == 0:
+        update_covariance(b, measurement_update, closed_loop, feedback, slot, cov, pos, vel, quat, accel_bias,
+                          gyro_bias, injections, nominal_hist, p_hist)
+    block_sync()
+    if closed_loop != 0:
+        for k in range(lane, n_per, bd):
+            reset_particle(b * n_per + k, n_per, feedback, dp, lin)

@@ -491,27 +491,33 @@ def test_graph_replay_equals_eager(device, rugged, model_name):
         np.testing.assert_array_equal(eager.ess, replay.ess)
 
 
-@pytest.mark.parametrize("model_name", ["sliding", "altimeter"])
-def test_block_stages_equal_the_separate_kernels(device, rugged, monkeypatch, model_name):
-    """A tempering stage and a resampling as one block per filter (``stage_block_kernel``, ``resample_block_kernel``:
-    the CUDA default) give bit-identical runs to their pieces launched one by one (the CPU default); on the CPU a
-    block is one thread doing every piece in order, on CUDA its lanes share them between barriers."""
+@pytest.mark.parametrize(("model_name", "stated"), [("sliding", False), ("sliding", True), ("altimeter", False)],
+                         ids=["sliding", "sliding-stated-map-error", "altimeter"])
+def test_block_forms_equal_the_separate_kernels(device, rugged, monkeypatch, model_name, stated):
+    """The fused forms of an update give bit-identical runs to its pieces launched one by one (the CPU default),
+    eagerly and replayed from a graph: a tempering stage and a resampling as one block per filter
+    (``stage_block_kernel``, ``resample_block_kernel``: the CUDA default) and the lean update (``move_pose_kernel``,
+    ``integrity_block_kernel``, ``record_block_kernel``, nested stage conditionals). On the CPU a block is one thread
+    doing every piece in order, on CUDA its lanes share them between barriers. A stated map error adds the map-error
+    modes between the integrity monitor and the record."""
     truth = Trajectory.build([Straight(3.0)], 100.0, [-3000.0, 0.0, -(rugged.h_max + 600.0)])
-    model = wt.make_model(model_name, rugged, wt.Likelihood("gaussian"))
+    model = wt.make_model(model_name, rugged, wt.Likelihood("gaussian", **(STATED_ERROR if stated else {})))
     sensor = None if model_name == "altimeter" else wt.PointCloudSensor(wt.ScanPattern.grid(5, 5, 30.0))
     init = MarginalizedParticleFilter.__init__
     runs = []
-    for block in (False, True):
-        def init_with(self, *args, _block=block, **kwargs):
+    for block, lean, graph in ((False, False, False), (True, False, False), (True, True, False), (True, True, True)):
+        def init_with(self, *args, _block=block, _lean=lean, **kwargs):
             init(self, *args, **kwargs)
-            self._block_stages = _block
+            self._block_stages, self._lean = _block, _lean
         monkeypatch.setattr(MarginalizedParticleFilter, "__init__", init_with)
         runs.append(run_filter(truth, rugged, model, ImuModel("navigation", 100.0, seed=2), sensor, n_particles=256,
-                               device=device, seed=[2, 7]))
-    for pieces, block in zip(*runs, strict=True):
+                               device=device, seed=[2, 7], graph=graph))
+    for pieces, *fused in zip(*runs, strict=True):
         assert pieces.resampled.any() and pieces.stages.max() > 1
-        np.testing.assert_array_equal(pieces.est_pos, block.est_pos)
-        np.testing.assert_array_equal(pieces.ess, block.ess)
+        for run in fused:
+            np.testing.assert_array_equal(pieces.est_pos, run.est_pos)
+            np.testing.assert_array_equal(pieces.ess, run.ess)
+            np.testing.assert_array_equal(pieces.stages, run.stages)
 
 
 def test_rejected_measurement_loses_nothing(rugged):

@@ -495,6 +495,9 @@ class MarginalizedParticleFilter:
         self._no_pos_info: wp.array | None = None
         self.graph = self.device.is_cuda if graph is None else bool(graph)
         self._block_stages = self.device.is_cuda  # a stage / a resampling as one block per filter (same bits)
+        # the update's head and tail fused, the stages' conditionals nested (same bits; the CPU runs it in
+        # tests/test_mpf.py): off until measured on a GPU
+        self._lean = False
         self._recorder = Recorder() if self.device.is_cpu and not self.graph else None
         """Eager CPU updates replay their fixed pieces from recorded launches (:class:`warptan.parallel.Recorder`);
         None launches every kernel anew (CUDA eager, or set to None to compare)."""
@@ -911,15 +914,37 @@ class MarginalizedParticleFilter:
                 self._launch_model(("model", stage))
                 self._piece(("weigh", stage), self._launch_stage, out, stage)
                 self._resample_if(stage=stage, read_flags=True)
+            elif self._lean:
+                self._stages_if(out, stage)
+                break
             else:
                 launch(kmpf.more_stages_kernel, dim=1, inputs=[self._stats], outputs=[self._more_stages],
                        device=self.device)
                 wp.capture_if(self._more_stages, on_true=self._extra_stage, out=out, stage=stage)
         self._piece("tail", self._launch_tail)
 
+    def _stages_if(self, out, stage: int) -> None:
+        """Stage ``stage`` and the later ones as nested conditionals: a later stage's test only runs when this one
+        ran (a converged update pays one test, not ``max_stages - 1``)."""
+        if stage >= self.max_stages:
+            return
+        launch(kmpf.more_stages_kernel, dim=1, inputs=[self._stats], outputs=[self._more_stages], device=self.device)
+        wp.capture_if(self._more_stages, on_true=self._stage_then_more, out=out, stage=stage)
+
+    def _stage_then_more(self, out, stage: int) -> None:
+        self._extra_stage(out, stage)
+        self._stages_if(out, stage + 1)
+
     def _launch_head(self) -> None:
-        self._launch_move()
-        self._launch_poses()
+        if not self._lean:
+            self._launch_move()
+            self._launch_poses()
+            return
+        self._launch_interval()  # then the particles' moves, poses and the statistics' reset in one launch
+        dv, n, st = self._dev, self.n, self.state
+        launch(kmpf.move_pose_kernel, dim=self.n_filters * n,
+               inputs=[n, dv["seeds"], dv["phi"], dv["chol"], dv["pose"], self._exponent],
+               outputs=[st.dp, st.lin, self._pos, self._quat, self._stats], device=self.device)
 
     def _launch_model(self, key) -> None:
         """The model at the particles' poses: a recorded piece for a model that launches only through
@@ -930,8 +955,9 @@ class MarginalizedParticleFilter:
             self.model.launch(self._pos, self._quat)
 
     def _launch_weigh(self, out, stage: int) -> None:
-        launch(kmpf.begin_update_kernel, dim=self.n_filters, inputs=[self._exponent], outputs=[self._stats],
-               device=self.device)
+        if not self._lean:  # (lean: the head reset the statistics)
+            launch(kmpf.begin_update_kernel, dim=self.n_filters, inputs=[self._exponent], outputs=[self._stats],
+                   device=self.device)
         self._launch_stage(out, stage)
 
     def _extra_stage(self, out, stage: int) -> None:
@@ -948,9 +974,23 @@ class MarginalizedParticleFilter:
             self._piece(("resample", stage), self._launch_resample, stage)
 
     def _launch_tail(self) -> None:
-        self._launch_integrity()
+        if not self._lean:
+            self._launch_integrity()
+            self._launch_modes()
+            self._launch_record()
+            return
+        d, b, n, st, nav = self.device, self.n_filters, self.n, self.state, self._nav
+        launch(kmpf.integrity_block_kernel, dim=[b],
+               inputs=[n, 2 * n * self.max_stages, self._dev["resample_seeds"], self.params, self._stats],
+               outputs=[self._integrity, self._kernel_chol, st.dp, st.logw], block_dim=kmpf.STAGE_BLOCK_DIM, device=d)
         self._launch_modes()
-        self._launch_record()
+        launch(kmpf.record_block_kernel, dim=[b],
+               inputs=[n, self.params, int(self.measurement_update), int(self.closed_loop), st.logw, self._stats,
+                       self._integrity, self._slot],
+               outputs=[self._summary_sums, self._history, self._feedback, nav["cov"], nav["pos"], nav["vel"],
+                        nav["quat"], nav["ba"], nav["bg"], self._injections, self._nominal_hist, self._p_hist, st.dp,
+                        st.lin], block_dim=kmpf.STAGE_BLOCK_DIM, device=d)
+        launch(kmpf.advance_slot_kernel, dim=1, inputs=[self._slot], device=d)
 
     def update(self, measurement, sync: bool = True):
         """Weight the particles by ``measurement`` (a list of B for a batch; taken at the current nominal time)
