@@ -41,10 +41,10 @@ alternating per interval, so that the host fills one while the device's graph co
 says when it is free again). Per measurement (``update``), all on the device, no host decision, captured as one
 graph on CUDA:
 
-1. one kernel (:mod:`warptan.kernels.nav`, float64, one thread per filter): the buffered samples run through the
-   nominal INS and the Riccati recursion (``N_k``, ``L_k``, ``P``), and the K steps a particle would take are
-   composed into one affine map with Gaussian noise (``Φ``, ``chol S``) — the same distribution as K separate
-   moves;
+1. one kernel (:mod:`warptan.kernels.nav`, float64; one thread per filter on the CPU, one 32-thread block per filter
+   on CUDA whose lanes share the 3×3 blocks in shared memory): the buffered samples run through the nominal INS and
+   the Riccati recursion (``N_k``, ``L_k``, ``P``), and the K steps a particle would take are composed into one
+   affine map with Gaussian noise (``Φ``, ``chol S``) — the same distribution as K separate moves;
 2. every particle moves, the model scores its pose, and the log-likelihood is
    applied in tempering stages (progressive correction, Oudjane & Musso 2000; SPEC §6b): each stage applies
    the largest exponent ``γ`` of what remains that keeps ESS ≥ ``temper_ess · n`` (chosen on the device from
@@ -77,6 +77,15 @@ step; N = 5000 sliding 14.1 vs 14.4 ms. Host work per step does not depend on th
 filters (independent seeds, same model) shares every launch. Measured on an H100 (N = 500, M = 400, gaussian,
 ``benchmarks/filter_step_device_h100.json``): sliding 0.77 ms, dda 0.95 ms per synchronised step, 0.52 / 0.70 ms
 pipelined; with the nav interval on the host and P's update read back per update it was 2.16 / 1.67 ms.
+
+On CUDA a tempering stage's per-filter pieces after the candidates' partials (ESS, selection, log-likelihood
+partials, maximum, exp partials, weight statistics, normalisation, Kalman update) run as one block per filter
+(:data:`warptan.kernels.mpf.stage_block_kernel`), and so does a resampling (:data:`~warptan.kernels.mpf.
+resample_block_kernel`): the same functions on the same values with barriers between them, the same bits as the
+separate kernels (a graph node costs a few µs whatever its work: 13 nodes a stage became 3). The CPU keeps the
+separate kernels (whose particle loops split over cores). ``_lean`` (off until measured on a GPU) fuses the head
+(moves, poses, statistics reset) and the tail (integrity + re-spread; record + P's update + reset) likewise and
+nests the stages' conditionals; the same bits on the CPU (``tests/test_mpf.py``).
 
 ``A^n`` and ``A^l`` are blocks of the INS error transition of :func:`warptan.ins.error_transition`
 (exact Jacobian: ``A^n = [dt I, 0.5 dt² (-R[a]x), 0.5 dt² (-R), 0]``; SPEC's ``[dt I, 0]`` plus the
