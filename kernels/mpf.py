@@ -240,6 +240,7 @@ def move_particle(
     dp[t] = y0
     lin[t] = vec12(y1[0], y1[1], y1[2], y2[0], y2[1], y2[2], y3[0], y3[1], y3[2], y4[0], y4[1], y4[2])
 
+
 @wp.kernel
 def time_update_kernel(
     row0: int,
@@ -279,6 +280,7 @@ def pose_of_particle(
     q_nom = wp.vec4(wp.float32(pose[b, 3]), wp.float32(pose[b, 4]), wp.float32(pose[b, 5]), wp.float32(pose[b, 6]))
     quat_out[i] = wp.normalize(quat_mul_wxyz(q_nom, quat_exp_wxyz(wp.vec3(lm[3], lm[4], lm[5]))))
 
+
 @wp.kernel
 def particle_poses_kernel(
     n_per: int,
@@ -301,6 +303,7 @@ def begin_stats(b: int, exponent: wp.array(dtype=wp.float32), stats: wp.array2d(
     for k in range(N_STATS):
         stats[b, k] = wp.float64(0.0)
     stats[b, ST_REMAIN] = wp.float64(exponent[b])
+
 
 @wp.kernel
 def begin_update_kernel(exponent: wp.array(dtype=wp.float32), stats: wp.array2d(dtype=wp.float64)):
@@ -507,6 +510,7 @@ def temper_select(
     stats[b, ST_APPLIED] = stats[b, ST_APPLIED] + gamma
     stats[b, ST_STAGES] = stats[b, ST_STAGES] + wp.float64(1.0)
 
+
 @wp.kernel
 def temper_select_kernel(
     n_per: int,
@@ -569,6 +573,7 @@ def add_loglik_partial(
     counts_out[b, c, 1] = unpredictable
     min_nis_out[b, c] = least
 
+
 @wp.kernel
 def add_loglik_partials_kernel(
     n_per: int,
@@ -608,6 +613,7 @@ def max_of_partials(b: int, max_in: wp.array2d(dtype=wp.float32), counts_in: wp.
     stats[b, ST_BAD] = wp.float64(bad)
     stats[b, ST_UNPREDICTABLE] = wp.float64(unpredictable)
     stats[b, ST_MAX] = wp.float64(m)
+
 
 @wp.kernel
 def max_of_partials_kernel(max_in: wp.array2d(dtype=wp.float32), counts_in: wp.array3d(dtype=wp.int32),
@@ -680,6 +686,7 @@ def exp_partial(
         sums_out[b, c, 15 + a] = lo_[a]
         sums_out[b, c, 18 + a] = ip[a]
     sums_out[b, c, 11] = sz
+
 
 @wp.kernel
 def exp_partials_kernel(
@@ -785,6 +792,7 @@ def weight_stats(
         stats[b, ST_RESAMPLE] = wp.float64(1.0)
         stats[b, ST_RESAMPLES] = stats[b, ST_RESAMPLES] + wp.float64(1.0)
 
+
 @wp.kernel
 def weight_stats_kernel(
     n_per: int,
@@ -805,6 +813,7 @@ def normalize_weight(i: int, n_per: int, stats: wp.array2d(dtype=wp.float64), lo
     b = i // n_per
     if stats[b, ST_ACTIVE] != wp.float64(0.0):
         logw[i] = wp.float32(wp.float64(logw[i]) - stats[b, ST_LOGNORM])
+
 
 @wp.kernel
 def normalize_weights_kernel(n_per: int, stats: wp.array2d(dtype=wp.float64), logw: wp.array(dtype=wp.float32)):
@@ -863,6 +872,7 @@ def kalman_update(
     d3 = p_col[b, 3] * x
     lin[i] = lin[i] + vec12(d0[0], d0[1], d0[2], d1[0], d1[1], d1[2], d2[0], d2[1], d2[2], d3[0], d3[1], d3[2])
 
+
 @wp.kernel
 def kalman_update_kernel(
     n_per: int,
@@ -892,6 +902,7 @@ def cdf_partial(b: int, c: int, n_per: int, logw: wp.array(dtype=wp.float32), st
         s += wp.float64(wp.exp(logw[b * n_per + k]))
     sums_out[b, c] = s
 
+
 @wp.kernel
 def cdf_partials_kernel(n_per: int, logw: wp.array(dtype=wp.float32), stats: wp.array2d(dtype=wp.float64),
                         sums_out: wp.array2d(dtype=wp.float64)):
@@ -914,6 +925,7 @@ def cdf_chunk(b: int, c: int, n_per: int, logw: wp.array(dtype=wp.float32), stat
     for k in range(lo, hi):
         s += wp.float64(wp.exp(logw[b * n_per + k]))
         cdf_out[b * n_per + k] = wp.float32(s)
+
 
 @wp.kernel
 def cdf_kernel(n_per: int, logw: wp.array(dtype=wp.float32), stats: wp.array2d(dtype=wp.float64),
@@ -971,6 +983,7 @@ def ancestor(
         own = wp.rand_init(seeds[b], base + j)
         u = wp.randf(own)
     ancestors_out[i] = search_cdf(cdf, lo, lo + n_per, u * total)
+
 
 @wp.kernel
 def ancestors_kernel(
@@ -1036,6 +1049,7 @@ def gather(
     lin_out[i] = lin_in[a]
     logw_out[i] = lw
 
+
 @wp.kernel
 def gather_kernel(
     n_per: int,
@@ -1064,6 +1078,7 @@ def copy_particle(i: int, dp_in: wp.array(dtype=wp.vec3), lin_in: wp.array(dtype
     dp_out[i] = dp_in[i]
     lin_out[i] = lin_in[i]
     logw_out[i] = logw_in[i]
+
 
 @wp.kernel
 def copy_particles_kernel(dp_in: wp.array(dtype=wp.vec3), lin_in: wp.array(dtype=vec12),
@@ -1285,6 +1300,7 @@ def integrity_step(b: int, params: UpdateParams, stats: wp.array2d(dtype=wp.floa
         k = 0
     integrity[b, IN_SINCE] = wp.float64(k)
 
+
 @wp.kernel
 def integrity_kernel(params: UpdateParams, stats: wp.array2d(dtype=wp.float64),
                      integrity: wp.array2d(dtype=wp.float64), kernel_chol: wp.array(dtype=wp.mat33)):
@@ -1315,6 +1331,7 @@ def respread_particle(
                      wp.float32(stats[b, ST_MEAN_DP + 2]))
     dp[i] = centre + params.respread_chol * gaussian3(state)
     logw[i] = -wp.log(float(n_per))
+
 
 @wp.kernel
 def respread_kernel(
@@ -1365,6 +1382,7 @@ def summary_partial(b: int, c: int, n_per: int, logw: wp.array(dtype=wp.float32)
     for a in range(12):
         partial_out[b, c, 10 + a] = l1[a]
         partial_out[b, c, 22 + a] = l2[a]
+
 
 @wp.kernel
 def summary_partials_kernel(n_per: int, logw: wp.array(dtype=wp.float32), dp: wp.array(dtype=wp.vec3),
@@ -1441,6 +1459,7 @@ def record_summary(
         mean = tot[10 + a] / s
         history[t, b, H_MEAN_L + a] = mean
         history[t, b, H_VAR_L + a] = wp.max(tot[22 + a] / s - mean * mean, wp.float64(0.0))
+
 
 @wp.kernel
 def summary_kernel(params: UpdateParams, partial_in: wp.array3d(dtype=wp.float64), stats: wp.array2d(dtype=wp.float64),
@@ -1529,6 +1548,7 @@ def update_covariance(
         cov[b, r, 1] = cov[b, r, 1] * wp.transpose(g)
     injections[b] = injections[b] + 1
 
+
 @wp.kernel
 def covariance_update_kernel(
     measurement_update: int,
@@ -1582,6 +1602,7 @@ def reset_particle(
     out[4] = rel[1]
     out[5] = rel[2]
     lin[i] = out
+
 
 @wp.kernel
 def reset_kernel(
