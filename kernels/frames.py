@@ -1,7 +1,7 @@
 """Rotation math for kernels (SPEC §1): Hamilton quaternions stored scalar-first as ``wp.vec4`` [w, x, y, z].
 
 Warp's own ``wp.quat`` is scalar-last; these functions take and return the project's scalar-first
-``vec4`` so that device arrays match the host arrays of :mod:`warptan.frames` element for element.
+``vec4`` so that device arrays match the host arrays of :mod:`warptan.nav.frames` element for element.
 ``q = q_nb``; :func:`quat_to_mat_wxyz` maps body vectors to the navigation frame (``v_n = R(q) v_b``).
 """
 

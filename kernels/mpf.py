@@ -129,7 +129,7 @@ FB_CONVERGED = wp.constant(22)  # 1: the integrity monitor has judged the filter
 
 @wp.struct
 class UpdateParams:
-    """How a measurement update weights, tempers, resamples and monitors (see :mod:`warptan.mpf`)."""
+    """How a measurement update weights, tempers, resamples and monitors (see :mod:`warptan.filter.mpf`)."""
 
     resample_threshold: float  # resample when ESS < this · n
     temper_ess: float  # a tempering stage keeps ESS ≥ this · n (0: one stage with the whole likelihood)
@@ -299,7 +299,8 @@ def particle_poses_kernel(
 @wp.func
 def begin_stats(b: int, exponent: wp.array(dtype=wp.float32), stats: wp.array2d(dtype=wp.float64)):
     """One thread per filter: the log-likelihood's exponent ``exponent[b]`` (1, or less over ground whose map error
-    the filter has read before: :class:`warptan.measurement.RevisitMemory`) is still to apply; counters reset."""
+    the filter has read before: :class:`warptan.sensing.measurement.RevisitMemory`) is still to apply; counters
+    reset."""
     for k in range(N_STATS):
         stats[b, k] = wp.float64(0.0)
     stats[b, ST_REMAIN] = wp.float64(exponent[b])
@@ -1031,7 +1032,7 @@ def gather(
     ``a = sqrt(1 - s h²)``, ``h`` the bandwidth times the stage's ``ST_JITTER`` (:data:`JITTER_NIS`), Σ̂ and m the
     weighted covariance and mean of dp before resampling (stream
     ``stage · 2n + n + j``): the mean is kept and the covariance grows by ``1 + (1 - s) h²``.
-    The Kalman mean is the ancestor's (see :mod:`warptan.mpf`). Other filters copy."""
+    The Kalman mean is the ancestor's (see :mod:`warptan.filter.mpf`). Other filters copy."""
     b = i // n_per
     a = ancestors[i]
     d = dp_in[a]

@@ -4,7 +4,7 @@ Runs on the host (the CPU device, float64): one thread per filter b steps throug
 interval. Per sample, from the nominal state *before* the step (its own step ``dt_k``, ``imu[b, k, 2][0]``: a
 recorded flight's samples need not be evenly spaced; the noise per step scales as ``dt_k / dt``):
 
-* the error transition blocks (3×3 blocks, order ``[dp, dv, dth, dba, dbg]``; see :mod:`warptan.ins`)::
+* the error transition blocks (3×3 blocks, order ``[dp, dv, dth, dba, dbg]``; see :mod:`warptan.nav.ins`)::
 
       A^n = [dt I, dt/2 A, dt/2 B, 0]            A = -R [a]x dt,  B = -R dt
       A^l = [[I, A, B, 0], [0, E, 0, J], [0, 0, I, 0], [0, 0, 0, I]]   E = Exp(w dt)ᵀ, J = -J_r(w dt) dt
@@ -13,7 +13,7 @@ recorded flight's samples need not be evenly spaced; the noise per step scales a
 
       N_k = A^n P A^nᵀ + Q^n,  L_k = A^l P A^nᵀ N_k⁻¹,  P <- A^l P A^lᵀ + Q^l - L_k N_k L_kᵀ
 
-* the mechanization of :func:`warptan.ins.mechanize`.
+* the mechanization of :func:`warptan.nav.ins.mechanize`.
 
 It also composes what the interval does to a particle ``x = [dp, l]`` (15): each step is
 ``x <- T_k x + G_k e_k`` with ``T_k = [[I, A^n], [0, A^l]]``, ``G_k = [I; L_k]``, ``e_k ~ N(0, N_k)``, so over
@@ -291,7 +291,7 @@ def _nav_interval(tiled: bool):
         the Kalman part models, in N_k and L_k); ``q_rough`` = per-step variance of the roughening, added to the
         particles' dp only (``S_dpdp += K q_rough I``: T_k leaves a dp-only noise on dp), so that L_k never reads it
         as velocity. ``q_vel_down[b]`` is added to the down velocity's Q^l (a map-error offset's change along the track,
-        :meth:`warptan.measurement.Likelihood.offset_process`; 0 without one).
+        :meth:`warptan.sensing.measurement.Likelihood.offset_process`; 0 without one).
 
         Tiled (CUDA): P, Φ, S and the Cholesky scratch live in the block's shared memory (:func:`shared_slot`); the
         lanes share each phase's independent pieces (a block column, a block row, one block, one row of the
@@ -433,7 +433,7 @@ def _nav_interval(tiled: bool):
                     m = half * (p_get(cov, b, r, c, sh) + wp.transpose(p_get(cov, b, c, r, sh)))
                     p_put(cov, b, r, c, sh, m)
                     p_put(cov, b, c, r, sh, wp.transpose(m))
-            # ---- mechanization (warptan.ins._step_inplace), every lane
+            # ---- mechanization (warptan.nav.ins._step_inplace), every lane
             an = rot * acc + wp.vec3d(wp.float64(0.0), wp.float64(0.0), wp.float64(GRAVITY_D))
             p = p + v * dt + half * dt * dt * an
             v = v + an * dt

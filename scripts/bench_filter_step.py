@@ -11,17 +11,17 @@ before the clock stops): ``predict_ms`` (per IMU sample: the interval's samples 
 ``throughput_step_ms`` (the same intervals run back to back with one synchronisation at the end: the host stages
 interval k + 1 while the device runs interval k) and ``estimate_ms`` (moments → host, not part of a step). The
 measurement upload is part of the step (``stage``); simulating it is not. Then a third run of intervals with the
-filter's own timers on (:class:`warptan.mpf.StepTimer`): the medians ``host_ms`` (Python: IMU buffering, interval
+filter's own timers on (:class:`warptan.filter.mpf.StepTimer`): the medians ``host_ms`` (Python: IMU buffering, interval
 staging, issuing launches or the graph), ``upload_ms`` (validating, packing and copying the measurement to the
 device) and ``device_ms`` (the update's device work: CUDA events around it, or the CPU's launches) per interval.
 
 With ``--scenario S8 [S7 ...]`` each row is the filter that scenario flies (its map, surface, likelihood, scan,
-rates, tempering, regularisation and attitude update: :func:`warptan.scenarios.scenario_model`,
-:func:`~warptan.scenarios.filter_kwargs`), measured on its own flight after ``--settle-s`` of it (acquisition is not
+rates, tempering, regularisation and attitude update: :func:`warptan.sim.scenarios.scenario_model`,
+:func:`~warptan.sim.scenarios.filter_kwargs`), measured on its own flight after ``--settle-s`` of it (acquisition is not
 the steady state); ``--n`` and ``--batch`` still apply. Such a row also reports the achieved point evaluations per
 second (B · N · M · tempering stages per update time) beside the bare model kernel's rate on the same poses and
 scan (the bound: ``model.launch`` alone), and, with ``--rtf-s T``, the real-time factor of a whole run of the
-scenario (T s flown by :func:`~warptan.scenarios.run_scenario` with N particles, after a short run that compiles).
+scenario (T s flown by :func:`~warptan.sim.scenarios.run_scenario` with N particles, after a short run that compiles).
 
     python scripts/bench_filter_step.py --n 500 5000 --models sliding dda --json step.json
     python scripts/bench_filter_step.py --device cuda:0 --n 500 --batch 1 100 --m-side 20 --graph on off
@@ -41,13 +41,13 @@ import warp as wp
 
 import warptan as wt
 from warptan.cli import count_arg, script_inputs
-from warptan.imu import ImuModel
+from warptan.filter.mpf import MarginalizedParticleFilter, StepTimer
+from warptan.filter.prior import InitialErrors, initial_nominal, prior_linear_cov
 from warptan.kernels import mpf as kmpf
 from warptan.meta import run_meta
-from warptan.mpf import MarginalizedParticleFilter, StepTimer
+from warptan.nav.imu import ImuModel
+from warptan.nav.trajectory import Straight, Trajectory
 from warptan.outputs import write_json
-from warptan.runner import InitialErrors, initial_nominal, prior_linear_cov
-from warptan.trajectory import Straight, Trajectory
 
 MODELS = ("sliding", "dda", "mesh", "bisection", "altimeter")
 
@@ -73,9 +73,9 @@ def generic_setup(terrain, model_name, m_side, likelihood, intervals, imu_per_me
 
 def scenario_setup(sid, device, settle_s, terrain=None, **overrides):
     """The filter scenario ``sid`` flies (model, surface, likelihood, scan, rates, filter keywords; ``overrides`` as
-    :func:`~warptan.scenarios.run_scenario` takes them), its flight and world; measurement starts ``settle_s`` into
+    :func:`~warptan.sim.scenarios.run_scenario` takes them), its flight and world; measurement starts ``settle_s`` into
     the flight (the intervals before run untimed)."""
-    from warptan.scenarios import filter_kwargs, map_terrain, prepare, scenario_likelihood, scenario_model
+    from warptan.sim.scenarios import filter_kwargs, map_terrain, prepare, scenario_likelihood, scenario_model
 
     config, world, flight = prepare(sid, terrain=terrain, device=device, **overrides)
     the_map = map_terrain(world, config, int(config["run"]["seed"]))
@@ -200,9 +200,9 @@ def bench(setup, n, device, repeats, warmup, seed=0, graph=None, batch=1):
 
 def real_time_factor(sid, device, n, duration_s, terrain=None, repeats=5, **overrides) -> dict:
     """Whole runs of the scenario (N particles, ``duration_s`` flown, seed 0) after a 2 s run that compiles: flight time
-    over the median wall time of ``repeats`` runs (:attr:`warptan.scenarios.ScenarioResult.wall_s`: the filter loop
+    over the median wall time of ``repeats`` runs (:attr:`warptan.sim.scenarios.ScenarioResult.wall_s`: the filter loop
     with the simulated sensor; one run of a shared 2-core VM varied by up to 1.3×), and every run's wall time."""
-    from warptan.scenarios import run_scenario
+    from warptan.sim.scenarios import run_scenario
 
     run_scenario(sid, 0, device, terrain=terrain, particles=n, duration_s=2.0, **overrides)
     walls = [run_scenario(sid, 0, device, terrain=terrain, particles=n, duration_s=duration_s, **overrides).wall_s
@@ -243,7 +243,7 @@ def main(argv=None) -> int:
     terrain = script_inputs("bench_filter_step", args.device, args.terrain)
     if args.settle_s < 0 or args.rtf_s < 0:
         parser.error("--settle-s and --rtf-s must be ≥ 0 s")
-    from warptan.scenarios import load_config
+    from warptan.sim.scenarios import load_config
 
     for sid in scenarios:  # an unknown scenario or a bad file: one line, exit 2, before any work
         try:
@@ -290,8 +290,8 @@ def main(argv=None) -> int:
                         what="median ms per IMU predict call, per measurement update, and per whole interval "
                              "(imu_per_meas predicts + one update) of B filters x N particles; filter_steps_per_s = "
                              "B / step time; host_ms / upload_ms / device_ms: median breakdown of an interval from "
-                             "the filter's StepTimer (warptan.mpf); scenario rows (model 'Sx:kind'): the filter the "
-                             "scenario flies, measured after settle_s of its flight, point_evals_per_s = B N M "
+                             "the filter's StepTimer (warptan.filter.mpf); scenario rows (model 'Sx:kind'): the filter "
+                             "the scenario flies, measured after settle_s of its flight, point_evals_per_s = B N M "
                              "stages / update time against kernel_point_evals_per_s (the model kernel alone), "
                              "real_time_factor = rtf_flight_s / rtf_wall_s, the median of rtf_walls_s, whole runs "
                              "(B = 1, the first N)")

@@ -19,8 +19,8 @@ import warp as wp
 import warptan as wt
 import warptan.parallel
 from warptan.cli import script_inputs
-from warptan.frames import euler_to_quat, quat_to_mat
 from warptan.meta import run_meta
+from warptan.nav.frames import euler_to_quat, quat_to_mat
 from warptan.outputs import write_json
 
 

@@ -19,16 +19,16 @@ import tempfile
 import time
 from pathlib import Path
 
-from warptan.campaign import Campaign
 from warptan.cli import count_arg
 from warptan.device import quiet_warp
 from warptan.outputs import write_json
+from warptan.sim.campaign import Campaign
 
 CLI = "import sys; sys.path.pop(0); from warptan.cli import main; sys.exit(main())"
 """``warptan`` with the current directory off the import path (as the installed console script runs)."""
 WARMUP = """
 import sys; sys.path.pop(0)
-from warptan.campaign import Campaign, run_batch
+from warptan.sim.campaign import Campaign, run_batch
 from warptan.device import quiet_warp
 quiet_warp()
 c = Campaign.load(sys.argv[1]); c.check("cpu")

@@ -25,8 +25,8 @@ import warp as wp
 
 import warptan as wt
 from warptan.cli import count_arg, number_arg, script_inputs
-from warptan.frames import euler_to_quat
 from warptan.meta import run_meta
+from warptan.nav.frames import euler_to_quat
 from warptan.outputs import write_json
 
 FULL_N = (100, 500, 2_000, 10_000, 100_000)

@@ -17,7 +17,7 @@ import numpy as np
 from warptan.cli import count_arg
 from warptan.meta import run_meta
 from warptan.outputs import write_json
-from warptan.scenarios import run_scenario_batch
+from warptan.sim.scenarios import run_scenario_batch
 
 WHAT = ("S8, 600 s, 100 particles, seeds 0-3, CPU. Per run: converged RMSE (m), 3σ coverage, fraction of epochs after "
         "30 s with the horizontal error outside the 3σ box, times of the integrity re-spreads, largest horizontal "

@@ -1,7 +1,7 @@
 """How good must the DEM be? Map-error study: the world is one terrain (default the 30 m San Gabriel tile), the
 filter's map is that terrain at coarser posts (block means) and with white noise per post; S7 (ray casting),
 S8 (sliding grid) and S9 (radar altimeter) with and without the map-aware σ (``likelihood.map_aware``: the map's
-own interpolation error, :meth:`warptan.terrain.Terrain.interpolation_sigma_m`, added to the stated noise).
+own interpolation error, :meth:`warptan.terrain.grid.Terrain.interpolation_sigma_m`, added to the stated noise).
 
 Each (scenario, spacing, noise, map-aware) row is one batch of ``--seeds`` seeds on one map realisation
 (``map_seed`` fixed per row); rows whose map grid is the world's (spacing = the world's posts) are run once (the
@@ -25,8 +25,8 @@ import warptan as wt
 from warptan.cli import count_arg, number_arg
 from warptan.meta import run_meta
 from warptan.outputs import write_json
-from warptan.report import ci95
-from warptan.scenarios import run_scenario_batch
+from warptan.sim.report import ci95
+from warptan.sim.scenarios import run_scenario_batch
 
 MODELS = {"S7": "ray casting", "S8": "sliding grid", "S9": "altimeter"}
 

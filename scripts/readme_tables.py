@@ -87,7 +87,7 @@ def paper_block(folder: str = "results/paper") -> str:
 
 
 def attitude_block(folder: str = "results/paper/gaussian") -> str:
-    from warptan.report import attitude_table
+    from warptan.sim.report import attitude_table
 
     data = _load(f"{folder}/results.json")
     return ("Attitude error = Log(q_true⁻¹ q_est) in body axes after convergence, RMS over seeds of the runs' RMSE; "

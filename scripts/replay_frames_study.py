@@ -22,13 +22,13 @@ from pathlib import Path
 import numpy as np
 
 from warptan.device import quiet_warp
-from warptan.geoframe import GeoFrame
-from warptan.logcsv import read_tables, write_tables
+from warptan.io.logcsv import read_tables, write_tables
 from warptan.meta import run_meta
-from warptan.replay import replay
-from warptan.report import ci95
-from warptan.scenarios import run_scenario
-from warptan.terrain import Terrain, named_terrain_file
+from warptan.nav.geoframe import GeoFrame
+from warptan.sim.replay import replay
+from warptan.sim.report import ci95
+from warptan.sim.scenarios import run_scenario
+from warptan.terrain.grid import Terrain, named_terrain_file
 
 REPLAYS = ("own", "csv", "crop", "utm", "tmerc")
 SAME_FRAME = ("own", "csv")
@@ -73,7 +73,7 @@ def surface_difference(dems: dict, half_m: float = 8000.0, n: int = 20000) -> di
     ``half_m`` of the tile's centre (the same places on the Earth), each copy read as a replay reads it (onto the
     tile's posts when it is resampled with their spacing; ``own``: the crop read on its own instead): what the copy
     changes in the map."""
-    from warptan.geoframe import frame_change
+    from warptan.nav.geoframe import frame_change
 
     world = Terrain.load("rugged")
     posts = (GeoFrame.of_terrain(world).crs_wkt, (0.0, 0.0),

@@ -14,11 +14,11 @@ from pathlib import Path
 import numpy as np
 
 from warptan.device import quiet_warp
-from warptan.flightlog import read_log, write_log
+from warptan.io.flightlog import read_log, write_log
+from warptan.io.rosbag import read_bag, write_bag
 from warptan.meta import run_meta
-from warptan.replay import replay
-from warptan.rosbag import read_bag, write_bag
-from warptan.scenarios import run_scenario
+from warptan.sim.replay import replay
+from warptan.sim.scenarios import run_scenario
 
 FIELDS = ("est_pos", "sigma3_pos", "ess", "lin_err", "sigma3_lin")
 ESTIMATE = ("est_pos", "sigma3_pos", "ess", "sigma3_lin")

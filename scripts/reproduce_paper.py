@@ -18,13 +18,13 @@ import time
 from pathlib import Path
 
 import warptan as wt
-from warptan import claims
 from warptan.cli import count_arg, number_arg
-from warptan.measurement import LIKELIHOODS
 from warptan.meta import run_meta
 from warptan.outputs import OutputError, OutputFolder, write_json
-from warptan.report import write_outputs
-from warptan.scenarios import SCENARIO_IDS, prepare, run_scenario, run_scenario_batch
+from warptan.sensing.measurement import LIKELIHOODS
+from warptan.sim import claims
+from warptan.sim.report import write_outputs
+from warptan.sim.scenarios import SCENARIO_IDS, prepare, run_scenario, run_scenario_batch
 
 
 def main(argv=None) -> int:

@@ -18,13 +18,13 @@ import sys
 import numpy as np
 
 import warptan as wt
-from warptan.imu import ImuModel
+from warptan.filter.mpf import MarginalizedParticleFilter
+from warptan.filter.prior import InitialErrors, initial_nominal, prior_linear_cov
 from warptan.kernels import mpf as kmpf
 from warptan.meta import run_meta
-from warptan.mpf import MarginalizedParticleFilter
+from warptan.nav.imu import ImuModel
+from warptan.nav.trajectory import Straight, Trajectory, Turn
 from warptan.outputs import write_json
-from warptan.runner import InitialErrors, initial_nominal, prior_linear_cov
-from warptan.trajectory import Straight, Trajectory, Turn
 
 CASES = [("sliding", "gaussian", 1), ("sliding", "paper", 1), ("sliding", "student_t", 1), ("sliding", "gaussian", 3),
          ("dda", "gaussian", 1), ("dda", "paper", 1), ("dda", "gaussian", 3), ("mesh", "gaussian", 1),

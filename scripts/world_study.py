@@ -1,5 +1,5 @@
 """Honest on real maps? Scenarios over worlds that are not the map (issue 31): the filter's map is the DEM, the
-flight sees a world made from it (:class:`warptan.world.WorldModel`: sub-post relief extrapolated from the DEM's
+flight sees a world made from it (:class:`warptan.terrain.world.WorldModel`: sub-post relief extrapolated from the DEM's
 spectrum, a correlated vertical error of stated RMS and correlation length, clutter), and each estimator is told
 only the DEM's stated accuracy.
 
@@ -7,7 +7,7 @@ A row is (scenario, error RMS, correlation length, relief, estimator); its ``--s
 ``--worlds`` world realisations (one batch each: a world is shared by the seeds of its batch). Estimators:
 ``gaussian`` (the per-point likelihood as the scenario has it), ``paper`` (the paper's scalar error), and
 ``stated`` (the per-point likelihood told the DEM's accuracy: ``likelihood.map_error_rms_m`` and
-``map_error_corr_m``, see :class:`warptan.measurement.Likelihood`). Rows are appended to OUT/study.json as they
+``map_error_corr_m``, see :class:`warptan.sensing.measurement.Likelihood`). Rows are appended to OUT/study.json as they
 finish (``--resume`` skips rows already there); OUT/study.md is written from the JSON.
 
     python scripts/world_study.py --seeds 20 --worlds 4 --device cuda:0 --out results/world
@@ -26,8 +26,8 @@ import numpy as np
 import warptan as wt
 from warptan.cli import count_arg, number_arg
 from warptan.meta import run_meta
-from warptan.report import ci95
-from warptan.scenarios import run_scenario_batch
+from warptan.sim.report import ci95
+from warptan.sim.scenarios import run_scenario_batch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from map_error_study import finish, run_rows
@@ -109,7 +109,7 @@ def write_markdown(data: dict, out: Path) -> None:
              "hypot(north, east) RMSE after convergence per seed, mean ± 95 % interval; 3σ coverage pooled; "
              f"σ/RMSE the mean reported σ over the RMSE per axis; lost: horizontal RMSE > {LOST_M:g} m "
              "(unflagged: without a re-spread, and not declared unconverged: its horizontal 3σ after convergence under "
-             "50 m, `warptan.report.UNCONVERGED_3SIGMA_M`).", "",
+             "50 m, `warptan.sim.report.UNCONVERGED_3SIGMA_M`).", "",
              "Commands: " + "; ".join(f"`{c}`" for c in meta.get("commands", [])), "",
              "| scenario | terrain | error RMS / corr (m) | estimator | map − world RMS (m) | horizontal RMSE (m) "
              "| RMSE N / E / D (m) | 3σ coverage N / E / D | σ/RMSE N / E / D | > 5 m | lost (unflagged) "

@@ -21,8 +21,8 @@ from rasterio.transform import Affine
 
 import warptan as wt
 from warptan import cli, outputs
-from warptan.scenarios import ScenarioError, prepare, run_scenario, scenario_path
-from warptan.terrain import Terrain, TerrainError, TerrainWarning
+from warptan.sim.scenarios import ScenarioError, prepare, run_scenario, scenario_path
+from warptan.terrain.grid import Terrain, TerrainError, TerrainWarning
 
 HEIGHTS = 200.0 + 50.0 * np.random.default_rng(0).random((40, 50))
 
@@ -251,7 +251,7 @@ def test_outputs_are_strict_json_and_a_rerun_replaces_the_whole_run(capsys, tmp_
 def test_an_interrupt_while_writing_leaves_the_previous_run(capsys, tmp_path, monkeypatch, exchange):
     """Ctrl-C after results.json is written but before the plots: the folder still holds the previous run, whole;
     then a run completes with the swap (atomic exchange, or the two-rename fallback) and replaces it."""
-    from warptan import report
+    from warptan.sim import report
 
     out = tmp_path / "res"
     args = ["run", "S8", "--duration-s", "0.1", "--particles", "16", "--out", str(out), "--quiet"]

@@ -9,9 +9,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from warptan.campaign import Campaign, CampaignError, make_row, run_batch, run_campaign, write_campaign
-from warptan.report import ci95
-from warptan.scenarios import run_scenario, run_scenario_batch
+from warptan.sim.campaign import Campaign, CampaignError, make_row, run_batch, run_campaign, write_campaign
+from warptan.sim.report import ci95
+from warptan.sim.scenarios import run_scenario, run_scenario_batch
 
 SMALL = {"scenarios": ["S8"], "seeds": 2, "overrides": {"duration_s": 3.0}, "sweep": {"particles": [100, 200, 300]}}
 """A campaign of three short batches (about 1 s on the CPU together)."""

@@ -10,12 +10,12 @@ import numpy as np
 import pytest
 
 from warptan.checks import FilterError
-from warptan.flightlog import LogError, read_log, write_log
-from warptan.frames import quat_to_euler
-from warptan.geoframe import GeoFrame, corners, frame_change
-from warptan.replay import replay
-from warptan.scenarios import run_scenario
-from warptan.terrain import Terrain, named_terrain_file
+from warptan.io.flightlog import LogError, read_log, write_log
+from warptan.nav.frames import quat_to_euler
+from warptan.nav.geoframe import GeoFrame, corners, frame_change
+from warptan.sim.replay import replay
+from warptan.sim.scenarios import run_scenario
+from warptan.terrain.grid import Terrain, named_terrain_file
 
 rasterio = pytest.importorskip("rasterio")
 
@@ -245,7 +245,7 @@ def test_a_dem_grid_log_flies_only_over_its_own_dem(s8):
 def test_geodetic_tables_round_trip_replays_as_the_run(s8, tmp_path):
     """run → log → CSV tables (latitude/longitude/height, true-north attitude) → import → replay: the same IMU,
     scans and initial state (to 1e-6 m / 1e-12), and the same estimate within the filter's noise."""
-    from warptan.logcsv import read_tables, write_tables
+    from warptan.io.logcsv import read_tables, write_tables
 
     result, log = s8
     back = read_tables(write_tables(log, tmp_path / "tables"))
@@ -266,7 +266,7 @@ def test_geodetic_tables_round_trip_replays_as_the_run(s8, tmp_path):
     (("layout.toml", "unknown", "colour = 3"), "unknown key 'colour'"),
 ])
 def test_bad_tables_are_one_clear_error(s8, edit, expect, tmp_path):
-    from warptan.logcsv import read_tables, write_tables
+    from warptan.io.logcsv import read_tables, write_tables
 
     _, log = s8
     layout = write_tables(log, tmp_path / "tables")
@@ -294,10 +294,10 @@ def test_bad_tables_are_one_clear_error(s8, edit, expect, tmp_path):
 
 def test_tables_without_a_prior_take_the_scenarios_prior_for_their_grade(s8, tmp_path):
     """A layout without ``initial_sigma`` gets the scenarios' prior with its IMU grade's turn-on biases
-    (:func:`warptan.runner.prior_sigma`): a tactical IMU's bias σ, not the navigation grade's."""
-    from warptan.imu import IMU_GRADES
-    from warptan.logcsv import read_tables, write_tables
-    from warptan.runner import InitialErrors, prior_sigma
+    (:func:`warptan.filter.prior.prior_sigma`): a tactical IMU's bias σ, not the navigation grade's."""
+    from warptan.filter.prior import InitialErrors, prior_sigma
+    from warptan.io.logcsv import read_tables, write_tables
+    from warptan.nav.imu import IMU_GRADES
 
     _, log = s8
     layout = write_tables(log, tmp_path / "tables")
@@ -317,7 +317,7 @@ def test_a_multi_band_raster_names_its_bands(tmp_path):
     with rasterio.open(tmp_path / "rgb.tif", "w", **prof) as dst:
         for i in (1, 2, 3):
             dst.write(data, i)
-    from warptan.raster import TerrainError
+    from warptan.terrain.raster import TerrainError
 
     with pytest.raises(TerrainError, match="raster has 3 bands"):
         Terrain.load(str(tmp_path / "rgb.tif"))

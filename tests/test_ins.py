@@ -5,9 +5,9 @@ import math
 import numpy as np
 import pytest
 
-from warptan.frames import quat_to_euler
-from warptan.imu import IMU_GRADES, ImuModel, imu_grade
-from warptan.ins import (
+from warptan.nav.frames import quat_to_euler
+from warptan.nav.imu import IMU_GRADES, ImuModel, imu_grade
+from warptan.nav.ins import (
     Ins,
     NavState,
     error_transition,
@@ -16,7 +16,7 @@ from warptan.ins import (
     state_difference,
     state_plus,
 )
-from warptan.trajectory import Climb, Orbit, Straight, Trajectory, Turn
+from warptan.nav.trajectory import Climb, Orbit, Straight, Trajectory, Turn
 
 
 def _ten_minutes():

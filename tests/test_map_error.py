@@ -11,7 +11,7 @@ import warp as wp
 
 import warptan as wt
 from warptan.kernels import likelihood as klik
-from warptan.world import WorldModel
+from warptan.terrain.world import WorldModel
 
 STATED = {"map_error_sigma_m": 5.0, "map_error_corr_m": 1000.0, "track_step_m": 10.0}
 
@@ -395,7 +395,7 @@ def test_a_stated_error_keeps_s8_honest_over_a_world_with_that_error():
     """S8 over a world whose map error is 5 m RMS correlated over 1 km (4 seeds, 90 s): without the statement the
     per-point likelihood's 3σ covers under half of its error on some axis (12–65 %); told the DEM's accuracy,
     over 85 % on each axis and the horizontal RMSE under half. (20 seeds per scenario: scripts/world_study.py.)"""
-    from warptan.scenarios import run_scenario_batch
+    from warptan.sim.scenarios import run_scenario_batch
 
     world = {"world_error_rms_m": 5.0, "world_error_corr_m": 1000.0, "world_seed": 1000, "duration_s": 90.0}
     runs = {told: run_scenario_batch("S8", [0, 1, 2, 3], map_error_rms_m=5.0 if told else 0.0,
@@ -429,10 +429,10 @@ def test_the_filter_reports_the_offset_it_carries():
     q_v t); a point-cloud model's fix wanders along the track with the error: ``2 σ_e² v / L`` more position
     noise in the Kalman part (not an altimeter's). Without a statement, or with a barometer-referenced altimeter,
     nothing changes."""
-    from warptan.imu import ImuModel
-    from warptan.mpf import MarginalizedParticleFilter
-    from warptan.runner import InitialErrors, initial_nominal, prior_linear_cov
-    from warptan.trajectory import Straight, Trajectory
+    from warptan.filter.mpf import MarginalizedParticleFilter
+    from warptan.filter.prior import InitialErrors, initial_nominal, prior_linear_cov
+    from warptan.nav.imu import ImuModel
+    from warptan.nav.trajectory import Straight, Trajectory
 
     dem = wt.Terrain.load("rugged")
     truth = Trajectory.build([Straight(2.0)], 100.0, [0.0, 0.0, -(dem.height_at(0.0, 0.0) + 700.0)], rate_hz=100.0)
@@ -468,10 +468,10 @@ def test_the_filter_carries_the_mode_amplitudes_from_scan_to_scan():
     it) and each filter's variances along the recursion ``P ← ρ² P⁻/(1 + P⁻) + (1 − ρ²) k⁰`` from ``P⁻ = k⁰`` at
     the first scan (NumPy, float64; the table's basis change is zero for the first table, the identity while the
     scan's geometry holds)."""
-    from warptan.imu import ImuModel
-    from warptan.mpf import MarginalizedParticleFilter
-    from warptan.runner import InitialErrors, initial_nominal, prior_linear_cov
-    from warptan.trajectory import Straight, Trajectory
+    from warptan.filter.mpf import MarginalizedParticleFilter
+    from warptan.filter.prior import InitialErrors, initial_nominal, prior_linear_cov
+    from warptan.nav.imu import ImuModel
+    from warptan.nav.trajectory import Straight, Trajectory
 
     dem = wt.Terrain.load("rugged")
     world = WorldModel(error_rms_m=5.0, error_corr_m=1000.0, seed=1).build(dem)
@@ -508,13 +508,13 @@ def test_the_filter_carries_the_mode_amplitudes_from_scan_to_scan():
 
 
 def test_ground_read_again_after_the_modes_forgot_it_weighs_less():
-    """:class:`warptan.measurement.RevisitMemory`: a straight flight keeps exponent 1 (its older scans are far
+    """:class:`warptan.sensing.measurement.RevisitMemory`: a straight flight keeps exponent 1 (its older scans are far
     behind: ≥ 0.98), an orbit of 600 m radius inside one correlation length is discounted once its earlier passes
     are older than κ scans, to what one more pass adds to passes whose fixes are correlated by ρ, ``(1 − ρ) / ((1 +
     Cρ)(1 + (C − 1)ρ))`` (C ≥ 1; below, ``(1 − ρC) / (1 + ρC)``), of the NumPy sum over every earlier scan (C = Σ_k
     exp(−d_k²/L²) / κ, the scans older than κ; the memory keeps every κ/16-th); the first κ updates are exactly 1;
     ρ = 0 never discounts; the passes of an orbit add up to at most 1/ρ passes."""
-    from warptan.measurement import RevisitMemory
+    from warptan.sensing.measurement import RevisitMemory
 
     lk = wt.Likelihood("gaussian", sensor_sigma_m=0.5, **STATED)
     kappa = lk.point_sharing()

@@ -5,7 +5,7 @@ import pytest
 import warp as wp
 
 import warptan as wt
-from warptan.frames import euler_to_quat, quat_to_mat
+from warptan.nav.frames import euler_to_quat, quat_to_mat
 
 
 def _poses(pos, quat, device):
@@ -374,7 +374,7 @@ def test_attitude_marginal_matches_numpy(device):
     H), ``Σ (-0.5 r²/σ_j² - log(σ_j/σ)) + 0.5 bᵀ A (I + ΛA)⁻¹ b - 0.5 log det(I + AΛ)``; A = 0 (no attitude
     covariance bound) gives the plain sum. The NIS is the same marginal's Mahalanobis form, ``min(Σ min(z², k²), Σ z²
     − bᵀ A (I + ΛA)⁻¹ b) / n``: a particle whose attitude error lies within A is not judged lost for it."""
-    from warptan.frames import quat_exp, quat_mul
+    from warptan.nav.frames import quat_exp, quat_mul
 
     terrain = wt.Terrain.synthetic("rugged", size_m=4000.0, spacing=30.0, seed=6)
     pos, q, cloud = _truth_setup(terrain)
@@ -435,7 +435,7 @@ def test_bad_likelihood_parameters(kwargs, message):
 def _fd_jacobians(model, poses, quats, cloud, eps_att=2e-4, eps_pos=0.05):
     """(residuals (N, M), H (N, M, 3) w.r.t. dθ, G (N, M, 3) w.r.t. the position): the prediction's Jacobians by
     central finite differences of the model's own residuals (``q ⊗ Exp(±ε e_k)``, ``p ± ε e_k``)."""
-    from warptan.frames import quat_exp, quat_mul
+    from warptan.nav.frames import quat_exp, quat_mul
 
     def res(p, q):
         return model.evaluate(*_poses(p, q, "cpu"), cloud).residual_m.numpy().astype(np.float64)
@@ -457,8 +457,8 @@ def test_attitude_information_matches_finite_differences(thuringia_crop, model_n
     casts: σ): unprojected (``project_position=False``) ``Λ = Σ HᵀH/σ_j²``, ``b = Σ Hᵀr/σ_j²``; projected (the
     default) the Schur complement ``Λ - Λ_θp (Λ_pp + πI)⁻¹ Λ_pθ``, ``b - Λ_θp (Λ_pp + πI)⁻¹ b_p`` (float32
     kernels: 3 % of the largest entry; 6 % for the projected Λ, a difference of large terms)."""
-    from warptan.frames import quat_exp, quat_mul
-    from warptan.measurement import POSITION_PRIOR_PRECISION
+    from warptan.nav.frames import quat_exp, quat_mul
+    from warptan.sensing.measurement import POSITION_PRIOR_PRECISION
 
     thuringia = thuringia_crop
     pos, q, cloud = _truth_setup(thuringia, seed=4)

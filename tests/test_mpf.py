@@ -6,14 +6,15 @@ import warp as wp
 
 import warptan as wt
 from warptan.checks import FilterError
-from warptan.frames import quat_conj, quat_exp, quat_log, quat_mul
-from warptan.imu import ImuModel
-from warptan.ins import Ins, error_transition, process_noise
+from warptan.filter.mpf import RESAMPLERS, SCHEMES, MarginalizedParticleFilter
+from warptan.filter.prior import InitialErrors, initial_nominal, prior_linear_cov
 from warptan.kernels import mpf as kmpf
-from warptan.measurement import Likelihood, ModelOutput
-from warptan.mpf import RESAMPLERS, SCHEMES, MarginalizedParticleFilter
-from warptan.runner import InitialErrors, initial_nominal, prior_linear_cov, run_filter
-from warptan.trajectory import Straight, Trajectory, Turn
+from warptan.nav.frames import quat_conj, quat_exp, quat_log, quat_mul
+from warptan.nav.imu import ImuModel
+from warptan.nav.ins import Ins, error_transition, process_noise
+from warptan.nav.trajectory import Straight, Trajectory, Turn
+from warptan.sensing.measurement import Likelihood, ModelOutput
+from warptan.sim.runner import run_filter
 
 
 @wp.kernel
@@ -332,7 +333,7 @@ def test_cpu_and_cuda_match_statistically(rugged):
     that of a converged filter (< 10 m; the paper likelihood at 40 s gave 3.9 m on both, H100)."""
     if not wp.get_cuda_device_count():
         pytest.skip("no CUDA device visible to Warp")
-    from warptan.report import welch_less
+    from warptan.sim.report import welch_less
 
     rmse = {device: [float(np.linalg.norm(_rugged_run(s, device, duration=40.0, terrain=rugged).rmse(20.0)[:2]))
                      for s in range(8)] for device in ("cpu", "cuda:0")}
@@ -875,7 +876,7 @@ def test_predict_many_equals_one_predict_per_sample(rugged):
 def test_step_timer_records_each_update(device, rugged):
     """``mpf.timer = StepTimer()``: one host / upload / device time per update, finite and ≥ 0, the IMU buffering
     counted as host; timing changes no result (same records as an untimed run)."""
-    from warptan.mpf import StepTimer
+    from warptan.filter.mpf import StepTimer
 
     hist = []
     for timed in (False, True):
@@ -920,7 +921,7 @@ def test_estimate_combines_nominal_and_particle_moments(device, rugged):
     """estimate(): position = nominal + weighted mean dp, velocity / biases = nominal + weighted mean l, attitude =
     q_nom ⊗ Exp(mean θ), cov_lin = P + the spread of the Kalman means, cov_pos = weighted covariance of dp (a
     float64 NumPy reduction of the particle arrays is the oracle)."""
-    from warptan.frames import quat_exp, quat_mul
+    from warptan.nav.frames import quat_exp, quat_mul
 
     model = wt.SlidingModel(rugged, Likelihood("gaussian", sigma_m=1.0))
     truth, mpf = _manual_filter(rugged, model, n_particles=300, seed=5, device=device, graph=None, att_var=1e-4,

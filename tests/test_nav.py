@@ -4,11 +4,11 @@ import numpy as np
 import pytest
 import warp as wp
 
-from warptan.imu import ImuModel
-from warptan.ins import error_transition, mechanize, process_noise
+from warptan.filter.prior import InitialErrors, initial_nominal, prior_linear_cov
 from warptan.kernels import nav as knav
-from warptan.runner import InitialErrors, initial_nominal, prior_linear_cov
-from warptan.trajectory import Straight, Trajectory, Turn
+from warptan.nav.imu import ImuModel
+from warptan.nav.ins import error_transition, mechanize, process_noise
+from warptan.nav.trajectory import Straight, Trajectory, Turn
 
 
 def _python_interval(nominal, f, w, dt, P, q_n, q_l, steps=None):

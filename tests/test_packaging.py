@@ -15,7 +15,7 @@ ROOT = Path(__file__).resolve().parents[1]
 def test_import_needs_only_numpy_and_warp():
     """`import warptan` pulls in neither rasterio, trimesh nor matplotlib (the bare-GPU-machine case), nor Ray (the
     campaign engine imports it only when it runs)."""
-    code = ("import sys, warptan, warptan.kernels.terrain, warptan.campaign; "
+    code = ("import sys, warptan, warptan.kernels.terrain, warptan.sim.campaign; "
             "bad = [m for m in ('rasterio', 'trimesh', 'matplotlib', 'tqdm', 'ray') if m in sys.modules]; "
             "assert not bad, bad")
     subprocess.run([sys.executable, "-c", code], check=True, cwd="/")
@@ -45,7 +45,7 @@ def test_fresh_virtualenv_install(tmp_path):
             "spec = importlib.util.find_spec('kernels'); "
             "assert spec is None or 'warptan' not in (spec.origin or ''), spec; "
             # the scenarios' real terrains come with the package (issue 13): no ../shared, no environment variable
-            "from warptan.scenarios import prepare; cfg, truth, flight = prepare('S8'); "
+            "from warptan.sim.scenarios import prepare; cfg, truth, flight = prepare('S8'); "
             "assert truth.name == 'rugged:thuringia_hilly_srtm3_crop44km.tif', truth.name; "
             "assert 'site-packages' in truth.description, truth.description; print(warptan.kernels.__file__)")
     env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "WARPTAN_DEM_DIR")}

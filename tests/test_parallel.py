@@ -40,7 +40,7 @@ def test_chunked_filter_is_identical(monkeypatch):
     runs = []
     for threads in (1, 3):
         monkeypatch.setenv("WARPTAN_CPU_THREADS", str(threads))
-        r = wt.scenarios.run_scenario("S8", seed=2, terrain="synthetic:rugged,size_m=12000,spacing=40,seed=2",
+        r = wt.run_scenario("S8", seed=2, terrain="synthetic:rugged,size_m=12000,spacing=40,seed=2",
                                       particles=700, duration_s=5.0)
         runs.append(r.run)
     np.testing.assert_array_equal(runs[0].est_pos, runs[1].est_pos)
@@ -63,7 +63,7 @@ def test_replayed_launches_are_identical(monkeypatch, scenario, overrides):
     """An eager CPU run whose fixed pieces replay recorded launches (:class:`warptan.parallel.Recorder`; chunks on 3
     threads) equals one that launches every kernel anew, bit for bit: estimates, ESS, tempering stages, resampling
     and the closed loop's injections. The replay was used (recordings exist and outnumber nothing)."""
-    import warptan.mpf as mpf_module
+    import warptan.filter.mpf as mpf_module
 
     monkeypatch.setenv("WARPTAN_CPU_THREADS", "3")
     made = []
@@ -76,7 +76,7 @@ def test_replayed_launches_are_identical(monkeypatch, scenario, overrides):
     runs = []
     for recorder in (Counting, lambda: None):
         monkeypatch.setattr(mpf_module, "Recorder", recorder)
-        r = wt.scenarios.run_scenario(scenario, seed=3, terrain="synthetic:rugged,size_m=12000,spacing=40,seed=2",
+        r = wt.run_scenario(scenario, seed=3, terrain="synthetic:rugged,size_m=12000,spacing=40,seed=2",
                                       particles=700, duration_s=6.0, **overrides)
         runs.append(r.run)
     assert made and len(made[0]) >= 4, [len(m) for m in made]

@@ -5,7 +5,7 @@ import pytest
 import warp as wp
 
 import warptan as wt
-from warptan.raycast import raycast_pattern
+from warptan.terrain.raycast import raycast_pattern
 
 
 def _small_terrain():

@@ -9,11 +9,11 @@ import sys
 import numpy as np
 import pytest
 
-from warptan.flightlog import FlightLog, LogError, read_log, write_log
-from warptan.frames import quat_to_euler
-from warptan.mpf import MarginalizedParticleFilter
-from warptan.replay import replay, timeline
-from warptan.scenarios import run_scenario
+from warptan.filter.mpf import MarginalizedParticleFilter
+from warptan.io.flightlog import FlightLog, LogError, read_log, write_log
+from warptan.nav.frames import quat_to_euler
+from warptan.sim.replay import replay, timeline
+from warptan.sim.scenarios import run_scenario
 
 RUN = {"duration_s": 3.0, "particles": 128}
 
@@ -47,7 +47,7 @@ def test_exported_log_replays_bit_identically(simulated, kind, tmp_path):
 def test_mounted_sensor_replays_to_the_same_estimate(simulated):
     """The same scans expressed in a sensor frame rotated 90° about z and 20° about y, 1.5 m from the body origin:
     replay with that mounting gives the run of the body-frame scans (to the rounding of re-expressing the points)."""
-    from warptan.frames import euler_to_mat, mat_to_quat
+    from warptan.nav.frames import euler_to_mat, mat_to_quat
 
     result, log = simulated["sliding"]
     rot_bs = euler_to_mat(0.0, np.radians(20.0), np.radians(90.0))
@@ -145,9 +145,9 @@ def test_all_problems_at_once_and_not_a_log(tmp_path):
 
 
 def test_predict_refuses_a_bad_step():
-    from warptan.ins import NavState
-    from warptan.measurement import make_model
-    from warptan.terrain import Terrain
+    from warptan.nav.ins import NavState
+    from warptan.sensing.measurement import make_model
+    from warptan.terrain.grid import Terrain
 
     model = make_model("sliding", Terrain.synthetic(size_m=4000.0, spacing=90.0))
     mpf = MarginalizedParticleFilter(model, NavState([0, 0, -1000.0], [100.0, 0, 0], [1.0, 0, 0, 0]), "navigation",
@@ -160,7 +160,7 @@ def test_predict_refuses_a_bad_step():
 def test_ros_frames():
     """FLU/ENU ↔ FRD/NED: a ROS body at identity faces east, level; the conversions invert each other."""
     pytest.importorskip("rosbags")
-    from warptan.rosbag import ENU_NED, FLU_FRD, quat_ned_to_ros, quat_ros_to_ned
+    from warptan.io.rosbag import ENU_NED, FLU_FRD, quat_ned_to_ros, quat_ros_to_ned
 
     q = quat_ros_to_ned([0.0, 0.0, 0.0, 1.0])[0]
     np.testing.assert_allclose(np.degrees(quat_to_euler(q)), [0.0, 0.0, 90.0], atol=1e-12)
@@ -178,7 +178,7 @@ def test_exported_bag_replays_to_the_same_result(simulated, tmp_path):
     """run → ROS 2 bag (FLU/ENU topics, float64 points, ns stamps) → replay: the same filter output up to the
     rounding of a point's range and direction recomputed from x, y, z (1e-13 m)."""
     pytest.importorskip("rosbags")
-    from warptan.rosbag import read_bag, write_bag
+    from warptan.io.rosbag import read_bag, write_bag
 
     result, log = simulated["sliding"]
     write_bag(log, tmp_path / "bag")
@@ -194,7 +194,7 @@ def test_exported_bag_replays_to_the_same_result(simulated, tmp_path):
 
 def test_bag_missing_topics_is_one_error(simulated, tmp_path):
     pytest.importorskip("rosbags")
-    from warptan.rosbag import BagConfig, read_bag, write_bag
+    from warptan.io.rosbag import BagConfig, read_bag, write_bag
 
     _, log = simulated["sliding"]
     write_bag(log, tmp_path / "bag")

@@ -8,8 +8,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from warptan import claims
-from warptan.report import (
+from warptan.sim import claims
+from warptan.sim.report import (
     FAILS,
     HOLDS,
     INCONCLUSIVE,
@@ -111,7 +111,7 @@ def test_claims_from_constructed_runs():
 
 
 def test_committed_claims_rederive_from_their_runs():
-    """Each committed claims.json is what warptan.claims gives on the committed results.json (no hand edits)."""
+    """Each committed claims.json is what warptan.sim.claims gives on the committed results.json (no hand edits)."""
     for folder in sorted((ROOT / "results").glob("*/*/claims.json")):
         data = json.loads(folder.read_text())
         runs = json.loads((folder.parent / "results.json").read_text())["runs"]
@@ -197,7 +197,7 @@ def test_a_run_whose_bounds_stay_wide_declares_itself_unconverged():
     down axis does not count); a run that ended before the convergence time is not flagged."""
     from types import SimpleNamespace
 
-    from warptan.report import UNCONVERGED_3SIGMA_M, declared_unconverged
+    from warptan.sim.report import UNCONVERGED_3SIGMA_M, declared_unconverged
 
     t = np.arange(0.0, 120.0, 0.1)
     sig = np.tile([3.0, 4.0, 500.0], (len(t), 1))

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 import warptan as wt
-from warptan.scenarios import SCENARIO_IDS, ScenarioError, load_config, prepare, run_scenario, scenario_path
+from warptan.sim.scenarios import SCENARIO_IDS, ScenarioError, load_config, prepare, run_scenario, scenario_path
 
 SMALL = "synthetic:rugged,size_m=12000,spacing=40,seed=2"
 
@@ -186,7 +186,7 @@ def test_likelihood_sigma_auto_or_number():
         load_config("S8", sigma_m="automatic")
     with pytest.raises(ScenarioError, match=re.escape("filter.shrinkage = 2.0 must be in")):
         load_config("S8", shrinkage=2.0)
-    from warptan.scenarios import scenario_likelihood
+    from warptan.sim.scenarios import scenario_likelihood
 
     config = load_config("S8")
     flat = wt.Terrain.synthetic("flat", size_m=4000.0, spacing=30.0, seed=1)
@@ -210,7 +210,7 @@ def test_scenarios_fly_the_package_terrains(monkeypatch):
 def test_map_errors_from_the_scenario_file():
     """map_spacing_m (block means), map_noise_m (map_seed), map_bias_m build the filter's map from the world in
     that order; the map-aware σ counts the map's interpolation error only when its grid is not the world's."""
-    from warptan.scenarios import map_terrain, scenario_likelihood
+    from warptan.sim.scenarios import map_terrain, scenario_likelihood
 
     config, world, _ = prepare("S8", terrain="rugged30", map_spacing_m=90.0, map_bias_m=2.5, map_noise_m=1.0,
                                map_seed=4)
@@ -234,8 +234,8 @@ def test_map_errors_from_the_scenario_file():
 def test_map_file_and_bad_map_settings(tmp_path):
     """map_path reads another DEM onto the world's frame; a bad map file or setting is a clear error before any
     run; per-seed map noise cannot be batched unless map_seed fixes one realisation."""
-    from warptan.scenarios import map_terrain, run_scenario_batch
-    from warptan.terrain import named_terrain_file
+    from warptan.sim.scenarios import map_terrain, run_scenario_batch
+    from warptan.terrain.grid import named_terrain_file
 
     config, world, _ = prepare("S8", terrain="rugged30", map_path=str(named_terrain_file("rugged30")))
     the_map = map_terrain(world, config, 0)
@@ -265,11 +265,11 @@ def test_surface_key_reaches_the_model():
     """``sensor.surface`` picks what the sliding model reads: on triangles (the world's own surface here) its
     calibrated σ has no bilinear-vs-triangles mismatch; a bad value is an error naming the key."""
     terrain = "synthetic:rugged,size_m=12000,spacing=40,seed=2"
-    sig = {s: wt.scenarios.run_scenario("S8", seed=1, terrain=terrain, particles=200, duration_s=1.0,
+    sig = {s: wt.run_scenario("S8", seed=1, terrain=terrain, particles=200, duration_s=1.0,
                                         surface=s).run.info["sigma_m"] for s in ("triangles", "bilinear")}
     assert sig["triangles"] < sig["bilinear"], sig
-    with pytest.raises(wt.scenarios.ScenarioError, match=re.escape("sensor.surface")):
-        wt.scenarios.load_config("S8", surface="cubic")
+    with pytest.raises(wt.ScenarioError, match=re.escape("sensor.surface")):
+        wt.sim.scenarios.load_config("S8", surface="cubic")
 
 
 def test_altimeter_runs_that_walked_off_along_the_contours_converge():
@@ -285,7 +285,7 @@ def test_altimeter_runs_that_walked_off_along_the_contours_converge():
     (2 beyond 1 km). Such a seed locks onto a wrong place in its first seconds over the featureless plain, its 3σ then
     shrinking around it; before the fix 3 of seeds 0–39 went 2–4.6 km. The bound below (median under 25 m, at most
     4 of 40 beyond 100 m) guards the bulk of the runs; it does not separate the fix from its absence on this ground."""
-    from warptan.scenarios import run_scenario_batch
+    from warptan.sim.scenarios import run_scenario_batch
 
     for r in run_scenario_batch("S9", [12, 18], device="cpu", terrain="rugged30"):
         horiz = float(np.hypot(*r.rmse_converged[:2]))

@@ -141,7 +141,7 @@ def test_projected_metric_raster_keeps_native_posts(tmp_path):
     assert n_min == pytest.approx(-n_max) and e_min == pytest.approx(-e_max)
     # The NE post (row 0 of the file, last column) is at UTM x = 600000 + 29.5*30, y = 5600000 - 15.
     lat, lon = t.ne_to_latlon(n_max, e_max)
-    from warptan.raster import latlon_to_projected
+    from warptan.terrain.raster import latlon_to_projected
 
     x, y = latlon_to_projected(t.crs_wkt, lat, lon)
     assert float(x) == pytest.approx(600_000.0 + 29.5 * 30.0, abs=1e-3)
@@ -372,7 +372,7 @@ def test_trimesh_export(tmp_path):
 def test_named_terrains_ship_with_the_package(monkeypatch, name, rows, cols, h_range):
     """rugged / flat / rugged30 load from the package (no ../shared, no environment variable), keep their
     georeference and name themselves the same on every machine."""
-    from warptan.terrain import NAMED_TERRAINS, named_terrain_file
+    from warptan.terrain.grid import NAMED_TERRAINS, named_terrain_file
 
     monkeypatch.delenv("WARPTAN_DEM_DIR", raising=False)
     path = named_terrain_file(name)
@@ -388,7 +388,7 @@ def test_package_crops_are_the_source_posts():
     """The package's Thuringia crop holds exactly the source tile's posts in its window (no resampling)."""
     import rasterio
 
-    from warptan.terrain import named_terrain_file
+    from warptan.terrain.grid import named_terrain_file
 
     with rasterio.open(dem_path(THURINGIA)) as src, rasterio.open(named_terrain_file("rugged")) as crop:
         r0, c0 = (src.height - crop.height) // 2, (src.width - crop.width) // 2
@@ -400,7 +400,7 @@ def test_package_crops_are_the_source_posts():
 def test_dem_dir_override_and_missing_file(monkeypatch, tmp_path):
     """WARPTAN_DEM_DIR replaces the package copies (an .npz is enough); a folder without the file is a clear
     error, never a silent fallback to a generated terrain."""
-    from warptan.terrain import NAMED_TERRAINS
+    from warptan.terrain.grid import NAMED_TERRAINS
 
     monkeypatch.setenv("WARPTAN_DEM_DIR", str(tmp_path))
     with pytest.raises(TerrainError, match="holds neither"):
@@ -410,7 +410,7 @@ def test_dem_dir_override_and_missing_file(monkeypatch, tmp_path):
     t = Terrain.load("flat")
     assert t.name == f"flat:{NAMED_TERRAINS['flat']}" and t.shape == (31, 31)
     with pytest.raises(TerrainError, match="unknown terrain name"):
-        from warptan.terrain import named_terrain_file
+        from warptan.terrain.grid import named_terrain_file
         named_terrain_file("bumpy")
 
 
@@ -452,7 +452,7 @@ def test_raster_onto_another_terrains_frame(tmp_path):
     """A DEM read onto another terrain's frame lands where that terrain has the same ground: the same file
     read onto itself gives the same heights at the same NED positions."""
     world = Terrain.load("rugged30")
-    from warptan.terrain import named_terrain_file
+    from warptan.terrain.grid import named_terrain_file
 
     again = Terrain.from_raster(named_terrain_file("rugged30"), onto=world)
     assert again.origin_xy == world.origin_xy and again.dn == pytest.approx(30.0)

@@ -9,8 +9,8 @@ import pytest
 
 import warptan as wt
 from warptan import cli
-from warptan.scenarios import ScenarioError, prepare, scenario_path
-from warptan.world import World, WorldModel, _unit_field, fit_spectrum
+from warptan.sim.scenarios import ScenarioError, prepare, scenario_path
+from warptan.terrain.world import World, WorldModel, _unit_field, fit_spectrum
 
 
 @pytest.fixture(scope="module")

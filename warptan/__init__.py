@@ -15,22 +15,30 @@ Conventions (SPEC §1), used everywhere in the package:
 ``import warptan`` needs only numpy and warp; rasterio, trimesh and matplotlib are imported where used.
 """
 
-from warptan import frames
-from warptan.campaign import Campaign, CampaignError, run_campaign, write_campaign
 from warptan.checks import FilterError, FilterWarning
 from warptan.device import resolve_device
-from warptan.imu import IMU_GRADES, ImuModel
-from warptan.ins import Ins, NavState
-from warptan.measurement import AltimeterModel, Likelihood, RaycastModel, SlidingModel, make_model
-from warptan.mpf import MarginalizedParticleFilter
+from warptan.filter.mpf import MarginalizedParticleFilter
+from warptan.filter.prior import InitialErrors
+from warptan.nav import frames
+from warptan.nav.imu import IMU_GRADES, ImuModel
+from warptan.nav.ins import Ins, NavState
+from warptan.nav.trajectory import Climb, Orbit, Straight, Trajectory, Turn
 from warptan.outputs import OutputError
-from warptan.raster import TerrainError
-from warptan.raycast import RayCaster, raycast
-from warptan.runner import InitialErrors, run_filter
-from warptan.scenarios import ScenarioError, run_scenario, run_scenario_batch
-from warptan.sensors import AltimeterReading, Barometer, PointCloud, PointCloudSensor, RadarAltimeter, ScanPattern
-from warptan.terrain import Terrain
-from warptan.trajectory import Climb, Orbit, Straight, Trajectory, Turn
+from warptan.sensing.measurement import AltimeterModel, Likelihood, RaycastModel, SlidingModel, make_model
+from warptan.sensing.sensors import (
+    AltimeterReading,
+    Barometer,
+    PointCloud,
+    PointCloudSensor,
+    RadarAltimeter,
+    ScanPattern,
+)
+from warptan.sim.campaign import Campaign, CampaignError, run_campaign, write_campaign
+from warptan.sim.runner import run_filter
+from warptan.sim.scenarios import ScenarioError, run_scenario, run_scenario_batch
+from warptan.terrain.grid import Terrain
+from warptan.terrain.raster import TerrainError
+from warptan.terrain.raycast import RayCaster, raycast
 
 __version__ = "0.2.0"
 

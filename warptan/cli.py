@@ -13,6 +13,8 @@ import threading
 import warnings
 from pathlib import Path
 
+from warptan.progress import progress_bar
+
 DEFAULT_TERRAIN = "synthetic:rugged"
 
 
@@ -63,7 +65,7 @@ def _finite(text: str) -> float:
 
 
 def _terrain_info(args) -> int:
-    from warptan.terrain import Terrain
+    from warptan.terrain.grid import Terrain
 
     terrain = Terrain.load(args.terrain, spacing=args.spacing)
     info = terrain.info()
@@ -91,7 +93,7 @@ def _terrain_info(args) -> int:
 
 
 def _terrain_export(args) -> int:
-    from warptan.terrain import Terrain, check_export_path
+    from warptan.terrain.grid import Terrain, check_export_path
 
     check_export_path(args.out, args.overwrite)  # before the DEM is loaded
     terrain = Terrain.load(args.terrain, spacing=args.spacing)
@@ -101,7 +103,7 @@ def _terrain_export(args) -> int:
 
 
 def _map_words(config: dict) -> str:
-    from warptan.world import WorldModel
+    from warptan.terrain.world import WorldModel
 
     model = WorldModel.from_config(config["world"])  # the world's name (the terrain) says how it differs
     t = config["terrain"]
@@ -115,7 +117,7 @@ def _map_words(config: dict) -> str:
 
 def _scenario_key(name: str) -> str:
     """What makes two scenario arguments the same run: the id (S1…S12, any case) or the file's real path."""
-    from warptan.scenarios import SCENARIO_IDS
+    from warptan.sim.scenarios import SCENARIO_IDS
 
     return name.upper() if name.upper() in SCENARIO_IDS else os.path.realpath(name)
 
@@ -123,8 +125,8 @@ def _scenario_key(name: str) -> str:
 def _run(args) -> int:
     from warptan.device import resolve_device
     from warptan.outputs import OutputFolder
-    from warptan.report import write_outputs
-    from warptan.scenarios import SCENARIO_IDS, ScenarioError, prepare, run_scenario, run_scenario_batch
+    from warptan.sim.report import write_outputs
+    from warptan.sim.scenarios import SCENARIO_IDS, ScenarioError, prepare, run_scenario, run_scenario_batch
 
     demo = not args.scenarios
     names = ["S8"] if demo else list(args.scenarios)
@@ -183,17 +185,12 @@ def _run(args) -> int:
     if demo:
         print(f"warptan run: no scenario given, running the demonstration: S8 (sliding, navigation IMU) for "
               f"{duration:.0f} s on {terrain}, {seeds} seed(s), device {args.device}")
-    try:
-        from tqdm import tqdm
-    except ModuleNotFoundError:  # a machine where only the core (numpy, warp) is installed: no progress bar
-        tqdm = _NoProgress
-
     total = 0
     for config, _, flight in plans.values():
         decim = 1 if args.paper_rates else round(config["imu"]["rate_hz"] / config["sensor"]["rate_hz"])
         total += seeds * (len(flight.f_b) // decim)
     results, terrains, logs = [], {}, ([] if export is not None else None)
-    with tqdm(total=total, unit="update", disable=args.quiet, dynamic_ncols=True) as bar:
+    with progress_bar(total, "update", disable=args.quiet) as bar:
         for name in names:
             if args.batch:
                 bar.set_description(f"{name} seeds 0-{seeds - 1} (batch)")
@@ -221,8 +218,8 @@ def _run(args) -> int:
 
 
 def _report_unconverged(results) -> None:
-    """A note for every run that declared itself unconverged (:func:`warptan.report.declared_unconverged`)."""
-    from warptan.report import UNCONVERGED_3SIGMA_M, declared_unconverged
+    """A note for every run that declared itself unconverged (:func:`warptan.sim.report.declared_unconverged`)."""
+    from warptan.sim.report import UNCONVERGED_3SIGMA_M, declared_unconverged
 
     for r in results:
         if declared_unconverged(r.run, r.config["filter"]["converged_after_s"]):
@@ -233,7 +230,7 @@ def _report_unconverged(results) -> None:
 def _report_skipped(results) -> int:
     """A line for every run in which updates were skipped; 1 (after an error line) when a run used none of its
     updates (it navigated nothing: INS only), else 0."""
-    from warptan.report import update_counts
+    from warptan.sim.report import update_counts
 
     blind = []
     for r in results:
@@ -263,7 +260,7 @@ def _refuse_nested(out, export) -> None:
 
 def _scenario_inputs(name: str, config: dict, terrain) -> list:
     """The files a scenario run reads: its scenario file (not for S1…S12), the world's DEM and the map's DEM."""
-    from warptan.scenarios import SCENARIO_IDS, scenario_path
+    from warptan.sim.scenarios import SCENARIO_IDS, scenario_path
 
     t = config["terrain"]
     world = terrain if isinstance(terrain, (str, os.PathLike)) else (t["path"] if t["kind"] == "path" else None)
@@ -271,8 +268,8 @@ def _scenario_inputs(name: str, config: dict, terrain) -> list:
 
 
 def _campaign(args) -> int:
-    from warptan.campaign import Campaign, check_options, run_campaign, write_campaign
     from warptan.outputs import OutputFolder
+    from warptan.sim.campaign import Campaign, check_options, run_campaign, write_campaign
 
     out = OutputFolder(args.out, kind="campaign")
     campaign = Campaign.load(args.file)
@@ -316,7 +313,7 @@ def _require_rosbags() -> None:
 
 def _write_logs(logs, folder, bags: bool) -> None:
     """Each flight as ``NAME.h5`` (and ``NAME_bag/`` with ``--export-bag``) in ``folder``, as one whole."""
-    from warptan.flightlog import write_log
+    from warptan.io.flightlog import write_log
 
     names = []
     with folder as out:
@@ -324,7 +321,7 @@ def _write_logs(logs, folder, bags: bool) -> None:
             write_log(log, out / f"{log.name}.h5")
             names.append(f"{log.name}.h5")
             if bags:
-                from warptan.rosbag import write_bag
+                from warptan.io.rosbag import write_bag
 
                 write_bag(log, out / f"{log.name}_bag")
                 names.append(f"{log.name}_bag")
@@ -334,19 +331,15 @@ def _write_logs(logs, folder, bags: bool) -> None:
 def _replay(args) -> int:
     from warptan.device import resolve_device
     from warptan.outputs import OutputFolder
-    from warptan.replay import replay
-    from warptan.report import write_outputs
+    from warptan.sim.replay import replay
+    from warptan.sim.report import write_outputs
 
     out = OutputFolder(args.out if args.out is not None else "warptan-replay", kind="replay")
     out.refuse_inputs([args.log, _bag_folder(args.log), args.terrain, args.bag_config])
     resolve_device(args.device)
     log = _load_flight(args)
     out.refuse_inputs([log.dem_reference or None, log.settings.get("terrain_spec")])
-    try:
-        from tqdm import tqdm
-    except ModuleNotFoundError:
-        tqdm = _NoProgress
-    from warptan.replay import replay_config, replay_terrain
+    from warptan.sim.replay import replay_config, replay_terrain
 
     stated = None
     if args.map_error_m is not None or args.map_error_corr_m is not None:
@@ -357,7 +350,7 @@ def _replay(args) -> int:
     config = replay_config(log, args.model, args.backend, args.particles, args.likelihood, stated)  # checks them
     replay_terrain(log, config, args.terrain)  # loads (and caches) the DEM before the progress bar
     n_meas = len(log.alt_t if config["sensor"]["model"] == "altimeter" else log.scan_t)
-    with tqdm(total=n_meas, unit="update", disable=args.quiet, dynamic_ncols=True) as bar:
+    with progress_bar(n_meas, "update", disable=args.quiet) as bar:
         bar.set_description(f"replay {log.name}")
         result = replay(log, args.terrain, model=args.model, backend=args.backend, particles=args.particles,
                         likelihood=args.likelihood, seed=args.seed, device=args.device,
@@ -396,8 +389,8 @@ def _bag_folder(path: str) -> str | None:
 
 
 def _log_import(args) -> int:
-    from warptan.flightlog import LogError, write_log
-    from warptan.logcsv import read_tables
+    from warptan.io.flightlog import LogError, write_log
+    from warptan.io.logcsv import read_tables
 
     out = Path(args.out)
     if out.exists():
@@ -412,8 +405,8 @@ def _log_import(args) -> int:
 
 
 def _log_export(args) -> int:
-    from warptan.flightlog import LogError, read_log
-    from warptan.logcsv import write_tables
+    from warptan.io.flightlog import LogError, read_log
+    from warptan.io.logcsv import write_tables
 
     out = Path(args.out)
     if out.exists() and any(out.iterdir()):
@@ -425,7 +418,7 @@ def _log_export(args) -> int:
 
 def _load_flight(args):
     """The LOG argument: a warptan flight log (.h5) or a ROS 2 bag (folder, .db3 or .mcap)."""
-    from warptan.flightlog import read_log
+    from warptan.io.flightlog import read_log
 
     path = args.log
     bag_options = [f"--{name.replace('_', '-')}" for name in ("bag_config", "imu_topic", "cloud_topic", "range_topic",
@@ -433,7 +426,7 @@ def _load_flight(args):
                    if getattr(args, name) is not None]
     if os.path.isdir(path) or path.endswith((".db3", ".mcap")):
         _require_rosbags()
-        from warptan.rosbag import BagConfig, read_bag
+        from warptan.io.rosbag import BagConfig, read_bag
 
         config = BagConfig.load(args.bag_config) if args.bag_config else BagConfig.for_bag(path)
         config = config.with_overrides(imu=args.imu_topic, cloud=args.cloud_topic, range=args.range_topic,
@@ -445,30 +438,11 @@ def _load_flight(args):
     return read_log(path)
 
 
-class _NoProgress:
-    """Stands in for tqdm where it is not installed."""
-
-    def __init__(self, *_, **__):
-        pass
-
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *_):
-        return False
-
-    def update(self, *_):
-        pass
-
-    def set_description(self, *_):
-        pass
-
-
 def script_inputs(prog: str, devices: list[str], terrain_spec: str):
     """For the benchmark scripts: silence Warp, check the device names and load the terrain; a bad name or
     terrain prints one line and exits with status 2 (no traceback)."""
     from warptan.device import quiet_warp, resolve_device
-    from warptan.terrain import Terrain
+    from warptan.terrain.grid import Terrain
 
     quiet_warp()
     try:
@@ -602,7 +576,7 @@ def build_parser() -> argparse.ArgumentParser:
     logp = sub.add_parser("log", help="flight logs from tables of what a vehicle records, and back")
     lsub = logp.add_subparsers(dest="log_command", required=True)
     imp = lsub.add_parser("import", help="CSV tables described by a layout TOML (GPS lat/lon/height, IMU, scans or "
-                                         "altimeter, baro) → a flight log (see warptan.logcsv)")
+                                         "altimeter, baro) → a flight log (see warptan.io.logcsv)")
     imp.add_argument("layout", help="the layout .toml (warptan log export writes an example)")
     imp.add_argument("--out", required=True, help="the flight log to write (.h5)")
     imp.set_defaults(func=_log_import)

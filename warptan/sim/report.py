@@ -203,7 +203,7 @@ def declared_unconverged(run, after_s: float, limit_m: float = UNCONVERGED_3SIGM
 
 
 def update_counts(run) -> tuple[int, int, int]:
-    """(updates, skipped, used) of a :class:`~warptan.runner.FilterRun`: used = neither skipped nor without a valid
+    """(updates, skipped, used) of a :class:`~warptan.sim.runner.FilterRun`: used = neither skipped nor without a valid
     received point. A run without the flags (no history of them) counts every update as used."""
     skipped = np.asarray(getattr(run, "skipped", np.zeros(len(run.t_s), dtype=bool)), dtype=bool)[1:]
     empty = np.asarray(getattr(run, "all_points_invalid", np.zeros(len(run.t_s), dtype=bool)), dtype=bool)[1:]
@@ -377,7 +377,7 @@ def write_outputs(results, out_dir, terrains: dict, plots: bool = True, trajecto
     """Write ``results.json`` (strict JSON: an undefined number is null), ``results.md`` and (first seed of each
     scenario) the plots as one whole into ``out_dir`` (a path or a checked :class:`~warptan.outputs.OutputFolder`):
     written beside it and swapped into place when complete, so the folder never mixes two runs. ``trajectories``:
-    also each run's trajectory file (:func:`warptan.replay.write_trajectory`)."""
+    also each run's trajectory file (:func:`write_trajectory`)."""
     folder = out_dir if isinstance(out_dir, OutputFolder) else OutputFolder(out_dir)
     agg = aggregate(results)
     table = markdown_table(agg)
@@ -397,7 +397,6 @@ def write_outputs(results, out_dir, terrains: dict, plots: bool = True, trajecto
             "Log(q_true⁻¹ q_est) in body axes (roll / pitch / yaw); RMSE pooled over seeds as the RMS of the runs' "
             "RMSE; σ / RMSE ≈ 1 means the reported 3σ neither lies nor balloons.\n\n" + attitude_table(agg) + "\n")
         if trajectories:
-            from warptan.replay import write_trajectory
 
             for r in results:
                 names += write_trajectory(r, terrains[r.scenario], out)
@@ -410,3 +409,34 @@ def write_outputs(results, out_dir, terrains: dict, plots: bool = True, trajecto
                     names += [Path(p).name for p in plot_run(r, terrains[r.scenario], prefix)]
     written = [str(folder.path / n) for n in names]
     return {"aggregate": agg, "table": table, "files": written, "plots": plots}
+
+
+def write_trajectory(result, terrain, folder: Path) -> list[str]:
+    """``<id>_seed<s>_trajectory.csv`` (time, NED estimate and 3σ, truth when known, and latitude/longitude/altitude
+    when the DEM has a CRS) and, with a CRS, ``..._trajectory.geojson`` (a LineString of the estimate, lon/lat/alt:
+    QGIS and Google Earth load it). Returns the file names."""
+    run = result.run
+    stem = f"{result.scenario}_seed{result.seed}_trajectory"
+    cols = {"t_s": run.t_s, "north_m": run.est_pos[:, 0], "east_m": run.est_pos[:, 1], "down_m": run.est_pos[:, 2],
+            "sigma3_north_m": run.sigma3_pos[:, 0], "sigma3_east_m": run.sigma3_pos[:, 1],
+            "sigma3_down_m": run.sigma3_pos[:, 2]}
+    lat = lon = None
+    if getattr(terrain, "crs_wkt", None):
+        lat, lon = terrain.ne_to_latlon(run.est_pos[:, 0], run.est_pos[:, 1])
+        cols.update(lat_deg=lat, lon_deg=lon, alt_m=-run.est_pos[:, 2])
+    if np.isfinite(run.truth_pos).any():
+        cols.update(truth_north_m=run.truth_pos[:, 0], truth_east_m=run.truth_pos[:, 1],
+                    truth_down_m=run.truth_pos[:, 2])
+    table = np.column_stack(list(cols.values()))
+    np.savetxt(folder / f"{stem}.csv", table, delimiter=",", header=",".join(cols), comments="", fmt="%.9g")
+    names = [f"{stem}.csv"]
+    if lat is not None:
+        import json
+
+        feature = {"type": "Feature", "properties": {"name": f"{result.scenario} estimate", "source": "warptan"},
+                   "geometry": {"type": "LineString",
+                                "coordinates": [[float(a), float(b), float(c)] for a, b, c in
+                                                zip(lon, lat, -run.est_pos[:, 2], strict=True)]}}
+        (folder / f"{stem}.geojson").write_text(json.dumps({"type": "FeatureCollection", "features": [feature]}))
+        names.append(f"{stem}.geojson")
+    return names

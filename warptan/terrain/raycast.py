@@ -97,7 +97,7 @@ def raycast(terrain, origins_n, dirs_n, backend: str = "dda", device=None, *, st
     """Cast K rays against the terrain.
 
     Args:
-        terrain: A :class:`~warptan.terrain.Terrain`.
+        terrain: A :class:`~warptan.terrain.grid.Terrain`.
         origins_n: (K, 3) NED origins in m (NumPy, or a Warp array of vec3 / (K, 3) float32).
         dirs_n: (K, 3) directions in the NED frame (normalised here; zero-length is an error).
         backend: "dda", "mesh" or "bisection".

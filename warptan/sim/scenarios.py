@@ -7,7 +7,7 @@ values out of range, a terrain that does not load, a flight that leaves the DEM)
 Choices the paper leaves open (SPEC §7 fixes the rest):
 
 * ``rugged`` / ``flat`` / ``rugged30`` terrains are the real DEMs shipped with the package
-  (:data:`~warptan.terrain.NAMED_TERRAINS`, ``warptan/data/dem``; ``$WARPTAN_DEM_DIR`` may replace them); any
+  (:data:`~warptan.terrain.grid.NAMED_TERRAINS`, ``warptan/data/dem``; ``$WARPTAN_DEM_DIR`` may replace them); any
   scenario flies another terrain with ``terrain=`` (a name, a DEM file, ``synthetic:rugged``): S1–S9 on the 30 m
   tile are ``terrain="rugged30"``. The result names the terrain it flew (``ScenarioResult.terrain``) and the
   map the filter read (``map``).
@@ -15,7 +15,7 @@ Choices the paper leaves open (SPEC §7 fixes the rest):
   (:func:`map_terrain`): another DEM file of the same ground (``map_path``, resampled into the world's frame), a
   coarser grid (``map_spacing_m``, block means), white post noise (``map_noise_m``, realisation ``map_seed``) and a
   vertical bias (``map_bias_m``), in that order. With ``likelihood.map_aware`` the per-point σ counts the map's
-  own interpolation error (:meth:`~warptan.terrain.Terrain.interpolation_sigma_m`) whenever the map's grid is not
+  own interpolation error (:meth:`~warptan.terrain.grid.Terrain.interpolation_sigma_m`) whenever the map's grid is not
   the world's.
 * Flight patterns: ``straight`` (bank 0); ``s_turns`` (banked scenarios S1–S4: 10 s straight, then turns of
   ±150° alternating at the bank angle until the end); ``orbit`` (S5/S6: 5 s straight, then circling at
@@ -41,15 +41,16 @@ from pathlib import Path
 import numpy as np
 
 from warptan.checks import check_seed, host_memory_available
-from warptan.imu import IMU_GRADES, ImuModel
-from warptan.measurement import LIKELIHOODS, MODELS, Likelihood, make_model
-from warptan.mpf import MIN_PARTICLES, RESAMPLERS
-from warptan.raycast import BACKENDS
-from warptan.runner import FilterRun, InitialErrors, run_filter
-from warptan.sensors import Barometer, PointCloudSensor, RadarAltimeter, ScanPattern
-from warptan.terrain import NAMED_TERRAINS, Terrain, TerrainError
-from warptan.trajectory import Orbit, Straight, Trajectory, Turn
-from warptan.world import World, WorldModel
+from warptan.filter.mpf import MIN_PARTICLES, RESAMPLERS
+from warptan.filter.prior import InitialErrors
+from warptan.nav.imu import IMU_GRADES, ImuModel
+from warptan.nav.trajectory import Orbit, Straight, Trajectory, Turn
+from warptan.sensing.measurement import LIKELIHOODS, MODELS, Likelihood, make_model
+from warptan.sensing.sensors import Barometer, PointCloudSensor, RadarAltimeter, ScanPattern
+from warptan.sim.runner import FilterRun, run_filter
+from warptan.terrain.grid import NAMED_TERRAINS, Terrain, TerrainError
+from warptan.terrain.raycast import BACKENDS
+from warptan.terrain.world import World, WorldModel
 
 try:
     import tomllib
@@ -466,7 +467,8 @@ _TERRAIN_CACHE: dict[str, Terrain] = {}
 
 def resolve_terrain(config: dict, terrain=None, posts=None) -> Terrain:
     """The truth terrain: an override (Terrain, name, path or spec), else the scenario's ``terrain.kind`` (a named
-    real DEM) or ``terrain.path``; ``posts`` go to a raster's load (:meth:`~warptan.terrain.Terrain.from_raster`)."""
+    real DEM) or ``terrain.path``; ``posts`` go to a raster's load
+    (:meth:`~warptan.terrain.grid.Terrain.from_raster`)."""
     if isinstance(terrain, Terrain):
         return terrain
     if terrain is not None:
@@ -507,7 +509,7 @@ _WORLD_CACHE: dict = {}
 
 def world_terrain(dem: Terrain, config: dict, seed: int) -> Terrain:
     """The world a scenario flies: ``dem`` itself, or with an active ``[world]`` table the
-    :class:`~warptan.world.World` made from it (``seed``: the run's, used when ``world.seed`` is -1). Checked
+    :class:`~warptan.terrain.world.World` made from it (``seed``: the run's, used when ``world.seed`` is -1). Checked
     against the DEM first (a correlation length shorter than a post is refused)."""
     model = WorldModel.from_config(config["world"])
     if not model.active:
@@ -681,7 +683,7 @@ class ScenarioResult:
 
     def summary(self) -> dict:
         """JSON-ready numbers of this run."""
-        from warptan.report import declared_unconverged, update_counts
+        from warptan.sim.report import declared_unconverged, update_counts
 
         r = self.run
         updates, skipped, used = update_counts(r)
@@ -740,7 +742,7 @@ def scenario_likelihood(config: dict, the_map: Terrain, truth: Terrain | None = 
     The map σ is the stated post noise ``map_noise_m``; with ``likelihood.map_aware`` and a map whose grid is not
     the world's (``truth`` given; another file or coarser posts) it is ``hypot(map_noise_m,
     the_map.interpolation_sigma_m(map_noise_m))``: the map's own bilinear error at its post spacing, estimated
-    from its roughness (:meth:`~warptan.terrain.Terrain.interpolation_sigma_m`; 30 m tile at 60/90/180 m posts:
+    from its roughness (:meth:`~warptan.terrain.grid.Terrain.interpolation_sigma_m`; 30 m tile at 60/90/180 m posts:
     2.8/5.1/12.1 m estimated, 2.3/4.8/12.9 m measured against the 30 m triangles). A map on the world's own
     posts has no interpolation error beyond the bilinear-vs-triangles mismatch every sliding model counts.
     ``footprint_m`` replaces the scenario's footprint (a recorded flight's, measured from its scans)."""
@@ -811,7 +813,7 @@ def run_scenario(name_or_path, seed: int = 0, device="cpu", progress=None, expor
         **overrides: ``terrain=`` (path, spec or Terrain), ``particles=``, ``duration_s=``, ``backend=``,
             ``likelihood=``, ``model=``, ``meas_rate_hz=``, ``paper_rates=True``, ``use_baro=``, ``r_err_m2=``,
             ``sigma_m=``, ``imu_grade=``.
-        export_logs: A list to append the run's :class:`~warptan.flightlog.FlightLog` to (see
+        export_logs: A list to append the run's :class:`~warptan.io.flightlog.FlightLog` to (see
             :func:`run_scenario_batch`).
     """
     return run_scenario_batch(name_or_path, [seed], device, progress, export_logs, **overrides)[0]
@@ -828,7 +830,7 @@ def scenario_model(config: dict, the_map: Terrain, likelihood: Likelihood):
 
 
 def filter_kwargs(config: dict) -> dict:
-    """The scenario's :class:`~warptan.mpf.MarginalizedParticleFilter` keywords (besides particles and seed)."""
+    """The scenario's :class:`~warptan.filter.mpf.MarginalizedParticleFilter` keywords (besides particles and seed)."""
     f = config["filter"]
     return dict(resample_threshold=f["resample_threshold"], resampler=f["resampler"], pos_noise=f["pos_noise_m_rthz"],
                 kalman_pos_noise=f["kalman_pos_noise_m_rthz"], regularize=f["regularize"], shrinkage=f["shrinkage"],
@@ -855,7 +857,7 @@ def run_scenario_batch(name_or_path, seeds, device="cpu", progress=None, export_
     batch's, built from its first filter's scan geometry: there a batched seed differs from the seed alone by the
     filter's noise (S8, world 1003, seeds 15–16, 15 s: up to 1.1 m). A scenario whose map has per-seed error cannot
     be batched (its runs use different maps).
-    ``export_logs``: a list to which each seed's flight is appended as a :class:`~warptan.flightlog.FlightLog`
+    ``export_logs``: a list to which each seed's flight is appended as a :class:`~warptan.io.flightlog.FlightLog`
     (what the filter received, truth, prior and settings: ``warptan replay`` of it gives the same run)."""
     import time
 
@@ -885,7 +887,7 @@ def run_scenario_batch(name_or_path, seeds, device="cpu", progress=None, export_
         record=record, **filter_kwargs(config))
     wall = time.perf_counter() - t0
     if export_logs is not None:
-        from warptan.replay import logs_from_record
+        from warptan.io.export import logs_from_record
 
         export_logs.extend(logs_from_record(record, flight, config, likelihood, total_seeds, seeds,
                                             terrain_spec(config, terrain), truth_terrain))

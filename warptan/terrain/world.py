@@ -42,8 +42,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from warptan.raster import MAX_POSTS, TerrainError
-from warptan.terrain import Terrain
+from warptan.terrain.grid import Terrain
+from warptan.terrain.raster import MAX_POSTS, TerrainError
 
 AUTO = "auto"
 RELIEF_SLOPE_RANGE = (2.0, 5.0)
@@ -218,7 +218,7 @@ class WorldModel:
 
 @dataclass(eq=False)
 class World(Terrain):
-    """A simulated world built by :meth:`WorldModel.build`: a :class:`~warptan.terrain.Terrain` on a finer grid,
+    """A simulated world built by :meth:`WorldModel.build`: a :class:`~warptan.terrain.grid.Terrain` on a finer grid,
     with the map it was made from."""
 
     base: Terrain | None = None

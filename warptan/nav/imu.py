@@ -36,7 +36,7 @@ class ImuGrade:
         accel_bias_walk: Accelerometer bias random-walk density, m/s³/√Hz.
         gyro_bias_walk: Gyro bias random-walk density, rad/s²/√Hz.
         accel_range: Largest plausible specific force magnitude per axis, m/s² (default 50 g): a sample beyond it
-            is a fault, not a measurement (:meth:`warptan.mpf.MarginalizedParticleFilter.predict`).
+            is a fault, not a measurement (:meth:`warptan.filter.mpf.MarginalizedParticleFilter.predict`).
         gyro_range: Largest plausible body rate per axis, rad/s (default 20 rad/s, 1 150 °/s).
     """
 

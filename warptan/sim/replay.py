@@ -1,4 +1,4 @@
-"""Filtering a recorded flight (``warptan replay``): a :class:`~warptan.flightlog.FlightLog` through the same filter
+"""Filtering a recorded flight (``warptan replay``): a :class:`~warptan.io.flightlog.FlightLog` through the same filter
 as ``warptan run``, and simulated runs written as flight logs (``warptan run --export-log``).
 
 Timing: IMU sample k is held over its step ``[t_k, t_k+1)``; each step is integrated with its own length (the
@@ -21,91 +21,26 @@ import copy
 import dataclasses
 import math
 import time
-from pathlib import Path
 
 import numpy as np
 
 from warptan.checks import FilterError, check_seed
-from warptan.flightlog import MAX_GAP_S, FlightLog, LogError
-from warptan.frames import quat_to_mat
-from warptan.geoframe import FrameChange, GeoFrame, corners, frame_change
-from warptan.imu import imu_grade
-from warptan.ins import Ins, NavState
-from warptan.measurement import Likelihood
-from warptan.mpf import MIN_PARTICLES, MarginalizedParticleFilter
-from warptan.runner import InitialErrors, collect_runs, prior_sigma
-from warptan.sensors import AltimeterReading, PointCloud
+from warptan.filter.mpf import MIN_PARTICLES, MarginalizedParticleFilter
+from warptan.io.export import convert_log
+from warptan.io.flightlog import MAX_GAP_S, FlightLog, LogError, sample_at
+from warptan.nav.frames import quat_to_mat
+from warptan.nav.geoframe import corners, frame_change
+from warptan.nav.imu import imu_grade
+from warptan.nav.ins import Ins, NavState
+from warptan.sensing.measurement import Likelihood
+from warptan.sensing.sensors import AltimeterReading, PointCloud
+from warptan.sim.runner import collect_runs
 
 SNAP = 1e-6
 """Relative tolerance (of the nominal period) within which a step is the nominal period and a time a boundary."""
 
 
 # ---------------------------------------------------------------------- simulation -> log
-def logs_from_record(record: dict, flight, config: dict, likelihood: Likelihood, total_seeds: list[int],
-                     seeds: list[int], terrain_spec: str, terrain=None) -> list[FlightLog]:
-    """One :class:`FlightLog` per seed of a simulated batch (``run_filter(record=...)``): the IMU samples, scans or
-    altimeter/barometer readings the filter received, the truth, the prior and the run's settings. With a
-    georeferenced ``terrain`` (the DEM the flight is over) the log's frame is the geodetic frame at the DEM's NED
-    origin (:class:`~warptan.geoframe.GeoFrame`; positions, velocities and attitudes converted into it when the DEM's
-    grid is not that tangent frame, e.g. a UTM DEM); without one, the DEM's grid (kind dem-grid)."""
-    ie, s = config["initial_error"], config["sensor"]
-    geo = GeoFrame.of_terrain(terrain) if terrain is not None else None
-    change = None if geo is None else frame_change(terrain, geo, corners(flight.pos_n))
-    dem = getattr(terrain, "base", None) or terrain  # a World's: the DEM it was made from, the one the log names
-    posts = None  # the DEM's posts, when its grid is the log's frame
-    if change is not None and change.identity and dem.crs_wkt == terrain.crs_wkt:
-        posts = np.array([dem.n0, dem.e0, dem.dn, dem.de, *dem.heights_m.shape], dtype=np.float64)
-    k_total = record["f"].shape[0]
-    t_imu = np.asarray(flight.t_s[:k_total], dtype=np.float64)
-    t_meas = np.asarray(flight.t_s[np.array(record["epochs"])], dtype=np.float64)
-    sigma = prior_sigma(InitialErrors(tuple(ie["pos_m"]), ie["vel_mps"], tuple(ie["att_deg"])),
-                        imu_grade(config["imu"]["grade"]))
-    logs = []
-    for b, (total, seed) in enumerate(zip(total_seeds, seeds, strict=True)):
-        nominal0 = record["nominal0"][b]
-        bias = record["true_bias"][b][np.minimum(np.arange(k_total + 1), k_total - 1)]
-        meas = [epoch[b] for epoch in record["measurements"]]
-        kw: dict = {}
-        if s["model"] == "altimeter":
-            kw.update(alt_t=t_meas, alt_range=np.array([m.range_m for m in meas]),
-                      altimeter_sigma_m=s["altimeter_sigma_m"], baro_t=t_meas,
-                      baro_alt=np.array([m.baro_alt_m for m in meas]), baro_sigma_m=s["baro_sigma_m"])
-        else:
-            ranges = np.array([m.ranges_m for m in meas])
-            kw.update(scan_t=t_meas, scan_dirs=np.array([m.dirs_s for m in meas]), scan_ranges=ranges,
-                      scan_valid=np.isfinite(ranges), range_sigma_m=s["range_sigma_m"])
-        settings = {"config": config, "likelihood": dataclasses.asdict(likelihood), "seed": int(total),
-                    "scenario_seed": int(seed), "terrain_spec": terrain_spec}
-        log = FlightLog(
-            imu_t=t_imu, imu_f=record["f"][:, b], imu_w=record["w"][:, b], imu_rate_hz=float(flight.rate_hz),
-            imu_grade=str(config["imu"]["grade"]), t_end=float(flight.t_s[k_total]), init_t=float(t_imu[0]),
-            init_pos=nominal0.pos_n, init_vel=nominal0.vel_n, init_quat=nominal0.quat_nb,
-            init_accel_bias=nominal0.accel_bias, init_gyro_bias=nominal0.gyro_bias,
-            init_sigma=sigma,
-            truth_t=np.asarray(flight.t_s[:k_total + 1], dtype=np.float64), truth_pos=flight.pos_n[:k_total + 1],
-            truth_vel=flight.vel_n[:k_total + 1], truth_quat=flight.quat_nb[:k_total + 1],
-            truth_accel_bias=bias[:, 0:3], truth_gyro_bias=bias[:, 3:6],
-            dem_reference=terrain_spec, dem_posts=posts, settings=settings, name=f"{config['id']}_seed{seed}", **kw)
-        logs.append(log if change is None else convert_log(log, change, frame=geo))
-    return logs
-
-
-def convert_log(log: FlightLog, change: FrameChange, frame: GeoFrame | None = None) -> FlightLog:
-    """``log`` with its initial state and truth moved by ``change`` (positions point by point, velocities and
-    attitudes turned; :mod:`warptan.geoframe`) and its frame set to ``frame``; the sensors' body-frame data are
-    unchanged. The identity change returns the same arrays' values (the same bits)."""
-    kw: dict = {"frame": frame}
-    if not change.identity:
-        p0 = log.init_pos[None]
-        kw.update(init_pos=change.positions(p0)[0], init_vel=change.vectors(p0, log.init_vel[None])[0],
-                  init_quat=change.attitudes(p0, log.init_quat[None])[0])
-        if log.has_truth:
-            kw.update(truth_pos=change.positions(log.truth_pos), truth_vel=change.vectors(log.truth_pos, log.truth_vel),
-                      truth_quat=change.attitudes(log.truth_pos, log.truth_quat))
-    return dataclasses.replace(log, **kw)
-
-
-# ---------------------------------------------------------------------- timeline
 def timeline(log: FlightLog, times: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """The filter's steps for measurements at ``times``: ``(sample, dt, ends, used)`` — the IMU sample index and
     length of each step, the number of steps before each used measurement, and which measurements are used (inside
@@ -135,22 +70,6 @@ def timeline(log: FlightLog, times: np.ndarray) -> tuple[np.ndarray, np.ndarray,
             t_cur = tm
         ends.append(len(sample))
     return np.array(sample, dtype=np.int64), np.array(dts, dtype=np.float64), np.array(ends, dtype=np.int64), used
-
-
-def _at(t_src: np.ndarray, values: np.ndarray, t: np.ndarray, unit: bool = False) -> np.ndarray:
-    """``values`` (T, n) at times ``t``: exact at a recorded time, else linear (normalised when ``unit``)."""
-    i = np.clip(np.searchsorted(t_src, t), 1, len(t_src) - 1)
-    t0, t1 = t_src[i - 1], t_src[i]
-    frac = np.clip((t - t0) / (t1 - t0), 0.0, 1.0)[:, None]
-    out = values[i - 1] + frac * (values[i] - values[i - 1])
-    if unit:
-        out = out / np.linalg.norm(out, axis=1, keepdims=True)
-    exact = np.searchsorted(t_src, t)
-    hit = (exact < len(t_src)) & (t_src[np.minimum(exact, len(t_src) - 1)] == t)
-    out[hit] = values[exact[hit]]
-    outside = (t < t_src[0]) | (t > t_src[-1])
-    out[outside] = np.nan
-    return out
 
 
 def _measurements(log: FlightLog, model_name: str, idx: np.ndarray) -> list:
@@ -185,7 +104,7 @@ def replay_config(log: FlightLog, model: str | None = None, backend: str | None 
     """The scenario-style config of a replay: the one the log was simulated with (settings), else S8's filter and
     likelihood settings with the log's IMU grade, sensor and rates; the keywords override (``map_error``: the DEM's
     stated accuracy, ``(RMS, correlation length)`` in m: ``likelihood.map_error_rms_m`` and ``map_error_corr_m``)."""
-    from warptan.scenarios import load_config, with_optional_defaults
+    from warptan.sim.scenarios import load_config, with_optional_defaults
 
     stored = log.settings.get("config")
     config = load_config("S8") if stored is None else with_optional_defaults(copy.deepcopy(stored))
@@ -234,12 +153,12 @@ def replay_config(log: FlightLog, model: str | None = None, backend: str | None 
 
 def _likelihood(log: FlightLog, config: dict, the_map, own: bool = True) -> Likelihood:
     """The log's stored likelihood when the model and likelihood are the ones it was simulated with, else the
-    scenarios' calibration (:func:`~warptan.scenarios.scenario_likelihood`) with the scan footprint measured from
+    scenarios' calibration (:func:`~warptan.sim.scenarios.scenario_likelihood`) with the scan footprint measured from
     the log: the along-track extent of its directions at their median range. Over a DEM other than the log's own
     (``own`` False; another crop or projection is another grid of posts) the stored map σ also counts the map's
     interpolation error at its posts, as ``likelihood.map_aware`` does for a map whose grid is not the world's
-    (:meth:`~warptan.terrain.Terrain.interpolation_sigma_m`)."""
-    from warptan.scenarios import scenario_likelihood
+    (:meth:`~warptan.terrain.grid.Terrain.interpolation_sigma_m`)."""
+    from warptan.sim.scenarios import scenario_likelihood
 
     stored, stored_config = log.settings.get("likelihood"), log.settings.get("config")
     if stored is not None and stored_config is not None and all(
@@ -268,8 +187,8 @@ def check_coverage(log: FlightLog, terrain, ins_pos: np.ndarray, allow_gaps: boo
     truth: the INS-only track at the updates) leave it (both extents named, in latitude/longitude when the DEM has a
     CRS), or pass over nodata (unless ``allow_gaps``: then the updates over gaps are skipped and counted). Returns
     the number of track points over nodata."""
-    from warptan.geoframe import latlon_extent
-    from warptan.scenarios import track_problem
+    from warptan.nav.geoframe import latlon_extent
+    from warptan.sim.scenarios import track_problem
 
     tracks = [("initial.pos_n", np.array([log.imu_t[0]]), log.init_pos[None]),
               ("truth.pos_n", log.truth_t, log.truth_pos) if log.has_truth else ("INS-only track", None, ins_pos)]
@@ -342,9 +261,10 @@ def place_log(log: FlightLog, terrain, own: bool) -> tuple[FlightLog, dict]:
 def replay_terrain(log: FlightLog, config: dict, terrain=None):
     """The DEM of a replay: ``terrain`` (Terrain, name, path or spec), else the one the log names. Another DEM file
     that must be resampled anyway (geographic, say) is resampled onto the log's DEM posts when the log records them
-    and the file's own spacing is theirs (:attr:`~warptan.flightlog.FlightLog.dem_posts`, :func:`warptan.raster.
-    read_raster`): another cut of the log's DEM is then the same map (:func:`same_posts`)."""
-    from warptan.scenarios import resolve_terrain
+    and the file's own spacing is theirs (:attr:`~warptan.io.flightlog.FlightLog.dem_posts`,
+    :func:`warptan.terrain.raster.read_raster`): another cut of the log's DEM is then the same map
+    (:func:`same_posts`)."""
+    from warptan.sim.scenarios import resolve_terrain
 
     spec = terrain if terrain is not None else (log.settings.get("terrain_spec") or log.dem_reference or None)
     if spec is None:
@@ -356,7 +276,7 @@ def replay_terrain(log: FlightLog, config: dict, terrain=None):
 
 
 def same_posts(log: FlightLog, terrain) -> bool:
-    """``terrain``'s posts are among the log's DEM posts (:attr:`~warptan.flightlog.FlightLog.dem_posts`), in the
+    """``terrain``'s posts are among the log's DEM posts (:attr:`~warptan.io.flightlog.FlightLog.dem_posts`), in the
     log's frame: another cut of the same grid, whose heights are the log's DEM's (the map it was flown over)."""
     if log.dem_posts is None or log.frame is None or not getattr(terrain, "crs_wkt", None):
         return False
@@ -373,7 +293,7 @@ def same_posts(log: FlightLog, terrain) -> bool:
 def replay(log: FlightLog, terrain=None, *, model: str | None = None, backend: str | None = None,
            particles: int | None = None, likelihood: str | None = None, seed: int | None = None, device="cpu",
            progress=None, allow_gaps: bool = False, map_error: tuple[float, float] | None = None):
-    """Filter a recorded flight; returns a :class:`~warptan.scenarios.ScenarioResult` (errors NaN without truth).
+    """Filter a recorded flight; returns a :class:`~warptan.sim.scenarios.ScenarioResult` (errors NaN without truth).
 
     Args:
         log: The flight (validated).
@@ -385,14 +305,14 @@ def replay(log: FlightLog, terrain=None, *, model: str | None = None, backend: s
         progress: Optional callable(k, n) per update.
         allow_gaps: Fly through nodata under the track (its updates are skipped and counted) instead of refusing.
         map_error: The DEM's stated accuracy, ``(RMS, correlation length)`` of its correlated vertical error in m (a
-            published figure: SRTM, Copernicus, DTED; :meth:`~warptan.measurement.Likelihood.error_modes`); default
-            the log's settings, else none.
+            published figure: SRTM, Copernicus, DTED; :meth:`~warptan.sensing.measurement.Likelihood.error_modes`);
+            default the log's settings, else none.
 
     The log is placed in the DEM's frame first (:func:`place_log`: a geodetic frame converted, any DEM that covers
     the flight); a DEM that does not contain the flight, nodata under the track, or a frame the DEM cannot be
-    related to is a :class:`~warptan.flightlog.LogError` before any filtering.
+    related to is a :class:`~warptan.io.flightlog.LogError` before any filtering.
     """
-    from warptan.scenarios import ScenarioResult, filter_kwargs, map_terrain, scenario_model
+    from warptan.sim.scenarios import ScenarioResult, filter_kwargs, map_terrain, scenario_model
 
     log.validate(f"flight log {log.name}")
     config = replay_config(log, model, backend, particles, likelihood, map_error)
@@ -445,10 +365,11 @@ def replay(log: FlightLog, terrain=None, *, model: str | None = None, backend: s
     epoch_t = np.r_[edges[0], np.minimum(np.maximum(t_used, edges[0]), edges[-1])]
     truth = bias = None
     if log.has_truth:
-        truth = {"pos": _at(log.truth_t, log.truth_pos, epoch_t), "vel": _at(log.truth_t, log.truth_vel, epoch_t),
-                 "quat": _at(log.truth_t, log.truth_quat, epoch_t, unit=True)}
+        truth = {"pos": sample_at(log.truth_t, log.truth_pos, epoch_t),
+                 "vel": sample_at(log.truth_t, log.truth_vel, epoch_t),
+                 "quat": sample_at(log.truth_t, log.truth_quat, epoch_t, unit=True)}
         if log.truth_accel_bias is not None and log.truth_gyro_bias is not None:
-            bias = [_at(log.truth_t, np.hstack([log.truth_accel_bias, log.truth_gyro_bias]), epoch_t)]
+            bias = [sample_at(log.truth_t, np.hstack([log.truth_accel_bias, log.truth_gyro_bias]), epoch_t)]
     run = collect_runs(mpf, epoch_t, truth, bias, [ins_at], prior, received, update_time, predict_time, False,
                        {"imu_steps": len(sample), "meas_rate_hz": s["rate_hz"],
                         "dropped_measurements": int((~used).sum()), "log": log.name, **placed,
@@ -460,32 +381,3 @@ def replay(log: FlightLog, terrain=None, *, model: str | None = None, backend: s
 
 
 # ---------------------------------------------------------------------- trajectory file
-def write_trajectory(result, terrain, folder: Path) -> list[str]:
-    """``<id>_seed<s>_trajectory.csv`` (time, NED estimate and 3σ, truth when known, and latitude/longitude/altitude
-    when the DEM has a CRS) and, with a CRS, ``..._trajectory.geojson`` (a LineString of the estimate, lon/lat/alt:
-    QGIS and Google Earth load it). Returns the file names."""
-    run = result.run
-    stem = f"{result.scenario}_seed{result.seed}_trajectory"
-    cols = {"t_s": run.t_s, "north_m": run.est_pos[:, 0], "east_m": run.est_pos[:, 1], "down_m": run.est_pos[:, 2],
-            "sigma3_north_m": run.sigma3_pos[:, 0], "sigma3_east_m": run.sigma3_pos[:, 1],
-            "sigma3_down_m": run.sigma3_pos[:, 2]}
-    lat = lon = None
-    if getattr(terrain, "crs_wkt", None):
-        lat, lon = terrain.ne_to_latlon(run.est_pos[:, 0], run.est_pos[:, 1])
-        cols.update(lat_deg=lat, lon_deg=lon, alt_m=-run.est_pos[:, 2])
-    if np.isfinite(run.truth_pos).any():
-        cols.update(truth_north_m=run.truth_pos[:, 0], truth_east_m=run.truth_pos[:, 1],
-                    truth_down_m=run.truth_pos[:, 2])
-    table = np.column_stack(list(cols.values()))
-    np.savetxt(folder / f"{stem}.csv", table, delimiter=",", header=",".join(cols), comments="", fmt="%.9g")
-    names = [f"{stem}.csv"]
-    if lat is not None:
-        import json
-
-        feature = {"type": "Feature", "properties": {"name": f"{result.scenario} estimate", "source": "warptan"},
-                   "geometry": {"type": "LineString",
-                                "coordinates": [[float(a), float(b), float(c)] for a, b, c in
-                                                zip(lon, lat, -run.est_pos[:, 2], strict=True)]}}
-        (folder / f"{stem}.geojson").write_text(json.dumps({"type": "FeatureCollection", "features": [feature]}))
-        names.append(f"{stem}.geojson")
-    return names

@@ -1,7 +1,7 @@
 """Bring your own flight: a flight log from tables of what a vehicle records (GPS latitude/longitude/height, IMU
 samples, point clouds or altimeter ranges, barometer), and the same tables written from a log.
 
-:func:`from_geodetic` is the API (arrays in, a :class:`~warptan.flightlog.FlightLog` out); :func:`read_tables`
+:func:`from_geodetic` is the API (arrays in, a :class:`~warptan.io.flightlog.FlightLog` out); :func:`read_tables`
 reads a layout file (TOML) naming CSV files, their columns and units, and ``warptan log import LAYOUT.toml --out
 F.h5`` is its command; :func:`write_tables` (``warptan log export F.h5 --out DIR``) writes a log as such tables and
 layout (a worked example to start from). The layout::
@@ -9,7 +9,7 @@ layout (a worked example to start from). The layout::
     name = "my_flight"             # optional (default: the layout file's name)
     dem = "my_dem.tif"             # optional: the DEM the flight is over (the log's dem.reference)
     vertical_datum = "EGM96"       # the datum the heights are above ("" = not stated; the DEM's must be the same)
-    imu_grade = "navigation"       # a grade warptan knows (warptan.imu.IMU_GRADES)
+    imu_grade = "navigation"       # a grade warptan knows (warptan.nav.imu.IMU_GRADES)
     initial_sigma = [...]          # optional: 15 σ of the initial error (default: the scenarios' prior for the grade)
     range_sigma_m = 0.5            # optional sensor σ (also altimeter_sigma_m, baro_sigma_m)
     mount_quat_bs = [1, 0, 0, 0]   # optional: sensor to body [w, x, y, z], FRD; mount_lever_b = [x, y, z] m
@@ -40,11 +40,11 @@ from pathlib import Path
 
 import numpy as np
 
-from warptan.flightlog import FlightLog, LogError
-from warptan.frames import euler_to_quat, quat_to_euler
-from warptan.geoframe import GeoFrame, turn_vectors
-from warptan.imu import IMU_GRADES
-from warptan.runner import InitialErrors, prior_sigma
+from warptan.filter.prior import InitialErrors, prior_sigma
+from warptan.io.flightlog import FlightLog, LogError
+from warptan.nav.frames import euler_to_quat, quat_to_euler
+from warptan.nav.geoframe import GeoFrame, turn_vectors
+from warptan.nav.imu import IMU_GRADES
 
 try:
     import tomllib
@@ -142,15 +142,15 @@ def from_geodetic(*, imu_t, imu_f, imu_w, imu_grade: str, gps_t, lat_deg, lon_de
     if baro_t is not None:
         kw.update(baro_t=np.asarray(baro_t, dtype=np.float64), baro_alt=np.asarray(baro_alt, dtype=np.float64),
                   baro_sigma_m=float(baro_sigma_m))
-    from warptan.replay import _at
+    from warptan.io.flightlog import sample_at
 
     t0 = imu_t[:1]
     if len(imu_t) and not (gps_t[0] <= t0[0] <= gps_t[-1]) and initial is None:
         raise LogError(source, [f"the first IMU sample (t = {t0[0]!r} s) is outside the GPS's time span "
                                 f"({gps_t[0]!r} … {gps_t[-1]!r} s): no initial state"])
     if initial is None:
-        init = {"init_pos": _at(gps_t, pos, t0)[0], "init_vel": _at(gps_t, vel, t0)[0],
-                "init_quat": _at(gps_t, quat, t0, unit=True)[0]}
+        init = {"init_pos": sample_at(gps_t, pos, t0)[0], "init_vel": sample_at(gps_t, vel, t0)[0],
+                "init_quat": sample_at(gps_t, quat, t0, unit=True)[0]}
     else:
         i = initial
         la, lo = np.array([float(i["lat_deg"])]), np.array([float(i["lon_deg"])])
@@ -174,9 +174,9 @@ def from_geodetic(*, imu_t, imu_f, imu_w, imu_grade: str, gps_t, lat_deg, lon_de
 
 
 def _initial_sigma(init_sigma, grade: str) -> np.ndarray:
-    """``init_sigma`` as floats, or (None) the scenarios' prior (:class:`~warptan.runner.InitialErrors`: 100/100/20 m,
-    0.5 m/s, 0.1/0.1/0.5°) with the grade's turn-on biases (NaN for a grade warptan does not know: the log's
-    validation names the grade)."""
+    """``init_sigma`` as floats, or (None) the scenarios' prior (:class:`~warptan.filter.prior.InitialErrors`:
+    100/100/20 m, 0.5 m/s, 0.1/0.1/0.5°) with the grade's turn-on biases (NaN for a grade warptan does not know: the
+    log's validation names the grade)."""
     if init_sigma is not None:
         return np.asarray(init_sigma, dtype=np.float64)
     if grade not in IMU_GRADES:

@@ -13,7 +13,7 @@ The likelihood is the paper's Gaussian on the scalar error, or a per-point Gauss
 all valid residuals (:class:`Likelihood`, :mod:`warptan.kernels.likelihood` for the exact formulas).
 The per-point scale is calibrated unless given: ``σ_eff² = σ_sensor² + n_corr σ_map²`` with ``σ_map`` the RMS
 difference between the surface the model reads and the triangulated truth (bilinear vs triangles,
-:attr:`~warptan.terrain.Terrain.bilinear_mismatch_sigma_m`, 0 for ray casts, which read the triangles) plus
+:attr:`~warptan.terrain.grid.Terrain.bilinear_mismatch_sigma_m`, 0 for ray casts, which read the triangles) plus
 any known map error (``map_sigma_m``), and ``n_corr`` the updates over which a moving scan sees the same map
 error (``map_correlation``). Every model also returns each particle's normalised squared residual
 (the filter's integrity statistic).
@@ -39,8 +39,8 @@ from warptan.kernels import likelihood as klik
 from warptan.kernels import raycast as kray
 from warptan.kernels import sliding as kslide
 from warptan.parallel import launch, launch_rows, rows_of
-from warptan.raycast import RayCaster, check_same_device
-from warptan.sensors import AltimeterReading, PointCloud
+from warptan.sensing.sensors import AltimeterReading, PointCloud
+from warptan.terrain.raycast import RayCaster, check_same_device
 
 POSITION_PRIOR_PRECISION = 1.0e-4
 """Prior precision (m⁻², σ = 100 m) of the position in the attitude information's Schur complement
@@ -273,8 +273,8 @@ class Likelihood:
         ``σ_d = σ_e`` (a fix error as large as the vertical error: a terrain slope of 1, as in
         :meth:`offset_process`) and ``ℓ = min(L, fix_corr_m)``: the fix turns the map error into a position through
         the terrain's gradients under the footprint, so it changes as fast as the shorter of the error's correlation
-        length and the slope's (``fix_corr_m``: :attr:`warptan.terrain.Terrain.slope_correlation_m` of the map,
-        set by :func:`warptan.scenarios.scenario_likelihood`; 0: L alone). Measured (S2, tactical IMU, 5 m / 1 km
+        length and the slope's (``fix_corr_m``: :attr:`warptan.terrain.grid.Terrain.slope_correlation_m` of the map,
+        set by :func:`warptan.sim.scenarios.scenario_likelihood`; 0: L alone). Measured (S2, tactical IMU, 5 m / 1 km
         world, seeds 0–1, CPU): with the attitude's information counted once per independent patch
         (:func:`warptan.kernels.likelihood.attitude_information`) and without this noise the velocity ran away
         (3–10 m/s error at 17–52 σ, 27–140 m); with ``ℓ = L`` 3.4/2.5 m at 96/98 % coverage. With the slope's
@@ -402,7 +402,7 @@ class ModelOutput:
     """(N,) vec3 horizontal position information of each particle's residuals, ``Σ_j g_j g_jᵀ / σ_j²`` as (nn, ee, ne)
     (m⁻²), g_j the prediction's gradient w.r.t. the horizontal position; written by the models that cannot fix the
     position with one measurement (the altimeter; None for the models that can, ``fixes_per_scan``): the filter keeps
-    its regularisation jitter within what one measurement resolves (:mod:`warptan.mpf`)."""
+    its regularisation jitter within what one measurement resolves (:mod:`warptan.filter.mpf`)."""
     mode_post: wp.array | None = None
     """(N,) modes_vec the particles' map-error mode amplitudes after this scan, predicted to the next (whitened, in
     the modes of the table in use; zero without a stated map error): the filter keeps them as the next prior."""
@@ -476,7 +476,7 @@ class MeasurementModel:
         self.generation = 0
         """Bumped whenever an array or struct that launches hold is replaced (buffers reallocated, the likelihood or
         the bound attitude covariance reassigned): a recorded launch sequence or captured graph of an older
-        generation is stale and must be re-recorded (see :class:`warptan.mpf.MarginalizedParticleFilter`)."""
+        generation is stale and must be re-recorded (see :class:`warptan.filter.mpf.MarginalizedParticleFilter`)."""
         self.likelihood = likelihood or Likelihood()
 
     @property
@@ -728,7 +728,7 @@ class _PointCloudModel(MeasurementModel):
         return wp.empty((b, m), dtype=klik.cloud_row, device=device)
 
     def _scan_geometry(self, quat: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        from warptan.frames import quat_to_mat
+        from warptan.nav.frames import quat_to_mat
 
         dirs, rng = self._host["first"]  # the first filter's cloud as staged (float32)
         rot = quat_to_mat(quat / max(float(np.linalg.norm(quat)), 1e-12))
@@ -781,7 +781,7 @@ class _PointCloudModel(MeasurementModel):
 
 def _forward(quat: np.ndarray) -> np.ndarray:
     """The horizontal unit vector of the body's x axis (the flight direction in coordinated flight)."""
-    from warptan.frames import quat_to_mat
+    from warptan.nav.frames import quat_to_mat
 
     x = quat_to_mat(quat / max(float(np.linalg.norm(quat)), 1e-12))[:2, 0]
     norm = float(np.linalg.norm(x))
@@ -872,7 +872,7 @@ class SlidingModel(_PointCloudModel):
 class AltimeterModel(MeasurementModel):
     """Radar altimeter with barometric altitude: ``a^_i = h_baro - h(p_i)`` (paper eq. 8, 17).
 
-    It takes :class:`~warptan.sensors.AltimeterReading` measurements; particle attitudes are not used.
+    It takes :class:`~warptan.sensing.sensors.AltimeterReading` measurements; particle attitudes are not used.
     With a barometer the altimeter residual does not depend on a particle's altitude, so the barometer is
     also used as what it is, a measurement of altitude: each particle's log-likelihood gets
     ``-0.5 (h_baro + p_i,z)² / baro_sigma_m²`` (without it the vertical error would be unobservable).
@@ -923,7 +923,7 @@ class AltimeterModel(MeasurementModel):
 
     def bind_particle_kernel(self, chol: wp.array | None) -> None:
         """Score each particle for its regularisation kernel: ``chol`` ((B,) mat33 on the particles' device, m: each
-        filter's kernel factor, kept current by its owner, :class:`~warptan.mpf.MarginalizedParticleFilter`); the
+        filter's kernel factor, kept current by its owner, :class:`~warptan.filter.mpf.MarginalizedParticleFilter`); the
         residual's σ grows by the map's height variance over the kernel
         (:func:`warptan.kernels.sliding.kernel_height`). None (the default): point particles."""
         if chol is not self._kernel_chol:

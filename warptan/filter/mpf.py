@@ -18,16 +18,16 @@ P_θ:`` (Λ̄ ≈ Λ at the weighted mean pose). Our choice is one shared P, not
 a 12×12 Riccati per particle and IMU sample on the device (its N_k and L_k would differ per particle), and the
 shared P gives honest bounds once two things are right (H100, 20 seeds, ``results/paper/gaussian``, side by side
 with the previous table in ``results/paper/compare_projection.md``). First, Λ_i and b_i are the part of the scan's
-attitude information a position offset cannot explain (the Schur complement, :attr:`warptan.measurement.Likelihood.
-project_position`): a particle's position is only as good as the cloud (~0.25 m) while a scan pins the attitude to
-~1 cm of lever arm, so with the whole information each Kalman mean absorbed its particle's position offset as
-attitude and resampling handed one lineage's absorbed offsets to every particle (S3 attitude coverage 53–75 %, σ/RMSE
-0.4–0.5, one seed lost). Second, the update waits for the integrity monitor's verdict (``gate_linear_update``): a
-scan read at a wrong position mode is fitted by a wrong attitude (S2 seed 11: 2.5° of yaw in a 4 s false lock, a
-yaw-gyro error of 131 °/h a minute later). Now attitude 3σ coverage is 99–100 % in every point-cloud scenario, mean
-σ/RMSE 0.99–1.5 (S8 yaw 1.52, S11 roll/yaw 1.73/1.70), attitude RMSE ≤ 0.0023° outside S2 (0.004/0.006/0.011°) and
-the flat-terrain yaw (0.02°), S2's gyro-bias error after 60 s 4.4/4.3/4.0 °/h. A per-particle P was not built or
-measured.
+attitude information a position offset cannot explain (the Schur complement,
+:attr:`warptan.sensing.measurement.Likelihood.project_position`): a particle's position is only as good as the cloud
+(~0.25 m) while a scan pins the attitude to ~1 cm of lever arm, so with the whole information each Kalman mean absorbed
+its particle's position offset as attitude and resampling handed one lineage's absorbed offsets to every particle (S3
+attitude coverage 53–75 %, σ/RMSE 0.4–0.5, one seed lost). Second, the update waits for the integrity monitor's verdict
+(``gate_linear_update``): a scan read at a wrong position mode is fitted by a wrong attitude (S2 seed 11: 2.5° of yaw
+in a 4 s false lock, a yaw-gyro error of 131 °/h a minute later). Now attitude 3σ coverage is 99–100 % in every
+point-cloud scenario, mean σ/RMSE 0.99–1.5 (S8 yaw 1.52, S11 roll/yaw 1.73/1.70), attitude RMSE ≤ 0.0023° outside S2
+(0.004/0.006/0.011°) and the flat-terrain yaw (0.02°), S2's gyro-bias error after 60 s 4.4/4.3/4.0 °/h. A per-particle
+P was not built or measured.
 
 Closed loop (``closed_loop``): after each update of a filter its integrity monitor has judged consistent, a kernel
 at the end of the update injects the weighted mean error into the nominal INS (position, velocity, attitude ``q ⊗
@@ -87,7 +87,7 @@ separate kernels (whose particle loops split over cores). ``_lean`` (off until m
 (moves, poses, statistics reset) and the tail (integrity + re-spread; record + P's update + reset) likewise and
 nests the stages' conditionals; the same bits on the CPU (``tests/test_mpf.py``).
 
-``A^n`` and ``A^l`` are blocks of the INS error transition of :func:`warptan.ins.error_transition`
+``A^n`` and ``A^l`` are blocks of the INS error transition of :func:`warptan.nav.ins.error_transition`
 (exact Jacobian: ``A^n = [dt I, 0.5 dt² (-R[a]x), 0.5 dt² (-R), 0]``; SPEC's ``[dt I, 0]`` plus the
 O(dt²) terms). ``Q^n`` (``kalman_pos_noise``) is the position noise the Kalman part models (in N_k and L_k);
 roughening (``pos_noise``) is added to the particles' dp only, so L_k never reads it as velocity. Measured on
@@ -106,13 +106,13 @@ tell from the aircraft's altitude (ray casts, sliding, the altimeter without a b
 makes the particles' altitude the height above the map: the offset's variance ``var_b`` is added to the reported
 altitude variance (``map_offset_var``; the estimate's ``cov_pos`` and the runs' σ) and its change along the track is
 process noise on the down velocity, ``q_v = 4 σ_e² v³ / L³`` at each filter's nominal ground speed at construction
-(:meth:`warptan.measurement.Likelihood.offset_process`; per filter, as the fix wander below: a filter of a batch is the
-filter run alone). A point-cloud model's fix of the horizontal position
+(:meth:`warptan.sensing.measurement.Likelihood.offset_process`; per filter, as the fix wander below: a filter of a
+batch is the filter run alone). A point-cloud model's fix of the horizontal position
 wanders along the track with the error: ``Q^n`` grows by ``2 σ_e² v / ℓ``, ℓ the shorter of L and the terrain slope's
-correlation length (:meth:`warptan.measurement.Likelihood.fix_process`), or the Kalman part reads the wander as
+correlation length (:meth:`warptan.sensing.measurement.Likelihood.fix_process`), or the Kalman part reads the wander as
 velocity. Ground read again after the map-error modes forgot it weighs less: each update's exponent is what one more
 pass adds to passes whose fixes are correlated by ρ (``(1 − ρ)/((1 + Cρ)(1 + (C − 1)ρ))`` after C passes; ρ = 0.9,
-:class:`warptan.measurement.RevisitMemory`), not 1.
+:class:`warptan.sensing.measurement.RevisitMemory`), not 1.
 
 Integrity (MBARI TRN style): every model returns each particle's normalised squared residual (NIS, mean of
 ``min((r/σ)², k_out²)`` over the received points; ≈ 1 at the true pose); the smallest NIS of any particle — is
@@ -139,14 +139,14 @@ import warp as wp
 
 from warptan.checks import FilterError, FilterWarning, check_float32
 from warptan.device import resolve_device
-from warptan.frames import quat_exp, quat_mul
-from warptan.imu import ImuGrade, check_rate, imu_grade
-from warptan.ins import NavState, process_noise
 from warptan.kernels import likelihood as klik
 from warptan.kernels import mpf as kmpf
 from warptan.kernels import nav as knav
-from warptan.measurement import RevisitMemory
+from warptan.nav.frames import quat_exp, quat_mul
+from warptan.nav.imu import ImuGrade, check_rate, imu_grade
+from warptan.nav.ins import NavState, process_noise
 from warptan.parallel import Recorder, launch, launch_rows, rows_of
+from warptan.sensing.measurement import RevisitMemory
 
 SCHEMES = {"systematic": 0, "stratified": 1, "multinomial": 2}
 RESAMPLERS = tuple(SCHEMES)
@@ -343,7 +343,7 @@ class MarginalizedParticleFilter:
     (same model, IMU grade and prior; own nominal INS, seed, measurements) whose particles share one array.
 
     Args:
-        model: A measurement model (:mod:`warptan.measurement`): ``stage(measurements, pos, quat)`` then
+        model: A measurement model (:mod:`warptan.sensing.measurement`): ``stage(measurements, pos, quat)`` then
             ``launch(pos, quat) -> ModelOutput`` with per-particle log-likelihoods.
         nominal: Initial nominal INS state, or a list of B (a batch).
         grade: IMU grade (process noise of the Kalman part).

@@ -6,7 +6,7 @@ or sideslip): pitch = flight-path angle γ, yaw = heading ψ, roll = bank φ, an
 rates and accelerations are continuous) over ``roll_time_s`` / ``transition_s``.
 
 Consistency with the INS (SPEC §4): the commanded attitude ``q_k`` and velocity ``v_k`` are sampled at
-the IMU rate and the ideal samples are *derived* from them for the mechanization of :mod:`warptan.ins`:
+the IMU rate and the ideal samples are *derived* from them for the mechanization of :mod:`warptan.nav.ins`:
 ``w_k = Log(q_k^-1 ⊗ q_{k+1}) / dt`` and ``f_k = R(q_k)^T ((v_{k+1} - v_k) / dt - g_n)``, and the truth
 position is ``p_{k+1} = p_k + v_k dt + 0.5 a_k dt²``. A perfect IMU therefore reproduces the truth to
 floating-point error.
@@ -20,9 +20,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from warptan.checks import FilterError, check_positive
-from warptan.frames import euler_to_quat, quat_conj, quat_log, quat_mul, quat_to_mat
-from warptan.imu import G0, check_rate
-from warptan.ins import GRAVITY_N, NavState
+from warptan.nav.frames import euler_to_quat, quat_conj, quat_log, quat_mul, quat_to_mat
+from warptan.nav.imu import G0, check_rate
+from warptan.nav.ins import GRAVITY_N, NavState
 
 
 def smootherstep(x: np.ndarray) -> np.ndarray:
@@ -106,7 +106,7 @@ class Trajectory:
     @property
     def euler_rad(self) -> np.ndarray:
         """(K+1, 3) roll, pitch, yaw in rad."""
-        from warptan.frames import quat_to_euler
+        from warptan.nav.frames import quat_to_euler
 
         return quat_to_euler(self.quat_nb)
 

@@ -16,23 +16,15 @@ import numpy as np
 import warp as wp
 
 from warptan.checks import FilterError
-from warptan.frames import quat_conj, quat_exp, quat_log, quat_mul
-from warptan.imu import ImuModel
-from warptan.ins import Ins, NavState
+from warptan.filter.mpf import MarginalizedParticleFilter
+from warptan.filter.prior import InitialErrors, initial_nominal, prior_linear_cov
 from warptan.kernels import mpf as kmpf
-from warptan.measurement import AltimeterModel
-from warptan.mpf import MarginalizedParticleFilter
-from warptan.sensors import AltimeterReading, Barometer, RadarAltimeter
-from warptan.trajectory import Trajectory
-
-
-@dataclass(frozen=True)
-class InitialErrors:
-    """σ of the INS's initial error, drawn per seed; also the filter's prior (SPEC §7 "high" defaults)."""
-
-    pos_m: tuple[float, float, float] = (100.0, 100.0, 20.0)
-    vel_mps: float = 0.5
-    att_deg: tuple[float, float, float] = (0.1, 0.1, 0.5)
+from warptan.nav.frames import quat_conj, quat_exp, quat_log, quat_mul
+from warptan.nav.imu import ImuModel
+from warptan.nav.ins import Ins
+from warptan.nav.trajectory import Trajectory
+from warptan.sensing.measurement import AltimeterModel
+from warptan.sensing.sensors import AltimeterReading, Barometer, RadarAltimeter
 
 
 @dataclass
@@ -108,32 +100,6 @@ class FilterRun:
         return self._covered(self.lin_err, self.sigma3_lin, after_s)
 
 
-def initial_nominal(truth0: NavState, errors: InitialErrors, rng: np.random.Generator) -> NavState:
-    """The INS's initial state: truth ⊖ e0 with e0 drawn from the σ of ``errors`` (true = nominal ⊕ e0)."""
-    dp0 = rng.normal(0.0, errors.pos_m)
-    dv0 = rng.normal(0.0, errors.vel_mps, 3)
-    dth0 = rng.normal(0.0, np.radians(errors.att_deg))
-    q = quat_mul(truth0.quat_nb, quat_exp(-dth0))
-    return NavState(truth0.pos_n - dp0, truth0.vel_n - dv0, q / np.linalg.norm(q))
-
-
-def prior_linear_sigma(errors: InitialErrors, grade) -> np.ndarray:
-    """(12,) prior σ of [dv, dth, dba, dbg]: the initial velocity/attitude σ and the grade's turn-on bias σ."""
-    return np.concatenate([np.full(3, errors.vel_mps), np.radians(errors.att_deg), np.full(3, grade.accel_bias),
-                           np.full(3, grade.gyro_bias)])
-
-
-def prior_sigma(errors: InitialErrors, grade) -> np.ndarray:
-    """(15,) prior σ of [dp, dv, dth, dba, dbg]: the position σ, then :func:`prior_linear_sigma` (a flight log's
-    ``initial.sigma``)."""
-    return np.r_[np.asarray(errors.pos_m, dtype=np.float64), prior_linear_sigma(errors, grade)]
-
-
-def prior_linear_cov(errors: InitialErrors, imu: ImuModel) -> np.ndarray:
-    """P0 of [dv, dth, dba, dbg] (diagonal, :func:`prior_linear_sigma` squared)."""
-    return np.diag(prior_linear_sigma(errors, imu.grade) ** 2)
-
-
 def run_filter(truth: Trajectory, terrain_map, model, imu: ImuModel | Sequence[ImuModel], sensor=None, *,
                terrain_truth=None, baro: Barometer | None = None, n_particles: int = 500, device=None,
                seed: int | Sequence[int] = 0, meas_rate_hz: float = 10.0, initial: InitialErrors | None = None,
@@ -145,8 +111,8 @@ def run_filter(truth: Trajectory, terrain_map, model, imu: ImuModel | Sequence[I
         terrain_map: The DEM the filter predicts with (the model's terrain).
         model: A measurement model built on ``terrain_map``.
         imu: IMU error model (grade, rate, seed of the IMU errors); a list of them for a batch.
-        sensor: A :class:`~warptan.sensors.PointCloudSensor` for point-cloud models, or a
-            :class:`~warptan.sensors.RadarAltimeter` (default) for the altimeter model.
+        sensor: A :class:`~warptan.sensing.sensors.PointCloudSensor` for point-cloud models, or a
+            :class:`~warptan.sensing.sensors.RadarAltimeter` (default) for the altimeter model.
         terrain_truth: The terrain the sensor sees (default: the map).
         baro: Barometer for the altimeter model (default σ = 1 m).
         n_particles, device: Particles per filter and device.
@@ -155,10 +121,10 @@ def run_filter(truth: Trajectory, terrain_map, model, imu: ImuModel | Sequence[I
         meas_rate_hz: Measurement rate; a divisor of the IMU rate (``--paper-rates``: equal to it).
         initial: Initial-error σ (drawn for the INS and used as the prior).
         progress: Optional callable(k, n_steps) called at every measurement epoch.
-        record: A dict to fill with what the filter received (for a flight log, :mod:`warptan.flightlog`):
+        record: A dict to fill with what the filter received (for a flight log, :mod:`warptan.io.flightlog`):
             ``f``, ``w`` (K, B, 3) IMU samples, ``epochs`` (IMU sample index of each update), ``measurements``
             (per update, the B measurements), ``nominal0`` (B initial INS states), ``true_bias`` (B × (K, 6)).
-        **filter_kwargs: Passed to :class:`~warptan.mpf.MarginalizedParticleFilter`.
+        **filter_kwargs: Passed to :class:`~warptan.filter.mpf.MarginalizedParticleFilter`.
 
     Returns:
         A :class:`FilterRun`, or a list of them (one per seed) for a batch.

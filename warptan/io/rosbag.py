@@ -1,5 +1,5 @@
 """ROS 2 bags in and out (``rosbags``, pure Python, no ROS install): a bag becomes a
-:class:`~warptan.flightlog.FlightLog`, and a flight log can be written as a bag (``warptan run --export-bag``).
+:class:`~warptan.io.flightlog.FlightLog`, and a flight log can be written as a bag (``warptan run --export-bag``).
 
 Topics (names in :class:`BagConfig`, a small TOML or the command line):
 
@@ -39,9 +39,9 @@ try:
 except ModuleNotFoundError:  # Python 3.10
     import tomli as tomllib
 
-from warptan.flightlog import FlightLog, LogError
-from warptan.frames import mat_to_quat, quat_to_mat
-from warptan.geoframe import GeoFrame
+from warptan.io.flightlog import FlightLog, LogError
+from warptan.nav.frames import mat_to_quat, quat_to_mat
+from warptan.nav.geoframe import GeoFrame
 
 FLU_FRD = np.diag([1.0, -1.0, -1.0])
 """Vectors in a FLU frame to the same body's FRD frame (and back: it is its own inverse)."""
@@ -82,8 +82,9 @@ class BagConfig:
     sample rate), the mounting (ROS convention), the initial state (NED, warptan convention; None: the first
     odometry message) and its σ (15: pos m, vel m/s, attitude rad, accel bias m/s², gyro bias rad/s), sensor σ,
     the DEM (and its posts, ``dem_posts``), the map frame on the Earth (``frame_origin_lat_deg``,
-    ``frame_origin_lon_deg``, ``frame_origin_height_m``, ``frame_vertical_datum``: :class:`~warptan.geoframe.GeoFrame`;
-    without a latitude the ENU frame is the DEM's grid) and optional filter settings (JSON)."""
+    ``frame_origin_lon_deg``, ``frame_origin_height_m``, ``frame_vertical_datum``:
+    :class:`~warptan.nav.geoframe.GeoFrame`; without a latitude the ENU frame is the DEM's grid) and optional filter
+    settings (JSON)."""
 
     imu: str = "/imu"
     cloud: str = "/points"
@@ -109,7 +110,7 @@ class BagConfig:
     frame_origin_height_m: float = 0.0
     frame_vertical_datum: str = ""
     dem_posts: tuple | None = None
-    """The DEM's posts in the map frame (:attr:`warptan.flightlog.FlightLog.dem_posts`; None: not recorded)."""
+    """The DEM's posts in the map frame (:attr:`warptan.io.flightlog.FlightLog.dem_posts`; None: not recorded)."""
     settings_json: str = ""
 
     @property
@@ -376,11 +377,11 @@ def read_bag(path, config: BagConfig | None = None) -> FlightLog:
                   init_quat=np.array(initial[2], dtype=np.float64))
     elif odom:  # the truth at the first IMU sample
         t0 = kw["imu_t"][:1]
-        from warptan.replay import _at
+        from warptan.io.flightlog import sample_at
 
-        kw.update(init_pos=_at(kw["truth_t"], kw["truth_pos"], t0)[0],
-                  init_vel=_at(kw["truth_t"], kw["truth_vel"], t0)[0],
-                  init_quat=_at(kw["truth_t"], kw["truth_quat"], t0, unit=True)[0])
+        kw.update(init_pos=sample_at(kw["truth_t"], kw["truth_pos"], t0)[0],
+                  init_vel=sample_at(kw["truth_t"], kw["truth_vel"], t0)[0],
+                  init_quat=sample_at(kw["truth_t"], kw["truth_quat"], t0, unit=True)[0])
     else:
         problems.append("no initial state: give initial_pos_n, initial_vel_n, initial_quat_nb in the bag config, or "
                         f"an odometry topic ({config.odom!r})")

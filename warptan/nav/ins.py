@@ -25,8 +25,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from warptan.checks import LOCAL_FRAME_M, FilterError
-from warptan.frames import check_unit_quat, quat_conj, quat_exp, quat_log, quat_mul
-from warptan.imu import ImuGrade, check_rate
+from warptan.nav.frames import check_unit_quat, quat_conj, quat_exp, quat_log, quat_mul
+from warptan.nav.imu import ImuGrade, check_rate
 
 GRAVITY_N = np.array([0.0, 0.0, 9.80665])
 """Gravity in NED, m/s² (flat earth, SPEC §1)."""
@@ -171,7 +171,7 @@ class Ins:
 
 
 def _rot(q) -> np.ndarray:
-    """``R(q)`` of one unit quaternion (fast scalar form of :func:`warptan.frames.quat_to_mat`)."""
+    """``R(q)`` of one unit quaternion (fast scalar form of :func:`warptan.nav.frames.quat_to_mat`)."""
     w, x, y, z = q
     return np.array([
         [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],

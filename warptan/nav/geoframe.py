@@ -1,13 +1,13 @@
 """A flight's frame tied to the Earth, and the change from it into a DEM's frame.
 
-A flight log (format version 2, :mod:`warptan.flightlog`) states where its NED frame is on the Earth with a
+A flight log (format version 2, :mod:`warptan.io.flightlog`) states where its NED frame is on the Earth with a
 :class:`GeoFrame`: the WGS84 latitude and longitude of the origin, the height of the origin above a named vertical
 datum, and the datum. Its horizontal axes are those of a transverse Mercator projection (WGS84, scale 1, no false
 origin) centred on the origin: north is the projection's y (true north at the origin), east its x, in metres;
 down is ``origin_height_m − h`` with ``h`` the height above the datum. The same three numbers reproduce the frame in
 any GIS (``+proj=tmerc +lat_0=… +lon_0=… +k=1 +x_0=0 +y_0=0 +datum=WGS84``).
 
-A DEM's frame (:class:`~warptan.terrain.Terrain`) is its own projected CRS (a native UTM grid, or the transverse
+A DEM's frame (:class:`~warptan.terrain.grid.Terrain`) is its own projected CRS (a native UTM grid, or the transverse
 Mercator warptan builds for a geographic raster) with its own origin. :func:`frame_change` maps positions from a
 log's frame into a DEM's point by point through latitude/longitude (PROJ, exact to the projections' float
 precision), and turns velocities and attitudes by the angle between the two frames' north axes at each point (the
@@ -26,7 +26,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from warptan.frames import quat_exp, quat_mul
+from warptan.nav.frames import quat_exp, quat_mul
 
 IDENTITY_TOL_M = 1e-6
 """A change whose positions move by less than this (m) over the flight is the identity (the DEM's frame is the log's:
@@ -60,17 +60,17 @@ class GeoFrame:
     @property
     def crs_wkt(self) -> str:
         """The frame's horizontal CRS (transverse Mercator centred on the origin) as WKT."""
-        from warptan.raster import tmerc_crs
+        from warptan.terrain.raster import tmerc_crs
 
         return tmerc_crs(self.origin_lat_deg, self.origin_lon_deg).to_wkt()
 
     def ne_to_latlon(self, north, east) -> tuple[np.ndarray, np.ndarray]:
-        from warptan.raster import projected_to_latlon
+        from warptan.terrain.raster import projected_to_latlon
 
         return projected_to_latlon(self.crs_wkt, np.asarray(east, float), np.asarray(north, float))
 
     def latlon_to_ne(self, lat, lon) -> tuple[np.ndarray, np.ndarray]:
-        from warptan.raster import latlon_to_projected
+        from warptan.terrain.raster import latlon_to_projected
 
         x, y = latlon_to_projected(self.crs_wkt, np.asarray(lat, float), np.asarray(lon, float))
         return y, x

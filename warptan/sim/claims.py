@@ -4,19 +4,19 @@ Every claim is evaluated from the per-run summaries a scenario run writes (``res
 committed results file re-derives its verdicts. Each comparison is one of:
 
 * "A is better than B" — one-sided Welch t test on the per-seed converged horizontal RMSE
-  (``hypot(north, east)`` after ``filter.converged_after_s``): :func:`warptan.report.compare_less`;
+  (``hypot(north, east)`` after ``filter.converged_after_s``): :func:`warptan.sim.report.compare_less`;
 * "A and B are close" — the 95 % bootstrap interval of the ratio of their mean horizontal RMSEs inside
-  [1/1.5, 1.5]: :func:`warptan.report.ratio_within`.
+  [1/1.5, 1.5]: :func:`warptan.sim.report.ratio_within`.
 
 A claim with several pairs holds when every pair holds, does not hold when any pair does not, and is
-inconclusive otherwise (:func:`warptan.report.combine`); α = :data:`warptan.report.ALPHA` (one-sided).
+inconclusive otherwise (:func:`warptan.sim.report.combine`); α = :data:`warptan.sim.report.ALPHA` (one-sided).
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from warptan.report import ALPHA, FAILS, HOLDS, INCONCLUSIVE, ci95, combine, compare_less, ratio_within
+from warptan.sim.report import ALPHA, FAILS, HOLDS, INCONCLUSIVE, ci95, combine, compare_less, ratio_within
 
 NOT_RUN = "not run"
 CLOSE_FACTOR = 1.5

@@ -15,8 +15,8 @@ import warp as wp
 
 from warptan.checks import FilterError
 from warptan.device import upload
-from warptan.frames import check_unit_quat
-from warptan.raycast import RayCaster, raycast_pattern
+from warptan.nav.frames import check_unit_quat
+from warptan.terrain.raycast import RayCaster, raycast_pattern
 
 
 class ScanPattern:

@@ -8,8 +8,8 @@ and needs no table flattening (Parquet would store a scan as M columns or a list
     /                    format = "warptan-flight-log", version = 2, name
     /frame               attrs kind = "geodetic": origin_lat_deg, origin_lon_deg (WGS84), origin_height_m (height of
                          the NED origin above the vertical datum), vertical_datum (its name; "" = not stated) — the
-                         map frame tied to the Earth (:class:`~warptan.geoframe.GeoFrame`); or kind = "dem-grid": the
-                         frame is the grid of the DEM named in /dem and nothing else (a generated terrain)
+                         map frame tied to the Earth (:class:`~warptan.nav.geoframe.GeoFrame`); or kind = "dem-grid":
+                         the frame is the grid of the DEM named in /dem and nothing else (a generated terrain)
     /imu                 t (K,) s; f_b (K, 3) m/s² specific force; w_b (K, 3) rad/s body rate — body frame FRD;
                          attrs rate_hz (nominal rate), grade (IMU grade name), t_end (end of the last sample's step)
     /scans   (optional)  t (S,) s; dirs_s (S, M, 3) unit directions, sensor frame FRD; ranges_m (S, M);
@@ -33,9 +33,9 @@ Conventions: times in seconds on one clock. IMU sample k (``f_b[k]``, ``w_b[k]``
 ``[t[k], t[k+1])`` (the last one until ``t_end``): the zero-order hold warptan's own INS integrates. Map frame
 (version 2, kind geodetic): north/east in metres of the transverse Mercator (WGS84, scale 1) centred on the frame's
 origin — north is true north at the origin — and down = ``origin_height_m`` − height above the vertical datum
-(:mod:`warptan.geoframe`; ``warptan replay`` converts positions, velocities and attitudes into the frame of whichever
-DEM covers the flight). Kind dem-grid, and every version 1 log: north/east in metres on the named DEM's grid, down =
-−altitude above its datum (such a log flies only over its own DEM; version 1 is still read, with a warning when
+(:mod:`warptan.nav.geoframe`; ``warptan replay`` converts positions, velocities and attitudes into the frame of
+whichever DEM covers the flight). Kind dem-grid, and every version 1 log: north/east in metres on the named DEM's grid,
+down = −altitude above its datum (such a log flies only over its own DEM; version 1 is still read, with a warning when
 replayed over another DEM). Point-cloud mounting: a point ``c_s = r d_s`` in the sensor frame is
 ``R(quat_bs) c_s + lever_b`` in the body frame; the altimeter's range is taken as vertical from the body origin.
 
@@ -53,8 +53,8 @@ from pathlib import Path
 import numpy as np
 
 from warptan.checks import FilterError
-from warptan.geoframe import GeoFrame
-from warptan.imu import IMU_GRADES, imu_grade
+from warptan.nav.geoframe import GeoFrame
+from warptan.nav.imu import IMU_GRADES, imu_grade
 
 FORMAT = "warptan-flight-log"
 VERSION = 2
@@ -457,3 +457,19 @@ def read_log(path: str | os.PathLike) -> FlightLog:
         kw.setdefault("scan_valid", np.isfinite(kw["scan_ranges"]))
         kw["scan_ranges"] = np.where(kw["scan_valid"], kw["scan_ranges"], np.nan)
     return FlightLog(**kw).validate(source)
+
+
+def sample_at(t_src: np.ndarray, values: np.ndarray, t: np.ndarray, unit: bool = False) -> np.ndarray:
+    """``values`` (T, n) at times ``t``: exact at a recorded time, else linear (normalised when ``unit``)."""
+    i = np.clip(np.searchsorted(t_src, t), 1, len(t_src) - 1)
+    t0, t1 = t_src[i - 1], t_src[i]
+    frac = np.clip((t - t0) / (t1 - t0), 0.0, 1.0)[:, None]
+    out = values[i - 1] + frac * (values[i] - values[i - 1])
+    if unit:
+        out = out / np.linalg.norm(out, axis=1, keepdims=True)
+    exact = np.searchsorted(t_src, t)
+    hit = (exact < len(t_src)) & (t_src[np.minimum(exact, len(t_src) - 1)] == t)
+    out[hit] = values[exact[hit]]
+    outside = (t < t_src[0]) | (t > t_src[-1])
+    out[outside] = np.nan
+    return out

@@ -28,7 +28,7 @@ from warptan.checks import LOCAL_FRAME_M
 from warptan.device import resolve_device
 from warptan.kernels import terrain as kterrain
 from warptan.outputs import current_umask
-from warptan.raster import TerrainError, check_spacing, latlon_to_projected, projected_to_latlon, read_raster
+from warptan.terrain.raster import TerrainError, check_spacing, latlon_to_projected, projected_to_latlon, read_raster
 
 SYNTHETIC_KINDS = ("rugged", "flat")
 NAMED_TERRAINS = {
@@ -152,7 +152,8 @@ class Terrain:
     def from_raster(cls, path: str | os.PathLike, spacing: float | None = None, onto: Terrain | None = None, *,
                     valid_range_m: tuple[float, float] = PLAUSIBLE_HEIGHTS_M, allow_network: bool = False,
                     allow_raw_vrt: bool = False, band: int | None = None, posts=None) -> Terrain:
-        """Load a DEM file (DTED, SRTM .hgt, GeoTIFF, a VRT of them; see :mod:`warptan.raster` for the projection).
+        """Load a DEM file (DTED, SRTM .hgt, GeoTIFF, a VRT of them; see :mod:`warptan.terrain.raster` for the
+        projection).
 
         Args:
             path: The raster file.
@@ -163,8 +164,8 @@ class Terrain:
             allow_network, allow_raw_vrt: Allow a DEM (or VRT source) read over the network, a VRT raw band.
             band: The band holding the heights (1-based); required for a raster of several bands.
             posts: ``(crs_wkt, origin_xy, (n0, e0, dn, de, rows, cols))``: another grid's frame and posts, which a
-                raster that is resampled anyway takes when its own spacing is theirs (:func:`warptan.raster.
-                read_raster`); a flight log's DEM posts (:attr:`warptan.flightlog.FlightLog.dem_posts`) make another
+                raster that is resampled anyway takes when its own spacing is theirs (:func:`warptan.terrain.raster.
+                read_raster`); a flight log's DEM posts (:attr:`warptan.io.flightlog.FlightLog.dem_posts`) make another
                 cut of its DEM the same map. Not with ``onto``.
         """
         frame = lattice = None
@@ -401,8 +402,8 @@ class Terrain:
         the spacing one octave down (α = 2: smooth terrain, the error of a bilinear interpolant grows with the
         curvature × d²; α ≈ 0.5: rough, Brownian-like relief). The held-out posts lie mid-cell, where the error is
         largest, so the estimate errs high (on a quadratic surface by 20 %). This is the map error a model sees
-        when the world is finer than its map (the likelihood's map σ, :func:`warptan.scenarios.scenario_likelihood`).
-        """
+        when the world is finer than its map (the likelihood's map σ,
+        :func:`warptan.sim.scenarios.scenario_likelihood`). """
         e2, e4 = self.holdout_rms_m(2, noise_m), self.holdout_rms_m(4, noise_m)
         if not e2:
             return 0.0
@@ -414,8 +415,8 @@ class Terrain:
         """Correlation length (m) of the terrain's slope: the lag at which the autocorrelation of ``∂h/∂north``
         along north, and of ``∂h/∂east`` along east, first falls below 1/e (their mean; FFT of the whole grid,
         nodata as zero slope). It is the scale on which the pattern of gradients that turns a vertical map error into
-        a position fix changes (:meth:`warptan.measurement.Likelihood.fix_process`). Measured: the 90 m rugged tile
-        280/240 m, the 30 m rugged tile 180/150 m, the 90 m flat tile 90/80 m (one post: its slope is noise)."""
+        a position fix changes (:meth:`warptan.sensing.measurement.Likelihood.fix_process`). Measured: the 90 m rugged
+        tile 280/240 m, the 30 m rugged tile 180/150 m, the 90 m flat tile 90/80 m (one post: its slope is noise)."""
         gn, ge = np.gradient(np.asarray(self.heights_m, dtype=np.float64), self.dn, self.de)
         lags = []
         for g, spacing, axis in ((gn, self.dn, 0), (ge, self.de, 1)):

@@ -47,8 +47,17 @@ try:
 except ModuleNotFoundError:  # Python 3.10
     import tomli as tomllib
 
-from warptan.report import ci95
-from warptan.scenarios import MAX_SEED, RUN_KEYWORDS, SCENARIO_IDS, load_config, per_seed_maps, prepare, scenario_path
+from warptan.progress import progress_bar
+from warptan.sim.report import ci95
+from warptan.sim.scenarios import (
+    MAX_SEED,
+    RUN_KEYWORDS,
+    SCENARIO_IDS,
+    load_config,
+    per_seed_maps,
+    prepare,
+    scenario_path,
+)
 
 ENGINES = ("local", "ray")
 CAMPAIGN_KEYS = ("title", "scenarios", "seeds", "overrides", "sweep")
@@ -297,13 +306,13 @@ def _resolve(key: str, value, base: Path):
 def run_batch(spec: dict, device: str = "cpu", cpu_threads: int | None = None) -> dict:
     """Run one batch (``Batch.spec()``) on ``device``; the function a task runs, here or on a Ray worker.
 
-    Returns the per-seed summaries (:meth:`~warptan.scenarios.ScenarioResult.summary`) and where and how long it
+    Returns the per-seed summaries (:meth:`~warptan.sim.scenarios.ScenarioResult.summary`) and where and how long it
     ran. ``cpu_threads`` sets ``WARPTAN_CPU_THREADS`` first (the CPUs the task was given)."""
     if cpu_threads:
         os.environ["WARPTAN_CPU_THREADS"] = str(int(cpu_threads))
     from warptan.device import quiet_warp, resolve_device
     from warptan.meta import cpu_model
-    from warptan.scenarios import run_scenario, run_scenario_batch
+    from warptan.sim.scenarios import run_scenario, run_scenario_batch
 
     quiet_warp()
     start, t0 = time.time(), time.perf_counter()
@@ -429,11 +438,7 @@ def _describe_error(err: BaseException) -> str:
 
 
 def _bar(total: int, progress: bool):
-    try:
-        from tqdm import tqdm
-    except ModuleNotFoundError:
-        from warptan.cli import _NoProgress as tqdm
-    return tqdm(total=total, unit="batch", disable=not progress, dynamic_ncols=True)
+    return progress_bar(total, "batch", disable=not progress)
 
 
 def _run_local(campaign: Campaign, device: str, task: Callable, progress: bool) -> dict[int, dict]:
@@ -562,7 +567,7 @@ def campaign_meta(result: CampaignResult) -> dict:
 
 def markdown(result: CampaignResult) -> str:
     """The rows (and failures) as Markdown."""
-    from warptan.report import _fmt, _pct
+    from warptan.sim.report import _fmt, _pct
 
     params = list(result.campaign.sweep)
     lines = [f"# {result.campaign.title}", "",
