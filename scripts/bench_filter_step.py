@@ -17,7 +17,7 @@ device) and ``device_ms`` (the update's device work: CUDA events around it, or t
 
 With ``--scenario S8 [S7 ...]`` each row is the filter that scenario flies (its map, surface, likelihood, scan,
 rates, tempering, regularisation and attitude update: :func:`warptan.sim.scenarios.scenario_model`,
-:func:`~warptan.sim.scenarios.filter_kwargs`), measured on its own flight after ``--settle-s`` of it (acquisition is not
+:func:`~warptan.sim.scenarios.filter_config`), measured on its own flight after ``--settle-s`` of it (acquisition is not
 the steady state); ``--n`` and ``--batch`` still apply. Such a row also reports the achieved point evaluations per
 second (B · N · M · tempering stages per update time) beside the bare model kernel's rate on the same poses and
 scan (the bound: ``model.launch`` alone), and, with ``--rtf-s T``, the real-time factor of a whole run of the
@@ -41,6 +41,7 @@ import warp as wp
 
 import warptan as wt
 from warptan.cli import count_arg, script_inputs
+from warptan.filter.config import FilterConfig
 from warptan.filter.mpf import MarginalizedParticleFilter, StepTimer
 from warptan.filter.prior import InitialErrors, initial_nominal, prior_linear_cov
 from warptan.kernels import mpf as kmpf
@@ -65,7 +66,7 @@ def generic_setup(terrain, model_name, m_side, likelihood, intervals, imu_per_me
     m_side × m_side rays, the likelihood with its defaults (``r_err`` 16 m² for the paper's)."""
     truth = Trajectory.build([Straight(3 * intervals * imu_per_meas / 100.0 + 0.5)], 100.0,
                              [0.0, 0.0, -(terrain.h_max + 600.0)])
-    return {"model": build(model_name, terrain, wt.Likelihood(likelihood, r_err=16.0)), "filter": {},
+    return {"model": build(model_name, terrain, wt.Likelihood(likelihood, r_err=16.0)), "filter": FilterConfig(),
             "truth": truth, "world": terrain, "grade": "navigation", "imu_per_meas": imu_per_meas, "start": 0,
             "sensor": wt.PointCloudSensor(wt.ScanPattern.grid(m_side, m_side, 30.0)),
             "altimeter": (wt.RadarAltimeter(), wt.Barometer()), "initial": InitialErrors(), "label": model_name}
@@ -75,7 +76,7 @@ def scenario_setup(sid, device, settle_s, terrain=None, **overrides):
     """The filter scenario ``sid`` flies (model, surface, likelihood, scan, rates, filter keywords; ``overrides`` as
     :func:`~warptan.sim.scenarios.run_scenario` takes them), its flight and world; measurement starts ``settle_s`` into
     the flight (the intervals before run untimed)."""
-    from warptan.sim.scenarios import filter_kwargs, map_terrain, prepare, scenario_likelihood, scenario_model
+    from warptan.sim.scenarios import filter_config, map_terrain, prepare, scenario_likelihood, scenario_model
 
     config, world, flight = prepare(sid, terrain=terrain, device=device, **overrides)
     the_map = map_terrain(world, config, int(config["run"]["seed"]))
@@ -83,7 +84,7 @@ def scenario_setup(sid, device, settle_s, terrain=None, **overrides):
     model = scenario_model(config, the_map, scenario_likelihood(config, the_map, world))
     imu_per_meas = round(config["imu"]["rate_hz"] / s["rate_hz"])
     label = s["model"] if s["model"] != "raycast" else s["backend"]
-    return {"model": model, "filter": filter_kwargs(config), "truth": flight, "world": world,
+    return {"model": model, "filter": filter_config(config), "truth": flight, "world": world,
             "grade": config["imu"]["grade"], "imu_per_meas": imu_per_meas, "label": f"{sid}:{label}",
             "start": round(settle_s * config["imu"]["rate_hz"] / imu_per_meas),
             "sensor": wt.PointCloudSensor(wt.ScanPattern.grid(s["scan_nx"], s["scan_ny"], s["scan_half_angle_deg"]),
@@ -117,9 +118,9 @@ def bench(setup, n, device, repeats, warmup, seed=0, graph=None, batch=1):
     initial = setup["initial"]
     nominal = [initial_nominal(truth.state(0), initial, rng) for _ in range(batch)]
     mpf = MarginalizedParticleFilter(model, nominal if batch > 1 else nominal[0], imu.grade, truth.rate_hz,
-                                     np.asarray(initial.pos_m), prior_linear_cov(initial, imu), n_particles=n,
-                                     device=device, seed=list(range(seed, seed + batch)) if batch > 1 else seed,
-                                     graph=graph, **setup["filter"])
+                                     np.asarray(initial.pos_m), prior_linear_cov(initial, imu), setup["filter"],
+                                     n_particles=n, device=device,
+                                     seed=list(range(seed, seed + batch)) if batch > 1 else seed, graph=graph)
     f = np.repeat(f[:, None], batch, axis=1) if batch > 1 else f
     w = np.repeat(w[:, None], batch, axis=1) if batch > 1 else w
     sensor, (alt, baro) = setup["sensor"], setup["altimeter"]

@@ -6,6 +6,7 @@ import warp as wp
 
 import warptan as wt
 from warptan.checks import FilterError
+from warptan.filter.config import FilterConfig
 from warptan.filter.mpf import RESAMPLERS, SCHEMES, MarginalizedParticleFilter
 from warptan.filter.prior import InitialErrors, initial_nominal, prior_linear_cov
 from warptan.kernels import mpf as kmpf
@@ -450,6 +451,32 @@ def test_bad_filter_arguments(rugged):
                                      n_particles=10)
     with pytest.raises(ValueError, match="non-finite IMU sample"):
         mpf.predict([0, 0, np.nan], [0, 0, 0])
+
+
+def test_filter_config_lists_every_problem_and_is_what_the_filter_reads(rugged):
+    """A FilterConfig names every bad field at once, refuses an unknown setting by name, and is what the filter
+    reads: a config and the same settings as keywords make the same filter; keywords change a config's fields."""
+    with pytest.raises(FilterError) as err:
+        FilterConfig(n_particles=1, resampler="residual", temper_ess=2.0, max_stages=0, integrity_threshold=-1.0)
+    text = str(err.value)
+    for name in ("n_particles", "unknown resampler 'residual'", "temper_ess", "max_stages", "integrity_threshold"):
+        assert name in text
+    with pytest.raises(FilterError, match=r"unknown filter setting.*n_particle\b"):
+        FilterConfig().with_(n_particle=10)
+    nominal = Trajectory.build([Straight(1.0)], 100.0, [0, 0, -1000.0]).state(0)
+    model = wt.SlidingModel(rugged)
+    args = (model, nominal, "navigation", 100.0, [1, 1, 1], np.eye(12) * 1e-4)
+    config = FilterConfig(n_particles=64, closed_loop=True, temper_ess=0.2)
+    by_config = MarginalizedParticleFilter(*args, config)
+    by_keywords = MarginalizedParticleFilter(*args, n_particles=64, closed_loop=True, temper_ess=0.2)
+    assert by_config.config == by_keywords.config == config
+    assert by_config.n == 64 and by_config.closed_loop and by_config.params.temper_ess == pytest.approx(0.2)
+    changed = MarginalizedParticleFilter(*args, config, n_particles=32)
+    assert changed.n == 32 and changed.config.closed_loop
+    with pytest.raises(FilterError, match=r"unknown filter setting\(s\) particles"):
+        MarginalizedParticleFilter(*args, particles=64)
+    with pytest.raises(FilterError, match="config must be a FilterConfig"):
+        MarginalizedParticleFilter(*args, {"n_particles": 64})
 
 
 STATED_ERROR = {"sensor_sigma_m": 0.5, "map_error_sigma_m": 5.0, "map_error_corr_m": 1000.0, "track_step_m": 10.0}

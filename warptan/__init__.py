@@ -17,6 +17,7 @@ Conventions (SPEC §1), used everywhere in the package:
 
 from warptan.checks import FilterError, FilterWarning
 from warptan.device import resolve_device
+from warptan.filter.config import FilterConfig
 from warptan.filter.mpf import MarginalizedParticleFilter
 from warptan.filter.prior import InitialErrors
 from warptan.nav import frames
@@ -50,6 +51,7 @@ __all__ = [
     "Campaign",
     "CampaignError",
     "Climb",
+    "FilterConfig",
     "FilterError",
     "FilterWarning",
     "ImuModel",

@@ -139,6 +139,7 @@ import warp as wp
 
 from warptan.checks import FilterError, FilterWarning, check_float32
 from warptan.device import resolve_device
+from warptan.filter.config import RESAMPLERS, FilterConfig
 from warptan.kernels import likelihood as klik
 from warptan.kernels import mpf as kmpf
 from warptan.kernels import nav as knav
@@ -148,20 +149,14 @@ from warptan.nav.ins import NavState, process_noise
 from warptan.parallel import Recorder, launch, launch_rows, rows_of
 from warptan.sensing.measurement import RevisitMemory
 
-SCHEMES = {"systematic": 0, "stratified": 1, "multinomial": 2}
-RESAMPLERS = tuple(SCHEMES)
-"""Resampling schemes (ancestor indices from the cumulative weights): systematic (one uniform), stratified
-(one per slot), multinomial (independent draws)."""
+SCHEMES = {name: k for k, name in enumerate(RESAMPLERS)}
+"""The kernels' number of each resampling scheme (:data:`warptan.filter.config.RESAMPLERS`)."""
 _STREAM_MOVE, _STREAM_RESAMPLE, _STREAM_INIT = 1, 2, 0
 _SYM6_INDEX = np.array([[0, 3, 4], [3, 1, 5], [4, 5, 2]])
 """Entry of a symmetric 3×3 matrix stored as six columns (00 11 22 01 02 12, as the kernels write it)."""
-BAD_IMU_POLICIES = ("raise", "hold")
-MIN_PARTICLES = 2
-"""Fewest particles per filter: with one, no position is weighed against another (the filter is the INS)."""
 FEW_PARTICLES = 10
 """Below this many particles per filter the filter warns (:class:`~warptan.checks.FilterWarning`): too few to
 represent the position error; its estimate and bounds are not meaningful."""
-"""What :meth:`MarginalizedParticleFilter.predict` does with an implausible IMU sample."""
 MAX_STEPS_PER_INTERVAL = 64
 """IMU samples buffered between measurements before the particles are moved anyway."""
 MAX_STEP_S = 1.0
@@ -350,86 +345,40 @@ class MarginalizedParticleFilter:
         rate_hz: IMU rate, Hz.
         p0_pos: Prior of the position error: 3 σ (m) or a 3×3 covariance.
         p0_lin: Prior covariance of [dv, dth, dba, dbg]: 12 σ or a 12×12 covariance.
-        n_particles: Particles per filter, n.
+        config: The filter's settings (:class:`~warptan.filter.config.FilterConfig`: particles, resampling,
+            roughening, regularisation, tempering, integrity, Kalman measurement update, closed loop, IMU policy;
+            units and ranges in its fields); default ``FilterConfig()``.
         device: Warp device of the particles.
         seed: Seed of the filter's random numbers (counter-based: seed + step), or B seeds.
-        resample_threshold: Resample when ESS < threshold · n.
-        resampler: "systematic", "stratified" or "multinomial".
-        pos_noise: Roughening, a position random walk of the particles in m/√s, outside the Kalman part (it
-            never enters N_k or L_k, so it is not read as velocity).
-        kalman_pos_noise: Position noise the Kalman part models (``Q^n = kalman_pos_noise² dt I`` in N_k, L_k),
-            m/√s; the particles move with it too.
-        regularize: Factor on the regularisation bandwidth, ``h = regularize · (4 / (n (d + 2)))^(1/(d + 4))``
-            with d = 3 (Silverman's rule for a Gaussian kernel; 0.39 at n = 500): after every resampling
-            ``dp_i = a dp_i + (1 - a) m + h · chol(Σ̂) · z_i`` (``a = sqrt(1 - shrinkage · h²)``; Σ̂, m the weighted
-            covariance and mean of dp before resampling). 0 disables it.
-        shrinkage: Fraction of the kernel shrinkage in [0, 1]: the cloud's covariance grows by
-            ``1 + (1 - shrinkage) h²`` per resampling (1: kept exactly; see the module docstring for the numbers).
-        temper_ess: Tempering: each stage of an update applies the largest exponent of the log-likelihood that
-            keeps ESS ≥ temper_ess · n, then resamples and regularises, re-evaluates the model at the moved
-            particles and goes on with the rest. 0 applies every update in one stage.
-        max_stages: Cap on the stages of one update; exponent left at the cap is dropped (recorded).
-        max_unpredictable: An update whose received points the particles cannot predict (off the map, nodata)
-            in more than this weighted fraction is skipped (the map does not cover the scan: no information).
-        integrity_window: The integrity statistic is the mean of the smallest particle NIS over the last
-            ``integrity_window`` informative updates (≤ 64).
-        integrity_threshold: Above it (and after 2 · ``integrity_window`` informative updates since the start or
-            the last re-spread: acquisition is not judged) the filter is lost: it re-spreads around its estimate
-            with ``respread_scale`` times the prior σ and counts it.
-        respread_scale: Re-spread covariance = respread_scale² · p0_pos.
-        measurement_update: Kalman measurement update of the linear states from each particle's residuals
-            (C ≠ 0, SPEC §6b: the point cloud sees the attitude); False is the paper's filter (C = 0: P is never
-            updated by a measurement, attitude and biases are learnt only from the particles' paths).
-        closed_loop: Once the integrity monitor has judged the filter consistent, inject its mean error into the
-            nominal INS after every update and reset the particles' errors relative to it (Solà 2017 §6.3);
-            False keeps the paper's open loop.
-        gate_linear_update: The Kalman measurement update of the linear states (means and P) waits until the
-            integrity monitor has judged the filter consistent (2 · ``integrity_window`` informative updates after
-            the start or a re-spread) and pauses while it does not: a scan read at a wrong position mode is fitted
-            by a wrong attitude, which the gyro biases then keep (S2, seed 11: a 45–70 m false lock in the first
-            4 s turned the yaw 2.5° and the yaw gyro-bias error 1 900 °/h; gated, 3 °/h). The weights still use
-            the attitude marginal. False updates from the first scan (a Kalman filter's behaviour).
         graph: Capture the device work of a measurement update (particle moves, poses, model, weights,
             resampling, record) once and replay it: True, False, or None = on CUDA only.
-        bad_imu: What :meth:`predict` does with a sample that is not finite or beyond the grade's range
-            (``ImuGrade.accel_range`` per axis of the specific force, ``gyro_range`` of the body rate): "raise" (a
-            FilterError naming the sample) or "hold" (integrate the interval with the last good sample instead, as a
-            receiver's zero-order hold; counted in ``n_imu_held``; a first sample that is bad still raises).
+        **settings: :class:`~warptan.filter.config.FilterConfig` fields changed from ``config`` (a shorthand:
+            ``MarginalizedParticleFilter(..., n_particles=1000, closed_loop=True)``); an unknown name is a
+            :class:`~warptan.checks.FilterError`.
     """
 
     def __init__(self, model, nominal, grade: str | ImuGrade, rate_hz: float, p0_pos, p0_lin,
-                 n_particles: int = 500, device=None, seed=0, resample_threshold: float = 0.5,
-                 resampler: str = "systematic", pos_noise: float = 0.5, kalman_pos_noise: float = 0.5,
-                 regularize: float = 1.0, shrinkage: float = 0.5, temper_ess: float = 0.1, max_stages: int = 8,
-                 max_unpredictable: float = 0.5, integrity_window: int = 20, integrity_threshold: float = 9.0,
-                 respread_scale: float = 1.0, measurement_update: bool = True, closed_loop: bool = False,
-                 gate_linear_update: bool = True, graph: bool | None = None, bad_imu: str = "raise"):
-        if not (isinstance(n_particles, (int, np.integer)) and not isinstance(n_particles, bool)
-                and n_particles >= MIN_PARTICLES):
-            raise FilterError(f"n_particles must be a whole number ≥ {MIN_PARTICLES} per filter (one particle cannot "
-                              f"weigh one position against another), got {n_particles!r}")
+                 config: FilterConfig | None = None, *, device=None, seed=0, graph: bool | None = None, **settings):
+        if config is None:
+            config = FilterConfig().with_(**settings) if settings else FilterConfig()
+        elif not isinstance(config, FilterConfig):
+            raise FilterError(f"config must be a FilterConfig, got {type(config).__name__}")
+        elif settings:
+            config = config.with_(**settings)
+        self.config = config
+        """The filter's settings (:class:`~warptan.filter.config.FilterConfig`)."""
+        c = config
+        n_particles, resample_threshold, resampler = c.n_particles, c.resample_threshold, c.resampler
+        pos_noise, kalman_pos_noise, regularize, shrinkage = c.pos_noise, c.kalman_pos_noise, c.regularize, c.shrinkage
+        temper_ess, max_stages, max_unpredictable = c.temper_ess, c.max_stages, c.max_unpredictable
+        integrity_window, integrity_threshold, respread_scale = c.integrity_window, c.integrity_threshold, \
+            c.respread_scale
+        measurement_update, closed_loop, gate_linear_update, bad_imu = c.measurement_update, c.closed_loop, \
+            c.gate_linear_update, c.bad_imu
         if n_particles < FEW_PARTICLES:
             warnings.warn(f"n_particles = {n_particles}: too few particles to represent the position error; the "
                           f"estimate and its bounds are not meaningful (use ≥ {FEW_PARTICLES}; the scenarios use 500)",
                           FilterWarning, stacklevel=2)
-        if bad_imu not in BAD_IMU_POLICIES:
-            raise FilterError(f"bad_imu must be one of {', '.join(BAD_IMU_POLICIES)}, got {bad_imu!r}")
-        if resampler not in SCHEMES:
-            raise FilterError(f"unknown resampler {resampler!r}; choose one of {', '.join(SCHEMES)}")
-        for name, value in (("resample_threshold", resample_threshold), ("temper_ess", temper_ess),
-                            ("shrinkage", shrinkage),
-                            ("max_unpredictable", max_unpredictable)):
-            if not (np.isfinite(value) and 0.0 <= value <= 1.0):
-                raise FilterError(f"{name} must be in [0, 1], got {value!r}")
-        for name, value in (("pos_noise", pos_noise), ("kalman_pos_noise", kalman_pos_noise),
-                            ("regularize", regularize), ("respread_scale", respread_scale)):
-            if not (np.isfinite(value) and value >= 0):
-                raise FilterError(f"{name} must be a number ≥ 0, got {value!r}")
-        for name, value in (("max_stages", max_stages), ("integrity_window", integrity_window)):
-            if not (isinstance(value, (int, np.integer)) and 1 <= value <= 64):
-                raise FilterError(f"{name} must be an integer in [1, 64], got {value!r}")
-        if not (np.isfinite(integrity_threshold) and integrity_threshold > 0):
-            raise FilterError(f"integrity_threshold must be a positive number, got {integrity_threshold!r}")
         nominals = list(nominal) if isinstance(nominal, (list, tuple)) else [nominal]
         if not nominals or not all(isinstance(x, NavState) for x in nominals):
             raise FilterError("nominal must be a NavState or a non-empty list of NavStates")

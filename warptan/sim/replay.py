@@ -25,7 +25,8 @@ import time
 import numpy as np
 
 from warptan.checks import FilterError, check_seed
-from warptan.filter.mpf import MIN_PARTICLES, MarginalizedParticleFilter
+from warptan.filter.config import MIN_PARTICLES
+from warptan.filter.mpf import MarginalizedParticleFilter
 from warptan.io.export import convert_log
 from warptan.io.flightlog import MAX_GAP_S, FlightLog, LogError, sample_at
 from warptan.nav.frames import quat_to_mat
@@ -312,7 +313,7 @@ def replay(log: FlightLog, terrain=None, *, model: str | None = None, backend: s
     the flight); a DEM that does not contain the flight, nodata under the track, or a frame the DEM cannot be
     related to is a :class:`~warptan.io.flightlog.LogError` before any filtering.
     """
-    from warptan.sim.scenarios import ScenarioResult, filter_kwargs, map_terrain, scenario_model
+    from warptan.sim.scenarios import ScenarioResult, filter_config, map_terrain, scenario_model
 
     log.validate(f"flight log {log.name}")
     config = replay_config(log, model, backend, particles, likelihood, map_error)
@@ -340,8 +341,7 @@ def replay(log: FlightLog, terrain=None, *, model: str | None = None, backend: s
     mpf_model = scenario_model(config, the_map, lik)
     sig = log.init_sigma
     mpf = MarginalizedParticleFilter(mpf_model, nominal0, imu_grade(log.imu_grade), log.imu_rate_hz, sig[0:3],
-                                     np.diag(sig[3:15] ** 2), n_particles=config["filter"]["particles"],
-                                     device=device, seed=filter_seed, **filter_kwargs(config))
+                                     np.diag(sig[3:15] ** 2), filter_config(config), device=device, seed=filter_seed)
     idx = np.flatnonzero(used)
     t_used = times[used]
     measurements = _measurements(log, s["model"], idx)

@@ -16,6 +16,7 @@ import numpy as np
 import warp as wp
 
 from warptan.checks import FilterError
+from warptan.filter.config import FilterConfig
 from warptan.filter.mpf import MarginalizedParticleFilter
 from warptan.filter.prior import InitialErrors, initial_nominal, prior_linear_cov
 from warptan.kernels import mpf as kmpf
@@ -101,9 +102,10 @@ class FilterRun:
 
 
 def run_filter(truth: Trajectory, terrain_map, model, imu: ImuModel | Sequence[ImuModel], sensor=None, *,
-               terrain_truth=None, baro: Barometer | None = None, n_particles: int = 500, device=None,
-               seed: int | Sequence[int] = 0, meas_rate_hz: float = 10.0, initial: InitialErrors | None = None,
-               progress=None, record: dict | None = None, **filter_kwargs) -> FilterRun | list[FilterRun]:
+               terrain_truth=None, baro: Barometer | None = None, config: FilterConfig | None = None,
+               device=None, seed: int | Sequence[int] = 0, meas_rate_hz: float = 10.0,
+               initial: InitialErrors | None = None, progress=None, record: dict | None = None,
+               **settings) -> FilterRun | list[FilterRun]:
     """Run one filter over a simulated flight — or a batch of independent runs (one per seed) in one filter.
 
     Args:
@@ -115,7 +117,7 @@ def run_filter(truth: Trajectory, terrain_map, model, imu: ImuModel | Sequence[I
             :class:`~warptan.sensing.sensors.RadarAltimeter` (default) for the altimeter model.
         terrain_truth: The terrain the sensor sees (default: the map).
         baro: Barometer for the altimeter model (default σ = 1 m).
-        n_particles, device: Particles per filter and device.
+        device: Warp device of the particles.
         seed: Seed of a run (initial error, sensor noise, filter); a list of seeds runs a batch: every run
             has its own INS, IMU errors, measurements and particles, and they share every kernel launch.
         meas_rate_hz: Measurement rate; a divisor of the IMU rate (``--paper-rates``: equal to it).
@@ -124,7 +126,9 @@ def run_filter(truth: Trajectory, terrain_map, model, imu: ImuModel | Sequence[I
         record: A dict to fill with what the filter received (for a flight log, :mod:`warptan.io.flightlog`):
             ``f``, ``w`` (K, B, 3) IMU samples, ``epochs`` (IMU sample index of each update), ``measurements``
             (per update, the B measurements), ``nominal0`` (B initial INS states), ``true_bias`` (B × (K, 6)).
-        **filter_kwargs: Passed to :class:`~warptan.filter.mpf.MarginalizedParticleFilter`.
+        config: The filter's settings (:class:`~warptan.filter.config.FilterConfig`; default its defaults).
+        **settings: Fields of ``config`` changed (e.g. ``n_particles=1000``), as
+            :class:`~warptan.filter.mpf.MarginalizedParticleFilter` takes them.
 
     Returns:
         A :class:`FilterRun`, or a list of them (one per seed) for a batch.
@@ -158,8 +162,7 @@ def run_filter(truth: Trajectory, terrain_map, model, imu: ImuModel | Sequence[I
     ins_only = [Ins(nominal0[b], truth.rate_hz).run(f_meas[:, b], w_meas[:, b])["pos_n"] for b in range(len(seeds))]
     mpf = MarginalizedParticleFilter(model, nominal0 if batched else nominal0[0], imus[0].grade, truth.rate_hz,
                                      np.asarray(initial.pos_m), prior_linear_cov(initial, imus[0]),
-                                     n_particles=n_particles, device=device, seed=seeds if batched else seeds[0],
-                                     **filter_kwargs)
+                                     config, device=device, seed=seeds if batched else seeds[0], **settings)
     n_steps = len(truth.f_b)
     epochs = [0, *range(decim, n_steps + 1, decim)]
     prior = mpf.estimate()

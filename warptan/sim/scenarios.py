@@ -41,7 +41,7 @@ from pathlib import Path
 import numpy as np
 
 from warptan.checks import check_seed, host_memory_available
-from warptan.filter.mpf import MIN_PARTICLES, RESAMPLERS
+from warptan.filter.config import MIN_PARTICLES, RESAMPLERS, FilterConfig
 from warptan.filter.prior import InitialErrors
 from warptan.nav.imu import IMU_GRADES, ImuModel
 from warptan.nav.trajectory import Orbit, Straight, Trajectory, Turn
@@ -829,14 +829,15 @@ def scenario_model(config: dict, the_map: Terrain, likelihood: Likelihood):
     return make_model(s["model"], the_map, likelihood, backend=s["backend"], **model_kwargs)
 
 
-def filter_kwargs(config: dict) -> dict:
-    """The scenario's :class:`~warptan.filter.mpf.MarginalizedParticleFilter` keywords (besides particles and seed)."""
+def filter_config(config: dict) -> FilterConfig:
+    """The scenario's filter settings (:class:`~warptan.filter.config.FilterConfig`)."""
     f = config["filter"]
-    return dict(resample_threshold=f["resample_threshold"], resampler=f["resampler"], pos_noise=f["pos_noise_m_rthz"],
-                kalman_pos_noise=f["kalman_pos_noise_m_rthz"], regularize=f["regularize"], shrinkage=f["shrinkage"],
-                temper_ess=f["temper_ess"], max_stages=f["max_stages"], integrity_window=f["integrity_window"],
-                integrity_threshold=f["integrity_threshold"], measurement_update=f["measurement_update"],
-                closed_loop=f["closed_loop"])
+    return FilterConfig(n_particles=f["particles"], resample_threshold=f["resample_threshold"],
+                        resampler=f["resampler"], pos_noise=f["pos_noise_m_rthz"],
+                        kalman_pos_noise=f["kalman_pos_noise_m_rthz"], regularize=f["regularize"],
+                        shrinkage=f["shrinkage"], temper_ess=f["temper_ess"], max_stages=f["max_stages"],
+                        integrity_window=f["integrity_window"], integrity_threshold=f["integrity_threshold"],
+                        measurement_update=f["measurement_update"], closed_loop=f["closed_loop"])
 
 
 def terrain_spec(config: dict, terrain=None) -> str:
@@ -876,15 +877,15 @@ def run_scenario_batch(name_or_path, seeds, device="cpu", progress=None, export_
     else:
         sensor = PointCloudSensor(ScanPattern.grid(s["scan_nx"], s["scan_ny"], s["scan_half_angle_deg"]),
                                   range_sigma_m=s["range_sigma_m"])
-    ie, f = config["initial_error"], config["filter"]
+    ie = config["initial_error"]
     imus = [ImuModel(config["imu"]["grade"], config["imu"]["rate_hz"], seed=ts) for ts in total_seeds]
     record = {} if export_logs is not None else None
     t0 = time.perf_counter()
     runs = run_filter(
         flight, the_map, model, imus, sensor, terrain_truth=truth_terrain, baro=Barometer(s["baro_sigma_m"]),
-        n_particles=f["particles"], device=device, seed=total_seeds, meas_rate_hz=s["rate_hz"],
+        config=filter_config(config), device=device, seed=total_seeds, meas_rate_hz=s["rate_hz"],
         initial=InitialErrors(tuple(ie["pos_m"]), ie["vel_mps"], tuple(ie["att_deg"])), progress=progress,
-        record=record, **filter_kwargs(config))
+        record=record)
     wall = time.perf_counter() - t0
     if export_logs is not None:
         from warptan.io.export import logs_from_record
