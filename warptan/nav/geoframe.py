@@ -137,7 +137,7 @@ class FrameChange:
         return (q / np.linalg.norm(q, axis=1, keepdims=True)).reshape(quat_nb.shape)
 
     def scale_ppm(self, pos: np.ndarray) -> float:
-        """The largest |scale − 1| over ``pos``, parts per million (what the change neglects)."""
+        """The largest ``|scale − 1|`` over ``pos``, parts per million (what the change neglects)."""
         _, k = self.angles(pos)
         return float(np.max(np.abs(k - 1.0)) * 1e6) if len(k) else 0.0
 

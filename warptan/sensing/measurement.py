@@ -576,7 +576,7 @@ class MeasurementModel:
     def evaluate(self, pos_n: wp.array, quat_nb: wp.array, measurement) -> ModelOutput:
         """Log-likelihood of the received measurement (or a list of B, one per filter of a batch) at the poses.
 
-        The poses are checked first (finite positions; unit quaternions, |‖q‖ − 1| ≤ 1e-3: a zero or NaN
+        The poses are checked first (finite positions; unit quaternions, ``|‖q‖ − 1| ≤ 1e-3``: a zero or NaN
         quaternion is an error, not the identity or the log-likelihood floor). The returned arrays are the
         caller's: copies that a later call does not overwrite (this allocates them; the filter's step uses
         :meth:`stage` and :meth:`launch`, which reuse the model's buffers and allocate nothing per step)."""

@@ -89,7 +89,7 @@ class FilterRun:
         return self._rms(self.error, after_s)
 
     def coverage(self, after_s: float = 0.0) -> np.ndarray:
-        """(3,) fraction of epochs where |error| ≤ 3σ, per axis."""
+        """(3,) fraction of epochs where ``|error| ≤ 3σ``, per axis."""
         return self._covered(self.error, self.sigma3_pos, after_s)
 
     def lin_rmse(self, after_s: float = 0.0) -> np.ndarray:
@@ -97,7 +97,7 @@ class FilterRun:
         return self._rms(self.lin_err, after_s)
 
     def lin_coverage(self, after_s: float = 0.0) -> np.ndarray:
-        """(12,) fraction of epochs where the linear states' |error| ≤ 3σ."""
+        """(12,) fraction of epochs where the linear states' ``|error| ≤ 3σ``."""
         return self._covered(self.lin_err, self.sigma3_lin, after_s)
 
 

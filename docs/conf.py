@@ -1,0 +1,18 @@
+"""Sphinx configuration of warptan's documentation: ``pip install ".[docs]" && sphinx-build -W -b html docs
+docs/_build/html`` (warnings are errors; CI builds it)."""
+
+import warptan
+
+project = "warptan"
+author = "the warptan developers"
+release = warptan.__version__
+extensions = ["sphinx.ext.autodoc", "sphinx.ext.autosummary", "sphinx.ext.napoleon", "sphinx.ext.mathjax"]
+templates_path = ["_templates"]
+exclude_patterns = ["_build"]
+autosummary_generate = True
+autodoc_member_order = "bysource"
+autodoc_mock_imports = ["rasterio", "trimesh", "matplotlib", "rosbags", "ray"]
+napoleon_google_docstring = True
+napoleon_numpy_docstring = False
+html_theme = "alabaster"
+html_title = f"warptan {release}"
