@@ -6,7 +6,10 @@ import warptan
 project = "warptan"
 author = "the warptan developers"
 release = warptan.__version__
-extensions = ["sphinx.ext.autodoc", "sphinx.ext.autosummary", "sphinx.ext.napoleon", "sphinx.ext.mathjax"]
+extensions = ["myst_parser", "sphinx.ext.autodoc", "sphinx.ext.autosummary", "sphinx.ext.napoleon",
+              "sphinx.ext.mathjax"]
+source_suffix = {".rst": "restructuredtext", ".md": "markdown"}
+myst_heading_anchors = 3
 templates_path = ["_templates"]
 exclude_patterns = ["_build"]
 autosummary_generate = True

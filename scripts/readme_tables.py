@@ -1,14 +1,15 @@
 #!/usr/bin/env python3
-"""Render every measured table and figure reference of README.md from committed artifacts (never typed by hand).
+"""Render every measured table and figure reference of the README and the documentation's pages
+(``docs/user-guide.md``, ``docs/results.md``) from committed artifacts (never typed by hand).
 
-Blocks are delimited in README.md by ``<!-- generated:NAME -->`` … ``<!-- /generated:NAME -->``; each is
-rendered from JSON under ``results/`` or ``benchmarks/`` (the block names its sources and the commit and machine
-from the artifact's ``meta``). Outside the blocks the README carries no measured number: ``--check`` also fails
+Blocks are delimited in the pages (:data:`PAGES`) by ``<!-- generated:NAME -->`` … ``<!-- /generated:NAME -->``;
+each is rendered from JSON under ``results/`` or ``benchmarks/`` (the block names its sources and the commit and machine
+from the artifact's ``meta``). Outside the blocks a page carries no measured number: ``--check`` also fails
 on a timing, percentage, ratio or decimal length written in the prose (:func:`hand_numbers`).
 
     python scripts/readme_tables.py            # print the blocks
-    python scripts/readme_tables.py --write    # replace them in README.md
-    python scripts/readme_tables.py --check    # exit 1 if README.md differs from the artifacts or has hand numbers
+    python scripts/readme_tables.py --write    # replace them in the pages
+    python scripts/readme_tables.py --check    # exit 1 if a page differs from the artifacts or has hand numbers
 """
 
 from __future__ import annotations
@@ -382,37 +383,49 @@ def hand_numbers(text: str) -> list[tuple[int, str]]:
 
 
 def render(text: str) -> str:
+    """``text`` with each generated block it holds rendered anew from the artifacts."""
     for name, make in BLOCKS.items():
         pattern = re.compile(rf"(<!-- generated:{name} -->\n)(?:.*?\n)?(<!-- /generated:{name} -->)", re.S)
-        if not pattern.search(text):
-            raise SystemExit(f"README.md has no <!-- generated:{name} --> block")
-        body = make()
-        text = pattern.sub(lambda m, body=body: m.group(1) + body + "\n" + m.group(2), text)
+        if pattern.search(text):
+            body = make()
+            text = pattern.sub(lambda m, body=body: m.group(1) + body + "\n" + m.group(2), text)
     return text
+
+
+PAGES = ("README.md", "docs/user-guide.md", "docs/results.md")
+"""The pages that hold generated blocks (every block is in at least one; the README keeps the headline table)."""
 
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--write", action="store_true", help="replace the blocks in README.md")
+    parser.add_argument("--write", action="store_true", help="replace the blocks in the pages")
     parser.add_argument("--check", action="store_true",
-                        help="exit 1 when README.md differs from the artifacts or carries a hand-typed number")
-    parser.add_argument("--readme", default=str(ROOT / "README.md"), help="the README to check or write")
+                        help="exit 1 when a page differs from the artifacts or carries a hand-typed number")
+    parser.add_argument("--page", action="append", default=None,
+                        help=f"a page to check or write (repeatable; default {', '.join(PAGES)})")
     args = parser.parse_args(argv)
-    readme = Path(args.readme)
-    text = readme.read_text()
-    new = render(text)
+    pages = [Path(p) if Path(p).is_absolute() else ROOT / p for p in (args.page or PAGES)]
+    texts = {page: page.read_text() for page in pages}
+    if args.check or args.write:
+        held = {name for text in texts.values() for name in BLOCKS if f"<!-- generated:{name} -->" in text}
+        missing = [name for name in BLOCKS if name not in held]
+        if missing and args.page is None:
+            print(f"no page holds the generated block(s) {', '.join(missing)}", file=sys.stderr)
+            return 1
     if args.check:
         status = 0
-        if new != text:
-            print(f"{readme}: a generated block differs from the artifacts: run scripts/readme_tables.py --write",
-                  file=sys.stderr)
-            status = 1
-        for line, number in hand_numbers(text):
-            print(f"{readme}:{line}: measured number outside a generated block: {number!r}", file=sys.stderr)
-            status = 1
+        for page, text in texts.items():
+            if render(text) != text:
+                print(f"{page}: a generated block differs from the artifacts: run scripts/readme_tables.py --write",
+                      file=sys.stderr)
+                status = 1
+            for line, number in hand_numbers(text):
+                print(f"{page}:{line}: measured number outside a generated block: {number!r}", file=sys.stderr)
+                status = 1
         return status
     if args.write:
-        readme.write_text(new)
+        for page, text in texts.items():
+            page.write_text(render(text))
         return 0
     for name, make in BLOCKS.items():
         print(f"## {name}\n{make()}\n")
