@@ -25,7 +25,7 @@ point j a flag that the *received* point is valid and a vector of axis weights. 
 * the information a particle's residuals carry on its attitude error, ``Λ_i`` (3×3, rad⁻²) and ``b_i`` (3,
   rad⁻¹) as above (per-point precision ``1/σ²``, the Student-t's reweighted one for ``LIK_STUDENT``), times
   ``att_scale = (σ/σ_att)²`` (the map error persists over a scan's footprint:
-  :class:`warptan.sensing.measurement.Likelihood`): the Kalman measurement update of the linear states
+  :class:`warptan.sensing.likelihood.Likelihood`): the Kalman measurement update of the linear states
   (:mod:`warptan.kernels.mpf`) reads them. Zero for ``LIK_PAPER``: its scalar error is not a model of the points, and
   the paper's filter has C = 0 (a Kalman update from residuals whose weights do not follow them fed a lost filter's
   misfit into its attitude). In the per-point forms a received point whose prediction is invalid scores as a residual of
@@ -67,13 +67,13 @@ LIK_STUDENT = wp.constant(2)
 
 
 MAX_MODES = 16
-"""Most map-error modes a likelihood marginalises (:class:`warptan.sensing.measurement.Likelihood`, stated DEM
+"""Most map-error modes a likelihood marginalises (:class:`warptan.sensing.likelihood.Likelihood`, stated DEM
 accuracy)."""
 modes_vec = wp.types.vector(length=MAX_MODES, dtype=wp.float32)
 """One point's row of the map-error mode table, ``u_ji`` for mode i (zero past the modes in use); after the M points'
 rows (at ``M + MODE_*``) the modes' one-scan prior variances ``k⁰_i``, their one-scan weights ``c⁰_i`` (the NIS),
 their along-track correlations ``ρ_i``, the attitude information's weights ``cᵃ_i`` and the basis change ``T``
-(``MAX_MODES`` rows) from the previous table's modes (:meth:`warptan.sensing.measurement.Likelihood.error_modes`); also
+(``MAX_MODES`` rows) from the previous table's modes (:meth:`warptan.sensing.likelihood.Likelihood.error_modes`); also
 a particle's mode amplitudes (whitened) and a filter's variances of them."""
 MODE_K0 = 0
 """Row ``M + MODE_K0`` of the mode table: ``k⁰_i = σ_e² λ_i / σ²``, a mode's variance in one scan (whitened)."""
@@ -662,7 +662,7 @@ def attitude_information(acc: Acc, macc: ModeAcc, p: LikParams):
     √κ_i too small). Measured (5 m / 1 km worlds, CPU): with the one-scan weights ``c⁰_i`` S8 over the world of
     seed 1003 kept the roll 10 σ off and the east velocity 2.2 m/s off at 17 σ (east 3σ coverage 4–15 %, 6.0–6.6
     m); with ``cᵃ`` 0.4–1.3 σ and 93–96 % (2.0–2.3 m). It needs the fix's wander in the Kalman part's position
-    noise (:meth:`warptan.sensing.measurement.Likelihood.fix_process`): without it S2's velocity ran away. Before
+    noise (:meth:`warptan.sensing.likelihood.Likelihood.fix_process`): without it S2's velocity ran away. Before
     (``results/world`` at 4397e95, 20 seeds, H100): the one-scan weights gave S7/S8 east coverage 68/60 %, the
     amplitudes' gains S2 7.7 m and S5 7.6 m, projecting every mode out of the attitude's information 250 m on S2
     (the tactical IMU needs the attitude).
@@ -724,7 +724,7 @@ stores a zero scaled normal)."""
 @wp.func
 def ray_nominal_gain(u_down: float) -> float:
     """A range's change per metre of vertical map error over flat ground, ``1/u_z`` (``u_down``: the ray's down
-    component, at least 0.1): the sensitivity the map-error modes use (:meth:`warptan.sensing.measurement.Likelihood.
+    component, at least 0.1): the sensitivity the map-error modes use (:meth:`warptan.sensing.likelihood.Likelihood.
     error_modes` with the model's ``_scan_geometry``)."""
     return 1.0 / wp.max(u_down, 0.1)
 
@@ -739,7 +739,7 @@ def ray_var(p: LikParams, s: wp.vec3, u_down: float) -> float:
     bank gave S5 a 16° pitch error with a 3σ of 0.1° within ten seconds of the first attitude update). A stated
     correlated error (σ_e, ``sigma_err``) is held by the map-error modes with each ray's nominal sensitivity
     ``1/u_z`` (``u_down``: the ray's down component, at least 0.1;
-    :meth:`warptan.sensing.measurement.Likelihood.error_modes`); what the ray's own gain adds or lacks, ``(s_z − 1/u_z)
+    :meth:`warptan.sensing.likelihood.Likelihood.error_modes`); what the ray's own gain adds or lacks, ``(s_z − 1/u_z)
     e``, the modes cannot hold, and it is counted here as the ray's own: ``+ σ_e² (s_z − 1/u_z)²``. Without a map part
     (σ_map = 0 and no stated error: the map is the world) or with a fixed σ (σ_range = 0) it is the likelihood's own
     σ²."""

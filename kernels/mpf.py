@@ -299,7 +299,7 @@ def particle_poses_kernel(
 @wp.func
 def begin_stats(b: int, exponent: wp.array(dtype=wp.float32), stats: wp.array2d(dtype=wp.float64)):
     """One thread per filter: the log-likelihood's exponent ``exponent[b]`` (1, or less over ground whose map error
-    the filter has read before: :class:`warptan.sensing.measurement.RevisitMemory`) is still to apply; counters
+    the filter has read before: :class:`warptan.sensing.likelihood.RevisitMemory`) is still to apply; counters
     reset."""
     for k in range(N_STATS):
         stats[b, k] = wp.float64(0.0)

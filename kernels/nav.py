@@ -291,7 +291,7 @@ def _nav_interval(tiled: bool):
         the Kalman part models, in N_k and L_k); ``q_rough`` = per-step variance of the roughening, added to the
         particles' dp only (``S_dpdp += K q_rough I``: T_k leaves a dp-only noise on dp), so that L_k never reads it
         as velocity. ``q_vel_down[b]`` is added to the down velocity's Q^l (a map-error offset's change along the track,
-        :meth:`warptan.sensing.measurement.Likelihood.offset_process`; 0 without one).
+        :meth:`warptan.sensing.likelihood.Likelihood.offset_process`; 0 without one).
 
         Tiled (CUDA): P, Φ, S and the Cholesky scratch live in the block's shared memory (:func:`shared_slot`); the
         lanes share each phase's independent pieces (a block column, a block row, one block, one row of the

@@ -21,7 +21,7 @@ import warptan as wt
 from warptan.cli import count_arg, number_arg
 from warptan.meta import run_meta
 from warptan.outputs import OutputError, OutputFolder, write_json
-from warptan.sensing.measurement import LIKELIHOODS
+from warptan.sensing.likelihood import LIKELIHOODS
 from warptan.sim import claims
 from warptan.sim.report import write_outputs
 from warptan.sim.scenarios import SCENARIO_IDS, prepare, run_scenario, run_scenario_batch

@@ -7,7 +7,7 @@ A row is (scenario, error RMS, correlation length, relief, estimator); its ``--s
 ``--worlds`` world realisations (one batch each: a world is shared by the seeds of its batch). Estimators:
 ``gaussian`` (the per-point likelihood as the scenario has it), ``paper`` (the paper's scalar error), and
 ``stated`` (the per-point likelihood told the DEM's accuracy: ``likelihood.map_error_rms_m`` and
-``map_error_corr_m``, see :class:`warptan.sensing.measurement.Likelihood`). Rows are appended to OUT/study.json as they
+``map_error_corr_m``, see :class:`warptan.sensing.likelihood.Likelihood`). Rows are appended to OUT/study.json as they
 finish (``--resume`` skips rows already there); OUT/study.md is written from the JSON.
 
     python scripts/world_study.py --seeds 20 --worlds 4 --device cuda:0 --out results/world

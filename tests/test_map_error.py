@@ -508,13 +508,13 @@ def test_the_filter_carries_the_mode_amplitudes_from_scan_to_scan():
 
 
 def test_ground_read_again_after_the_modes_forgot_it_weighs_less():
-    """:class:`warptan.sensing.measurement.RevisitMemory`: a straight flight keeps exponent 1 (its older scans are far
+    """:class:`warptan.sensing.likelihood.RevisitMemory`: a straight flight keeps exponent 1 (its older scans are far
     behind: ≥ 0.98), an orbit of 600 m radius inside one correlation length is discounted once its earlier passes
     are older than κ scans, to what one more pass adds to passes whose fixes are correlated by ρ, ``(1 − ρ) / ((1 +
     Cρ)(1 + (C − 1)ρ))`` (C ≥ 1; below, ``(1 − ρC) / (1 + ρC)``), of the NumPy sum over every earlier scan (C = Σ_k
     exp(−d_k²/L²) / κ, the scans older than κ; the memory keeps every κ/16-th); the first κ updates are exactly 1;
     ρ = 0 never discounts; the passes of an orbit add up to at most 1/ρ passes."""
-    from warptan.sensing.measurement import RevisitMemory
+    from warptan.sensing.likelihood import RevisitMemory
 
     lk = wt.Likelihood("gaussian", sensor_sigma_m=0.5, **STATED)
     kappa = lk.point_sharing()

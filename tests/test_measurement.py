@@ -458,7 +458,7 @@ def test_attitude_information_matches_finite_differences(thuringia_crop, model_n
     default) the Schur complement ``Λ - Λ_θp (Λ_pp + πI)⁻¹ Λ_pθ``, ``b - Λ_θp (Λ_pp + πI)⁻¹ b_p`` (float32
     kernels: 3 % of the largest entry; 6 % for the projected Λ, a difference of large terms)."""
     from warptan.nav.frames import quat_exp, quat_mul
-    from warptan.sensing.measurement import POSITION_PRIOR_PRECISION
+    from warptan.sensing.likelihood import POSITION_PRIOR_PRECISION
 
     thuringia = thuringia_crop
     pos, q, cloud = _truth_setup(thuringia, seed=4)

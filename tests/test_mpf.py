@@ -14,7 +14,8 @@ from warptan.nav.frames import quat_conj, quat_exp, quat_log, quat_mul
 from warptan.nav.imu import ImuModel
 from warptan.nav.ins import Ins, error_transition, process_noise
 from warptan.nav.trajectory import Straight, Trajectory, Turn
-from warptan.sensing.measurement import Likelihood, ModelOutput
+from warptan.sensing.likelihood import Likelihood
+from warptan.sensing.measurement import ModelOutput
 from warptan.sim.runner import run_filter
 
 

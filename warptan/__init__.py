@@ -25,7 +25,8 @@ from warptan.nav.imu import IMU_GRADES, ImuModel
 from warptan.nav.ins import Ins, NavState
 from warptan.nav.trajectory import Climb, Orbit, Straight, Trajectory, Turn
 from warptan.outputs import OutputError
-from warptan.sensing.measurement import AltimeterModel, Likelihood, RaycastModel, SlidingModel, make_model
+from warptan.sensing.likelihood import Likelihood
+from warptan.sensing.measurement import AltimeterModel, RaycastModel, SlidingModel, make_model
 from warptan.sensing.sensors import (
     AltimeterReading,
     Barometer,

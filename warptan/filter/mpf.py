@@ -19,7 +19,7 @@ a 12×12 Riccati per particle and IMU sample on the device (its N_k and L_k woul
 shared P gives honest bounds once two things are right (H100, 20 seeds, ``results/paper/gaussian``, side by side
 with the previous table in ``results/paper/compare_projection.md``). First, Λ_i and b_i are the part of the scan's
 attitude information a position offset cannot explain (the Schur complement,
-:attr:`warptan.sensing.measurement.Likelihood.project_position`): a particle's position is only as good as the cloud
+:attr:`warptan.sensing.likelihood.Likelihood.project_position`): a particle's position is only as good as the cloud
 (~0.25 m) while a scan pins the attitude to ~1 cm of lever arm, so with the whole information each Kalman mean absorbed
 its particle's position offset as attitude and resampling handed one lineage's absorbed offsets to every particle (S3
 attitude coverage 53–75 %, σ/RMSE 0.4–0.5, one seed lost). Second, the update waits for the integrity monitor's verdict
@@ -106,13 +106,13 @@ tell from the aircraft's altitude (ray casts, sliding, the altimeter without a b
 makes the particles' altitude the height above the map: the offset's variance ``var_b`` is added to the reported
 altitude variance (``map_offset_var``; the estimate's ``cov_pos`` and the runs' σ) and its change along the track is
 process noise on the down velocity, ``q_v = 4 σ_e² v³ / L³`` at each filter's nominal ground speed at construction
-(:meth:`warptan.sensing.measurement.Likelihood.offset_process`; per filter, as the fix wander below: a filter of a
+(:meth:`warptan.sensing.likelihood.Likelihood.offset_process`; per filter, as the fix wander below: a filter of a
 batch is the filter run alone). A point-cloud model's fix of the horizontal position
 wanders along the track with the error: ``Q^n`` grows by ``2 σ_e² v / ℓ``, ℓ the shorter of L and the terrain slope's
-correlation length (:meth:`warptan.sensing.measurement.Likelihood.fix_process`), or the Kalman part reads the wander as
+correlation length (:meth:`warptan.sensing.likelihood.Likelihood.fix_process`), or the Kalman part reads the wander as
 velocity. Ground read again after the map-error modes forgot it weighs less: each update's exponent is what one more
 pass adds to passes whose fixes are correlated by ρ (``(1 − ρ)/((1 + Cρ)(1 + (C − 1)ρ))`` after C passes; ρ = 0.9,
-:class:`warptan.sensing.measurement.RevisitMemory`), not 1.
+:class:`warptan.sensing.likelihood.RevisitMemory`), not 1.
 
 Integrity (MBARI TRN style): every model returns each particle's normalised squared residual (NIS, mean of
 ``min((r/σ)², k_out²)`` over the received points; ≈ 1 at the true pose); the smallest NIS of any particle — is
@@ -147,7 +147,7 @@ from warptan.nav.frames import quat_exp, quat_mul
 from warptan.nav.imu import ImuGrade, check_rate, imu_grade
 from warptan.nav.ins import NavState, process_noise
 from warptan.parallel import Recorder, launch, launch_rows, rows_of
-from warptan.sensing.measurement import RevisitMemory
+from warptan.sensing.likelihood import RevisitMemory
 
 SCHEMES = {name: k for k, name in enumerate(RESAMPLERS)}
 """The kernels' number of each resampling scheme (:data:`warptan.filter.config.RESAMPLERS`)."""

@@ -11,7 +11,7 @@ from warptan.filter.prior import InitialErrors, prior_sigma
 from warptan.io.flightlog import FlightLog
 from warptan.nav.geoframe import FrameChange, GeoFrame, corners, frame_change
 from warptan.nav.imu import imu_grade
-from warptan.sensing.measurement import Likelihood
+from warptan.sensing.likelihood import Likelihood
 
 
 def logs_from_record(record: dict, flight, config: dict, likelihood: Likelihood, total_seeds: list[int],

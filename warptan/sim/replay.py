@@ -33,7 +33,7 @@ from warptan.nav.frames import quat_to_mat
 from warptan.nav.geoframe import corners, frame_change
 from warptan.nav.imu import imu_grade
 from warptan.nav.ins import Ins, NavState
-from warptan.sensing.measurement import Likelihood
+from warptan.sensing.likelihood import Likelihood
 from warptan.sensing.sensors import AltimeterReading, PointCloud
 from warptan.sim.runner import collect_runs
 
@@ -306,7 +306,7 @@ def replay(log: FlightLog, terrain=None, *, model: str | None = None, backend: s
         progress: Optional callable(k, n) per update.
         allow_gaps: Fly through nodata under the track (its updates are skipped and counted) instead of refusing.
         map_error: The DEM's stated accuracy, ``(RMS, correlation length)`` of its correlated vertical error in m (a
-            published figure: SRTM, Copernicus, DTED; :meth:`~warptan.sensing.measurement.Likelihood.error_modes`);
+            published figure: SRTM, Copernicus, DTED; :meth:`~warptan.sensing.likelihood.Likelihood.error_modes`);
             default the log's settings, else none.
 
     The log is placed in the DEM's frame first (:func:`place_log`: a geodetic frame converted, any DEM that covers

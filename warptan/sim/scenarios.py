@@ -45,7 +45,8 @@ from warptan.filter.config import MIN_PARTICLES, RESAMPLERS, FilterConfig
 from warptan.filter.prior import InitialErrors
 from warptan.nav.imu import IMU_GRADES, ImuModel
 from warptan.nav.trajectory import Orbit, Straight, Trajectory, Turn
-from warptan.sensing.measurement import LIKELIHOODS, MODELS, Likelihood, make_model
+from warptan.sensing.likelihood import LIKELIHOODS, Likelihood
+from warptan.sensing.measurement import MODELS, make_model
 from warptan.sensing.sensors import Barometer, PointCloudSensor, RadarAltimeter, ScanPattern
 from warptan.sim.runner import FilterRun, run_filter
 from warptan.terrain.grid import NAMED_TERRAINS, Terrain, TerrainError

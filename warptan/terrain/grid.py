@@ -415,7 +415,7 @@ class Terrain:
         """Correlation length (m) of the terrain's slope: the lag at which the autocorrelation of ``∂h/∂north``
         along north, and of ``∂h/∂east`` along east, first falls below 1/e (their mean; FFT of the whole grid,
         nodata as zero slope). It is the scale on which the pattern of gradients that turns a vertical map error into
-        a position fix changes (:meth:`warptan.sensing.measurement.Likelihood.fix_process`). Measured: the 90 m rugged
+        a position fix changes (:meth:`warptan.sensing.likelihood.Likelihood.fix_process`). Measured: the 90 m rugged
         tile 280/240 m, the 30 m rugged tile 180/150 m, the 90 m flat tile 90/80 m (one post: its slope is noise)."""
         gn, ge = np.gradient(np.asarray(self.heights_m, dtype=np.float64), self.dn, self.de)
         lags = []

@@ -1,0 +1,337 @@
+"""The likelihood of a measurement model: the error a point's prediction carries (sensor, map, the map's stated
+accuracy and its correlation along the track), the exponent of ground read again (:class:`RevisitMemory`), and how
+the kernels are told (:class:`Likelihood`; the kernels' side is :mod:`warptan.kernels.likelihood`)."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from warptan.checks import FilterError
+from warptan.kernels import likelihood as klik
+
+POSITION_PRIOR_PRECISION = 1.0e-4
+"""Prior precision (m⁻², σ = 100 m) of the position in the attitude information's Schur complement
+(:attr:`Likelihood.project_position`): negligible against a scan's position information, it only keeps Λ_pp
+invertible where the ground says nothing horizontally."""
+
+LIKELIHOODS = {"paper": klik.LIK_PAPER, "gaussian": klik.LIK_GAUSS, "student_t": klik.LIK_STUDENT}
+
+
+@dataclass(frozen=True)
+class Likelihood:
+    """How residuals become a log-likelihood.
+
+    Attributes:
+        kind: "paper" (Gaussian on the scalar error), "gaussian" or "student_t" (per point).
+        r_err: Variance of the paper's scalar error, m².
+        sigma_m: Per-point residual scale σ, m; None = calibrated (:meth:`sigma_eff`).
+        nu: Student-t degrees of freedom.
+        outlier_sigmas: A point the particle cannot predict (off the map, nodata, no hit; under a stated map
+            error also a residual the stated error cannot make, :func:`warptan.kernels.likelihood.gross_miss`)
+            scores as a residual of this many σ (per point); the paper form blends its score with
+            ``-0.5 outlier_sigmas²`` by the fraction of unpredictable points.
+        sensor_sigma_m: Noise of one measured residual, m (range noise; the altimeter's noise).
+        map_sigma_m: Known error of the map, m, added to the model's own surface mismatch (calibrated σ only).
+        map_correlation: Consecutive updates over which a point sees the same map error (≥ 1): a moving scan
+            reads the same DEM cells for about ``post spacing / (speed / measurement rate)`` updates, so the map
+            part of σ² is multiplied by it (the standard inflation of a white-noise model for a correlated
+            error; without it the filter counts one map error several times and its 3σ shrinks below the truth).
+        footprint_correlation: Consecutive updates over which a scan reads the same ground (its along-track
+            footprint over the distance flown per update; ≥ 1). The attitude information of a scan (the Kalman
+            update of the linear states) is a regression of the whole footprint's residuals, so the map part of
+            its error persists until the footprint is renewed, not only while a point stays in its cell: the
+            attitude information uses ``σ_att² = σ² + (max(footprint, map_correlation) - map_correlation) ·
+            (map² + mismatch²)`` (:meth:`sigma_att`). Measured (S1, 120 s, map = world, bilinear model):
+            without it the attitude error is a terrain-fixed bias the same in both seeds looked at (roll +0.0025°,
+            yaw +0.008–0.012°) and the reported σ is 3–5× below the RMSE (4 seeds); the weights keep σ (position
+            stays honest: its process noise forgets faster than the footprint renews).
+        fix_corr_m: Correlation length (m) of the terrain's slope under a stated map error: the scale on which
+            the position fix the map error causes changes (:meth:`fix_process`); 0: the error's own length.
+        revisit_correlation: Correlation ρ ∈ [0, 1) of the position fixes of two passes over the same ground under
+            a stated map error (:class:`RevisitMemory`): the share of a pass's fix that is the map's error, which
+            a pass over the same ground reads again; 0: passes independent.
+        project_position: The attitude information the Kalman update reads is the part of the residuals' information
+            on dθ that a position offset cannot explain (the Schur complement ``Λ_θθ - Λ_θp Λ_pp⁻¹ Λ_pθ`` and ``b``
+            likewise, :func:`warptan.kernels.likelihood.attitude_information`; a weak prior of
+            :data:`POSITION_PRIOR_PRECISION` keeps ``Λ_pp`` invertible over flat ground). A particle's position is
+            only as good as the cloud (tens of cm), while a scan's attitude information is at the level of a
+            hundredth of a millidegree (1 cm at 650 m): without the projection each particle's Kalman mean
+            absorbs its own position offset as attitude, every resampling passes one lineage's absorbed offsets to
+            all particles, and neither P nor the spread of the means shows it. Measured (CPU, 120 s, 4 seeds of
+            the worst seeds of the 20-seed run): S3 attitude 3σ coverage 72/56/50 % (σ/RMSE 0.44) without, 99/100/100 %
+            (0.85/0.73/0.75) with, and the attitude RMSE halved (pitch 0.0019° → 0.0009°). The weights
+            (the attitude marginal) always use the whole information.
+    """
+
+    kind: str = "paper"
+    r_err: float = 1.0
+    sigma_m: float | None = None
+    nu: float = 4.0
+    outlier_sigmas: float = 4.0
+    sensor_sigma_m: float = 0.5
+    map_sigma_m: float = 0.0
+    map_correlation: float = 1.0
+    footprint_correlation: float = 1.0
+    project_position: bool = True
+    map_error_sigma_m: float = 0.0
+    map_error_corr_m: float = 0.0
+    track_step_m: float = 0.0
+    fix_corr_m: float = 0.0
+    revisit_correlation: float = 0.9
+
+    def __post_init__(self):
+        if self.kind not in LIKELIHOODS:
+            raise FilterError(f"unknown likelihood {self.kind!r}; choose one of {', '.join(LIKELIHOODS)}")
+        for name in ("r_err", "sigma_m", "nu", "outlier_sigmas"):
+            value = getattr(self, name)
+            if name == "sigma_m" and value is None:
+                continue
+            if not (np.isfinite(value) and value > 0):
+                raise FilterError(f"likelihood {name} must be a positive number, got {value!r}")
+        for name in ("sensor_sigma_m", "map_sigma_m"):
+            value = getattr(self, name)
+            if not (np.isfinite(value) and value >= 0):
+                raise FilterError(f"likelihood {name} must be a number ≥ 0, got {value!r}")
+        for name in ("map_correlation", "footprint_correlation"):
+            value = getattr(self, name)
+            if not (np.isfinite(value) and value >= 1):
+                raise FilterError(f"likelihood {name} must be a number ≥ 1, got {value!r}")
+        for name in ("map_error_sigma_m", "map_error_corr_m", "track_step_m", "fix_corr_m"):
+            value = getattr(self, name)
+            if not (np.isfinite(value) and value >= 0):
+                raise FilterError(f"likelihood {name} must be a number ≥ 0, got {value!r}")
+        if not (np.isfinite(self.revisit_correlation) and 0.0 <= self.revisit_correlation < 1.0):
+            raise FilterError(f"likelihood revisit_correlation must be in [0, 1), got {self.revisit_correlation!r}")
+        if self.map_error_sigma_m > 0 and self.map_error_corr_m <= 0:
+            raise FilterError("likelihood map_error_corr_m must be > 0 when map_error_sigma_m is stated, got "
+                              f"{self.map_error_corr_m!r}")
+
+    @property
+    def models_map_error(self) -> bool:
+        """The likelihood marginalises a stated correlated map error (per-point forms only)."""
+        return self.map_error_sigma_m > 0 and self.kind != "paper"
+
+    def error_modes(self, xy: np.ndarray, sensitivity: np.ndarray, sigma_m: float,
+                    along: tuple[float, float] = (1.0, 0.0), absorb_offset: bool = False) -> tuple[np.ndarray, dict]:
+        """The map-error mode table of a scan: ``(M + MODE_EXTRA_ROWS, MAX_MODES)`` float32 (rows named in
+        :mod:`warptan.kernels.likelihood`): the modes ``u_ji``, then per mode its one-scan variance ``k⁰_i``, its
+        one-scan weight ``c⁰_i`` (the NIS), its scan-to-scan correlation ``ρ_i``, the attitude information's weight
+        ``cᵃ_i = κ_i k⁰_i / (1 + κ_i k⁰_i)`` (each mode read once per κ_i scans that share it) and the basis change
+        ``T`` from the previous table (identity here; the model fills it when it rebuilds), and a summary.
+
+        The stated error is a Gaussian random field of RMS ``σ_e = map_error_sigma_m`` and covariance
+        ``σ_e² exp(−(r/L)²)``, ``L = map_error_corr_m``. At the scan's ground points ``x_j`` (``xy``: horizontal
+        offsets in the navigation frame, m) a residual sees ``a_j e(x_j)`` (``sensitivity`` a_j: 1 for a height
+        residual, 1/cos of the ray's angle from the vertical for a range), so the whitened residuals ``z = r/σ``
+        carry ``(σ_e²/σ²) A R A`` with ``R_jk = exp(−(|x_j − x_k|/L)²)``. Its leading eigenvectors ``u_i``
+        (eigenvalues λ_i) are the map-error modes (offset, tilts, curvatures, …), ``z = Σ_i α_i u_i + n`` with
+        amplitudes ``α_i`` of variance ``k⁰_i = σ_e² λ_i / σ²`` in one scan. A mode's error is shared by the
+        consecutive scans that see the same ground: ``κ_i = Σ_k ρ_i(k s)``, with ``ρ_i(d) = u_iᵀ A R(d) A u_i /
+        λ_i`` the mode's correlation with the scan ``d`` metres further along ``along`` (the flight's horizontal
+        unit vector; ``s = track_step_m``; ``κ_i = 1`` without it; beyond 64 steps the sum is the trapezoid
+        integral ``(1/s) ∫ ρ_i`` over 64 lags up to 4 L).
+
+        The filter carries the amplitudes (Rao–Blackwellised: a mean per particle, a variance per filter; the map
+        error under a hypothesis belongs to the hypothesis) from scan to scan as first-order processes of
+        correlation ``ρ_i = (κ_i − 1)/(κ_i + 1)`` per scan, which holds the same number of independent scans
+        (``Σ_k ρ^|k| = κ_i``) as the field. A particle's weight is then the exact predictive density of its scan
+        given what its earlier scans said about the error under it: with prior ``(μ_i, P_i)`` and ``p_i = u_iᵀ
+        z``, ``(z − Uμ)ᵀ(I + U P Uᵀ)⁻¹(z − Uμ) = zᵀz − Σ_i [p_i² − (1 − c_i)(p_i − μ_i)²]``, ``c_i = P_i / (1 +
+        P_i)``, and the amplitudes' posterior ``μ_i + c_i (p_i − μ_i)`` (:func:`warptan.kernels.likelihood.
+        acc_set_modes`). A particle tens of metres off fits each scan's smooth misfit into the modes only once:
+        the next scans must agree with the amplitudes it claimed. The earlier form, each scan independent with its
+        modes' variance times κ_i (the same information on average), let such a particle explain a new misfit in
+        every scan: S2 (tactical IMU, 5 m / 1 km worlds, 20 seeds, ``results/world``) ran away to 86 m mean and
+        S5 to 168 m; with the amplitudes carried, 4.7 ± 0.7 m and 6.4 ± 1.0 m. The integrity monitor's NIS
+        judges one scan against the error as stated (weights ``c⁰_i``, μ = 0): whatever a filter believes about
+        the error, a misfit larger than it is not a 5 m map error. Modes past ``MAX_MODES`` or below 1e-6 of the
+        largest are dropped; ``remainder`` is the share of the error's variance they hold.
+
+        ``absorb_offset`` (a model whose prediction moves with the particle's altitude: ray casts, the sliding
+        grid, the altimeter without a barometer): the map error's offset over the scan, ``A e = o (oᵀ A e) + P A
+        e`` with ``o = a / |a|`` and ``P = I − o oᵀ``, is exactly a vertical shift of the aircraft by ``b = oᵀ A e
+        / |a|`` (lowering the aircraft by d changes residual j by ``a_j d``), so the particles' altitude carries it
+        (they track the height above the map, not above the world) and the modes are those of ``P A R A P``. The
+        summary's ``offset_var`` is ``var b = σ_e² oᵀ A R A o / |a|²`` (m²). Marginalising the offset as a mode
+        instead (each scan independent with κ-shared variance) throws away what consecutive scans say about the
+        vertical motion (their offsets differ by the little the map error changes between them): measured on
+        S2 (tactical IMU, 5 m / 1 km error, seed 0) the altitude ran away by 750 m with a 3σ of 3 m. The
+        filter's side of it (the offset's change along the track as vertical-velocity noise, its variance added to
+        the reported altitude variance) is :meth:`offset_process`."""
+        from warptan.kernels.likelihood import MAX_MODES, MODE_C0, MODE_CA, MODE_EXTRA_ROWS, MODE_K0, MODE_RHO, MODE_T
+
+        xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
+        a = np.asarray(sensitivity, dtype=np.float64).reshape(-1)
+        m, length = len(xy), self.map_error_corr_m
+        table = np.zeros((m + MODE_EXTRA_ROWS, MAX_MODES), dtype=np.float32)
+        table[m + MODE_T:] = np.eye(MAX_MODES, dtype=np.float32)
+        if not self.models_map_error or m == 0:
+            return table, {"n_modes": 0}
+
+        direction = np.asarray(along, dtype=np.float64).reshape(2)
+        direction = direction / max(float(np.linalg.norm(direction)), 1e-12)
+
+        def full(shift: float) -> np.ndarray:  # A R(shift) A
+            d = xy[:, None, :] - xy[None, :, :] - shift * direction
+            return a[:, None] * np.exp(-np.sum(d * d, axis=2) / (length * length)) * a[None, :]
+
+        project, offset_var = None, 0.0
+        if absorb_offset:
+            o = a / max(float(np.linalg.norm(a)), 1e-300)
+            project = np.eye(m) - np.outer(o, o)
+            offset_var = self.map_error_sigma_m**2 * float(o @ full(0.0) @ o) / float(a @ a)
+
+        def cov(shift: float) -> np.ndarray:
+            return full(shift) if project is None else project @ full(shift) @ project
+
+        lam, vec = np.linalg.eigh(cov(0.0))
+        order = np.argsort(lam)[::-1]
+        lam, vec = np.maximum(lam[order], 0.0), vec[:, order]
+        keep = [i for i in range(min(MAX_MODES, m)) if lam[i] > 1e-6 * lam[0]]
+        lam_k, vec_k = lam[keep], vec[:, keep]
+        sharing = np.ones(len(keep))
+        step = self.track_step_m
+        if step > 0 and keep:
+            k_max = math.ceil(4.0 * length / step)
+            lags = np.arange(1, k_max + 1) * step if k_max <= 64 else np.linspace(step, k_max * step, 64)
+            rho = np.array([np.einsum("ji,jk,ki->i", vec_k, cov(d), vec_k) / lam_k for d in lags])
+            if k_max <= 64:
+                total = rho.sum(axis=0)
+            else:  # Σ_{k≥1} ρ(k s) ≈ (1/s) ∫_s^∞ ρ + ρ(s) / 2 (trapezoid)
+                integral = np.sum(0.5 * (rho[1:] + rho[:-1]) * np.diff(lags)[:, None], axis=0)
+                total = integral / step + 0.5 * rho[0]
+            sharing = np.maximum(1.0 + 2.0 * total, 1.0)
+        k_one = self.map_error_sigma_m**2 * lam_k / sigma_m**2  # k⁰_i: one scan's
+        rho = (sharing - 1.0) / (sharing + 1.0)
+        table[:m, :len(keep)] = vec_k.astype(np.float32)
+        table[m + MODE_K0, :len(keep)] = k_one.astype(np.float32)
+        table[m + MODE_C0, :len(keep)] = (k_one / (1.0 + k_one)).astype(np.float32)
+        table[m + MODE_RHO, :len(keep)] = rho.astype(np.float32)
+        table[m + MODE_CA, :len(keep)] = (sharing * k_one / (1.0 + sharing * k_one)).astype(np.float32)
+        return table, {"n_modes": len(keep), "eigenvalues": lam_k.tolist(), "sharing": sharing.tolist(),
+                       "k0": k_one.tolist(), "rho": rho.tolist(),
+                       "remainder": float(1.0 - lam_k.sum() / max(lam.sum(), 1e-300)), "offset_var": offset_var}
+
+    def offset_process(self, speed_mps: float) -> tuple[float, float]:
+        """What the filter adds for a map-error offset its particles' altitude carries (``absorb_offset`` of
+        :meth:`error_modes`): ``(var_b, q_v)``, the offset's variance (m², added to the reported altitude
+        variance: the particles know the height above the map, the truth differs by b) and the vertical-velocity
+        noise density (m²/s³) that lets the filter follow the offset's change along the track.
+
+        Along the track at speed v the offset b(t) is a smooth process of covariance ``σ_b² exp(−(v τ / L)²)``,
+        so ``var ḃ = 2 σ_b² v² / L²`` with correlation time ``τ = L / v``; ``q_v = 2 var ḃ / τ = 4 σ_b² v³ / L³``
+        (a first-order Gauss–Markov ḃ's driving noise; the integrated position variance over τ, ``q_v τ³ / 3 =
+        4σ_b²/3``, matches the offset's structure function ``2σ_b²(1 − e⁻¹) = 1.26 σ_b²`` there). ``σ_b = σ_e``
+        bounds the offset of any footprint (its average over the footprint varies less) and ``L`` bounds the
+        offset's correlation length from below (the footprint's average is smoother): both on the safe side.
+        ``(0, 0)`` without a stated map error."""
+        if not self.models_map_error:
+            return 0.0, 0.0
+        var_b = self.map_error_sigma_m**2
+        v = max(float(speed_mps), 0.0)
+        return var_b, 4.0 * var_b * v**3 / self.map_error_corr_m**3
+
+    def fix_process(self, speed_mps: float) -> float:
+        """The position noise density (m²/s) the Kalman part adds to ``Q^n`` under a stated map error: the
+        particles follow where the map fits best, which differs from the truth by a fix error that the map error
+        moves along the track. The Kalman part reads the particles' paths as velocity (``N_k``, ``L_k``), so it must
+        allow that wander: a first-order process of variance ``σ_d²`` and correlation time ``τ = ℓ / v`` has
+        increments of variance ``2 σ_d² dt / τ`` over ``dt ≪ τ``, i.e. a noise density ``2 σ_d² v / ℓ``, with
+        ``σ_d = σ_e`` (a fix error as large as the vertical error: a terrain slope of 1, as in
+        :meth:`offset_process`) and ``ℓ = min(L, fix_corr_m)``: the fix turns the map error into a position through
+        the terrain's gradients under the footprint, so it changes as fast as the shorter of the error's correlation
+        length and the slope's (``fix_corr_m``: :attr:`warptan.terrain.grid.Terrain.slope_correlation_m` of the map,
+        set by :func:`warptan.sim.scenarios.scenario_likelihood`; 0: L alone). Measured (S2, tactical IMU, 5 m / 1 km
+        world, seeds 0–1, CPU): with the attitude's information counted once per independent patch
+        (:func:`warptan.kernels.likelihood.attitude_information`) and without this noise the velocity ran away
+        (3–10 m/s error at 17–52 σ, 27–140 m); with ``ℓ = L`` 3.4/2.5 m at 96/98 % coverage. With the slope's
+        length (the 90 m rugged tile's 260 m, 4× the density; world 1003, seeds 15–16): north/east 3σ coverage
+        84/84 → 96/98 %, σ/RMSE 0.51/0.48 → 0.70/0.70, RMSE 6.5 → 6.2 m; ℓ = 4L (a quarter of the density with
+        L) gave 66/73 %; ``results/world`` (20 seeds): S2 σ/RMSE 0.64/0.74 → 0.86/0.96. Only for models whose one scan
+        fixes the position
+        (``MeasurementModel.fixes_per_scan``: point clouds): an altimeter's fix builds up over many scans, and with
+        this noise S9/S12 (20 seeds, H100) went from 19 m mean to 177/187 m (a seed 2.8 km off, flagged). 0
+        without a stated map error."""
+        if not self.models_map_error:
+            return 0.0
+        length = min(self.map_error_corr_m, self.fix_corr_m) if self.fix_corr_m > 0 else self.map_error_corr_m
+        return 2.0 * self.map_error_sigma_m**2 * max(float(speed_mps), 0.0) / length
+
+    def point_sharing(self) -> float:
+        """Consecutive scans of a straight pass that read the stated error under one ground point: ``κ = 1 + 2
+        Σ_k exp(−(k s / L)²)`` over the track step ``s`` (``track_step_m``; ≈ √π L / s); 1 without a step or a
+        stated error."""
+        step, length = self.track_step_m, self.map_error_corr_m
+        if not self.models_map_error or step <= 0:
+            return 1.0
+        k = np.arange(1, math.ceil(4.0 * length / step) + 1)
+        return float(1.0 + 2.0 * np.exp(-((k * step / length) ** 2)).sum())
+
+    def sigma_eff(self, model_mismatch_m: float) -> float:
+        """The per-point σ in m: ``sigma_m`` when given, else
+        ``sqrt(sensor² + map_correlation · (map² + model_mismatch²))`` (at least 1 cm)."""
+        if self.sigma_m is not None:
+            return float(self.sigma_m)
+        map_var = self.map_correlation * (self.map_sigma_m**2 + model_mismatch_m**2)
+        return max(0.01, math.sqrt(self.sensor_sigma_m**2 + map_var))
+
+    def sigma_att(self, model_mismatch_m: float) -> float:
+        """The per-point σ of the attitude information in m (see ``footprint_correlation``)."""
+        extra = max(self.footprint_correlation - self.map_correlation, 0.0)
+        return math.sqrt(self.sigma_eff(model_mismatch_m) ** 2 + extra * (self.map_sigma_m**2 + model_mismatch_m**2))
+
+
+class RevisitMemory:
+    """The log-likelihood's exponent of each filter's next update over ground whose map error it has read before.
+
+    The map-error modes carry their amplitudes from scan to scan as first-order processes (:meth:`Likelihood.
+    error_modes`): they remember an error for about the scans of one straight pass over it, ``κ`` of
+    :meth:`Likelihood.point_sharing` (177 at 10 m per scan and L = 1 km). Ground read again after that (an orbit,
+    a racetrack, a return leg) is the same error read anew, and without a discount each pass over it counts that
+    one error once more: its bias on the position is taken for information. With the earlier passes over this
+    ground ``C = (1/κ) Σ_k exp(−|x − x_k|² / L²)`` (the scans ``k`` older than ``κ`` scans, ``x`` the scan's ground
+    point; one straight pass through ``x`` makes ``C ≈ 1``), the update weighs what one more pass adds to passes
+    whose fixes are correlated by ``ρ`` (``revisit_correlation``): ``n`` such passes hold ``n / (1 + (n − 1) ρ)``
+    passes' information, so the exponent is ``(1 − ρ) / ((1 + C ρ)(1 + (C − 1) ρ))`` for ``C ≥ 1`` (a second pass
+    ``(1 − ρ) / (1 + ρ)``, all passes together never more than ``1/ρ`` passes) and, over part of a pass read
+    before, that of a second pass correlated by ``ρ C``: ``(1 − ρ C) / (1 + ρ C)`` (1 over new ground). What a pass
+    adds besides the shared error is the sensor's noise and the ground seen from another side; an error shared in
+    full (ρ → 1) would make it 0. Measured (S5 and S6, 60° bank, an orbit of 37 s inside one correlation length;
+    5 m / 1 km world of seed 1003, seeds 15–16, CPU; north 3σ coverage, σ/RMSE north): without a discount 79/78 %,
+    0.40 (S5) and 88/85 %, 0.50 (S6); ``(1 + C)⁻¹`` 81/83 %, 0.45 and 92/90 %, 0.55; ``(1 + C)⁻²`` 92/90 %, 0.55
+    and 96/94 %, 0.62, the RMSE not worse (S5 6.5/6.9 → 5.7/6.3 m). After the estimator's later work, ``(1 + C)⁻²``
+    (ρ ≈ 0.6 at C = 1 and 2, but 1.64 passes in all) left S5's north σ/RMSE at 0.75 over 20 seeds
+    (``results/world``, 4 worlds, H100): ρ = 0.8 0.81, RMSE 6.10 m; ρ = 0.9 0.88, 5.98 m (6.18 m before); S6 east
+    1.39 and 1.49, S2 unchanged (0.87/0.95). A told stated error is what a pass mostly reads (S5: 5 m against the
+    sensor's 0.5 m): ρ = 0.9 is the default; an orbit's second pass (C about 0.8) then weighs about a sixth. A
+    straight flight's older scans are 1.8 km behind: C < 0.01, an exponent ≥ 0.98. The positions are kept every
+    ``κ/16`` scans (each standing for that many): the host work of an update is
+    O(flight length / κ) per filter, never O(particles)."""
+
+    def __init__(self, likelihood: Likelihood, n_filters: int):
+        self.likelihood = likelihood
+        self.kappa = likelihood.point_sharing()
+        self.stride = max(1, int(self.kappa // 16))
+        self.n_filters = int(n_filters)
+        self.count = 0  # updates seen
+        self._kept = np.zeros((0, self.n_filters, 2))  # (K, B, 2) ground points, one per stride updates
+
+    def exponents(self, ground: np.ndarray) -> np.ndarray:
+        """The exponents (B,) of the update whose ground points are ``ground`` (B, 2, m, navigation frame), which
+        it then remembers."""
+        ground = np.asarray(ground, dtype=np.float64).reshape(self.n_filters, 2)
+        old = (self.count - math.ceil(self.kappa)) // self.stride  # kept points older than κ scans: [0, old]
+        passes = np.zeros(self.n_filters)
+        if old >= 0 and self.kappa > 1:
+            d2 = np.sum((self._kept[:old + 1] - ground[None]) ** 2, axis=2)
+            passes = self.stride * np.exp(-d2 / self.likelihood.map_error_corr_m**2).sum(axis=0) / self.kappa
+        if self.count % self.stride == 0:  # a copy per kept point: O(K) every κ/16 updates
+            self._kept = np.concatenate([self._kept, ground[None]])
+        self.count += 1
+        rho = self.likelihood.revisit_correlation
+        again = (1.0 - rho) / ((1.0 + passes * rho) * (1.0 + (passes - 1.0) * rho))
+        part = rho * np.minimum(passes, 1.0)
+        return np.where(passes >= 1.0, again, (1.0 - part) / (1.0 + part))
