@@ -1,8 +1,9 @@
 """The nominal INS and the shared Kalman covariance of B filters, one measurement interval per launch (SPEC §3, §6).
 
-Runs on the host (the CPU device, float64): one thread per filter b steps through the K IMU samples of the
-interval. Per sample, from the nominal state *before* the step (its own step ``dt_k``, ``imu[b, k, 2][0]``: a
-recorded flight's samples need not be evenly spaced; the noise per step scales as ``dt_k / dt``):
+Float64, on the filter's device: on the CPU one thread per filter b steps through the K IMU samples of the interval;
+on CUDA one block per filter whose lanes share the work of each sample (:data:`NAV_BLOCK_DIM`). Per sample, from the
+nominal state *before* the step (its own step ``dt_k``, ``imu[b, k, 2][0]``: a recorded flight's samples need not be
+evenly spaced; the noise per step scales as ``dt_k / dt``):
 
 * the error transition blocks (3×3 blocks, order ``[dp, dv, dth, dba, dbg]``; see :mod:`warptan.nav.ins`)::
 
