@@ -244,7 +244,7 @@ def main(argv=None) -> int:
     terrain = script_inputs("bench_filter_step", args.device, args.terrain)
     if args.settle_s < 0 or args.rtf_s < 0:
         parser.error("--settle-s and --rtf-s must be ≥ 0 s")
-    from warptan.sim.scenarios import load_config
+    from warptan.sim.scenario_config import load_config
 
     for sid in scenarios:  # an unknown scenario or a bad file: one line, exit 2, before any work
         try:

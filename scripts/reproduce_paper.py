@@ -24,7 +24,8 @@ from warptan.outputs import OutputError, OutputFolder, write_json
 from warptan.sensing.likelihood import LIKELIHOODS
 from warptan.sim import claims
 from warptan.sim.report import write_outputs
-from warptan.sim.scenarios import SCENARIO_IDS, prepare, run_scenario, run_scenario_batch
+from warptan.sim.scenario_config import SCENARIO_IDS
+from warptan.sim.scenarios import prepare, run_scenario, run_scenario_batch
 
 
 def main(argv=None) -> int:

@@ -21,7 +21,8 @@ from rasterio.transform import Affine
 
 import warptan as wt
 from warptan import cli, outputs
-from warptan.sim.scenarios import ScenarioError, prepare, run_scenario, scenario_path
+from warptan.sim.scenario_config import ScenarioError, scenario_path
+from warptan.sim.scenarios import prepare, run_scenario
 from warptan.terrain.grid import Terrain, TerrainError, TerrainWarning
 
 HEIGHTS = 200.0 + 50.0 * np.random.default_rng(0).random((40, 50))

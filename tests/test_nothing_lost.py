@@ -28,7 +28,8 @@ from rasterio.transform import Affine
 import warptan as wt
 from warptan import cli, outputs
 from warptan.io.flightlog import LogError, read_log, write_log
-from warptan.sim.scenarios import ScenarioError, check_seeds, prepare, scenario_path
+from warptan.sim.scenario_config import ScenarioError, check_seeds, scenario_path
+from warptan.sim.scenarios import prepare
 
 QUICK = ["--duration-s", "0.5", "--particles", "16", "--quiet", "--no-plots"]
 RUGGED_TIF = str(resources.files("warptan") / "data" / "dem" / "thuringia_hilly_srtm3_crop44km.tif")

@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 
 import warptan as wt
-from warptan.sim.scenarios import SCENARIO_IDS, ScenarioError, load_config, prepare, run_scenario, scenario_path
+from warptan.sim.scenario_config import SCENARIO_IDS, ScenarioError, load_config, scenario_path
+from warptan.sim.scenarios import prepare, run_scenario
 
 SMALL = "synthetic:rugged,size_m=12000,spacing=40,seed=2"
 
@@ -269,7 +270,7 @@ def test_surface_key_reaches_the_model():
                                         surface=s).run.info["sigma_m"] for s in ("triangles", "bilinear")}
     assert sig["triangles"] < sig["bilinear"], sig
     with pytest.raises(wt.ScenarioError, match=re.escape("sensor.surface")):
-        wt.sim.scenarios.load_config("S8", surface="cubic")
+        wt.sim.scenario_config.load_config("S8", surface="cubic")
 
 
 def test_altimeter_runs_that_walked_off_along_the_contours_converge():

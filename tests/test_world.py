@@ -9,7 +9,8 @@ import pytest
 
 import warptan as wt
 from warptan import cli
-from warptan.sim.scenarios import ScenarioError, prepare, scenario_path
+from warptan.sim.scenario_config import ScenarioError, scenario_path
+from warptan.sim.scenarios import prepare
 from warptan.terrain.world import World, WorldModel, _unit_field, fit_spectrum
 
 

@@ -37,7 +37,8 @@ from warptan.sensing.sensors import (
 )
 from warptan.sim.campaign import Campaign, CampaignError, run_campaign, write_campaign
 from warptan.sim.runner import run_filter
-from warptan.sim.scenarios import ScenarioError, run_scenario, run_scenario_batch
+from warptan.sim.scenario_config import ScenarioError
+from warptan.sim.scenarios import run_scenario, run_scenario_batch
 from warptan.terrain.grid import Terrain
 from warptan.terrain.raster import TerrainError
 from warptan.terrain.raycast import RayCaster, raycast

@@ -4,7 +4,7 @@ layer.
 Each layer has its error type, all ``ValueError`` subclasses with one-line messages naming the input:
 :class:`FilterError` (IMU samples, states, measurements, rays, filter and sensor arguments),
 :class:`~warptan.terrain.raster.TerrainError` (DEM files and terrain arguments),
-:class:`~warptan.sim.scenarios.ScenarioError` (scenario files, overrides, seeds, memory, flights) and
+:class:`~warptan.sim.scenario_config.ScenarioError` (scenario files, overrides, seeds, memory, flights) and
 :class:`~warptan.outputs.OutputError` (output folders). The command line turns each into one line and exit status 2."""
 
 from __future__ import annotations

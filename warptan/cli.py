@@ -117,7 +117,7 @@ def _map_words(config: dict) -> str:
 
 def _scenario_key(name: str) -> str:
     """What makes two scenario arguments the same run: the id (S1…S12, any case) or the file's real path."""
-    from warptan.sim.scenarios import SCENARIO_IDS
+    from warptan.sim.scenario_config import SCENARIO_IDS
 
     return name.upper() if name.upper() in SCENARIO_IDS else os.path.realpath(name)
 
@@ -126,7 +126,8 @@ def _run(args) -> int:
     from warptan.device import resolve_device
     from warptan.outputs import OutputFolder
     from warptan.sim.report import write_outputs
-    from warptan.sim.scenarios import SCENARIO_IDS, ScenarioError, prepare, run_scenario, run_scenario_batch
+    from warptan.sim.scenario_config import SCENARIO_IDS, ScenarioError
+    from warptan.sim.scenarios import prepare, run_scenario, run_scenario_batch
 
     demo = not args.scenarios
     names = ["S8"] if demo else list(args.scenarios)
@@ -260,7 +261,7 @@ def _refuse_nested(out, export) -> None:
 
 def _scenario_inputs(name: str, config: dict, terrain) -> list:
     """The files a scenario run reads: its scenario file (not for S1…S12), the world's DEM and the map's DEM."""
-    from warptan.sim.scenarios import SCENARIO_IDS, scenario_path
+    from warptan.sim.scenario_config import SCENARIO_IDS, scenario_path
 
     t = config["terrain"]
     world = terrain if isinstance(terrain, (str, os.PathLike)) else (t["path"] if t["kind"] == "path" else None)

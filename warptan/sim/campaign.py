@@ -49,15 +49,8 @@ except ModuleNotFoundError:  # Python 3.10
 
 from warptan.progress import progress_bar
 from warptan.sim.report import ci95
-from warptan.sim.scenarios import (
-    MAX_SEED,
-    RUN_KEYWORDS,
-    SCENARIO_IDS,
-    load_config,
-    per_seed_maps,
-    prepare,
-    scenario_path,
-)
+from warptan.sim.scenario_config import MAX_SEED, RUN_KEYWORDS, SCENARIO_IDS, load_config, scenario_path
+from warptan.sim.scenarios import per_seed_maps, prepare
 
 ENGINES = ("local", "ray")
 CAMPAIGN_KEYS = ("title", "scenarios", "seeds", "overrides", "sweep")

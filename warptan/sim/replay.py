@@ -105,7 +105,7 @@ def replay_config(log: FlightLog, model: str | None = None, backend: str | None 
     """The scenario-style config of a replay: the one the log was simulated with (settings), else S8's filter and
     likelihood settings with the log's IMU grade, sensor and rates; the keywords override (``map_error``: the DEM's
     stated accuracy, ``(RMS, correlation length)`` in m: ``likelihood.map_error_rms_m`` and ``map_error_corr_m``)."""
-    from warptan.sim.scenarios import load_config, with_optional_defaults
+    from warptan.sim.scenario_config import load_config, with_optional_defaults
 
     stored = log.settings.get("config")
     config = load_config("S8") if stored is None else with_optional_defaults(copy.deepcopy(stored))
