@@ -18,9 +18,9 @@ def _modules() -> dict[str, Path]:
     for path in sorted((ROOT / "warptan").rglob("*.py")):
         parts = path.relative_to(ROOT).with_suffix("").parts
         out[".".join(parts[:-1] if parts[-1] == "__init__" else parts)] = path
-    for path in sorted((ROOT / "kernels").glob("*.py")):
-        name = "warptan.kernels" if path.stem == "__init__" else f"warptan.kernels.{path.stem}"
-        out[name] = path
+    for path in sorted((ROOT / "kernels").rglob("*.py")):
+        parts = ("warptan", "kernels", *path.relative_to(ROOT / "kernels").with_suffix("").parts)
+        out[".".join(parts[:-1] if parts[-1] == "__init__" else parts)] = path
     return out
 
 

@@ -1,0 +1,229 @@
+"""CUDA forms that run a filter's pieces as one block (the same functions, the same bits): a tempering stage, a
+resampling, the update's head and tail."""
+
+import warp as wp
+
+from warptan.kernels.block import block_sync
+from warptan.kernels.filter.common import N_CHUNKS, N_TEMPER, UpdateParams, vec12
+from warptan.kernels.filter.integrity import integrity_step, respread_particle
+from warptan.kernels.filter.moves import move_particle, pose_of_particle
+from warptan.kernels.filter.record import record_summary, reset_particle, summary_partial, update_covariance
+from warptan.kernels.filter.resampling import ancestor, cdf_chunk, cdf_partial, copy_particle, gather
+from warptan.kernels.filter.tempering import begin_stats, temper_ess_of, temper_select
+from warptan.kernels.filter.weights import (
+    add_loglik_partial,
+    exp_partial,
+    kalman_update,
+    max_of_partials,
+    normalize_weight,
+    weight_stats,
+)
+
+wp.set_module_options({"enable_backward": False})
+
+STAGE_BLOCK_DIM = 64
+"""Threads of the block that runs one filter's tempering stage on CUDA (:data:`stage_block_kernel`): one lane per
+chunk (``N_CHUNKS``), so the weight statistics' block sum is the one :data:`weight_stats_kernel` makes (the same
+bits as the separate kernels)."""
+RESAMPLE_BLOCK_DIM = 256
+"""Threads of the block that resamples one filter on CUDA (:data:`resample_block_kernel`): a particle or two each
+(each ancestor is a binary search of dependent loads)."""
+
+
+@wp.kernel
+def stage_block_kernel(
+    n_per: int,
+    stage: int,
+    last_stage: int,
+    params: UpdateParams,
+    loglik: wp.array(dtype=wp.float32),
+    n_valid: wp.array(dtype=wp.int32),
+    meta: wp.array2d(dtype=wp.float32),
+    nis: wp.array(dtype=wp.float32),
+    dp: wp.array(dtype=wp.vec3),
+    lam: wp.array(dtype=wp.mat33),
+    info: wp.array(dtype=wp.vec3),
+    with_ip: int,
+    info_pos: wp.array(dtype=wp.vec3),
+    kalman: int,
+    feedback: wp.array2d(dtype=wp.float64),
+    p_col: wp.array2d(dtype=wp.mat33),
+    partials: wp.array4d(dtype=wp.float64),
+    unpred: wp.array2d(dtype=wp.float64),
+    ess: wp.array2d(dtype=wp.float64),
+    chunk_max: wp.array2d(dtype=wp.float32),
+    chunk_counts: wp.array3d(dtype=wp.int32),
+    chunk_min_nis: wp.array2d(dtype=wp.float32),
+    chunk_sums: wp.array3d(dtype=wp.float64),
+    logw: wp.array(dtype=wp.float32),
+    stats: wp.array2d(dtype=wp.float64),
+    kernel_chol: wp.array(dtype=wp.mat33),
+    lin: wp.array(dtype=vec12),
+):
+    """One tempering stage of filter b after :data:`temper_partials_kernel`, in one CUDA block (``wp.launch_tiled``,
+    :data:`STAGE_BLOCK_DIM` lanes): the pieces of :data:`temper_ess_kernel`, :data:`temper_select_kernel`,
+    :data:`add_loglik_partials_kernel`, :data:`max_of_partials_kernel`, :data:`exp_partials_kernel`,
+    :data:`weight_stats_kernel`, :data:`normalize_weights_kernel` and (``kalman``) :data:`kalman_update_kernel`, in
+    that order, the block's lanes sharing each one's threads with a barrier between them: the same functions on the
+    same values (the same bits) in one launch instead of eight, each of which cost a graph node's few µs for a few
+    hundred particles. The candidates' partials stay a launch of their own: 1 280 float64 log-sum-exp streams a
+    filter, which 64 lanes would run 20 deep."""
+    b, lane = wp.tid()
+    bd = wp.block_dim()
+    for g in range(lane, N_TEMPER, bd):
+        temper_ess_of(b, g, partials, ess)
+    block_sync()
+    if lane == 0:
+        temper_select(b, n_per, stage, last_stage, params, meta, ess, unpred, stats)
+    block_sync()
+    for c in range(lane, N_CHUNKS, bd):
+        add_loglik_partial(b, c, n_per, loglik, n_valid, meta, stats, nis, logw, chunk_max, chunk_counts,
+                           chunk_min_nis)
+    block_sync()
+    if lane == 0:
+        max_of_partials(b, chunk_max, chunk_counts, chunk_min_nis, stats)
+    block_sync()
+    for c in range(lane, N_CHUNKS, bd):
+        exp_partial(b, c, n_per, logw, dp, nis, lam, with_ip, info_pos, stats, chunk_sums)
+    block_sync()
+    weight_stats(b, lane, n_per, params, chunk_sums, stats, kernel_chol)
+    block_sync()
+    for k in range(lane, n_per, bd):
+        i = b * n_per + k
+        normalize_weight(i, n_per, stats, logw)
+        if kalman != 0:
+            kalman_update(i, n_per, params, stats, feedback, p_col, lam, info, lin)
+
+
+@wp.kernel
+def resample_block_kernel(
+    n_per: int,
+    stage: int,
+    seeds: wp.array(dtype=wp.int32),
+    scheme: int,
+    params: UpdateParams,
+    stats: wp.array2d(dtype=wp.float64),
+    cdf_sums: wp.array2d(dtype=wp.float64),
+    cdf: wp.array(dtype=wp.float32),
+    ancestors: wp.array(dtype=wp.int32),
+    dp: wp.array(dtype=wp.vec3),
+    lin: wp.array(dtype=vec12),
+    logw: wp.array(dtype=wp.float32),
+    dp_spare: wp.array(dtype=wp.vec3),
+    lin_spare: wp.array(dtype=vec12),
+    logw_spare: wp.array(dtype=wp.float32),
+):
+    """Resampling of filter b in one CUDA block (:data:`RESAMPLE_BLOCK_DIM` lanes): :data:`cdf_partials_kernel`,
+    :data:`cdf_kernel`, :data:`ancestors_kernel`, :data:`gather_kernel` (into the spare arrays) and
+    :data:`copy_particles_kernel` (back), a barrier between them; the same bits in one launch instead of five."""
+    b, lane = wp.tid()
+    bd = wp.block_dim()
+    for c in range(lane, N_CHUNKS, bd):
+        cdf_partial(b, c, n_per, logw, stats, cdf_sums)
+    block_sync()
+    for c in range(lane, N_CHUNKS, bd):
+        cdf_chunk(b, c, n_per, logw, stats, cdf_sums, cdf)
+    block_sync()
+    for k in range(lane, n_per, bd):
+        ancestor(b * n_per + k, n_per, stage, seeds, scheme, stats, cdf, ancestors)
+    block_sync()
+    for k in range(lane, n_per, bd):
+        gather(b * n_per + k, n_per, stage, seeds, params, stats, ancestors, dp, lin, logw, dp_spare, lin_spare,
+               logw_spare)
+    block_sync()
+    for k in range(lane, n_per, bd):
+        copy_particle(b * n_per + k, dp_spare, lin_spare, logw_spare, dp, lin, logw)
+
+
+@wp.kernel
+def move_pose_kernel(
+    n_per: int,
+    seeds: wp.array(dtype=wp.int32),
+    phi: wp.array3d(dtype=wp.mat33),
+    chol: wp.array3d(dtype=wp.mat33),
+    pose: wp.array2d(dtype=wp.float64),
+    exponent: wp.array(dtype=wp.float32),
+    dp: wp.array(dtype=wp.vec3),
+    lin: wp.array(dtype=vec12),
+    pos_out: wp.array(dtype=wp.vec3),
+    quat_out: wp.array(dtype=wp.vec4),
+    stats: wp.array2d(dtype=wp.float64),
+):
+    """The head of an update on CUDA, one thread per particle: :func:`move_particle` (the interval), then
+    :func:`pose_of_particle` (its pose for the model), and the first particle of each filter :func:`begin_stats` (no
+    model reads the statistics): :data:`time_update_kernel`, :data:`particle_poses_kernel` and
+    :data:`begin_update_kernel` in one launch, the same bits."""
+    i = wp.tid()
+    move_particle(i, 0, n_per, seeds, phi, chol, dp, lin)
+    pose_of_particle(i, n_per, pose, dp, lin, pos_out, quat_out)
+    if i % n_per == 0:
+        begin_stats(i // n_per, exponent, stats)
+
+
+@wp.kernel
+def integrity_block_kernel(
+    n_per: int,
+    offset: int,
+    seeds: wp.array(dtype=wp.int32),
+    params: UpdateParams,
+    stats: wp.array2d(dtype=wp.float64),
+    integrity: wp.array2d(dtype=wp.float64),
+    kernel_chol: wp.array(dtype=wp.mat33),
+    dp: wp.array(dtype=wp.vec3),
+    logw: wp.array(dtype=wp.float32),
+):
+    """The integrity monitor of filter b in one CUDA block (:data:`STAGE_BLOCK_DIM` lanes): :func:`integrity_step`
+    (lane 0), a barrier, :func:`respread_particle` (:data:`integrity_kernel` + :data:`respread_kernel`, the same
+    bits)."""
+    b, lane = wp.tid()
+    if lane == 0:
+        integrity_step(b, params, stats, integrity, kernel_chol)
+    block_sync()
+    for k in range(lane, n_per, wp.block_dim()):
+        respread_particle(b * n_per + k, n_per, offset, seeds, params, stats, dp, logw)
+
+
+@wp.kernel
+def record_block_kernel(
+    n_per: int,
+    params: UpdateParams,
+    measurement_update: int,
+    closed_loop: int,
+    logw: wp.array(dtype=wp.float32),
+    stats: wp.array2d(dtype=wp.float64),
+    integrity: wp.array2d(dtype=wp.float64),
+    slot: wp.array(dtype=wp.int32),
+    summary_sums: wp.array3d(dtype=wp.float64),
+    history: wp.array3d(dtype=wp.float64),
+    feedback: wp.array2d(dtype=wp.float64),
+    cov: wp.array3d(dtype=wp.mat33d),
+    pos: wp.array(dtype=wp.vec3d),
+    vel: wp.array(dtype=wp.vec3d),
+    quat: wp.array(dtype=wp.vec4d),
+    accel_bias: wp.array(dtype=wp.vec3d),
+    gyro_bias: wp.array(dtype=wp.vec3d),
+    injections: wp.array(dtype=wp.int32),
+    nominal_hist: wp.array3d(dtype=wp.float64),
+    p_hist: wp.array3d(dtype=wp.float64),
+    dp: wp.array(dtype=wp.vec3),
+    lin: wp.array(dtype=vec12),
+):
+    """The record and feedback of filter b in one CUDA block (:data:`STAGE_BLOCK_DIM` lanes, so the block sum is
+    :data:`summary_kernel`'s): :func:`summary_partial` (lane per chunk), :func:`record_summary`,
+    :func:`update_covariance` (lane 0) and in closed loop :func:`reset_particle`, barriers between
+    (:data:`summary_partials_kernel`, :data:`summary_kernel`, :data:`covariance_update_kernel`,
+    :data:`reset_kernel`: the same bits). The slot advances after, in a launch of its own (every filter reads it)."""
+    b, lane = wp.tid()
+    bd = wp.block_dim()
+    for c in range(lane, N_CHUNKS, bd):
+        summary_partial(b, c, n_per, logw, dp, lin, summary_sums)
+    block_sync()
+    record_summary(b, lane, params, summary_sums, stats, integrity, slot, history, feedback)
+    block_sync()
+    if lane == 0:
+        update_covariance(b, measurement_update, closed_loop, feedback, slot, cov, pos, vel, quat, accel_bias,
+                          gyro_bias, injections, nominal_hist, p_hist)
+    block_sync()
+    if closed_loop != 0:
+        for k in range(lane, n_per, bd):
+            reset_particle(b * n_per + k, n_per, feedback, dp, lin)

@@ -1,0 +1,93 @@
+"""The integrity monitor (MBARI TRN style) and the re-spread of a filter it judges lost."""
+
+import warp as wp
+
+from warptan.kernels.filter.common import (
+    IN_MEAN,
+    IN_RESPREADS,
+    IN_RING,
+    IN_SINCE,
+    ST_MEAN_DP,
+    ST_NIS_MIN,
+    ST_RESPREAD,
+    ST_SKIP,
+    UpdateParams,
+    gaussian3,
+)
+
+wp.set_module_options({"enable_backward": False})
+
+@wp.func
+def integrity_step(b: int, params: UpdateParams, stats: wp.array2d(dtype=wp.float64),
+                   integrity: wp.array2d(dtype=wp.float64), kernel_chol: wp.array(dtype=wp.mat33)):
+    """One thread per filter, after the last stage (MBARI TRN style): the mean over the last ``integrity_window``
+    informative updates of the smallest NIS of any particle — large only when no hypothesis explains the scan,
+    whereas a wide but healthy cloud (acquisition, a flat likelihood) still holds particles that do; above
+    ``integrity_threshold`` (after ``integrity_min_updates``
+    informative updates, so that acquisition is not judged) the filter is lost: flag it for a re-spread and
+    restart the window."""
+    if stats[b, ST_SKIP] != wp.float64(0.0):
+        return
+    w = params.integrity_window
+    k = int(integrity[b, IN_SINCE])
+    integrity[b, IN_RING + k % w] = stats[b, ST_NIS_MIN]
+    k += 1
+    count = wp.min(k, w)
+    total = wp.float64(0.0)
+    for j in range(count):
+        total += integrity[b, IN_RING + j]
+    mean = total / wp.float64(count)
+    integrity[b, IN_MEAN] = mean
+    if k >= params.integrity_min_updates and mean > wp.float64(params.integrity_threshold):
+        stats[b, ST_RESPREAD] = wp.float64(1.0)
+        kernel_chol[b] = params.bandwidth * params.respread_chol  # the re-spread cloud's kernel
+        integrity[b, IN_RESPREADS] = integrity[b, IN_RESPREADS] + wp.float64(1.0)
+        k = 0
+    integrity[b, IN_SINCE] = wp.float64(k)
+
+
+@wp.kernel
+def integrity_kernel(params: UpdateParams, stats: wp.array2d(dtype=wp.float64),
+                     integrity: wp.array2d(dtype=wp.float64), kernel_chol: wp.array(dtype=wp.mat33)):
+    """One thread per (b): :func:`integrity_step`."""
+    b = wp.tid()
+    integrity_step(b, params, stats, integrity, kernel_chol)
+
+
+
+@wp.func
+def respread_particle(
+    i: int,
+    n_per: int,
+    offset: int,
+    seeds: wp.array(dtype=wp.int32),
+    params: UpdateParams,
+    stats: wp.array2d(dtype=wp.float64),
+    dp: wp.array(dtype=wp.vec3),
+    logw: wp.array(dtype=wp.float32),
+):
+    """A filter flagged lost re-spreads dp around its weighted mean with the re-spread covariance, uniform
+    weights (Kalman means kept); stream ``offset + j``."""
+    b = i // n_per
+    if stats[b, ST_RESPREAD] == wp.float64(0.0):
+        return
+    state = wp.rand_init(seeds[b], offset + i % n_per)
+    centre = wp.vec3(wp.float32(stats[b, ST_MEAN_DP]), wp.float32(stats[b, ST_MEAN_DP + 1]),
+                     wp.float32(stats[b, ST_MEAN_DP + 2]))
+    dp[i] = centre + params.respread_chol * gaussian3(state)
+    logw[i] = -wp.log(float(n_per))
+
+
+@wp.kernel
+def respread_kernel(
+    n_per: int,
+    offset: int,
+    seeds: wp.array(dtype=wp.int32),
+    params: UpdateParams,
+    stats: wp.array2d(dtype=wp.float64),
+    dp: wp.array(dtype=wp.vec3),
+    logw: wp.array(dtype=wp.float32),
+):
+    """One thread per (i): :func:`respread_particle`."""
+    i = wp.tid()
+    respread_particle(i, n_per, offset, seeds, params, stats, dp, logw)

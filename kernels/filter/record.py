@@ -1,0 +1,378 @@
+"""The update's record and feedback: summary sums, history, P's measurement update and the closed-loop injection, and
+the moments of an estimate."""
+
+import warp as wp
+
+from warptan.kernels.filter.common import (
+    FB_APPLIED,
+    FB_CONVERGED,
+    FB_LAM,
+    FB_MEAN_DP,
+    FB_MEAN_L,
+    H_APPLIED,
+    H_BAD,
+    H_COV_DP,
+    H_ESS,
+    H_MEAN_DP,
+    H_MEAN_L,
+    H_NIS,
+    H_NIS_AVG,
+    H_NIS_POST,
+    H_RESAMPLES,
+    H_RESPREAD,
+    H_SKIPPED,
+    H_STAGES,
+    H_SUM_W,
+    H_UNPREDICTABLE,
+    H_VAR_L,
+    IN_MEAN,
+    IN_SINCE,
+    MOM_DP,
+    MOM_DPDP,
+    MOM_L,
+    MOM_LL,
+    MOM_W,
+    N_CHUNKS,
+    N_MOMENT_CHUNKS,
+    N_MOMENTS,
+    NOM_BA,
+    NOM_BG,
+    NOM_POS,
+    NOM_QUAT,
+    NOM_VEL,
+    ST_APPLIED,
+    ST_BAD,
+    ST_ESS,
+    ST_LAM,
+    ST_NIS,
+    ST_NIS_MIN,
+    ST_RESAMPLES,
+    ST_RESPREAD,
+    ST_SKIP,
+    ST_STAGES,
+    ST_UNPREDICTABLE,
+    UpdateParams,
+    chunk_range,
+    pair_products,
+    summary_vec,
+    sym_from,
+    vec12,
+    weighted_cov,
+)
+from warptan.kernels.frames import quat_exp_wxyz, quat_log_wxyz, quat_mul_wxyz
+from warptan.kernels.nav import block_of, quat_mul_exp_d, skew_d
+
+wp.set_module_options({"enable_backward": False})
+
+@wp.func
+def summary_partial(b: int, c: int, n_per: int, logw: wp.array(dtype=wp.float32), dp: wp.array(dtype=wp.vec3),
+                    lin: wp.array(dtype=vec12), partial_out: wp.array3d(dtype=wp.float64)):
+    """Filter b, chunk c, after the update (``N_SUMMARY_SUMS`` values): Σw, Σw dp (3), Σw dp∘dp (3),
+    Σw (xy, xz, yz), Σw l (12), Σw l∘l (12)."""
+    lo, hi = chunk_range(c, n_per)
+    s = wp.float64(0.0)
+    m1 = wp.vec3d()
+    m2 = wp.vec3d()
+    m3 = wp.vec3d()
+    l1 = wp.vector(length=12, dtype=wp.float64)
+    l2 = wp.vector(length=12, dtype=wp.float64)
+    for k in range(lo, hi):
+        i = b * n_per + k
+        w = wp.float64(wp.exp(logw[i]))
+        d = wp.vec3d(dp[i])
+        s += w
+        m1 += w * d
+        m2 += w * wp.cw_mul(d, d)
+        m3 += w * pair_products(d)
+        lm = lin[i]
+        for a in range(12):
+            x = wp.float64(lm[a])
+            l1[a] += w * x
+            l2[a] += w * x * x
+    partial_out[b, c, 0] = s
+    for a in range(3):
+        partial_out[b, c, 1 + a] = m1[a]
+        partial_out[b, c, 4 + a] = m2[a]
+        partial_out[b, c, 7 + a] = m3[a]
+    for a in range(12):
+        partial_out[b, c, 10 + a] = l1[a]
+        partial_out[b, c, 22 + a] = l2[a]
+
+
+@wp.kernel
+def summary_partials_kernel(n_per: int, logw: wp.array(dtype=wp.float32), dp: wp.array(dtype=wp.vec3),
+                            lin: wp.array(dtype=vec12), partial_out: wp.array3d(dtype=wp.float64)):
+    """One thread per (b, c): :func:`summary_partial`."""
+    b, c = wp.tid()
+    summary_partial(b, c, n_per, logw, dp, lin, partial_out)
+
+
+
+@wp.func
+def record_summary(
+    b: int,
+    lane: int,
+    params: UpdateParams,
+    partial_in: wp.array3d(dtype=wp.float64),
+    stats: wp.array2d(dtype=wp.float64),
+    integrity: wp.array2d(dtype=wp.float64),
+    slot: wp.array(dtype=wp.int32),
+    history: wp.array3d(dtype=wp.float64),
+    feedback: wp.array2d(dtype=wp.float64),
+):
+    """One block per filter (``wp.launch_tiled``, lanes over the chunks): the update's record in
+    ``history[slot[0], b]`` (``H_*`` columns) and ``feedback[b]`` (``FB_*`` columns: what the covariance update and
+    the closed loop read)."""
+    part = summary_vec()
+    for c in range(lane, N_CHUNKS, wp.block_dim()):
+        for a in range(34):
+            part[a] += partial_in[b, c, a]
+    tot = wp.tile_sum(wp.tile(part, preserve_type=True))[0]
+    if lane != 0:
+        return
+    s = tot[0]
+    applied = stats[b, ST_APPLIED]
+    if stats[b, ST_SKIP] != wp.float64(0.0):
+        applied = wp.float64(0.0)
+    feedback[b, FB_APPLIED] = applied
+    gate = wp.float64(1.0)  # the verdict the particles' Kalman update read (the previous update's), not yet renewed
+    if params.gate_linear != 0:
+        gate = feedback[b, FB_CONVERGED]
+    for a in range(6):
+        feedback[b, FB_LAM + a] = gate * applied * stats[b, ST_LAM + a]
+    for a in range(3):
+        feedback[b, FB_MEAN_DP + a] = tot[1 + a] / s
+    for a in range(12):
+        feedback[b, FB_MEAN_L + a] = tot[10 + a] / s
+    judged = integrity[b, IN_SINCE] >= wp.float64(params.integrity_min_updates)
+    ok = integrity[b, IN_MEAN] <= wp.float64(params.integrity_threshold) and stats[b, ST_RESPREAD] == wp.float64(0.0)
+    feedback[b, FB_CONVERGED] = wp.where(judged and ok, wp.float64(1.0), wp.float64(0.0))
+    t = slot[0]
+    if t >= history.shape[0]:
+        return
+    cov = weighted_cov(s, wp.vec3d(tot[1], tot[2], tot[3]), wp.vec3d(tot[4], tot[5], tot[6]),
+                       wp.vec3d(tot[7], tot[8], tot[9]))
+    history[t, b, H_ESS] = stats[b, ST_ESS]
+    history[t, b, H_RESAMPLES] = stats[b, ST_RESAMPLES]
+    history[t, b, H_RESPREAD] = stats[b, ST_RESPREAD]
+    history[t, b, H_BAD] = stats[b, ST_BAD]
+    history[t, b, H_UNPREDICTABLE] = stats[b, ST_UNPREDICTABLE]
+    history[t, b, H_SUM_W] = s
+    for a in range(3):
+        history[t, b, H_MEAN_DP + a] = tot[1 + a] / s
+        history[t, b, H_COV_DP + a] = cov[a, a]
+    history[t, b, H_COV_DP + 3] = cov[0, 1]
+    history[t, b, H_COV_DP + 4] = cov[0, 2]
+    history[t, b, H_COV_DP + 5] = cov[1, 2]
+    history[t, b, H_STAGES] = stats[b, ST_STAGES]
+    history[t, b, H_NIS] = stats[b, ST_NIS_MIN]
+    history[t, b, H_NIS_POST] = stats[b, ST_NIS]
+    history[t, b, H_NIS_AVG] = integrity[b, IN_MEAN]
+    history[t, b, H_SKIPPED] = stats[b, ST_SKIP]
+    history[t, b, H_APPLIED] = stats[b, ST_APPLIED]
+    for a in range(12):
+        mean = tot[10 + a] / s
+        history[t, b, H_MEAN_L + a] = mean
+        history[t, b, H_VAR_L + a] = wp.max(tot[22 + a] / s - mean * mean, wp.float64(0.0))
+
+
+@wp.kernel
+def summary_kernel(params: UpdateParams, partial_in: wp.array3d(dtype=wp.float64), stats: wp.array2d(dtype=wp.float64),
+                   integrity: wp.array2d(dtype=wp.float64), slot: wp.array(dtype=wp.int32),
+                   history: wp.array3d(dtype=wp.float64), feedback: wp.array2d(dtype=wp.float64)):
+    """One thread per (b, lane): :func:`record_summary`."""
+    b, lane = wp.tid()
+    record_summary(b, lane, params, partial_in, stats, integrity, slot, history, feedback)
+
+
+
+@wp.func
+def update_covariance(
+    b: int,
+    measurement_update: int,
+    closed_loop: int,
+    feedback: wp.array2d(dtype=wp.float64),
+    slot: wp.array(dtype=wp.int32),
+    cov: wp.array3d(dtype=wp.mat33d),
+    pos: wp.array(dtype=wp.vec3d),
+    vel: wp.array(dtype=wp.vec3d),
+    quat: wp.array(dtype=wp.vec4d),
+    accel_bias: wp.array(dtype=wp.vec3d),
+    gyro_bias: wp.array(dtype=wp.vec3d),
+    injections: wp.array(dtype=wp.int32),
+    nominal_hist: wp.array3d(dtype=wp.float64),
+    p_hist: wp.array3d(dtype=wp.float64),
+):
+    """One thread per filter, after the update's record (float64, on the filter's device):
+
+    1. the nominal INS at this update into ``nominal_hist[slot, b]`` (p, v, q, b_a, b_g: before any injection);
+    2. the Kalman measurement update of the shared P (``measurement_update``): ``P⁺ = P - P_:θ Λ̄ (I + A Λ̄)⁻¹ P_θ:``
+       (A = P_θθ, Λ̄ = ``feedback`` FB_LAM, the weighted mean attitude information times the exponent applied);
+       its diagonal into ``p_hist[slot, b]``;
+    3. closed loop (``closed_loop``, filters the integrity monitor judges consistent, FB_CONVERGED): nominal ⊕ the
+       mean error (position, velocity, attitude ``q ⊗ Exp(θ̂)``, biases), ``P <- G P Gᵀ``,
+       ``G = diag(I, I - [θ̂/2]×, I, I)`` (Solà 2017 §6.3), ``injections[b] += 1``; :func:`reset_kernel` then
+       re-expresses the particles."""
+    t = slot[0]
+    record = t < nominal_hist.shape[0]
+    if record:
+        for a in range(3):
+            nominal_hist[t, b, NOM_POS + a] = pos[b][a]
+            nominal_hist[t, b, NOM_VEL + a] = vel[b][a]
+            nominal_hist[t, b, NOM_BA + a] = accel_bias[b][a]
+            nominal_hist[t, b, NOM_BG + a] = gyro_bias[b][a]
+        for a in range(4):
+            nominal_hist[t, b, NOM_QUAT + a] = quat[b][a]
+    if measurement_update != 0:
+        lam = sym_from(feedback, b, FB_LAM)
+        gain = lam * wp.inverse(wp.identity(n=3, dtype=wp.float64) + cov[b, 1, 1] * lam)
+        c0 = cov[b, 0, 1]
+        c1 = cov[b, 1, 1]
+        c2 = cov[b, 2, 1]
+        c3 = cov[b, 3, 1]
+        for r in range(4):
+            lg = block_of(r, c0, c1, c2, c3, c3) * gain  # P_:θ's blocks, read before any is overwritten
+            for c in range(4):
+                cov[b, r, c] = cov[b, r, c] - lg * wp.transpose(block_of(c, c0, c1, c2, c3, c3))
+        half = wp.float64(0.5)
+        for r in range(4):
+            for c in range(r, 4):
+                m = half * (cov[b, r, c] + wp.transpose(cov[b, c, r]))
+                cov[b, r, c] = m
+                cov[b, c, r] = wp.transpose(m)
+    if record:
+        for r in range(4):
+            blk = cov[b, r, r]
+            for a in range(3):
+                p_hist[t, b, 3 * r + a] = blk[a, a]
+    if closed_loop == 0 or feedback[b, FB_CONVERGED] == wp.float64(0.0):
+        return
+    l_hat = wp.vector(length=12, dtype=wp.float64)
+    for a in range(12):
+        l_hat[a] = feedback[b, FB_MEAN_L + a]
+    th = wp.vec3d(l_hat[3], l_hat[4], l_hat[5])
+    pos[b] = pos[b] + wp.vec3d(feedback[b, FB_MEAN_DP], feedback[b, FB_MEAN_DP + 1], feedback[b, FB_MEAN_DP + 2])
+    vel[b] = vel[b] + wp.vec3d(l_hat[0], l_hat[1], l_hat[2])
+    quat[b] = quat_mul_exp_d(quat[b], th)
+    accel_bias[b] = accel_bias[b] + wp.vec3d(l_hat[6], l_hat[7], l_hat[8])
+    gyro_bias[b] = gyro_bias[b] + wp.vec3d(l_hat[9], l_hat[10], l_hat[11])
+    g = wp.identity(n=3, dtype=wp.float64) - wp.float64(0.5) * skew_d(th)
+    for c in range(4):
+        cov[b, 1, c] = g * cov[b, 1, c]
+    for r in range(4):
+        cov[b, r, 1] = cov[b, r, 1] * wp.transpose(g)
+    injections[b] = injections[b] + 1
+
+
+@wp.kernel
+def covariance_update_kernel(
+    measurement_update: int,
+    closed_loop: int,
+    feedback: wp.array2d(dtype=wp.float64),
+    slot: wp.array(dtype=wp.int32),
+    cov: wp.array3d(dtype=wp.mat33d),
+    pos: wp.array(dtype=wp.vec3d),
+    vel: wp.array(dtype=wp.vec3d),
+    quat: wp.array(dtype=wp.vec4d),
+    accel_bias: wp.array(dtype=wp.vec3d),
+    gyro_bias: wp.array(dtype=wp.vec3d),
+    injections: wp.array(dtype=wp.int32),
+    nominal_hist: wp.array3d(dtype=wp.float64),
+    p_hist: wp.array3d(dtype=wp.float64),
+):
+    """One thread per (b): :func:`update_covariance`."""
+    b = wp.tid()
+    update_covariance(b, measurement_update, closed_loop, feedback, slot, cov, pos, vel, quat, accel_bias, gyro_bias,
+                      injections, nominal_hist, p_hist)
+
+
+
+@wp.func
+def reset_particle(
+    i: int,
+    n_per: int,
+    feedback: wp.array2d(dtype=wp.float64),
+    dp: wp.array(dtype=wp.vec3),
+    lin: wp.array(dtype=vec12),
+):
+    """Closed loop: :func:`covariance_update_kernel` injected the filter's mean error ``[d̂p, d̂v, θ̂, d̂ba, d̂bg]``
+    (``feedback``) into its nominal INS; every particle's error is taken relative to the new nominal, so that each
+    particle's total state is unchanged: additive parts minus the mean, the attitude
+    ``dθ_i <- Log(Exp(θ̂)⁻¹ Exp(dθ_i))`` (right perturbations, SPEC §3). Filters not injected (FB_CONVERGED = 0)
+    are left alone."""
+    b = i // n_per
+    if feedback[b, FB_CONVERGED] == wp.float64(0.0):
+        return
+    m = vec12()
+    for a in range(12):
+        m[a] = wp.float32(feedback[b, FB_MEAN_L + a])
+    dp[i] = dp[i] - wp.vec3(wp.float32(feedback[b, FB_MEAN_DP]), wp.float32(feedback[b, FB_MEAN_DP + 1]),
+                            wp.float32(feedback[b, FB_MEAN_DP + 2]))
+    lm = lin[i]
+    th_hat = wp.vec3(m[3], m[4], m[5])
+    th = wp.vec3(lm[3], lm[4], lm[5])
+    rel = quat_log_wxyz(quat_mul_wxyz(quat_exp_wxyz(-th_hat), quat_exp_wxyz(th)))
+    out = lm - m
+    out[3] = rel[0]
+    out[4] = rel[1]
+    out[5] = rel[2]
+    lin[i] = out
+
+
+@wp.kernel
+def reset_kernel(
+    n_per: int,
+    feedback: wp.array2d(dtype=wp.float64),
+    dp: wp.array(dtype=wp.vec3),
+    lin: wp.array(dtype=vec12),
+):
+    """One thread per (i): :func:`reset_particle`."""
+    i = wp.tid()
+    reset_particle(i, n_per, feedback, dp, lin)
+
+
+
+@wp.kernel
+def advance_slot_kernel(slot: wp.array(dtype=wp.int32)):
+    slot[0] = slot[0] + 1
+
+
+@wp.kernel
+def moment_partials_kernel(
+    n_per: int,
+    logw: wp.array(dtype=wp.float32),
+    dp: wp.array(dtype=wp.vec3),
+    lin: wp.array(dtype=vec12),
+    partial_out: wp.array3d(dtype=wp.float64),
+):
+    """Filter b, chunk c: float64 partial sums of w, w dp, w dp dpᵀ, w l, w l lᵀ (weights normalised)."""
+    b, c = wp.tid()
+    size = (n_per + N_MOMENT_CHUNKS - 1) // N_MOMENT_CHUNKS
+    lo = wp.min(c * size, n_per)
+    hi = wp.min(lo + size, n_per)
+    for k in range(N_MOMENTS):
+        partial_out[b, c, k] = wp.float64(0.0)
+    for k in range(lo, hi):
+        i = b * n_per + k
+        w = wp.float64(wp.exp(logw[i]))
+        d = dp[i]
+        lm = lin[i]
+        partial_out[b, c, MOM_W] += w
+        for a in range(3):
+            partial_out[b, c, MOM_DP + a] += w * wp.float64(d[a])
+            for e in range(3):
+                partial_out[b, c, MOM_DPDP + 3 * a + e] += w * wp.float64(d[a]) * wp.float64(d[e])
+        for a in range(12):
+            partial_out[b, c, MOM_L + a] += w * wp.float64(lm[a])
+            for e in range(12):
+                partial_out[b, c, MOM_LL + 12 * a + e] += w * wp.float64(lm[a]) * wp.float64(lm[e])
+
+
+@wp.kernel
+def combine_partials_kernel(partial_in: wp.array3d(dtype=wp.float64), total_out: wp.array2d(dtype=wp.float64)):
+    """One thread per (filter, moment): sum the chunks in order."""
+    b, k = wp.tid()
+    s = wp.float64(0.0)
+    for c in range(partial_in.shape[1]):
+        s += partial_in[b, c, k]
+    total_out[b, k] = s

@@ -1,0 +1,262 @@
+"""Resampling: cumulative weights, ancestors (systematic, stratified, multinomial), the regularised gather with kernel
+shrinkage, and the map-error modes' state."""
+
+import warp as wp
+
+from warptan.kernels.filter.common import (
+    ST_JITTER,
+    ST_MEAN_DP,
+    ST_RESAMPLE,
+    ST_RESPREAD,
+    ST_SKIP,
+    UpdateParams,
+    chunk_range,
+    gaussian3,
+    search_cdf,
+    stats_chol,
+    vec12,
+)
+from warptan.kernels.likelihood import MAX_MODES, MODE_K0, MODE_RHO, mode_prior, modes_vec
+
+wp.set_module_options({"enable_backward": False})
+
+@wp.func
+def cdf_partial(b: int, c: int, n_per: int, logw: wp.array(dtype=wp.float32), stats: wp.array2d(dtype=wp.float64),
+                sums_out: wp.array2d(dtype=wp.float64)):
+    """Filter b (resampling only), chunk c: ``Σ w_i`` over the chunk."""
+    if stats[b, ST_RESAMPLE] == wp.float64(0.0):
+        return
+    lo, hi = chunk_range(c, n_per)
+    s = wp.float64(0.0)
+    for k in range(lo, hi):
+        s += wp.float64(wp.exp(logw[b * n_per + k]))
+    sums_out[b, c] = s
+
+
+@wp.kernel
+def cdf_partials_kernel(n_per: int, logw: wp.array(dtype=wp.float32), stats: wp.array2d(dtype=wp.float64),
+                        sums_out: wp.array2d(dtype=wp.float64)):
+    """One thread per (b, c): :func:`cdf_partial`."""
+    b, c = wp.tid()
+    cdf_partial(b, c, n_per, logw, stats, sums_out)
+
+
+
+@wp.func
+def cdf_chunk(b: int, c: int, n_per: int, logw: wp.array(dtype=wp.float32), stats: wp.array2d(dtype=wp.float64),
+              sums_in: wp.array2d(dtype=wp.float64), cdf_out: wp.array(dtype=wp.float32)):
+    """Filter b (resampling only), chunk c: the inclusive cumulative weights of its particles (float64 sums)."""
+    if stats[b, ST_RESAMPLE] == wp.float64(0.0):
+        return
+    lo, hi = chunk_range(c, n_per)
+    s = wp.float64(0.0)
+    for k in range(c):
+        s += sums_in[b, k]
+    for k in range(lo, hi):
+        s += wp.float64(wp.exp(logw[b * n_per + k]))
+        cdf_out[b * n_per + k] = wp.float32(s)
+
+
+@wp.kernel
+def cdf_kernel(n_per: int, logw: wp.array(dtype=wp.float32), stats: wp.array2d(dtype=wp.float64),
+               sums_in: wp.array2d(dtype=wp.float64), cdf_out: wp.array(dtype=wp.float32)):
+    """One thread per (b, c): :func:`cdf_chunk`."""
+    b, c = wp.tid()
+    cdf_chunk(b, c, n_per, logw, stats, sums_in, cdf_out)
+
+
+@wp.func
+def ancestor(
+    i: int,
+    n_per: int,
+    stage: int,
+    seeds: wp.array(dtype=wp.int32),
+    scheme: int,
+    stats: wp.array2d(dtype=wp.float64),
+    cdf: wp.array(dtype=wp.float32),
+    ancestors_out: wp.array(dtype=wp.int32),
+):
+    """Ancestor of slot j of a resampling filter: 0 systematic ``(j + U)/n`` (one U), 1 stratified
+    ``(j + U_j)/n``, 2 multinomial ``U_j``; a filter that does not resample keeps its particles. Random
+    streams: ``stage · 2n + j``."""
+    b = i // n_per
+    j = i % n_per
+    if stats[b, ST_RESAMPLE] == wp.float64(0.0):
+        ancestors_out[i] = i
+        return
+    lo = b * n_per
+    base = stage * 2 * n_per
+    total = cdf[lo + n_per - 1]
+    u = float(0.0)
+    if scheme == 0:
+        shared = wp.rand_init(seeds[b], base)
+        u = (float(j) + wp.randf(shared)) / float(n_per)
+    elif scheme == 1:
+        own = wp.rand_init(seeds[b], base + j)
+        u = (float(j) + wp.randf(own)) / float(n_per)
+    else:
+        own = wp.rand_init(seeds[b], base + j)
+        u = wp.randf(own)
+    ancestors_out[i] = search_cdf(cdf, lo, lo + n_per, u * total)
+
+
+@wp.kernel
+def ancestors_kernel(
+    n_per: int,
+    stage: int,
+    seeds: wp.array(dtype=wp.int32),
+    scheme: int,
+    stats: wp.array2d(dtype=wp.float64),
+    cdf: wp.array(dtype=wp.float32),
+    ancestors_out: wp.array(dtype=wp.int32),
+):
+    """One thread per (i): :func:`ancestor`."""
+    i = wp.tid()
+    ancestor(i, n_per, stage, seeds, scheme, stats, cdf, ancestors_out)
+
+
+@wp.func
+def gather(
+    i: int,
+    n_per: int,
+    stage: int,
+    seeds: wp.array(dtype=wp.int32),
+    params: UpdateParams,
+    stats: wp.array2d(dtype=wp.float64),
+    ancestors: wp.array(dtype=wp.int32),
+    dp_in: wp.array(dtype=wp.vec3),
+    lin_in: wp.array(dtype=vec12),
+    logw_in: wp.array(dtype=wp.float32),
+    dp_out: wp.array(dtype=wp.vec3),
+    lin_out: wp.array(dtype=vec12),
+    logw_out: wp.array(dtype=wp.float32),
+):
+    """Slot i takes its ancestor in a resampling filter, with uniform weights and the regularisation jitter with
+    (partial) kernel shrinkage (Liu & West 2001): ``dp = a dp_anc + (1 - a) m + h chol(Σ̂) z``,
+    ``a = sqrt(1 - s h²)``, ``h`` the bandwidth times the stage's ``ST_JITTER`` (:data:`JITTER_NIS`), Σ̂ and m the
+    weighted covariance and mean of dp before resampling (stream
+    ``stage · 2n + n + j``): the mean is kept and the covariance grows by ``1 + (1 - s) h²``.
+    The Kalman mean is the ancestor's (see :mod:`warptan.filter.mpf`). Other filters copy."""
+    b = i // n_per
+    a = ancestors[i]
+    d = dp_in[a]
+    lw = logw_in[a]
+    if stats[b, ST_RESAMPLE] != wp.float64(0.0):
+        lw = -wp.log(float(n_per))
+        h = params.bandwidth * wp.float32(stats[b, ST_JITTER])
+        if h > 0.0:
+            state = wp.rand_init(seeds[b], stage * 2 * n_per + n_per + i % n_per)
+            shrink = wp.sqrt(wp.max(1.0 - params.shrinkage * h * h, 0.0))
+            mean = wp.vec3(wp.float32(stats[b, ST_MEAN_DP]), wp.float32(stats[b, ST_MEAN_DP + 1]),
+                           wp.float32(stats[b, ST_MEAN_DP + 2]))
+            d = shrink * d + (1.0 - shrink) * mean + h * (stats_chol(stats, b) * gaussian3(state))
+    dp_out[i] = d
+    lin_out[i] = lin_in[a]
+    logw_out[i] = lw
+
+
+@wp.kernel
+def gather_kernel(
+    n_per: int,
+    stage: int,
+    seeds: wp.array(dtype=wp.int32),
+    params: UpdateParams,
+    stats: wp.array2d(dtype=wp.float64),
+    ancestors: wp.array(dtype=wp.int32),
+    dp_in: wp.array(dtype=wp.vec3),
+    lin_in: wp.array(dtype=vec12),
+    logw_in: wp.array(dtype=wp.float32),
+    dp_out: wp.array(dtype=wp.vec3),
+    lin_out: wp.array(dtype=vec12),
+    logw_out: wp.array(dtype=wp.float32),
+):
+    """One thread per (i): :func:`gather`."""
+    i = wp.tid()
+    gather(i, n_per, stage, seeds, params, stats, ancestors, dp_in, lin_in, logw_in, dp_out, lin_out, logw_out)
+
+
+
+@wp.func
+def copy_particle(i: int, dp_in: wp.array(dtype=wp.vec3), lin_in: wp.array(dtype=vec12),
+                  logw_in: wp.array(dtype=wp.float32), dp_out: wp.array(dtype=wp.vec3),
+                  lin_out: wp.array(dtype=vec12), logw_out: wp.array(dtype=wp.float32)):
+    dp_out[i] = dp_in[i]
+    lin_out[i] = lin_in[i]
+    logw_out[i] = logw_in[i]
+
+
+@wp.kernel
+def copy_particles_kernel(dp_in: wp.array(dtype=wp.vec3), lin_in: wp.array(dtype=vec12),
+                          logw_in: wp.array(dtype=wp.float32), dp_out: wp.array(dtype=wp.vec3),
+                          lin_out: wp.array(dtype=vec12), logw_out: wp.array(dtype=wp.float32)):
+    """:func:`copy_particle`, one thread per i."""
+    i = wp.tid()
+    copy_particle(i, dp_in, lin_in, logw_in, dp_out, lin_out, logw_out)
+
+
+@wp.kernel
+def gather_modes_kernel(ancestors: wp.array(dtype=wp.int32), mean_in: wp.array(dtype=modes_vec),
+                        post_in: wp.array(dtype=modes_vec), mean_out: wp.array(dtype=modes_vec),
+                        post_out: wp.array(dtype=modes_vec)):
+    """Slot i takes its ancestor's map-error mode amplitudes: the prior it was weighted with and its posterior (the
+    map error under a hypothesis belongs to the hypothesis)."""
+    i = wp.tid()
+    a = ancestors[i]
+    mean_out[i] = mean_in[a]
+    post_out[i] = post_in[a]
+
+
+@wp.kernel
+def copy_modes_kernel(mean_in: wp.array(dtype=modes_vec), post_in: wp.array(dtype=modes_vec),
+                      mean_out: wp.array(dtype=modes_vec), post_out: wp.array(dtype=modes_vec)):
+    i = wp.tid()
+    mean_out[i] = mean_in[i]
+    post_out[i] = post_in[i]
+
+
+@wp.kernel
+def modes_finalize_kernel(
+    n_per: int,
+    m: int,
+    table: wp.array(dtype=modes_vec),
+    stats: wp.array2d(dtype=wp.float64),
+    post: wp.array(dtype=modes_vec),
+    var: wp.array(dtype=modes_vec),
+    mean: wp.array(dtype=modes_vec),
+):
+    """After an update (and a re-spread): each particle's map-error mode amplitudes for the next scan. Applied: the
+    model's ``ρ_i q_i`` (:func:`warptan.kernels.likelihood.mode_post`); skipped: the prediction alone (``μ ← ρ T
+    μ``); re-spread: zero. Before :func:`modes_variance_kernel` (it reads the filter's variances unchanged)."""
+    i = wp.tid()
+    b = i // n_per
+    if stats[b, ST_RESPREAD] != wp.float64(0.0):
+        mean[i] = modes_vec()
+    elif stats[b, ST_SKIP] != wp.float64(0.0):
+        mu, _pv = mode_prior(table, m, mean[i], var[b])
+        mean[i] = wp.cw_mul(table[m + MODE_RHO], mu)
+    else:
+        mean[i] = post[i]
+
+
+@wp.kernel
+def modes_variance_kernel(m: int, table: wp.array(dtype=modes_vec), stats: wp.array2d(dtype=wp.float64),
+                          var: wp.array(dtype=modes_vec)):
+    """Filter b's variances of its mode amplitudes for the next scan: applied, ``P_i ← ρ_i² P⁻_i / (1 + P⁻_i) + (1 −
+    ρ_i²) k⁰_i`` (the Kalman update of independent modes of unit noise, then a first-order step along the track);
+    skipped, the step alone; re-spread (or none yet and skipped): none (negative: the next scan starts from the
+    one-scan prior ``k⁰``)."""
+    b = wp.tid()
+    skipped = stats[b, ST_SKIP] != wp.float64(0.0)
+    if stats[b, ST_RESPREAD] != wp.float64(0.0) or (skipped and var[b][0] < 0.0):
+        var[b] = modes_vec(-1.0)
+        return
+    rho = table[m + MODE_RHO]
+    k0 = table[m + MODE_K0]
+    _mu, pv = mode_prior(table, m, modes_vec(), var[b])
+    v = modes_vec()
+    for k in range(MAX_MODES):
+        after = pv[k]
+        if not skipped:
+            after = pv[k] / (1.0 + pv[k])
+        v[k] = rho[k] * rho[k] * after + (1.0 - rho[k] * rho[k]) * k0[k]
+    var[b] = v
