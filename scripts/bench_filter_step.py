@@ -11,8 +11,8 @@ before the clock stops): ``predict_ms`` (per IMU sample: the interval's samples 
 ``throughput_step_ms`` (the same intervals run back to back with one synchronisation at the end: the host stages
 interval k + 1 while the device runs interval k) and ``estimate_ms`` (moments → host, not part of a step). The
 measurement upload is part of the step (``stage``); simulating it is not. Then a third run of intervals with the
-filter's own timers on (:class:`warptan.filter.mpf.StepTimer`): the medians ``host_ms`` (Python: IMU buffering, interval
-staging, issuing launches or the graph), ``upload_ms`` (validating, packing and copying the measurement to the
+filter's own timers on (:class:`warptan.filter.records.StepTimer`): the medians ``host_ms`` (Python: IMU buffering,
+interval staging, issuing launches or the graph), ``upload_ms`` (validating, packing and copying the measurement to the
 device) and ``device_ms`` (the update's device work: CUDA events around it, or the CPU's launches) per interval.
 
 With ``--scenario S8 [S7 ...]`` each row is the filter that scenario flies (its map, surface, likelihood, scan,
@@ -42,8 +42,9 @@ import warp as wp
 import warptan as wt
 from warptan.cli import count_arg, script_inputs
 from warptan.filter.config import FilterConfig
-from warptan.filter.mpf import MarginalizedParticleFilter, StepTimer
+from warptan.filter.mpf import MarginalizedParticleFilter
 from warptan.filter.prior import InitialErrors, initial_nominal, prior_linear_cov
+from warptan.filter.records import StepTimer
 from warptan.kernels import mpf as kmpf
 from warptan.meta import run_meta
 from warptan.nav.imu import ImuModel

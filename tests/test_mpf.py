@@ -904,7 +904,7 @@ def test_predict_many_equals_one_predict_per_sample(rugged):
 def test_step_timer_records_each_update(device, rugged):
     """``mpf.timer = StepTimer()``: one host / upload / device time per update, finite and ≥ 0, the IMU buffering
     counted as host; timing changes no result (same records as an untimed run)."""
-    from warptan.filter.mpf import StepTimer
+    from warptan.filter.records import StepTimer
 
     hist = []
     for timed in (False, True):
