@@ -340,7 +340,7 @@ def test_partly_skipped_runs_are_named_in_the_summary(capsys):
     class Partly:
         scenario, seed, run = "S8", 3, Run()
 
-    assert cli._report_skipped([Partly()]) == 0
+    assert cli.commands._report_skipped([Partly()]) == 0
     out, _ = capsys.readouterr()
     assert "S8 seed 3: 15 of 200 updates were not used (12 skipped" in out and "3 without a valid measurement" in out
 

@@ -220,7 +220,7 @@ def test_warptan_run_notes_an_unconverged_run(capsys):
     wide = SimpleNamespace(t_s=t, sigma3_pos=np.tile([300.0, 200.0, 5.0], (len(t), 1)))
     narrow = SimpleNamespace(t_s=t, sigma3_pos=np.tile([3.0, 2.0, 5.0], (len(t), 1)))
     config = {"filter": {"converged_after_s": 30.0}}
-    cli._report_unconverged([SimpleNamespace(scenario="S9", seed=4, run=wide, config=config),
+    cli.commands._report_unconverged([SimpleNamespace(scenario="S9", seed=4, run=wide, config=config),
                              SimpleNamespace(scenario="S8", seed=1, run=narrow, config=config)])
     out = capsys.readouterr().out
     assert "S9 seed 4: unconverged" in out and "S8" not in out

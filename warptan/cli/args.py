@@ -1,0 +1,71 @@
+"""Argument types and defaults the command line and the benchmark scripts share (a bad value: one line, exit 2)."""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+
+DEFAULT_TERRAIN = "synthetic:rugged"
+
+
+def count_arg(text: str) -> int:
+    """argparse type: a whole number ≥ 1 (the command line's and the scripts' counts)."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be a whole number ≥ 1, got {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be ≥ 1, got {value}")
+    return value
+
+
+def seed_arg(text: str) -> int:
+    """argparse type: a seed, a whole number in [0, 2**63)."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be a whole number ≥ 0, got {text!r}") from None
+    if not 0 <= value < 2**63:
+        raise argparse.ArgumentTypeError(f"must be in [0, 2**63), got {value}")
+    return value
+
+
+def number_arg(minimum: float, strict: bool):
+    """argparse type: a finite number > minimum (strict) or ≥ minimum."""
+    def parse(text: str) -> float:
+        try:
+            value = float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"must be a number, got {text!r}") from None
+        if not math.isfinite(value) or value < minimum or (strict and value == minimum):
+            raise argparse.ArgumentTypeError(f"must be a finite number {'>' if strict else '≥'} {minimum:g}, "
+                                             f"got {text!r}")
+        return value
+    return parse
+
+
+def _relief_arg(text: str):
+    """argparse type: 'auto' or a finite number (checked with the scenario)."""
+    return "auto" if text.strip().lower() == "auto" else _finite(text)
+
+
+def _finite(text: str) -> float:
+    """argparse type: any finite number."""
+    return number_arg(-math.inf, False)(text)
+
+
+def script_inputs(prog: str, devices: list[str], terrain_spec: str):
+    """For the benchmark scripts: silence Warp, check the device names and load the terrain; a bad name or
+    terrain prints one line and exits with status 2 (no traceback)."""
+    from warptan.device import quiet_warp, resolve_device
+    from warptan.terrain.grid import Terrain
+
+    quiet_warp()
+    try:
+        for d in devices:
+            resolve_device(d)
+        return Terrain.load(terrain_spec)
+    except (ValueError, FileNotFoundError) as err:
+        print(f"{prog}: error: {err}", file=sys.stderr)
+        raise SystemExit(2) from None
