@@ -82,7 +82,7 @@ On CUDA a tempering stage's per-filter pieces after the candidates' partials (ES
 partials, maximum, exp partials, weight statistics, normalisation, Kalman update) run as one block per filter
 (:data:`warptan.kernels.mpf.stage_block_kernel`), and so does a resampling (:data:`~warptan.kernels.mpf.
 resample_block_kernel`): the same functions on the same values with barriers between them, the same bits as the
-separate kernels (a graph node costs a few µs whatever its work: 13 nodes a stage became 3). The CPU keeps the
+separate kernels (a graph node costs a few µs whatever its work: 14 nodes a stage became 3). The CPU keeps the
 separate kernels (whose particle loops split over cores). ``_lean`` (off until measured on a GPU) fuses the head
 (moves, poses, statistics reset) and the tail (integrity + re-spread; record + P's update + reset) likewise and
 nests the stages' conditionals; the same bits on the CPU (``tests/test_mpf.py``).
@@ -208,15 +208,8 @@ class MarginalizedParticleFilter:
         self.config = config
         """The filter's settings (:class:`~warptan.filter.config.FilterConfig`)."""
         c = config
-        n_particles, resample_threshold, resampler = c.n_particles, c.resample_threshold, c.resampler
-        pos_noise, kalman_pos_noise, regularize, shrinkage = c.pos_noise, c.kalman_pos_noise, c.regularize, c.shrinkage
-        temper_ess, max_stages, max_unpredictable = c.temper_ess, c.max_stages, c.max_unpredictable
-        integrity_window, integrity_threshold, respread_scale = c.integrity_window, c.integrity_threshold, \
-            c.respread_scale
-        measurement_update, closed_loop, gate_linear_update, bad_imu = c.measurement_update, c.closed_loop, \
-            c.gate_linear_update, c.bad_imu
-        if n_particles < FEW_PARTICLES:
-            warnings.warn(f"n_particles = {n_particles}: too few particles to represent the position error; the "
+        if c.n_particles < FEW_PARTICLES:
+            warnings.warn(f"n_particles = {c.n_particles}: too few particles to represent the position error; the "
                           f"estimate and its bounds are not meaningful (use ≥ {FEW_PARTICLES}; the scenarios use 500)",
                           FilterWarning, stacklevel=2)
         nominals = list(nominal) if isinstance(nominal, (list, tuple)) else [nominal]
@@ -236,14 +229,14 @@ class MarginalizedParticleFilter:
         self.dt = 1.0 / check_rate(rate_hz)
         self.p0_pos = _as_cov(p0_pos, 3, "p0_pos")
         p0 = _as_cov(p0_lin, 12, "p0_lin")
-        self.n = int(n_particles)
+        self.n = int(c.n_particles)
         self.device = resolve_device(device)
-        self.resample_threshold = float(resample_threshold)
-        self.scheme = SCHEMES[resampler]
-        if kalman_pos_noise == 0 and not np.any(p0[0:3, 0:3]):
+        self.resample_threshold = float(c.resample_threshold)
+        self.scheme = SCHEMES[c.resampler]
+        if c.kalman_pos_noise == 0 and not np.any(p0[0:3, 0:3]):
             raise FilterError("kalman_pos_noise = 0 with a zero velocity prior makes N_k singular; give one of them")
-        self.q_pos = (kalman_pos_noise**2) * self.dt
-        self.q_rough = (pos_noise**2) * self.dt
+        self.q_pos = (c.kalman_pos_noise**2) * self.dt
+        self.q_rough = (c.pos_noise**2) * self.dt
         ql = np.diag(process_noise(self.grade, self.dt))[3:15]
         self._q_lin = wp.vec4d(ql[0], ql[3], ql[6], ql[9])
         # A stated map error's offset under the scan rides on the particles' altitude (height above the map):
@@ -265,21 +258,21 @@ class MarginalizedParticleFilter:
         """(B,) Q^n's diagonal per filter (m² per nominal step): the Kalman part's position noise and the fix wander."""
         self._q_dev = (wp.array(self.q_pos, dtype=wp.float64, device=self.device),
                        wp.array(self._q_vel_down, dtype=wp.float64, device=self.device))
-        self.max_stages = int(max_stages)
-        self.bandwidth = float(regularize) * (4.0 / (self.n * 5.0)) ** (1.0 / 7.0)
+        self.max_stages = int(c.max_stages)
+        self.bandwidth = float(c.regularize) * (4.0 / (self.n * 5.0)) ** (1.0 / 7.0)
         """Regularisation bandwidth h (Silverman's rule for d = 3 times ``regularize``)."""
         params = kmpf.UpdateParams()
         params.resample_threshold = self.resample_threshold
-        params.temper_ess = float(temper_ess)
+        params.temper_ess = float(c.temper_ess)
         params.bandwidth = self.bandwidth
-        params.shrinkage = float(shrinkage)
-        params.max_unpredictable = float(max_unpredictable)
-        params.integrity_window = int(integrity_window)
-        params.integrity_threshold = float(integrity_threshold)
-        params.gate_linear = int(bool(gate_linear_update))
-        params.integrity_min_updates = 2 * int(integrity_window)
+        params.shrinkage = float(c.shrinkage)
+        params.max_unpredictable = float(c.max_unpredictable)
+        params.integrity_window = int(c.integrity_window)
+        params.integrity_threshold = float(c.integrity_threshold)
+        params.gate_linear = int(bool(c.gate_linear_update))
+        params.integrity_min_updates = 2 * int(c.integrity_window)
         chol_p0 = np.linalg.cholesky(self.p0_pos + 1e-12 * np.eye(3))
-        params.respread_chol = wp.mat33(*(respread_scale * chol_p0).ravel())
+        params.respread_chol = wp.mat33(*(c.respread_scale * chol_p0).ravel())
         self._kernel_chol = wp.array(np.broadcast_to(self.bandwidth * chol_p0, (b, 3, 3)).copy(), dtype=wp.mat33,
                                      device=self.device)
         """(B,) each filter's regularisation kernel factor (m): ``h · chol(P0)`` at the start and ``h ·`` the
@@ -287,8 +280,8 @@ class MarginalizedParticleFilter:
         :data:`warptan.kernels.mpf.JITTER_NIS`); a model that scores a particle for its kernel reads it
         (``bind_particle_kernel``: the altimeter)."""
         self.params = params
-        self.measurement_update = bool(measurement_update)
-        self.closed_loop = bool(closed_loop)
+        self.measurement_update = bool(c.measurement_update)
+        self.closed_loop = bool(c.closed_loop)
         self._no_info: tuple[wp.array, wp.array] | None = None
         self._no_pos_info: wp.array | None = None
         self.graph = self.device.is_cuda if graph is None else bool(graph)
@@ -299,7 +292,7 @@ class MarginalizedParticleFilter:
         self._recorder = Recorder() if self.device.is_cpu and not self.graph else None
         """Eager CPU updates replay their fixed pieces from recorded launches (:class:`warptan.parallel.Recorder`);
         None launches every kernel anew (CUDA eager, or set to None to compare)."""
-        self.bad_imu = bad_imu
+        self.bad_imu = c.bad_imu
         self.timer: StepTimer | None = None
         """A :class:`StepTimer` to record where each update's time goes, or None."""
         self.n_imu_held = np.zeros(b, dtype=np.int64)
@@ -559,10 +552,15 @@ class MarginalizedParticleFilter:
         """One tempering stage: choose the exponent, weight, normalise and decide to resample (device)."""
         d, b, n, st = self.device, self.n_filters, self.n, self.state
         lam, info = self._attitude_info(out)
-        if self._block_stages:  # CUDA: the candidates' partials, then the stage's eight other pieces in one block
+        if d.is_cpu and not self._block_stages:  # candidates in order until one is taken (same bits, usually 1 of 20)
+            launch(kmpf.temper_search_kernel, dim=b,
+                   inputs=[n, stage, self.params, out.loglik, out.n_valid, out.meta, st.logw, self._stats],
+                   outputs=[self._temper_partials, self._unpred_partials, self._temper_ess], device=d)
+        else:  # every candidate in parallel
             launch(kmpf.temper_partials_kernel, dim=(b, kmpf.N_CHUNKS, kmpf.N_TEMPER),
                    inputs=[n, stage, out.loglik, out.n_valid, out.meta, st.logw, self._stats],
                    outputs=[self._temper_partials, self._unpred_partials], device=d)
+        if self._block_stages:  # CUDA: the stage's eight other pieces in one block per filter
             launch(kmpf.stage_block_kernel, dim=[b],
                    inputs=[n, stage, int(stage == self.max_stages - 1), self.params, out.loglik, out.n_valid, out.meta,
                            out.nis, st.dp, lam, info, *self._position_info(out), int(self.measurement_update),
@@ -571,14 +569,7 @@ class MarginalizedParticleFilter:
                             self._chunk_counts, self._chunk_min_nis, self._chunk_sums, st.logw, self._stats,
                             self._kernel_chol, st.lin], block_dim=kmpf.STAGE_BLOCK_DIM, device=d)
             return
-        if d.is_cpu:  # candidates in order until one is taken (same bits, usually 1 of 20 evaluated)
-            launch(kmpf.temper_search_kernel, dim=b,
-                   inputs=[n, stage, self.params, out.loglik, out.n_valid, out.meta, st.logw, self._stats],
-                   outputs=[self._temper_partials, self._unpred_partials, self._temper_ess], device=d)
-        else:  # every candidate in parallel
-            launch(kmpf.temper_partials_kernel, dim=(b, kmpf.N_CHUNKS, kmpf.N_TEMPER),
-                   inputs=[n, stage, out.loglik, out.n_valid, out.meta, st.logw, self._stats],
-                   outputs=[self._temper_partials, self._unpred_partials], device=d)
+        if not d.is_cpu:
             launch(kmpf.temper_ess_kernel, dim=(b, kmpf.N_TEMPER), inputs=[self._temper_partials],
                    outputs=[self._temper_ess], device=d)
         launch(kmpf.temper_select_kernel, dim=b,
