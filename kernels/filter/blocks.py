@@ -19,9 +19,7 @@ from warptan.kernels.filter.weights import (
     weight_stats,
 )
 
-# max_unroll: the lane-0 loops over the 64 chunks (maximum, ESS candidates, unpredictable fraction) unrolled, so their
-# loads issue together instead of one L2 round trip after another (the same operations in the same order: same bits)
-wp.set_module_options({"enable_backward": False, "max_unroll": 64})
+wp.set_module_options({"enable_backward": False})
 
 STAGE_BLOCK_DIM = 64
 """Threads of the block that runs one filter's tempering stage on CUDA (:data:`stage_block_kernel`): one lane per
