@@ -549,14 +549,17 @@ def test_block_forms_equal_the_separate_kernels(device, rugged, monkeypatch, mod
             np.testing.assert_array_equal(pieces.stages, run.stages)
 
 
-def test_rejected_measurement_loses_nothing(rugged):
+@pytest.mark.parametrize("lean", [False, True], ids=["pieces", "lean"])
+def test_rejected_measurement_loses_nothing(rugged, lean):
     """A measurement the model rejects raises before the filter moves: the buffered IMU samples, the nominal
-    INS and the particles are as if it had never been offered."""
+    INS and the particles are as if it had never been offered (also in the lean update, CUDA's default, which
+    checks the measurement before it queues the interval)."""
     truth = Trajectory.build([Straight(1.0)], 100.0, [0, 0, -(rugged.h_max + 600.0)])
     runs = []
     for offer_bad in (False, True):
         mpf = MarginalizedParticleFilter(wt.SlidingModel(rugged), truth.state(0), "navigation", 100.0, [30, 30, 10],
                                          np.eye(12) * 1e-4, n_particles=200, seed=4)
+        mpf._lean = lean
         for k in range(10):
             mpf.predict(truth.f_b[k], truth.w_b[k])
         if offer_bad:
@@ -566,6 +569,40 @@ def test_rejected_measurement_loses_nothing(rugged):
         runs.append(mpf.estimate())
     np.testing.assert_array_equal(runs[0].nav.pos_n, runs[1].nav.pos_n)
     np.testing.assert_array_equal(runs[0].cov_pos, runs[1].cov_pos)
+
+
+def test_refused_after_the_check_is_a_flush(rugged):
+    """The lean update (CUDA's default; forced here) queues the interval once the model's ``check`` passed: a model
+    whose ``stage`` still refuses the measurement leaves the filter as after ``flush()`` (the same estimate, bit for
+    bit, as a twin that flushed), and the next update goes on alike."""
+    truth = Trajectory.build([Straight(1.0)], 100.0, [0, 0, -(rugged.h_max + 600.0)])
+    sensor = wt.PointCloudSensor(wt.ScanPattern.grid(5, 5, 30.0))
+    scans = [sensor.measure(rugged, truth.pos_n[k], truth.quat_nb[k], np.random.default_rng(k)) for k in (10, 20)]
+    estimates = []
+    for refuse in (False, True):
+        model = wt.SlidingModel(rugged)
+        mpf = MarginalizedParticleFilter(model, truth.state(0), "navigation", 100.0, [30, 30, 10], np.eye(12) * 1e-4,
+                                         n_particles=200, seed=4)
+        mpf._lean = True
+        mpf.predict_many(truth.f_b[:10], truth.w_b[:10])
+        if refuse:
+            def stage(*args, **kwargs):
+                raise wt.FilterError("refused by the model's stage")
+            model.stage = stage
+            with pytest.raises(wt.FilterError, match="refused by the model's stage"):
+                mpf.update(scans[0])
+            del model.stage
+            assert mpf.n_updates == 0
+        else:
+            mpf.flush()
+        first = mpf.estimate()
+        mpf.predict_many(truth.f_b[10:20], truth.w_b[10:20])
+        mpf.update(scans[1])
+        estimates.append((first, mpf.estimate()))
+    for flushed, refused in zip(*estimates, strict=True):
+        np.testing.assert_array_equal(flushed.nav.pos_n, refused.nav.pos_n)
+        np.testing.assert_array_equal(flushed.dp, refused.dp)
+        np.testing.assert_array_equal(flushed.cov_pos, refused.cov_pos)
 
 
 def _posterior_after_one_update(device, temper_ess, regularize, n=20_000, seed=0):

@@ -31,6 +31,37 @@ def upload(array: wp.array, values) -> None:
         array.assign(values)
 
 
+class Uploads:
+    """Small host-to-device copies that do not hold the host (a measurement's ranges each step): on CUDA each name has
+    two pinned host buffers used in turn; the values are written into one and its copy is queued on the stream (an
+    asynchronous copy, behind the device work already queued, which a pageable ``assign`` would wait for), and a buffer
+    is written again only once its last copy is done (an event recorded after it). On the CPU :func:`upload`."""
+
+    def __init__(self):
+        self._slots: dict = {}
+
+    def put(self, name: str, array: wp.array, values) -> None:
+        """Copy ``values`` (the array's shape; NumPy casts the dtype) into ``array`` through the buffers of ``name``."""
+        if array.device.is_cpu:
+            upload(array, values)
+            return
+        slot = self._slots.get(name)
+        if slot is None or slot["key"] != (array.shape, array.dtype, array.device):
+            bufs = [wp.empty(array.shape, dtype=array.dtype, device="cpu", pinned=True) for _ in range(2)]
+            slot = self._slots[name] = {"key": (array.shape, array.dtype, array.device), "bufs": bufs,
+                                        "views": [b.numpy() for b in bufs], "next": 0,
+                                        "events": [wp.Event(array.device), wp.Event(array.device)],
+                                        "used": [False, False]}
+        k = slot["next"]
+        if slot["used"][k]:
+            wp.synchronize_event(slot["events"][k])  # the copy two puts ago has read this buffer
+        slot["views"][k][...] = values
+        wp.copy(array, slot["bufs"][k])
+        wp.get_stream(array.device).record_event(slot["events"][k])
+        slot["used"][k] = True
+        slot["next"] = k ^ 1
+
+
 def quiet_warp() -> None:
     """Silence Warp's start-up banner and per-module load messages (for the CLI, scripts and tests)."""
     wp.config.quiet = True

@@ -83,9 +83,11 @@ partials, maximum, exp partials, weight statistics, normalisation, Kalman update
 (:data:`warptan.kernels.mpf.stage_block_kernel`), and so does a resampling (:data:`~warptan.kernels.mpf.
 resample_block_kernel`): the same functions on the same values with barriers between them, the same bits as the
 separate kernels (a graph node costs a few µs whatever its work: 14 nodes a stage became 3). The CPU keeps the
-separate kernels (whose particle loops split over cores). ``_lean`` (CUDA; measured faster there, slower on a 2-core CPU) fuses the head
-(moves, poses, statistics reset) and the tail (integrity + re-spread; record + P's update + reset) likewise and
-nests the stages' conditionals; the same bits on the CPU (``tests/test_mpf.py``).
+separate kernels (whose particle loops split over cores). ``_lean`` (CUDA, where it measured faster; slower on a
+2-core CPU) fuses the head (moves, poses, statistics reset) and the tail (integrity + re-spread; record + P's update +
+reset) likewise, nests the stages' conditionals and queues the interval (a graph of its own) as soon as the
+measurement passed the model's ``check``, so that the device integrates it while the host stages the scan; the same
+bits on the CPU (``tests/test_mpf.py``).
 
 ``A^n`` and ``A^l`` are blocks of the INS error transition of :func:`warptan.nav.ins.error_transition`
 (exact Jacobian: ``A^n = [dt I, 0.5 dt² (-R[a]x), 0.5 dt² (-R), 0]``; SPEC's ``[dt I, 0]`` plus the
@@ -289,6 +291,7 @@ class MarginalizedParticleFilter:
         # the update's head and tail fused, the stages' conditionals nested (same bits; the CPU runs it in
         # tests/test_mpf.py): on CUDA, where it measured faster (H100, S8 one filter: device 0.309 -> 0.273 ms)
         self._lean = self.device.is_cuda
+        self._early = False  # this update's interval was queued before its scan was staged (lean, see update)
         self._recorder = Recorder() if self.device.is_cpu and not self.graph else None
         """Eager CPU updates replay their fixed pieces from recorded launches (:class:`warptan.parallel.Recorder`);
         None launches every kernel anew (CUDA eager, or set to None to compare)."""
@@ -729,7 +732,8 @@ class MarginalizedParticleFilter:
             self._launch_move()
             self._launch_poses()
             return
-        self._launch_interval()  # then the particles' moves, poses and the statistics' reset in one launch
+        if not self._early:  # (early: queued before the scan was staged)
+            self._launch_interval()  # then the particles' moves, poses and the statistics' reset in one launch
         dv, n, st = self._dev, self.n, self.state
         launch(kmpf.move_pose_kernel, dim=self.n_filters * n,
                inputs=[n, dv["seeds"], dv["phi"], dv["chol"], dv["pose"], self._exponent],
@@ -783,7 +787,9 @@ class MarginalizedParticleFilter:
 
     def update(self, measurement, sync: bool = True):
         """Weight the particles by ``measurement`` (a list of B for a batch; taken at the current nominal time)
-        and resample / re-spread where needed. A measurement the model rejects raises before anything moves.
+        and resample / re-spread where needed. A measurement the model rejects raises before anything moves (on
+        CUDA the interval is queued once the model's ``check`` passed, to run while the scan is staged: a model whose
+        ``stage`` refused it after that leaves the filter as after :meth:`flush`).
 
         Returns:
             :class:`UpdateInfo` (a list of B for a batch); with ``sync=False`` nothing (no host sync: the
@@ -794,12 +800,26 @@ class MarginalizedParticleFilter:
             raise FilterError(f"a batch of {self.n_filters} filters needs a list of {self.n_filters} measurements")
         attitude = None
         likelihood = getattr(self.model, "likelihood", None)
-        if getattr(likelihood, "models_map_error", False):
+        map_modes = getattr(likelihood, "models_map_error", False)
+        # lean (CUDA): the interval goes to the device once the measurement is checked, and runs while the host
+        # stages the scan (not under map-error modes, whose scan geometry reads the last interval's attitude)
+        self._early = self._lean and not map_modes and callable(getattr(self.model, "check", None))
+        if self._early:
+            self.model.check(measurement)  # a measurement refused here moves nothing
+            self._stage_interval()
+            self._queue_interval()
+        elif map_modes:
             # the map-error modes' scan geometry needs the platform's attitude: the nominal of the last interval
             # (one device-to-host copy of 4 numbers; 0.1 s old at 10 Hz, what the geometry's tolerance allows)
             attitude = self._nav["quat"][:1].numpy()[0]
         extra = {} if attitude is None else {"attitude": attitude}  # a model of the user's may not take it
-        out = self.model.stage(measurement, self._pos, self._quat, **extra)  # validates first: nothing moves
+        try:
+            out = self.model.stage(measurement, self._pos, self._quat, **extra)  # validates first: nothing moves
+        except BaseException:
+            if self._early:  # refused after the interval went to the device: the filter is as after flush()
+                self._launch_time_update()
+                self._next_set()
+            raise
         if attitude is not None:  # ground read again after the modes forgot it: B positions to the host
             if self._revisits is None or self._revisits.likelihood is not likelihood:
                 self._revisits = RevisitMemory(likelihood, self.n_filters)
@@ -814,7 +834,8 @@ class MarginalizedParticleFilter:
             self.model.bind_particle_kernel(self._kernel_chol)
         self._out = out
         self._ensure_history()
-        self._stage_interval()
+        if not self._early:
+            self._stage_interval()
         self.last_n_received = np.array(out.n_received)
         self.n_updates += 1
         timer, events = self.timer, None
@@ -843,21 +864,33 @@ class MarginalizedParticleFilter:
         if not self.graph:
             self._device_update(out, read_flags=self.device.is_cpu)
             return
-        key = self._record_key()
         if self._graph_key is None:  # the first update runs eagerly: modules load, buffers settle
             self._graph_key = ()
             self._device_update(out)
             return
-        if key != self._graph_key:  # (re)capture when a buffer the graphs hold was replaced
+        self._replay("update", self._device_update, out)
+
+    def _queue_interval(self) -> None:
+        """The interval alone (the lean update queues it before the scan is staged): launched, or its graph."""
+        if not self.graph or self._graph_key is None:  # (the first update runs eagerly)
+            self._launch_interval()
+        else:
+            self._replay("interval", self._launch_interval)
+
+    def _replay(self, name: str, fn, *args) -> None:
+        """Launch the graph of ``fn(*args)`` for the current staging set (one per set: its copies read that set),
+        captured at its first use; all graphs are dropped when a buffer they hold was replaced."""
+        key = self._record_key()
+        if key != self._graph_key:
             self._graphs.clear()
             self._graph_key = key
-        graph = self._graphs.get(self._set)  # one graph per staging set (its copies read that set)
+        graph = self._graphs.get((name, self._set))
         if graph is None:
             wp.capture_begin(device=self.device)
             try:
-                self._device_update(out)
+                fn(*args)
             finally:
-                graph = self._graphs[self._set] = wp.capture_end(device=self.device)
+                graph = self._graphs[(name, self._set)] = wp.capture_end(device=self.device)
         wp.capture_launch(graph)
 
     def _record_key(self) -> tuple:
@@ -865,7 +898,8 @@ class MarginalizedParticleFilter:
         arrays (replaced when the history grows), the model's buffers, likelihood struct and attitude covariance
         (``model.generation``, bumped by the model whenever it replaces one of them) and the update's switches. A
         recording of another key is stale and is dropped (identities of freed arrays could be reused: no ``id()``)."""
-        return (self._generation, getattr(self.model, "generation", 0), self.measurement_update, self.closed_loop)
+        return (self._generation, getattr(self.model, "generation", 0), self.measurement_update, self.closed_loop,
+                self._early)
 
     def _info(self, out):
         stats = self._stats.numpy()

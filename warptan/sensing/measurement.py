@@ -34,7 +34,7 @@ import numpy as np
 import warp as wp
 
 from warptan.checks import FilterError
-from warptan.device import upload
+from warptan.device import Uploads
 from warptan.kernels import likelihood as klik
 from warptan.kernels import raycast as kray
 from warptan.kernels import sliding as kslide
@@ -138,6 +138,7 @@ class MeasurementModel:
         self._out: ModelOutput | None = None
         self._key = None
         self._host: dict[str, np.ndarray] = {}
+        self._uploads = Uploads()  # the scan's host-to-device copies (pinned on CUDA: they do not hold the host)
         self._att_cov: wp.array | None = None
         self._zero_att: wp.array | None = None
         self._modes: wp.array | None = None
@@ -265,6 +266,12 @@ class MeasurementModel:
                                            if isinstance(getattr(out, f.name), wp.array)},
                                    n_received=out.n_received.copy())
 
+    def check(self, measurement) -> None:
+        """Raise a FilterError for a measurement (or a batch's list) that :meth:`stage` would refuse, touching
+        nothing: the filter checks a measurement before its interval moves anything, then stages it while the device
+        integrates the interval."""
+        self._m_of(_as_batch(measurement, self.reading_type, self.name))
+
     def stage(self, measurement, pos_n: wp.array, quat_nb: wp.array, attitude=None) -> ModelOutput:
         """Copy the measurement(s) into this model's device buffers for particles of shape ``pos_n``. ``attitude``:
         the platform's attitude quaternion (4,) for the map-error modes' geometry (a stated map error only; default
@@ -281,7 +288,7 @@ class MeasurementModel:
         meta = np.empty((b, 2), dtype=np.float32)
         meta[:, klik.META_RECEIVED] = n_received
         meta[:, klik.META_FLOOR] = -0.5 * k * k * np.maximum(1, n_received)
-        upload(out.meta, meta)
+        self._uploads.put("meta", out.meta, meta)
         self.n_per = n // b
         self.n_filters = b
         self._ensure_modes(device, quat_nb, attitude)
@@ -435,7 +442,7 @@ class _PointCloudModel(MeasurementModel):
         dev_ranges = self._host.get("dev_ranges")
         if dev_ranges is None or dev_ranges.shape != (b, m) or dev_ranges.device != device:
             dev_ranges = self._host["dev_ranges"] = wp.empty((b, m), dtype=wp.float32, device=device)
-        upload(dev_ranges, ranges)
+        self._uploads.put("ranges", dev_ranges, ranges)
         if same:
             held = self._host.get("dirs")
             if held is None or held[0] is not first or held[1].device != device:
@@ -595,7 +602,7 @@ class AltimeterModel(MeasurementModel):
         valid = np.array([r.valid for r in items]) & np.logical_or(not self.use_baro, np.isfinite(baro))
         host = np.stack([np.where(valid, rng_m, 0.0), np.where(np.isfinite(baro), baro, 0.0), valid,
                          np.full(len(items), 1.0 / self.baro_sigma_m**2)], axis=1)
-        self._staged.assign(host.astype(np.float32))
+        self._uploads.put("readings", self._staged, host)
         return valid.astype(np.int64)
 
     def bind_particle_kernel(self, chol: wp.array | None) -> None:
