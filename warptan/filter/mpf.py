@@ -292,6 +292,7 @@ class MarginalizedParticleFilter:
         # tests/test_mpf.py): on CUDA, where it measured faster (H100, S8 one filter: device 0.309 -> 0.273 ms)
         self._lean = self.device.is_cuda
         self._early = False  # this update's interval was queued before its scan was staged (lean, see update)
+        self._interval_first = True  # (lean: queue the interval before staging the scan; False for an A/B)
         self._recorder = Recorder() if self.device.is_cpu and not self.graph else None
         """Eager CPU updates replay their fixed pieces from recorded launches (:class:`warptan.parallel.Recorder`);
         None launches every kernel anew (CUDA eager, or set to None to compare)."""
@@ -803,7 +804,8 @@ class MarginalizedParticleFilter:
         map_modes = getattr(likelihood, "models_map_error", False)
         # lean (CUDA): the interval goes to the device once the measurement is checked, and runs while the host
         # stages the scan (not under map-error modes, whose scan geometry reads the last interval's attitude)
-        self._early = self._lean and not map_modes and callable(getattr(self.model, "check", None))
+        self._early = (self._lean and self._interval_first and not map_modes
+                       and callable(getattr(self.model, "check", None)))
         if self._early:
             self.model.check(measurement)  # a measurement refused here moves nothing
             self._stage_interval()
