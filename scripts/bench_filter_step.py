@@ -17,11 +17,12 @@ device) and ``device_ms`` (the update's device work: CUDA events around it, or t
 
 With ``--scenario S8 [S7 ...]`` each row is the filter that scenario flies (its map, surface, likelihood, scan,
 rates, tempering, regularisation and attitude update: :func:`warptan.sim.scenarios.scenario_model`,
-:func:`~warptan.sim.scenarios.filter_config`), measured on its own flight after ``--settle-s`` of it (acquisition is not
-the steady state); ``--n`` and ``--batch`` still apply. Such a row also reports the achieved point evaluations per
-second (B · N · M · tempering stages per update time) beside the bare model kernel's rate on the same poses and
-scan (the bound: ``model.launch`` alone), and, with ``--rtf-s T``, the real-time factor of a whole run of the
-scenario (T s flown by :func:`~warptan.sim.scenarios.run_scenario` with N particles, after a short run that compiles).
+:meth:`~warptan.sim.scenario_config.FilterSpec.config`), measured on its own flight after ``--settle-s`` of it
+(acquisition is not the steady state); ``--n`` and ``--batch`` still apply. Such a row also reports the achieved
+point evaluations per second (B · N · M · tempering stages per update time) beside the bare model kernel's rate on
+the same poses and scan (the bound: ``model.launch`` alone), and, with ``--rtf-s T``, the real-time factor of a
+whole run of the scenario (T s flown by :func:`~warptan.sim.scenarios.run_scenario` with N particles, after a short
+run that compiles).
 
     python scripts/bench_filter_step.py --n 500 5000 --models sliding dda --json step.json
     python scripts/bench_filter_step.py --device cuda:0 --n 500 --batch 1 100 --m-side 20 --graph on off
@@ -77,21 +78,21 @@ def scenario_setup(sid, device, settle_s, terrain=None, **overrides):
     """The filter scenario ``sid`` flies (model, surface, likelihood, scan, rates, filter keywords; ``overrides`` as
     :func:`~warptan.sim.scenarios.run_scenario` takes them), its flight and world; measurement starts ``settle_s`` into
     the flight (the intervals before run untimed)."""
-    from warptan.sim.scenarios import filter_config, map_terrain, prepare, scenario_likelihood, scenario_model
+    from warptan.sim.scenarios import map_terrain, prepare, scenario_likelihood, scenario_model
 
-    config, world, flight = prepare(sid, terrain=terrain, device=device, **overrides)
-    the_map = map_terrain(world, config, int(config["run"]["seed"]))
-    s, ie = config["sensor"], config["initial_error"]
-    model = scenario_model(config, the_map, scenario_likelihood(config, the_map, world))
-    imu_per_meas = round(config["imu"]["rate_hz"] / s["rate_hz"])
-    label = s["model"] if s["model"] != "raycast" else s["backend"]
-    return {"model": model, "filter": filter_config(config), "truth": flight, "world": world,
-            "grade": config["imu"]["grade"], "imu_per_meas": imu_per_meas, "label": f"{sid}:{label}",
-            "start": round(settle_s * config["imu"]["rate_hz"] / imu_per_meas),
-            "sensor": wt.PointCloudSensor(wt.ScanPattern.grid(s["scan_nx"], s["scan_ny"], s["scan_half_angle_deg"]),
-                                          range_sigma_m=s["range_sigma_m"]),
-            "altimeter": (wt.RadarAltimeter(s["altimeter_sigma_m"]), wt.Barometer(s["baro_sigma_m"])),
-            "initial": InitialErrors(tuple(ie["pos_m"]), ie["vel_mps"], tuple(ie["att_deg"])), "config": config}
+    scenario, world, flight = prepare(sid, terrain=terrain, device=device, **overrides)
+    the_map = map_terrain(world, scenario, int(scenario.run.seed))
+    s = scenario.sensor
+    model = scenario_model(scenario, the_map, scenario_likelihood(scenario, the_map, world))
+    imu_per_meas = round(scenario.imu.rate_hz / s.rate_hz)
+    label = s.model if s.model != "raycast" else s.backend
+    return {"model": model, "filter": scenario.filter.config(), "truth": flight, "world": world,
+            "grade": scenario.imu.grade, "imu_per_meas": imu_per_meas, "label": f"{sid}:{label}",
+            "start": round(settle_s * scenario.imu.rate_hz / imu_per_meas),
+            "sensor": wt.PointCloudSensor(wt.ScanPattern.grid(s.scan_nx, s.scan_ny, s.scan_half_angle_deg),
+                                          range_sigma_m=s.range_sigma_m),
+            "altimeter": (wt.RadarAltimeter(s.altimeter_sigma_m), wt.Barometer(s.baro_sigma_m)),
+            "initial": scenario.initial_error.errors(), "config": scenario}
 
 
 def kernel_rate(model, pos, quat, measurement, device, repeats=20) -> float:
@@ -192,7 +193,7 @@ def bench(setup, n, device, repeats, warmup, seed=0, graph=None, batch=1):
            "estimate_ms": 1e3 * med(t_est), "throughput_step_ms": throughput_ms, "repeats": repeats,
            "host_ms": parts["host"], "upload_ms": parts["upload"], "device_ms": parts["device"]}
     if "config" in setup:  # the scenario's own filter: what its points cost against the kernel's bound
-        row["scenario"] = setup["config"]["id"]
+        row["scenario"] = setup["config"].id
         row["settle_s"] = start * imu_per_meas / truth.rate_hz
         row["point_evals_per_s"] = batch * n * m * float(stages.mean()) / (1e-3 * row["update_ms"])
         row["kernel_point_evals_per_s"] = kernel_rate(model, mpf._pos, mpf._quat, measurements[-1], device)
@@ -272,7 +273,7 @@ def main(argv=None) -> int:
         for setup in setups:
             rtf = {}
             if "config" in setup and args.rtf_s > 0:
-                rtf = real_time_factor(setup["config"]["id"], device, args.n[0], args.rtf_s,
+                rtf = real_time_factor(setup["config"].id, device, args.n[0], args.rtf_s,
                                        repeats=args.rtf_repeats, **scan)
             for b in args.batch:
                 for n in args.n:

@@ -28,7 +28,8 @@ CLI = "import sys; sys.path.pop(0); from warptan.cli import main; sys.exit(main(
 """``warptan`` with the current directory off the import path (as the installed console script runs)."""
 WARMUP = """
 import sys; sys.path.pop(0)
-from warptan.sim.campaign import Campaign, run_batch
+from warptan.sim.campaign import Campaign
+from warptan.sim.campaign_run import run_batch
 from warptan.device import quiet_warp
 quiet_warp()
 c = Campaign.load(sys.argv[1]); c.check("cpu")

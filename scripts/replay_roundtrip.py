@@ -46,7 +46,7 @@ def main() -> None:
             shutil.rmtree(bag_dir, ignore_errors=True)
             write_bag(logs[0], bag_dir)
             bag = replay(read_bag(bag_dir))
-            row = {"scenario": sid, "model": ref.config["sensor"]["model"], "epochs": len(ref.run.t_s),
+            row = {"scenario": sid, "model": ref.config.sensor.model, "epochs": len(ref.run.t_s),
                    "h5_identical": all(np.array_equal(getattr(ref.run, f), getattr(h5.run, f)) for f in FIELDS),
                    "bag_estimate_identical": all(np.array_equal(getattr(ref.run, f), getattr(bag.run, f))
                                                  for f in ESTIMATE),

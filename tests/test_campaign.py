@@ -9,7 +9,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from warptan.sim.campaign import Campaign, CampaignError, make_row, run_batch, run_campaign, write_campaign
+from warptan.sim.campaign import Campaign, CampaignError
+from warptan.sim.campaign_report import write_campaign
+from warptan.sim.campaign_run import make_row, run_batch, run_campaign
 from warptan.sim.report import ci95
 from warptan.sim.scenarios import run_scenario, run_scenario_batch
 

@@ -148,7 +148,7 @@ def test_replay_is_told_the_dems_stated_accuracy(s8, tmp_path):
     modes; half a statement, or an RMS without a correlation length, is one clear error before any work."""
     _, log = s8
     told = replay(log, map_error=(5.0, 1000.0))
-    assert (told.config["likelihood"]["map_error_rms_m"], told.config["likelihood"]["map_error_corr_m"]) == (5.0, 1e3)
+    assert (told.config.likelihood.map_error_rms_m, told.config.likelihood.map_error_corr_m) == (5.0, 1e3)
     assert np.isfinite(told.run.est_pos).all()
     assert not np.array_equal(told.run.est_pos, replay(log).run.est_pos)  # the modes weigh the scans
     with pytest.raises(FilterError, match="stated accuracy must be"):

@@ -214,4 +214,4 @@ def test_a_log_written_before_worlds_and_stated_accuracy_replays(simulated):
     for key in ("map_error_rms_m", "map_error_corr_m"):
         old["config"]["likelihood"].pop(key)
     result = replay(dataclasses.replace(log, settings=old), likelihood="student_t", particles=64)
-    assert np.isfinite(result.run.est_pos).all() and result.config["likelihood"]["map_error_rms_m"] == 0.0
+    assert np.isfinite(result.run.est_pos).all() and result.config.likelihood.map_error_rms_m == 0.0

@@ -1,5 +1,6 @@
 """Statistics of the reports and the claim verdicts, against tabulated values and constructed samples."""
 
+import dataclasses
 import json
 import subprocess
 import sys
@@ -21,6 +22,7 @@ from warptan.sim.report import (
     t_sf,
     welch_less,
 )
+from warptan.sim.scenario_config import load_config
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -138,10 +140,12 @@ class _Result:
         self.rmse = self.rmse_converged = np.asarray(rmse, dtype=float)
         self.run = _Run(errors)
         self.wall_s = 1.0
-        self.config = {"sensor": {"model": "sliding", "backend": "dda", "surface": "triangles", "rate_hz": 10.0,
-                                  "use_baro": True}, "likelihood": {"kind": "gaussian"}, "imu": {"grade": "navigation"},
-                       "flight": {"bank_deg": 0.0, "altitude_rule": "high"}, "filter": {"particles": 8,
-                       "converged_after_s": 1.0}, "paper_rmse_m": [1.0, 1.0, 1.0]}
+        s8 = load_config("S8")
+        self.config = s8.replace(sensor={"model": "sliding", "backend": "dda", "surface": "triangles", "rate_hz": 10.0,
+                                         "use_baro": True}, likelihood={"kind": "gaussian"},
+                                 imu={"grade": "navigation"}, flight={"bank_deg": 0.0, "altitude_rule": "high"},
+                                 filter={"particles": 8, "converged_after_s": 1.0})
+        self.config = dataclasses.replace(self.config, paper_rmse_m=(1.0, 1.0, 1.0))
 
     def linear_summary(self):
         return {"attitude_rmse_converged_deg": [1.0, 2.0, 3.0], "coverage_3sigma_attitude": [1.0, 1.0, 0.5],
@@ -219,7 +223,7 @@ def test_warptan_run_notes_an_unconverged_run(capsys):
     t = np.arange(0.0, 60.0, 0.1)
     wide = SimpleNamespace(t_s=t, sigma3_pos=np.tile([300.0, 200.0, 5.0], (len(t), 1)))
     narrow = SimpleNamespace(t_s=t, sigma3_pos=np.tile([3.0, 2.0, 5.0], (len(t), 1)))
-    config = {"filter": {"converged_after_s": 30.0}}
+    config = load_config("S8").replace(filter={"converged_after_s": 30.0})
     cli.commands._report_unconverged([SimpleNamespace(scenario="S9", seed=4, run=wide, config=config),
                              SimpleNamespace(scenario="S8", seed=1, run=narrow, config=config)])
     out = capsys.readouterr().out

@@ -21,11 +21,11 @@ def test_short_scenario_runs(sid):
     """A short version (8 s, 64 particles, generated terrain) of each scenario runs on the CPU and returns
     finite RMSEs and the time series."""
     flat = "synthetic:flat,size_m=12000,spacing=40,seed=2"
-    terrain = flat if load_config(sid)["terrain"]["kind"] == "flat" else SMALL
+    terrain = flat if load_config(sid).terrain.kind == "flat" else SMALL
     r = run_scenario(sid, seed=1, device="cpu", terrain=terrain, particles=64, duration_s=8.0)
     assert r.scenario == sid and r.rmse.shape == (3,) and np.isfinite(r.rmse).all()
     # converged RMSE: defined only for epochs after `converged_after_s` (30 s in every file: none in 8 s)
-    assert r.config["filter"]["converged_after_s"] == 30.0 and np.isnan(r.rmse_converged).all()
+    assert r.config.filter.converged_after_s == 30.0 and np.isnan(r.rmse_converged).all()
     assert len(r.run.t_s) == 81 and np.isfinite(r.run.est_pos).all() and (r.run.ess > 0).all()
     assert r.terrain.startswith("synthetic")
 
@@ -53,24 +53,24 @@ def test_files_state_every_parameter():
     assert set(SPEC_TABLE) == set(SCENARIO_IDS)
     for sid in SCENARIO_IDS:
         c = load_config(sid)
-        assert c["id"] == sid and c["filter"]["particles"] == 500 and c["imu"]["rate_hz"] == 100.0
-        assert c["sensor"]["rate_hz"] == 10.0 and c["flight"]["duration_s"] == 120.0
-        assert c["flight"]["speed_mps"] == 100.0
+        assert c.id == sid and c.filter.particles == 500 and c.imu.rate_hz == 100.0
+        assert c.sensor.rate_hz == 10.0 and c.flight.duration_s == 120.0
+        assert c.flight.speed_mps == 100.0
         terrain, grade, bank, rule, model, paper = SPEC_TABLE[sid]
-        assert (c["terrain"]["kind"], c["imu"]["grade"], c["flight"]["bank_deg"], c["flight"]["altitude_rule"],
-                c["sensor"]["model"]) == (terrain, grade, bank, rule, model), sid
-        assert c["paper_rmse_m"] == pytest.approx(paper), sid
-        e = c["initial_error"]  # every scenario of the paper starts with the high initial error
-        assert (e["pos_m"], e["vel_mps"], e["att_deg"]) == ([100.0, 100.0, 20.0], 0.5, [0.1, 0.1, 0.5]), sid
+        assert (c.terrain.kind, c.imu.grade, c.flight.bank_deg, c.flight.altitude_rule,
+                c.sensor.model) == (terrain, grade, bank, rule, model), sid
+        assert c.paper_rmse_m == pytest.approx(paper), sid
+        e = c.initial_error  # every scenario of the paper starts with the high initial error
+        assert (e.pos_m, e.vel_mps, e.att_deg) == ((100.0, 100.0, 20.0), 0.5, (0.1, 0.1, 0.5)), sid
         if model != "altimeter":
-            assert (c["sensor"]["scan_nx"], c["sensor"]["scan_ny"], c["sensor"]["scan_half_angle_deg"]) == (10, 10, 30)
+            assert (c.sensor.scan_nx, c.sensor.scan_ny, c.sensor.scan_half_angle_deg) == (10, 10, 30)
 
 
 def test_paper_rates_and_overrides():
     """--paper-rates makes the measurement rate the IMU rate; overrides land in the config."""
     c = load_config("S8", paper_rates=True, particles=77, backend="mesh", likelihood="student_t")
-    assert c["sensor"]["rate_hz"] == 100.0 and c["filter"]["particles"] == 77
-    assert c["sensor"]["backend"] == "mesh" and c["likelihood"]["kind"] == "student_t"
+    assert c.sensor.rate_hz == 100.0 and c.filter.particles == 77
+    assert c.sensor.backend == "mesh" and c.likelihood.kind == "student_t"
 
 
 def test_bad_file_lists_every_problem(tmp_path):
@@ -89,6 +89,34 @@ def test_bad_file_lists_every_problem(tmp_path):
                  "imu.grade = 'navigaton' must be one of", "filter.particles = 'many' must be of type int",
                  "sensor.rate_hz = -10.0 must be > 0"):
         assert part in msg, (part, msg)
+
+
+def test_scenario_is_typed_and_its_tables_are_the_schema():
+    """A scenario is parsed once into frozen dataclasses whose fields are exactly the schema's keys (one table per
+    layer's dataclass); its tables round-trip (``from_tables(to_dict())``); ``from_dict`` validates like a file,
+    listing every problem; ``replace`` changes fields and refuses unknown ones."""
+    import dataclasses
+
+    from warptan.sim.scenario_config import SCHEMA, SECTIONS, Scenario
+
+    for name, kind in SECTIONS.items():
+        assert {f.name for f in dataclasses.fields(kind)} == set(SCHEMA[name]), name
+    top = {f.name for f in dataclasses.fields(Scenario)} - set(SECTIONS)
+    assert top == set(SCHEMA[""])
+    for sid in SCENARIO_IDS:
+        c = load_config(sid)
+        assert Scenario.from_tables(c.to_dict()) == c == Scenario.from_dict(c.to_dict())
+        with pytest.raises(dataclasses.FrozenInstanceError):
+            c.filter.particles = 3
+    tables = load_config("S8").to_dict()
+    tables["sensor"]["rate_hz"], tables["filter"]["particles"] = -1.0, "many"
+    with pytest.raises(ScenarioError) as info:
+        Scenario.from_dict(tables, "my tables")
+    assert "2 problem(s) in my tables" in str(info.value) and "sensor.rate_hz = -1.0 must be > 0" in str(info.value)
+    c = load_config("S8").replace(flight={"duration_s": 60.0}, filter={"particles": 64})
+    assert (c.flight.duration_s, c.filter.particles, c.filter.config().n_particles) == (60.0, 64, 64)
+    with pytest.raises(TypeError):
+        c.replace(flight={"duration": 60.0})
 
 
 @pytest.mark.parametrize(("call", "message"), [
@@ -193,7 +221,7 @@ def test_likelihood_sigma_auto_or_number():
     flat = wt.Terrain.synthetic("flat", size_m=4000.0, spacing=30.0, seed=1)
     lik = scenario_likelihood(config, flat)
     assert lik.sigma_m is None and lik.map_correlation == pytest.approx(3.0)  # 30 m posts / (100 m/s / 10 Hz)
-    assert lik.sensor_sigma_m == config["sensor"]["range_sigma_m"]
+    assert lik.sensor_sigma_m == config.sensor.range_sigma_m
 
 
 # ---------------------------------------------------------------------- world ≠ map (issue 13)
@@ -224,7 +252,7 @@ def test_map_errors_from_the_scenario_file():
     aware = scenario_likelihood(config, the_map, world)
     assert aware.map_sigma_m == pytest.approx(np.hypot(1.0, the_map.interpolation_sigma_m(1.0)))
     assert aware.map_sigma_m > 4.0  # the 90 m map of the 30 m tile: ≈ 5 m
-    config["likelihood"]["map_aware"] = False
+    config = config.replace(likelihood={"map_aware": False})
     assert scenario_likelihood(config, the_map, world).map_sigma_m == 1.0
     same_grid, world2, _ = prepare("S8", terrain="rugged30", map_noise_m=1.0)
     assert scenario_likelihood(same_grid, map_terrain(world2, same_grid, 0), world2).map_sigma_m == 1.0
@@ -243,7 +271,7 @@ def test_map_file_and_bad_map_settings(tmp_path):
     assert the_map.origin_xy == world.origin_xy and the_map is not world
     bad = tmp_path / "not_a_dem.tif"
     bad.write_text("hello")
-    config["terrain"]["map_path"] = str(bad)
+    config = config.replace(terrain={"map_path": str(bad)})
     with pytest.raises(ScenarioError, match=r"not_a_dem\.tif"):
         map_terrain(world, config, 0)
     with pytest.raises(ScenarioError, match="map_seed"):

@@ -35,7 +35,9 @@ from warptan.sensing.sensors import (
     RadarAltimeter,
     ScanPattern,
 )
-from warptan.sim.campaign import Campaign, CampaignError, run_campaign, write_campaign
+from warptan.sim.campaign import Campaign, CampaignError
+from warptan.sim.campaign_report import write_campaign
+from warptan.sim.campaign_run import run_campaign
 from warptan.sim.runner import run_filter
 from warptan.sim.scenario_config import ScenarioError
 from warptan.sim.scenarios import run_scenario, run_scenario_batch

@@ -49,16 +49,13 @@ def _terrain_export(args) -> int:
     return 0
 
 
-def _map_words(config: dict) -> str:
-    from warptan.terrain.world import WorldModel
-
-    model = WorldModel.from_config(config["world"])  # the world's name (the terrain) says how it differs
-    t = config["terrain"]
-    parts = [f"map {t['map_path']}" if t["map_path"] else "",
-             f"map posts {t['map_spacing_m']:g} m" if t["map_spacing_m"] else "",
-             f"map noise {t['map_noise_m']:g} m" if t["map_noise_m"] else "",
-             f"map bias {t['map_bias_m']:+g} m" if t["map_bias_m"] else "",
-             "the map is the DEM" if model.active else ""]
+def _map_words(scenario) -> str:
+    t = scenario.terrain  # (the world's name, the terrain, says how it differs)
+    parts = [f"map {t.map_path}" if t.map_path else "",
+             f"map posts {t.map_spacing_m:g} m" if t.map_spacing_m else "",
+             f"map noise {t.map_noise_m:g} m" if t.map_noise_m else "",
+             f"map bias {t.map_bias_m:+g} m" if t.map_bias_m else "",
+             "the map is the DEM" if scenario.world.active else ""]
     return "".join(", " + p for p in parts if p)
 
 
@@ -115,27 +112,27 @@ def _run(args) -> int:
                  "map_error_corr_m": args.map_error_corr_m}
     plans = {name: prepare(name, terrain=terrain, seeds=range(seeds), device=args.device, batched=args.batch,
                            **overrides) for name in names}
-    ids = [config["id"] for config, _, _ in plans.values()]
+    ids = [scenario.id for scenario, _, _ in plans.values()]
     clash = sorted({i for i in ids if ids.count(i) > 1})
     if clash:
         raise ScenarioError(f"two scenarios have the id {', '.join(clash)} (results are kept by id); give one of "
                             "the files another id")
-    inputs = [path for name, (config, _, _) in plans.items() for path in _scenario_inputs(name, config, terrain)]
+    inputs = [path for name, (scenario, _, _) in plans.items() for path in _scenario_inputs(name, scenario, terrain)]
     for folder in (out, export):
         if folder is not None:
             folder.refuse_inputs(inputs)
     if args.check:
-        for config, truth, flight in plans.values():
-            print(f"{config['id']}: ok ({truth.name}{_map_words(config)}, altitude {-flight.pos_n[0, 2]:.0f} m, "
-                  f"{flight.duration_s:.0f} s, {config['sensor']['model']}, {seeds} seed(s))")
+        for scenario, truth, flight in plans.values():
+            print(f"{scenario.id}: ok ({truth.name}{_map_words(scenario)}, altitude {-flight.pos_n[0, 2]:.0f} m, "
+                  f"{flight.duration_s:.0f} s, {scenario.sensor.model}, {seeds} seed(s))")
         print(f"output folder {out.path}: ok" + (f"; flight logs {export.path}: ok" if export else ""))
         return 0
     if demo:
         print(f"warptan run: no scenario given, running the demonstration: S8 (sliding, navigation IMU) for "
               f"{duration:.0f} s on {terrain}, {seeds} seed(s), device {args.device}")
     total = 0
-    for config, _, flight in plans.values():
-        decim = 1 if args.paper_rates else round(config["imu"]["rate_hz"] / config["sensor"]["rate_hz"])
+    for scenario, _, flight in plans.values():
+        decim = 1 if args.paper_rates else round(scenario.imu.rate_hz / scenario.sensor.rate_hz)
         total += seeds * (len(flight.f_b) // decim)
     results, terrains, logs = [], {}, ([] if export is not None else None)
     with progress_bar(total, "update", disable=args.quiet) as bar:
@@ -170,7 +167,7 @@ def _report_unconverged(results) -> None:
     from warptan.sim.report import UNCONVERGED_3SIGMA_M, declared_unconverged
 
     for r in results:
-        if declared_unconverged(r.run, r.config["filter"]["converged_after_s"]):
+        if declared_unconverged(r.run, r.config.filter.converged_after_s):
             print(f"warptan: note: {r.scenario} seed {r.seed}: unconverged: its horizontal 3σ after convergence "
                   f"exceeds {UNCONVERGED_3SIGMA_M:g} m (declared_unconverged in results.json)")
 
@@ -206,27 +203,29 @@ def _refuse_nested(out, export) -> None:
         raise OutputError(f"--export-log {b} and --out {a} must be separate folders, neither inside the other")
 
 
-def _scenario_inputs(name: str, config: dict, terrain) -> list:
+def _scenario_inputs(name: str, scenario, terrain) -> list:
     """The files a scenario run reads: its scenario file (not for S1…S12), the world's DEM and the map's DEM."""
     from warptan.sim.scenario_config import SCENARIO_IDS, scenario_path
 
-    t = config["terrain"]
-    world = terrain if isinstance(terrain, (str, os.PathLike)) else (t["path"] if t["kind"] == "path" else None)
-    return [None if name.upper() in SCENARIO_IDS else scenario_path(name), world, t["map_path"] or None]
+    t = scenario.terrain
+    world = terrain if isinstance(terrain, (str, os.PathLike)) else (t.path if t.kind == "path" else None)
+    return [None if name.upper() in SCENARIO_IDS else scenario_path(name), world, t.map_path or None]
 
 
 def _campaign(args) -> int:
     from warptan.outputs import OutputFolder
-    from warptan.sim.campaign import Campaign, check_options, run_campaign, write_campaign
+    from warptan.sim.campaign import Campaign
+    from warptan.sim.campaign_report import write_campaign
+    from warptan.sim.campaign_run import check_options, run_campaign
 
     out = OutputFolder(args.out, kind="campaign")
     campaign = Campaign.load(args.file)
     plans = campaign.check(check_options(args.engine, args.device, args.address, args.cpus_per_task))
     out.refuse_inputs([args.file, *campaign.inputs()])
     if args.check:
-        for b, (config, truth, flight) in zip(campaign.batches, plans, strict=True):
-            print(f"{b.label}: ok ({truth.name}{_map_words(config)}, {flight.duration_s:.0f} s, "
-                  f"{config['sensor']['model']}, {len(b.seeds)} seed(s){'' if b.batched else ', seed by seed'})")
+        for b, (scenario, truth, flight) in zip(campaign.batches, plans, strict=True):
+            print(f"{b.label}: ok ({truth.name}{_map_words(scenario)}, {flight.duration_s:.0f} s, "
+                  f"{scenario.sensor.model}, {len(b.seeds)} seed(s){'' if b.batched else ', seed by seed'})")
         print(f"{len(campaign.batches)} batch(es); output folder {out.path}: ok")
         return 0
     if not args.quiet:
@@ -295,9 +294,9 @@ def _replay(args) -> int:
             raise ValueError("--map-error-m and --map-error-corr-m go together (the DEM's stated accuracy: RMS and "
                               "correlation length of its vertical error, m)")
         stated = (args.map_error_m, args.map_error_corr_m or 0.0)
-    config = replay_config(log, args.model, args.backend, args.particles, args.likelihood, stated)  # checks them
-    replay_terrain(log, config, args.terrain)  # loads (and caches) the DEM before the progress bar
-    n_meas = len(log.alt_t if config["sensor"]["model"] == "altimeter" else log.scan_t)
+    scenario = replay_config(log, args.model, args.backend, args.particles, args.likelihood, stated)  # checks them
+    replay_terrain(log, scenario, args.terrain)  # loads (and caches) the DEM before the progress bar
+    n_meas = len(log.alt_t if scenario.sensor.model == "altimeter" else log.scan_t)
     with progress_bar(n_meas, "update", disable=args.quiet) as bar:
         bar.set_description(f"replay {log.name}")
         result = replay(log, args.terrain, model=args.model, backend=args.backend, particles=args.particles,

@@ -17,7 +17,6 @@ recorded time), for the errors; without truth the errors are NaN and the report 
 
 from __future__ import annotations
 
-import copy
 import dataclasses
 import math
 import time
@@ -36,6 +35,7 @@ from warptan.nav.ins import Ins, NavState
 from warptan.sensing.likelihood import Likelihood
 from warptan.sensing.sensors import AltimeterReading, PointCloud
 from warptan.sim.runner import collect_runs
+from warptan.sim.scenario_config import Scenario
 
 SNAP = 1e-6
 """Relative tolerance (of the nominal period) within which a step is the nominal period and a time a boundary."""
@@ -101,58 +101,55 @@ def _measurements(log: FlightLog, model_name: str, idx: np.ndarray) -> list:
 # ---------------------------------------------------------------------- replay
 def replay_config(log: FlightLog, model: str | None = None, backend: str | None = None,
                   particles: int | None = None, likelihood: str | None = None,
-                  map_error: tuple[float, float] | None = None) -> dict:
-    """The scenario-style config of a replay: the one the log was simulated with (settings), else S8's filter and
-    likelihood settings with the log's IMU grade, sensor and rates; the keywords override (``map_error``: the DEM's
-    stated accuracy, ``(RMS, correlation length)`` in m: ``likelihood.map_error_rms_m`` and ``map_error_corr_m``)."""
-    from warptan.sim.scenario_config import load_config, with_optional_defaults
+                  map_error: tuple[float, float] | None = None) -> Scenario:
+    """The scenario of a replay: the one the log was simulated with (settings), else S8's filter and likelihood
+    settings with the log's IMU grade, sensor and rates; the keywords override (``map_error``: the DEM's stated
+    accuracy, ``(RMS, correlation length)`` in m: ``likelihood.map_error_rms_m`` and ``map_error_corr_m``)."""
+    from warptan.sim.scenario_config import load_config
 
     stored = log.settings.get("config")
-    config = load_config("S8") if stored is None else with_optional_defaults(copy.deepcopy(stored))
-    s = config["sensor"]
+    scenario = load_config("S8") if stored is None else Scenario.from_tables(stored)
     if stored is None:
-        config["id"] = "replay"
-        config["description"] = f"replay of {log.name}"
-        config["paper_rmse_m"] = [math.nan] * 3
-        config["imu"]["grade"], config["imu"]["rate_hz"] = log.imu_grade, log.imu_rate_hz
-        s["model"] = "sliding" if log.has_scans else "altimeter"
-        s["range_sigma_m"], s["altimeter_sigma_m"] = log.range_sigma_m, log.altimeter_sigma_m
-        s["baro_sigma_m"], s["use_baro"] = log.baro_sigma_m, log.baro_t is not None
         times = log.scan_t if log.has_scans else log.alt_t
+        sensor = {"model": "sliding" if log.has_scans else "altimeter", "range_sigma_m": log.range_sigma_m,
+                  "altimeter_sigma_m": log.altimeter_sigma_m, "baro_sigma_m": log.baro_sigma_m,
+                  "use_baro": log.baro_t is not None}
         if len(times) > 1:
-            s["rate_hz"] = float(1.0 / np.median(np.diff(times)))
-        config["flight"]["speed_mps"] = float(max(np.linalg.norm(log.init_vel), 1.0))
-        config["flight"]["duration_s"] = float(log.t_end - log.imu_t[0])
-        config["flight"]["bank_deg"] = math.nan
-        config["flight"]["altitude_rule"] = "recorded"
-        config["filter"]["converged_after_s"] = min(config["filter"]["converged_after_s"],
-                                                    0.5 * config["flight"]["duration_s"])
+            sensor["rate_hz"] = float(1.0 / np.median(np.diff(times)))
+        duration = float(log.t_end - log.imu_t[0])
+        scenario = dataclasses.replace(scenario.replace(
+            imu={"grade": log.imu_grade, "rate_hz": log.imu_rate_hz}, sensor=sensor,
+            flight={"speed_mps": float(max(np.linalg.norm(log.init_vel), 1.0)), "duration_s": duration,
+                    "bank_deg": math.nan, "altitude_rule": "recorded"},
+            filter={"converged_after_s": min(scenario.filter.converged_after_s, 0.5 * duration)}),
+            id="replay", description=f"replay of {log.name}", paper_rmse_m=(math.nan,) * 3)
     if map_error is not None:
         rms, corr = (float(v) for v in map_error)
         if not (math.isfinite(rms) and rms >= 0.0 and math.isfinite(corr) and corr >= 0.0) or (rms > 0 and corr <= 0):
             raise FilterError(f"the DEM's stated accuracy must be an RMS ≥ 0 m and, with an RMS, a correlation length "
                               f"> 0 m; got RMS {rms!r} m, correlation length {corr!r} m")
-        config["likelihood"]["map_error_rms_m"], config["likelihood"]["map_error_corr_m"] = rms, corr
+        scenario = scenario.replace(likelihood={"map_error_rms_m": rms, "map_error_corr_m": corr})
     if model is not None:
         if model not in ("sliding", "raycast", "altimeter"):
             raise FilterError(f"unknown model {model!r}; choose sliding, raycast or altimeter")
-        s["model"] = model
+        scenario = scenario.replace(sensor={"model": model})
     if backend is not None:
-        s["backend"] = backend
+        scenario = scenario.replace(sensor={"backend": backend})
     if particles is not None:
         if isinstance(particles, bool) or not isinstance(particles, (int, np.integer)) or particles < MIN_PARTICLES:
             raise FilterError(f"particles must be a whole number ≥ {MIN_PARTICLES}, got {particles!r}")
-        config["filter"]["particles"] = int(particles)
+        scenario = scenario.replace(filter={"particles": int(particles)})
     if likelihood is not None:
-        config["likelihood"]["kind"] = likelihood
-    if s["model"] == "altimeter" and not log.has_altimeter:
+        scenario = scenario.replace(likelihood={"kind": likelihood})
+    kind = scenario.sensor.model
+    if kind == "altimeter" and not log.has_altimeter:
         raise LogError(f"flight log {log.name}", ["the altimeter model needs altimeter readings (group /altimeter)"])
-    if s["model"] != "altimeter" and not log.has_scans:
-        raise LogError(f"flight log {log.name}", [f"the {s['model']} model needs point-cloud scans (group /scans)"])
-    return config
+    if kind != "altimeter" and not log.has_scans:
+        raise LogError(f"flight log {log.name}", [f"the {kind} model needs point-cloud scans (group /scans)"])
+    return scenario
 
 
-def _likelihood(log: FlightLog, config: dict, the_map, own: bool = True) -> Likelihood:
+def _likelihood(log: FlightLog, scenario: Scenario, the_map, own: bool = True) -> Likelihood:
     """The log's stored likelihood when the model and likelihood are the ones it was simulated with, else the
     scenarios' calibration (:func:`~warptan.sim.scenarios.scenario_likelihood`) with the scan footprint measured from
     the log: the along-track extent of its directions at their median range. Over a DEM other than the log's own
@@ -162,25 +159,26 @@ def _likelihood(log: FlightLog, config: dict, the_map, own: bool = True) -> Like
     from warptan.sim.scenarios import scenario_likelihood
 
     stored, stored_config = log.settings.get("likelihood"), log.settings.get("config")
-    if stored is not None and stored_config is not None and all(
-            stored_config[group][key] == config[group][key] for group, key in (("sensor", "model"),
-                                                                             ("likelihood", "kind"))):
+    lk = scenario.likelihood
+    ran = Scenario.from_tables(stored_config) if stored_config is not None else None
+    if stored is not None and ran is not None and (ran.sensor.model, ran.likelihood.kind) == (scenario.sensor.model,
+                                                                                           lk.kind):
         lik = Likelihood(**stored)
-        stated = config["likelihood"]["map_error_rms_m"], config["likelihood"]["map_error_corr_m"]
+        stated = lk.map_error_rms_m, lk.map_error_corr_m
         if stated != (lik.map_error_sigma_m, lik.map_error_corr_m):  # told another accuracy than the run was
             lik = dataclasses.replace(lik, map_error_sigma_m=stated[0], map_error_corr_m=stated[1],
                                       fix_corr_m=the_map.slope_correlation_m if stated[0] > 0 else 0.0)
-        if not own and config["likelihood"]["map_aware"]:
+        if not own and lk.map_aware:
             lik = dataclasses.replace(lik, map_sigma_m=math.hypot(lik.map_sigma_m,
                                                                   the_map.interpolation_sigma_m(lik.map_sigma_m)))
         return lik
     footprint = None
-    if config["sensor"]["model"] != "altimeter":
+    if scenario.sensor.model != "altimeter":
         valid = log.scan_valid
         median_range = float(np.nanmedian(np.where(valid, log.scan_ranges, np.nan)))
         along = np.where(valid, log.scan_dirs[..., 0] / np.maximum(log.scan_dirs[..., 2], 1e-3), np.nan)
         footprint = median_range * float(np.nanmax(along) - np.nanmin(along)) if np.isfinite(along).any() else 0.0
-    return scenario_likelihood(config, the_map, None, footprint_m=footprint)
+    return scenario_likelihood(scenario, the_map, None, footprint_m=footprint)
 
 
 def check_coverage(log: FlightLog, terrain, ins_pos: np.ndarray, allow_gaps: bool = False) -> int:
@@ -188,8 +186,8 @@ def check_coverage(log: FlightLog, terrain, ins_pos: np.ndarray, allow_gaps: boo
     truth: the INS-only track at the updates) leave it (both extents named, in latitude/longitude when the DEM has a
     CRS), or pass over nodata (unless ``allow_gaps``: then the updates over gaps are skipped and counted). Returns
     the number of track points over nodata."""
+    from warptan.nav.flightplan import track_problem
     from warptan.nav.geoframe import latlon_extent
-    from warptan.sim.scenarios import track_problem
 
     tracks = [("initial.pos_n", np.array([log.imu_t[0]]), log.init_pos[None]),
               ("truth.pos_n", log.truth_t, log.truth_pos) if log.has_truth else ("INS-only track", None, ins_pos)]
@@ -259,7 +257,7 @@ def place_log(log: FlightLog, terrain, own: bool) -> tuple[FlightLog, dict]:
     return convert_log(log, change, frame=log.frame), info
 
 
-def replay_terrain(log: FlightLog, config: dict, terrain=None):
+def replay_terrain(log: FlightLog, scenario: Scenario, terrain=None):
     """The DEM of a replay: ``terrain`` (Terrain, name, path or spec), else the one the log names. Another DEM file
     that must be resampled anyway (geographic, say) is resampled onto the log's DEM posts when the log records them
     and the file's own spacing is theirs (:attr:`~warptan.io.flightlog.FlightLog.dem_posts`,
@@ -273,7 +271,7 @@ def replay_terrain(log: FlightLog, config: dict, terrain=None):
     posts = None
     if log.dem_posts is not None and log.frame is not None and not own_terrain(log, terrain):
         posts = (log.frame.crs_wkt, (0.0, 0.0), tuple(float(v) for v in log.dem_posts))
-    return resolve_terrain(config, spec, posts=posts)
+    return resolve_terrain(scenario, spec, posts=posts)
 
 
 def same_posts(log: FlightLog, terrain) -> bool:
@@ -313,19 +311,19 @@ def replay(log: FlightLog, terrain=None, *, model: str | None = None, backend: s
     the flight); a DEM that does not contain the flight, nodata under the track, or a frame the DEM cannot be
     related to is a :class:`~warptan.io.flightlog.LogError` before any filtering.
     """
-    from warptan.sim.scenarios import ScenarioResult, filter_config, map_terrain, scenario_model
+    from warptan.sim.scenarios import ScenarioResult, map_terrain, scenario_model
 
     log.validate(f"flight log {log.name}")
-    config = replay_config(log, model, backend, particles, likelihood, map_error)
-    truth_terrain = replay_terrain(log, config, terrain)
+    scenario = replay_config(log, model, backend, particles, likelihood, map_error)
+    truth_terrain = replay_terrain(log, scenario, terrain)
     own = own_terrain(log, terrain)
     log, placed = place_log(log, truth_terrain, own)
     if not own:
         placed["same_posts"] = same_posts(log, truth_terrain)
     filter_seed = check_seed(log.settings.get("seed", 0) if seed is None else seed)
-    the_map = map_terrain(truth_terrain, config, filter_seed) if "config" in log.settings else truth_terrain
-    s = config["sensor"]
-    altimeter = s["model"] == "altimeter"
+    the_map = map_terrain(truth_terrain, scenario, filter_seed) if "config" in log.settings else truth_terrain
+    s = scenario.sensor
+    altimeter = s.model == "altimeter"
     times = log.alt_t if altimeter else log.scan_t
     sample, dts, ends, used = timeline(log, times)
     if not used.any():
@@ -337,14 +335,14 @@ def replay(log: FlightLog, terrain=None, *, model: str | None = None, backend: s
     ins = Ins(nominal0, log.imu_rate_hz).run(log.imu_f[sample], log.imu_w[sample], dt=dts)["pos_n"]
     ins_at = ins[np.r_[0, ends]]
     over_gaps = check_coverage(log, truth_terrain, ins_at, allow_gaps)
-    lik = _likelihood(log, config, the_map, own or placed.get("same_posts", False))
-    mpf_model = scenario_model(config, the_map, lik)
+    lik = _likelihood(log, scenario, the_map, own or placed.get("same_posts", False))
+    mpf_model = scenario_model(scenario, the_map, lik)
     sig = log.init_sigma
     mpf = MarginalizedParticleFilter(mpf_model, nominal0, imu_grade(log.imu_grade), log.imu_rate_hz, sig[0:3],
-                                     np.diag(sig[3:15] ** 2), filter_config(config), device=device, seed=filter_seed)
+                                     np.diag(sig[3:15] ** 2), scenario.filter.config(), device=device, seed=filter_seed)
     idx = np.flatnonzero(used)
     t_used = times[used]
-    measurements = _measurements(log, s["model"], idx)
+    measurements = _measurements(log, s.model, idx)
     prior = mpf.estimate()
     received, update_time, predict_time = [], [], 0.0
     t_start = time.perf_counter()
@@ -371,12 +369,12 @@ def replay(log: FlightLog, terrain=None, *, model: str | None = None, backend: s
         if log.truth_accel_bias is not None and log.truth_gyro_bias is not None:
             bias = [sample_at(log.truth_t, np.hstack([log.truth_accel_bias, log.truth_gyro_bias]), epoch_t)]
     run = collect_runs(mpf, epoch_t, truth, bias, [ins_at], prior, received, update_time, predict_time, False,
-                       {"imu_steps": len(sample), "meas_rate_hz": s["rate_hz"],
+                       {"imu_steps": len(sample), "meas_rate_hz": s.rate_hz,
                         "dropped_measurements": int((~used).sum()), "log": log.name, **placed,
                         **({"gaps_allowed": True, "track_points_over_nodata": over_gaps} if allow_gaps else {})})
     wall = time.perf_counter() - t_start
-    return ScenarioResult(scenario=config["id"], seed=int(log.settings.get("scenario_seed", filter_seed)),
-                          device=run.device, terrain=truth_terrain.name, config=config, run=run, wall_s=wall,
+    return ScenarioResult(scenario=scenario.id, seed=int(log.settings.get("scenario_seed", filter_seed)),
+                          device=run.device, terrain=truth_terrain.name, config=scenario, run=run, wall_s=wall,
                           truth_terrain=truth_terrain, map=the_map.name, map_sigma_m=lik.map_sigma_m)
 
 

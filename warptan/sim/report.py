@@ -159,18 +159,18 @@ def aggregate(results) -> dict[str, dict]:
         cfg = runs[0].config
         out[sid] = {
             "seeds": [r.seed for r in runs], "terrain": runs[0].terrain, "device": runs[0].device,
-            "model": cfg["sensor"]["model"], "backend": cfg["sensor"]["backend"], "surface": cfg["sensor"]["surface"],
-            "likelihood": cfg["likelihood"]["kind"], "imu": cfg["imu"]["grade"], "bank_deg": cfg["flight"]["bank_deg"],
-            "altitude_rule": cfg["flight"]["altitude_rule"], "particles": cfg["filter"]["particles"],
-            "meas_rate_hz": cfg["sensor"]["rate_hz"], "use_baro": cfg["sensor"]["use_baro"],
+            "model": cfg.sensor.model, "backend": cfg.sensor.backend, "surface": cfg.sensor.surface,
+            "likelihood": cfg.likelihood.kind, "imu": cfg.imu.grade, "bank_deg": cfg.flight.bank_deg,
+            "altitude_rule": cfg.flight.altitude_rule, "particles": cfg.filter.particles,
+            "meas_rate_hz": cfg.sensor.rate_hz, "use_baro": cfg.sensor.use_baro,
             "rmse_mean_m": rm.tolist(), "rmse_ci95_m": rh.tolist(),
             "rmse_converged_mean_m": cm.tolist(), "rmse_converged_ci95_m": ch.tolist(),
-            "paper_rmse_m": cfg["paper_rmse_m"],
-            "coverage_3sigma_mean": np.mean([r.run.coverage(cfg["filter"]["converged_after_s"]) for r in runs],
+            "paper_rmse_m": list(cfg.paper_rmse_m),
+            "coverage_3sigma_mean": np.mean([r.run.coverage(cfg.filter.converged_after_s) for r in runs],
                                             axis=0).tolist(),
             **_linear_aggregate([r.linear_summary() for r in runs]),
             **_update_counts(runs),
-            "runs_declared_unconverged": sum(declared_unconverged(r.run, cfg["filter"]["converged_after_s"])
+            "runs_declared_unconverged": sum(declared_unconverged(r.run, cfg.filter.converged_after_s)
                                              for r in runs),
             "update_ms_median": 1e3 * float(np.median(np.concatenate([r.run.update_time_s[1:] for r in runs]))),
             "wall_s_mean": float(np.mean([r.wall_s for r in runs])),

@@ -1,24 +1,40 @@
-"""A scenario's configuration: the TOML files of S1–S12, their schema and validation (every problem listed at once),
-overrides, seeds and the memory a run needs (:func:`load_config`); :mod:`warptan.sim.scenarios` builds and runs
-what a configuration describes."""
+"""A scenario, typed: :class:`Scenario` (parsed once from its TOML file by :func:`load_config`, every problem of the
+file and its overrides listed at once; its tables are the dataclasses of the layers that use them:
+:class:`~warptan.terrain.maps.MapSpec`, :class:`~warptan.nav.flightplan.FlightPlan`,
+:class:`~warptan.terrain.world.WorldModel`, and the sensing / filter tables here), the seeds and the memory a run
+needs. The schema and validation are :mod:`warptan.sim.scenario_schema`; :mod:`warptan.sim.scenarios` assembles
+and runs what a scenario describes."""
 
 from __future__ import annotations
 
 import collections
+import copy
 import dataclasses
 import difflib
-import math
 import os
+from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
 
 from warptan.checks import check_seed, host_memory_available
-from warptan.filter.config import MIN_PARTICLES, RESAMPLERS
-from warptan.nav.imu import IMU_GRADES
-from warptan.sensing.likelihood import LIKELIHOODS
-from warptan.sensing.measurement import MODELS
-from warptan.terrain.grid import NAMED_TERRAINS
-from warptan.terrain.raycast import BACKENDS
+from warptan.filter.config import FilterConfig
+from warptan.filter.prior import InitialErrors
+from warptan.nav.flightplan import FlightPlan
+from warptan.sim.scenario_schema import (  # noqa: F401  (the scenario's public names, one import away)
+    MAX_SEED,
+    MAX_SPEED_MPS,
+    MEMORY_FRACTION,
+    OVERRIDES,
+    RUN_KEYWORDS,
+    SCENARIO_IDS,
+    SCHEMA,
+    SURFACES,
+    TERRAIN_KINDS,
+    ScenarioError,
+    validate,
+    with_optional_defaults,
+)
+from warptan.terrain.maps import MapSpec
 from warptan.terrain.world import WorldModel
 
 try:
@@ -27,272 +43,196 @@ except ModuleNotFoundError:  # Python 3.10
     import tomli as tomllib
 
 
-SCENARIO_IDS = tuple(f"S{i}" for i in range(1, 13))
-TERRAIN_KINDS = (*NAMED_TERRAINS, "path")
-SURFACES = ("triangles", "bilinear")
-"""What the sliding and altimeter models read from the map: its triangulated surface (the surface ray casts
-see, and the simulated world when the map is the world) or the bilinear interpolant of its posts."""
+@dataclass(frozen=True)
+class ImuSpec:
+    """A scenario's ``[imu]`` table."""
+
+    grade: str
+    """The IMU's grade (:data:`~warptan.nav.imu.IMU_GRADES`)."""
+    rate_hz: float
+    """IMU sample rate, Hz."""
 
 
-class ScenarioError(ValueError):
-    """A scenario that cannot run; the message lists every problem found."""
+@dataclass(frozen=True)
+class SensorSpec:
+    """A scenario's ``[sensor]`` table."""
+
+    model: str
+    """Measurement model: ``raycast``, ``sliding`` or ``altimeter``."""
+    backend: str
+    """Ray-cast backend of the ``raycast`` model (:data:`~warptan.terrain.raycast.BACKENDS`)."""
+    surface: str
+    """What the ``sliding`` and ``altimeter`` models read from the map: ``triangles`` or ``bilinear``."""
+    rate_hz: float
+    """Measurement rate, Hz (divides the IMU rate)."""
+    scan_nx: int
+    """Rays of the scan across the track."""
+    scan_ny: int
+    """Rays of the scan along the track."""
+    scan_half_angle_deg: float
+    """Half the scan's opening angle, degrees."""
+    range_sigma_m: float
+    """Range noise of the point cloud, m (σ)."""
+    altimeter_sigma_m: float
+    """Radar-altimeter noise, m (σ)."""
+    baro_sigma_m: float
+    """Barometer noise, m (σ)."""
+    use_baro: bool
+    """The altimeter model uses the barometer (its residual then does not depend on a particle's altitude)."""
 
 
-# (type, check(value) -> error text or None)
-def _pos(v):
-    return None if v > 0 else "must be > 0"
+@dataclass(frozen=True)
+class LikelihoodSpec:
+    """A scenario's ``[likelihood]`` table."""
+
+    kind: str
+    """The likelihood (:data:`~warptan.sensing.likelihood.LIKELIHOODS`)."""
+    r_err_m2: float
+    """The paper's error variance, m²."""
+    sigma_m: float | str
+    """Per-point σ, m, or ``"auto"`` (sensor ⊕ map, calibrated)."""
+    nu: float
+    """Student-t degrees of freedom."""
+    map_aware: bool
+    """σ counts the map's own interpolation error when its grid is not the world's."""
+    map_error_rms_m: float
+    """The DEM's stated correlated error, RMS, m (0: none)."""
+    map_error_corr_m: float
+    """Its correlation length, m."""
 
 
-def _nonneg(v):
-    return None if v >= 0 else "must be ≥ 0"
+@dataclass(frozen=True)
+class FilterSpec:
+    """A scenario's ``[filter]`` table: the filter's settings (:meth:`config`) and when the run counts as
+    converged."""
+
+    particles: int
+    """Particles per filter."""
+    resample_threshold: float
+    """Resample when ESS < this · N."""
+    resampler: str
+    """Resampling scheme (:data:`~warptan.filter.config.RESAMPLERS`)."""
+    pos_noise_m_rthz: float
+    """Particle position noise, m/√s."""
+    kalman_pos_noise_m_rthz: float
+    """Position noise the Kalman part models, m/√s."""
+    regularize: float
+    """Regularisation bandwidth factor."""
+    shrinkage: float
+    """Kernel shrinkage in [0, 1]."""
+    temper_ess: float
+    """Tempering target ESS fraction (0: no tempering)."""
+    max_stages: int
+    """Most tempering stages an update."""
+    integrity_window: int
+    """Updates the integrity monitor averages."""
+    integrity_threshold: float
+    """Averaged NIS above which the cloud is re-spread."""
+    measurement_update: bool
+    """Weigh the particles by the measurements (False: INS only)."""
+    closed_loop: bool
+    """Feed the estimate back into the nominal INS."""
+    converged_after_s: float
+    """The run's converged statistics start here, s."""
+
+    def config(self) -> FilterConfig:
+        """The filter's settings (:class:`~warptan.filter.config.FilterConfig`)."""
+        return FilterConfig(n_particles=self.particles, resample_threshold=self.resample_threshold,
+                            resampler=self.resampler, pos_noise=self.pos_noise_m_rthz,
+                            kalman_pos_noise=self.kalman_pos_noise_m_rthz, regularize=self.regularize,
+                            shrinkage=self.shrinkage, temper_ess=self.temper_ess, max_stages=self.max_stages,
+                            integrity_window=self.integrity_window, integrity_threshold=self.integrity_threshold,
+                            measurement_update=self.measurement_update, closed_loop=self.closed_loop)
 
 
-def _upto(high: float, unit: str):
-    """A number in [0, high]: beyond it the value is a typo or a corrupt file, not a setting (and large enough to
-    overflow the device's float32)."""
-    def check(v):
-        return None if 0 <= v <= high else f"must be in [0, {high:g}]{' ' + unit if unit else ''}"
-    return check
+@dataclass(frozen=True)
+class InitialErrorSpec:
+    """A scenario's ``[initial_error]`` table (σ of the initial INS error)."""
+
+    pos_m: tuple
+    """Position σ north, east, down, m."""
+    vel_mps: float
+    """Velocity σ per axis, m/s."""
+    att_deg: tuple
+    """Attitude σ roll, pitch, yaw, degrees."""
+
+    def errors(self) -> InitialErrors:
+        return InitialErrors(tuple(self.pos_m), self.vel_mps, tuple(self.att_deg))
 
 
-def _one_of(options):
-    def check(v):
-        return None if v in options else f"must be one of {', '.join(map(str, options))}"
-    return check
+@dataclass(frozen=True)
+class RunSpec:
+    """A scenario's ``[run]`` table."""
+
+    seed: int
+    """Added to each run's seed (S4 differs from S1 by it)."""
 
 
-def _vec(n, check=None):
-    def inner(v):
-        if not (isinstance(v, list) and len(v) == n and all(isinstance(x, (int, float)) for x in v)):
-            return f"must be a list of {n} numbers"
-        if not all(math.isfinite(x) for x in v):
-            return f"must be a list of {n} finite numbers"
-        if check:
-            bad = [check(x) for x in v if check(x)]
-            return bad[0] if bad else None
-        return None
-    return inner
+SECTIONS = {"terrain": MapSpec, "flight": FlightPlan, "imu": ImuSpec, "sensor": SensorSpec,
+            "likelihood": LikelihoodSpec, "filter": FilterSpec, "initial_error": InitialErrorSpec, "run": RunSpec,
+            "world": WorldModel}
+"""A scenario file's tables and the dataclass each becomes (their fields are the schema's keys:
+``tests/test_scenarios.py`` checks)."""
 
 
-SCHEMA: dict[str, dict[str, tuple[type | tuple, object]]] = {
-    "": {"id": (str, None), "description": (str, None), "paper_rmse_m": (list, _vec(3, _nonneg))},
-    "terrain": {
-        "kind": (str, _one_of(TERRAIN_KINDS)),
-        "path": (str, None),
-        "map_path": (str, None),
-        "map_noise_m": (float, _upto(1e4, "m")),
-        "map_spacing_m": (float, _upto(1e5, "m")),
-        "map_bias_m": (float, lambda v: None if abs(v) <= 1e4 else "must be within ±10000 m"),
-        "map_seed": (int, lambda v: None if v >= -1 else "must be ≥ 0, or -1 (each run's own seed)"),
-    },
-    "flight": {
-        "speed_mps": (float, lambda v: None if 0 < v <= MAX_SPEED_MPS else
-                      f"must be in (0, {MAX_SPEED_MPS:g}] m/s (an aircraft's speed over ground)"),
-        "duration_s": (float, _pos),
-        "heading_deg": (float, None),
-        "pattern": (str, _one_of(("straight", "s_turns", "orbit"))),
-        "bank_deg": (float, lambda v: None if 0 <= v < 90 else "must be in [0, 90) degrees"),
-        "altitude_rule": (str, _one_of(("high", "low"))),
-        "placement": (str, _one_of(("centre", "hilltop"))),
-        "hill_offset_m": (float, _nonneg),
-        "margin_m": (float, _nonneg),
-    },
-    "imu": {"grade": (str, _one_of(tuple(IMU_GRADES))), "rate_hz": (float, _pos)},
-    "sensor": {
-        "model": (str, _one_of(tuple(MODELS))),
-        "backend": (str, _one_of(tuple(BACKENDS))),
-        "surface": (str, _one_of(SURFACES)),
-        "rate_hz": (float, _pos),
-        "scan_nx": (int, _pos),
-        "scan_ny": (int, _pos),
-        "scan_half_angle_deg": (float, lambda v: None if 0 <= v < 90 else "must be in [0, 90) degrees"),
-        "range_sigma_m": (float, _upto(1e4, "m")),
-        "altimeter_sigma_m": (float, _upto(1e4, "m")),
-        "baro_sigma_m": (float, _upto(1e4, "m")),
-        "use_baro": (bool, None),
-    },
-    "likelihood": {
-        "kind": (str, _one_of(tuple(LIKELIHOODS))),
-        "r_err_m2": (float, _pos),
-        "sigma_m": ((float, str), lambda v: None if v == "auto" or (not isinstance(v, str) and v > 0)
-                    else "must be 'auto' (σ_sensor ⊕ σ_map) or a positive number of metres"),
-        "nu": (float, _pos),
-        "map_aware": (bool, None),
-        "map_error_rms_m": (float, _upto(1e3, "m")),
-        "map_error_corr_m": (float, _upto(1e6, "m")),
-    },
-    "filter": {
-        "particles": (int, lambda v: None if v >= MIN_PARTICLES else f"must be ≥ {MIN_PARTICLES} (a particle filter "
-                      "weighs particles against each other)"),
-        "resample_threshold": (float, lambda v: None if 0 <= v <= 1 else "must be in [0, 1]"),
-        "resampler": (str, _one_of(tuple(RESAMPLERS))),
-        "pos_noise_m_rthz": (float, _upto(1e3, "m/√s")),
-        "kalman_pos_noise_m_rthz": (float, _upto(1e3, "m/√s")),
-        "regularize": (float, _upto(100.0, "")),
-        "shrinkage": (float, lambda v: None if 0 <= v <= 1 else "must be in [0, 1]"),
-        "temper_ess": (float, lambda v: None if 0 <= v <= 1 else "must be in [0, 1]"),
-        "max_stages": (int, lambda v: None if 1 <= v <= 64 else "must be in [1, 64]"),
-        "integrity_window": (int, lambda v: None if 1 <= v <= 64 else "must be in [1, 64]"),
-        "integrity_threshold": (float, lambda v: None if 0 < v <= 1e6 else "must be in (0, 1e6]"),
-        "measurement_update": (bool, None),
-        "closed_loop": (bool, None),
-        "converged_after_s": (float, _nonneg),
-    },
-    "initial_error": {
-        "pos_m": (list, _vec(3, _upto(1e5, "m"))),
-        "vel_mps": (float, _upto(1e3, "m/s")),
-        "att_deg": (list, _vec(3, _upto(180.0, "°"))),
-    },
-    "run": {"seed": (int, lambda v: None if 0 <= v <= MAX_SEED else f"must be in [0, {MAX_SEED}]")},
-    "world": {  # types here; the ranges are WorldModel.problems (one place for files and the API)
-        "relief_rms_m": ((float, str), None),
-        "relief_slope": ((float, str), None),
-        "error_rms_m": (float, None),
-        "error_corr_m": (float, None),
-        "bias_m": (float, None),
-        "clutter_height_m": (float, None),
-        "clutter_fraction": (float, None),
-        "clutter_patch_m": (float, None),
-        "refine": (int, None),
-        "seed": (int, None),
-    },
-}
-STATED_ACCURACY_DEFAULTS = {"map_error_rms_m": 0.0, "map_error_corr_m": 0.0}
-"""``[likelihood]`` keys a file may leave out: the DEM's stated correlated error (none)."""
-WORLD_DEFAULTS = {f.name: f.default for f in dataclasses.fields(WorldModel)}
-"""A scenario without a ``[world]`` table (or without some of its keys) flies these: the world is the map."""
+@dataclass(frozen=True)
+class Scenario:
+    """A scenario parsed once: its tables as typed, frozen dataclasses (see :data:`SECTIONS`; change one with
+    :func:`dataclasses.replace`)."""
 
-MAX_SPEED_MPS = 1000.0
-"""Fastest flight a scenario may state (Mach 3); beyond it the flight is a typo, not an aircraft."""
-MAX_SEED = 2**32 - 1
-"""Largest seed (file ``run.seed`` + the run's seed): the IMU, sensor and filter streams are seeded from it."""
-MEMORY_FRACTION = 0.9
-"""A run whose estimated memory exceeds this fraction of the available host (or device) memory is refused."""
+    id: str
+    description: str
+    paper_rmse_m: tuple
+    """The paper's RMSE north, east, down, m (NaN: none)."""
+    terrain: MapSpec
+    flight: FlightPlan
+    imu: ImuSpec
+    sensor: SensorSpec
+    likelihood: LikelihoodSpec
+    filter: FilterSpec
+    initial_error: InitialErrorSpec
+    run: RunSpec
+    world: WorldModel
 
-ABOVE_TERRAIN_M = {"high": 600.0, "low": 150.0}
-"""Clearance of the altitude rules over the highest terrain near the track, m."""
+    @classmethod
+    def from_dict(cls, config: dict, source: str = "scenario") -> Scenario:
+        """From a scenario's tables (a file's, as :mod:`tomllib` reads it; optional tables filled in), validated:
+        raises :class:`ScenarioError` listing every problem, naming ``source``."""
+        config = with_optional_defaults(copy.deepcopy(config))
+        problems = validate(config, source)
+        if problems:
+            raise ScenarioError(f"{len(problems)} problem(s) in {source}:\n  " + "\n  ".join(problems))
+        return cls.from_tables(config)
 
-OVERRIDES = {
-    "particles": ("filter", "particles"),
-    "duration_s": ("flight", "duration_s"),
-    "backend": ("sensor", "backend"),
-    "surface": ("sensor", "surface"),
-    "likelihood": ("likelihood", "kind"),
-    "model": ("sensor", "model"),
-    "meas_rate_hz": ("sensor", "rate_hz"),
-    "scan_nx": ("sensor", "scan_nx"),
-    "scan_ny": ("sensor", "scan_ny"),
-    "use_baro": ("sensor", "use_baro"),
-    "r_err_m2": ("likelihood", "r_err_m2"),
-    "sigma_m": ("likelihood", "sigma_m"),
-    "imu_grade": ("imu", "grade"),
-    "pos_noise": ("filter", "pos_noise_m_rthz"),
-    "kalman_pos_noise": ("filter", "kalman_pos_noise_m_rthz"),
-    "regularize": ("filter", "regularize"),
-    "shrinkage": ("filter", "shrinkage"),
-    "temper_ess": ("filter", "temper_ess"),
-    "max_stages": ("filter", "max_stages"),
-    "integrity_threshold": ("filter", "integrity_threshold"),
-    "integrity_window": ("filter", "integrity_window"),
-    "measurement_update": ("filter", "measurement_update"),
-    "closed_loop": ("filter", "closed_loop"),
-    "map_path": ("terrain", "map_path"),
-    "map_spacing_m": ("terrain", "map_spacing_m"),
-    "map_noise_m": ("terrain", "map_noise_m"),
-    "map_bias_m": ("terrain", "map_bias_m"),
-    "map_seed": ("terrain", "map_seed"),
-    "map_aware": ("likelihood", "map_aware"),
-    "map_error_rms_m": ("likelihood", "map_error_rms_m"),
-    "map_error_corr_m": ("likelihood", "map_error_corr_m"),
-    "world_relief_rms_m": ("world", "relief_rms_m"),
-    "world_relief_slope": ("world", "relief_slope"),
-    "world_error_rms_m": ("world", "error_rms_m"),
-    "world_error_corr_m": ("world", "error_corr_m"),
-    "world_bias_m": ("world", "bias_m"),
-    "world_clutter_height_m": ("world", "clutter_height_m"),
-    "world_clutter_fraction": ("world", "clutter_fraction"),
-    "world_clutter_patch_m": ("world", "clutter_patch_m"),
-    "world_refine": ("world", "refine"),
-    "world_seed": ("world", "seed"),
-}
-"""run_scenario keyword -> (section, key). Also: terrain= (path, spec or Terrain), paper_rates=True."""
-RUN_KEYWORDS = (*OVERRIDES, "terrain", "paper_rates")
-"""Every keyword run_scenario takes besides the seed, device and callbacks."""
+    @classmethod
+    def from_tables(cls, config: dict) -> Scenario:
+        """From tables already validated, or made by the program (a replay's: a recorded flight has no altitude
+        rule); optional tables are filled in, lists become tuples."""
+        config = with_optional_defaults(copy.deepcopy(config))
 
+        def value(v):
+            return tuple(v) if isinstance(v, list) else v
 
-def _type_ok(value, kind) -> bool | None:
-    """True when ``value`` has the schema type ``kind``; None for a non-finite float (nan, inf: never a setting)."""
-    if isinstance(value, float) and not math.isfinite(value):
-        return None
-    if isinstance(kind, tuple):
-        return any(_type_ok(value, k) for k in kind)
-    if kind is float:
-        return isinstance(value, (int, float)) and not isinstance(value, bool)
-    if kind is int:
-        return isinstance(value, int) and not isinstance(value, bool)
-    return isinstance(value, kind)
+        tables = {name: kind(**{f.name: value(config[name][f.name]) for f in dataclasses.fields(kind)})
+                  for name, kind in SECTIONS.items()}
+        return cls(id=config["id"], description=config["description"], paper_rmse_m=tuple(config["paper_rmse_m"]),
+                   **tables)
 
+    def to_dict(self) -> dict:
+        """The scenario as its file's tables (JSON-ready; what flight logs store): ``from_tables(s.to_dict()) == s``."""
+        def value(v):
+            return list(v) if isinstance(v, tuple) else v
 
-def validate(config: dict, source: str = "scenario") -> list[str]:
-    """Every problem of a scenario dict (empty list: valid)."""
-    problems = []
-    known_sections = [s for s in SCHEMA if s]
-    for key, value in config.items():
-        if isinstance(value, dict) and key not in SCHEMA:
-            hint = difflib.get_close_matches(key, known_sections, n=1)
-            problems.append(f"unknown section [{key}]" + (f" (did you mean [{hint[0]}]?)" if hint else ""))
-    for section, keys in SCHEMA.items():
-        table = config if not section else config.get(section)
-        where = section + "." if section else ""
-        if table is None:
-            problems.append(f"missing section [{section}]")
-            continue
-        if not isinstance(table, dict):
-            problems.append(f"[{section}] must be a table")
-            continue
-        for key, value in table.items():
-            if isinstance(value, dict) and not section:
-                continue
-            if key not in keys:
-                hint = difflib.get_close_matches(key, list(keys), n=1)
-                problems.append(f"unknown key {where}{key}" + (f" (did you mean {where}{hint[0]}?)" if hint else ""))
-        for key, (kind, check) in keys.items():
-            if key not in table:
-                problems.append(f"missing key {where}{key}")
-                continue
-            value = table[key]
-            if _type_ok(value, float) is None:
-                problems.append(f"{where}{key} = {value!r} must be a finite number")
-                continue
-            if not _type_ok(value, kind):
-                names = " or ".join(k.__name__ for k in kind) if isinstance(kind, tuple) else kind.__name__
-                problems.append(f"{where}{key} = {value!r} must be of type {names}")
-                continue
-            msg = check(value) if check else None
-            if msg:
-                problems.append(f"{where}{key} = {value!r} {msg}")
-    if isinstance(config.get("world"), dict) and not any(p.startswith("world.") for p in problems):
-        problems += WorldModel.from_config(config["world"]).problems()
-    if not problems:
-        imu_rate, meas_rate = config["imu"]["rate_hz"], config["sensor"]["rate_hz"]
-        ratio = imu_rate / meas_rate
-        if abs(ratio - round(ratio)) > 1e-9 or ratio < 1:
-            problems.append(f"sensor.rate_hz = {meas_rate} must divide imu.rate_hz = {imu_rate}")
-        lk = config["likelihood"]
-        if lk["map_error_rms_m"] > 0 and lk["map_error_corr_m"] <= 0:
-            problems.append(f"likelihood.map_error_rms_m = {lk['map_error_rms_m']:g} needs likelihood.map_error_corr_m "
-                            "> 0 (the stated error's correlation length, m)")
-        if config["terrain"]["kind"] == "path" and not config["terrain"]["path"]:
-            problems.append("terrain.path must be set when terrain.kind = 'path'")
-        if config["flight"]["pattern"] != "straight" and config["flight"]["bank_deg"] <= 0:
-            problems.append(f"flight.pattern = {config['flight']['pattern']!r} needs flight.bank_deg > 0")
-        if config["flight"]["duration_s"] * meas_rate < 1.0 - 1e-9:
-            problems.append(f"flight.duration_s = {config['flight']['duration_s']:g} is shorter than one measurement "
-                            f"interval (1 / sensor.rate_hz = {1.0 / meas_rate:g} s)")
-        if config["filter"]["kalman_pos_noise_m_rthz"] == 0 and config["initial_error"]["vel_mps"] == 0:
-            problems.append("filter.kalman_pos_noise_m_rthz = 0 with initial_error.vel_mps = 0 makes the filter's N_k "
-                            "singular (no position uncertainty enters the Kalman part); make one of them > 0")
-    return [f"{source}: {p}" for p in problems]
+        out = {"id": self.id, "description": self.description, "paper_rmse_m": list(self.paper_rmse_m)}
+        for name in SECTIONS:
+            table = getattr(self, name)
+            out[name] = {f.name: value(getattr(table, f.name)) for f in dataclasses.fields(table)}
+        return out
+
+    def replace(self, **tables) -> Scenario:
+        """A copy with fields of its tables changed: ``s.replace(flight={"duration_s": 60.0})``."""
+        return dataclasses.replace(self, **{name: dataclasses.replace(getattr(self, name), **changes)
+                                            for name, changes in tables.items()})
 
 
 def check_seeds(seeds, base: int = 0) -> list[int]:
@@ -326,15 +266,15 @@ def check_seeds(seeds, base: int = 0) -> list[int]:
     return out
 
 
-def memory_estimate(config: dict, n_seeds: int) -> dict[str, float]:
+def memory_estimate(scenario: Scenario, n_seeds: int) -> dict[str, float]:
     """Bytes a run of ``n_seeds`` seeds needs, about: ``host`` (the flight, each seed's IMU samples and scans, the
     histories) and ``device`` (particles, and the model's per-particle × per-point arrays)."""
-    s, f = config["sensor"], config["filter"]
-    samples = config["flight"]["duration_s"] * config["imu"]["rate_hz"]
-    epochs = config["flight"]["duration_s"] * s["rate_hz"]
-    points = 1.0 if s["model"] == "altimeter" else float(s["scan_nx"]) * float(s["scan_ny"])
-    particles = float(f["particles"]) * n_seeds
-    per_point = 4.0 + (12.0 if s["model"] == "raycast" else 0.0)  # residual (+ hit normal)
+    s = scenario.sensor
+    samples = scenario.flight.duration_s * scenario.imu.rate_hz
+    epochs = scenario.flight.duration_s * s.rate_hz
+    points = 1.0 if s.model == "altimeter" else float(s.scan_nx) * float(s.scan_ny)
+    particles = float(scenario.filter.particles) * n_seeds
+    per_point = 4.0 + (12.0 if s.model == "raycast" else 0.0)  # residual (+ hit normal)
     host = samples * (400.0 + 64.0 * n_seeds) + epochs * n_seeds * 2048.0 + points * (200.0 + 64.0 * n_seeds)
     device = particles * (1024.0 + per_point * points) + points * n_seeds * 64.0
     return {"host": host, "device": device}
@@ -350,18 +290,18 @@ def available_memory(device) -> dict[str, float]:
     return {"host": host, "device": dev}
 
 
-def check_memory(config: dict, n_seeds: int, device="cpu") -> None:
+def check_memory(scenario: Scenario, n_seeds: int, device="cpu") -> None:
     """Refuse (ScenarioError) a run whose :func:`memory_estimate` exceeds :data:`MEMORY_FRACTION` of what is
     available, before anything is allocated."""
-    need, have = memory_estimate(config, n_seeds), available_memory(device)
-    s = config["sensor"]
+    need, have = memory_estimate(scenario, n_seeds), available_memory(device)
+    s = scenario.sensor
     for where in ("host", "device"):
         if need[where] > MEMORY_FRACTION * have[where]:
             name = "host" if where == "host" else f"device {device}"
             raise ScenarioError(
-                f"scenario {config['id']}: needs about {_bytes(need[where])} of {name} memory ({n_seeds} seed(s) × "
-                f"{config['filter']['particles']} particles, scan {s['scan_nx']}×{s['scan_ny']}, "
-                f"{config['flight']['duration_s']:g} s at {config['imu']['rate_hz']:g} Hz) but {_bytes(have[where])} "
+                f"scenario {scenario.id}: needs about {_bytes(need[where])} of {name} memory ({n_seeds} seed(s) × "
+                f"{scenario.filter.particles} particles, scan {s.scan_nx}×{s.scan_ny}, "
+                f"{scenario.flight.duration_s:g} s at {scenario.imu.rate_hz:g} Hz) but {_bytes(have[where])} "
                 "is available; use fewer particles, scan points, seeds or a shorter flight")
 
 
@@ -386,20 +326,10 @@ def scenario_path(name_or_path: str | os.PathLike) -> Path:
     raise ScenarioError(f"unknown scenario {text!r}; use one of {', '.join(SCENARIO_IDS)}, 'all', or a .toml path")
 
 
-def with_optional_defaults(config: dict) -> dict:
-    """``config`` with the keys a scenario may leave out filled in: the ``[world]`` table (the world is the map)
-    and the DEM's stated accuracy in ``[likelihood]`` (none). Configs stored before these existed (flight logs)
-    read the same way."""
-    if isinstance(config.get("world", {}), dict):
-        config["world"] = {**WORLD_DEFAULTS, **config.get("world", {})}
-    if isinstance(config.get("likelihood"), dict):
-        config["likelihood"] = {**STATED_ACCURACY_DEFAULTS, **config["likelihood"]}
-    return config
-
-
-def load_config(name_or_path, overrides_from: str = "override", **overrides) -> dict:
-    """Read, override and validate a scenario; raises :class:`ScenarioError` listing every problem. A problem of
-    an overridden value names ``overrides_from`` (e.g. the campaign file that set it), not the scenario file."""
+def load_config(name_or_path, overrides_from: str = "override", **overrides) -> Scenario:
+    """Read, override and validate a scenario, parsed once into a :class:`Scenario`; raises :class:`ScenarioError`
+    listing every problem. A problem of an overridden value names ``overrides_from`` (e.g. the campaign file that
+    set it), not the scenario file."""
     path = scenario_path(name_or_path)
     try:
         with open(path, "rb") as f:
@@ -428,5 +358,5 @@ def load_config(name_or_path, overrides_from: str = "override", **overrides) -> 
         problems.append(f"{overrides_from} {key}: {problem}" if key else f"{path}: {problem}")
     if problems:
         raise ScenarioError(f"{len(problems)} problem(s) in scenario {path.stem}:\n  " + "\n  ".join(problems))
-    return config
+    return Scenario.from_tables(config)
 

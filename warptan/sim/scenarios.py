@@ -3,7 +3,10 @@
 
 A scenario file states every parameter (see ``warptan/scenario_files/S1.toml``); a file is validated as a
 whole before anything runs, and every problem is listed at once (missing or misspelt keys, wrong types,
-values out of range, a terrain that does not load, a flight that leaves the DEM).
+values out of range, a terrain that does not load, a flight that leaves the DEM). This module assembles: the map
+and the world are built by the terrain layer (:mod:`warptan.terrain.maps`), the flight by the navigation layer
+(:mod:`warptan.nav.flightplan`), each from its own table of the typed
+:class:`~warptan.sim.scenario_config.Scenario`.
 
 Choices the paper leaves open (SPEC §7 fixes the rest):
 
@@ -37,210 +40,63 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from warptan.filter.config import FilterConfig
-from warptan.filter.prior import InitialErrors
+from warptan.nav.flightplan import FlightPlanError, track_problem
 from warptan.nav.imu import ImuModel
-from warptan.nav.trajectory import Orbit, Straight, Trajectory, Turn
+from warptan.nav.trajectory import Trajectory
 from warptan.sensing.likelihood import Likelihood
 from warptan.sensing.measurement import make_model
 from warptan.sensing.sensors import Barometer, PointCloudSensor, RadarAltimeter, ScanPattern
 from warptan.sim.runner import FilterRun, run_filter
-from warptan.sim.scenario_config import ABOVE_TERRAIN_M, ScenarioError, check_memory, check_seeds, load_config
+from warptan.sim.scenario_config import Scenario, ScenarioError, check_memory, check_seeds, load_config
 from warptan.terrain.grid import NAMED_TERRAINS, Terrain, TerrainError
-from warptan.terrain.world import World, WorldModel
-
-# ---------------------------------------------------------------------- terrain
-_TERRAIN_CACHE: dict[str, Terrain] = {}
+from warptan.terrain.maps import build_world, load_terrain
+from warptan.terrain.world import World
 
 
-def resolve_terrain(config: dict, terrain=None, posts=None) -> Terrain:
-    """The truth terrain: an override (Terrain, name, path or spec), else the scenario's ``terrain.kind`` (a named
-    real DEM) or ``terrain.path``; ``posts`` go to a raster's load
+# ---------------------------------------------------------------------- world, map, flight
+def resolve_terrain(scenario: Scenario, terrain=None, posts=None) -> Terrain:
+    """The DEM of the world: an override (Terrain, name, path or spec), else the scenario's (``terrain.kind``, a
+    named real DEM, or ``terrain.path``); ``posts`` go to a raster's load
     (:meth:`~warptan.terrain.grid.Terrain.from_raster`)."""
     if isinstance(terrain, Terrain):
         return terrain
-    if terrain is not None:
-        if not isinstance(terrain, (str, os.PathLike)):
-            raise ScenarioError(f"terrain={terrain!r} ({type(terrain).__name__}) must be a Terrain, a name "
-                                f"({', '.join(NAMED_TERRAINS)}), a DEM path or a 'synthetic:KIND' spec")
-        spec = os.fspath(terrain)
-    elif config["terrain"]["kind"] == "path":
-        spec = config["terrain"]["path"]
-    else:
-        spec = config["terrain"]["kind"]
-    return _load_terrain(spec, posts=posts)
-
-
-def _load_terrain(spec: str, onto: Terrain | None = None, posts=None) -> Terrain:
-    key = spec if onto is None else f"{spec} onto {onto.name} {onto.origin_xy} {onto.crs_wkt}"
-    if posts is not None:
-        key = f"{key} on posts {posts}"
-    if key not in _TERRAIN_CACHE:
-        try:
-            _TERRAIN_CACHE[key] = (Terrain.load(spec, **({} if posts is None else {"posts": posts})) if onto is None
-                                   else Terrain.from_raster(spec, onto=onto))
-        except (ValueError, FileNotFoundError) as err:
-            raise ScenarioError(f"terrain {spec!r} does not load: {err}") from None
-    return _TERRAIN_CACHE[key]
-
-
-def map_grid_differs(config: dict, truth: Terrain) -> bool:
-    """True when the filter's map is not sampled on the world's posts (another file, coarser posts, or a world
-    made from the map on a finer grid)."""
-    t = config["terrain"]
-    return bool(t["map_path"]) or _coarsening(truth, t["map_spacing_m"]) != (1, 1) or (
-        isinstance(truth, World) and truth.model.refine > 1)
-
-
-_WORLD_CACHE: dict = {}
-
-
-def world_terrain(dem: Terrain, config: dict, seed: int) -> Terrain:
-    """The world a scenario flies: ``dem`` itself, or with an active ``[world]`` table the
-    :class:`~warptan.terrain.world.World` made from it (``seed``: the run's, used when ``world.seed`` is -1). Checked
-    against the DEM first (a correlation length shorter than a post is refused)."""
-    model = WorldModel.from_config(config["world"])
-    if not model.active:
-        return dem
-    key = (id(dem), model, seed if model.seed < 0 else None)
-    if key not in _WORLD_CACHE:
-        if len(_WORLD_CACHE) >= 4:  # worlds are large (refine² × the DEM): keep the last few
-            _WORLD_CACHE.pop(next(iter(_WORLD_CACHE)))
-        try:
-            _WORLD_CACHE[key] = (dem, model.build(dem, seed))
-        except TerrainError as err:
-            raise ScenarioError(f"scenario {config['id']}: {err}") from None
-    return _WORLD_CACHE[key][1]
-
-
-def _coarsening(truth: Terrain, spacing_m: float) -> tuple[int, int]:
-    if not spacing_m:
-        return 1, 1
-    return max(1, round(spacing_m / truth.dn)), max(1, round(spacing_m / truth.de))
-
-
-def map_terrain(truth: Terrain, config: dict, seed: int) -> Terrain:
-    """The filter's map of the world ``truth``: the world itself, or (``[terrain]``, in this order) another DEM of
-    the same ground (``map_path``, resampled bilinearly into the world's frame at its own post spacing), coarser
-    posts (``map_spacing_m``: block means of ``round(spacing / d)`` posts per axis), white noise per post
-    (``map_noise_m``; realisation ``map_seed``, or the run's seed when -1) and a vertical bias (``map_bias_m``)."""
-    t = config["terrain"]
-    noise, bias = t["map_noise_m"], t["map_bias_m"]
-    if isinstance(truth, World):  # the world was made from the DEM: the DEM is the map
-        truth = truth.base
-    the_map = _load_terrain(t["map_path"], onto=truth) if t["map_path"] else truth
+    if terrain is not None and not isinstance(terrain, (str, os.PathLike)):
+        raise ScenarioError(f"terrain={terrain!r} ({type(terrain).__name__}) must be a Terrain, a name "
+                            f"({', '.join(NAMED_TERRAINS)}), a DEM path or a 'synthetic:KIND' spec")
     try:
-        the_map = the_map.coarsened(*_coarsening(the_map, t["map_spacing_m"]))
+        return load_terrain(scenario.terrain.dem if terrain is None else terrain, posts=posts)
     except TerrainError as err:
-        raise ScenarioError(f"terrain.map_spacing_m = {t['map_spacing_m']}: {err}") from None
-    if the_map is truth and not noise and not bias:
-        return truth
-    h = the_map.heights_m + bias
-    if noise:
-        noise_seed = seed if t["map_seed"] < 0 else t["map_seed"]
-        h = h + np.random.default_rng([noise_seed, 0x3A9]).normal(0.0, noise, h.shape)
-    parts = [p for p, on in ((f"noise {noise:g} m", noise), (f"bias {bias:+g} m", bias)) if on]
-    # Noise and bias are deliberate: the map keeps every post (its world passed the plausibility range already).
-    return Terrain(h, the_map.n0, the_map.e0, the_map.dn, the_map.de, crs_wkt=the_map.crs_wkt,
-                   origin_xy=the_map.origin_xy, valid_range_m=(-math.inf, math.inf),
-                   name=the_map.name + (f" ({', '.join(parts)})" if parts else ""), description=the_map.description)
+        raise ScenarioError(str(err)) from None
 
 
-# ---------------------------------------------------------------------- flight
-def _segments(flight: dict) -> list:
-    duration, bank, pattern = flight["duration_s"], flight["bank_deg"], flight["pattern"]
-    if pattern == "straight":
-        return [Straight(duration)]
-    if pattern == "orbit":
-        lead = min(5.0, 0.1 * duration)
-        return [Straight(lead), Orbit(duration - lead, bank_deg=bank, roll_time_s=3.0)]
-    segments, t, sign = [Straight(min(10.0, 0.2 * duration))], min(10.0, 0.2 * duration), 1.0
-    rate = 9.80665 * math.tan(math.radians(bank)) / flight["speed_mps"]
-    turn_time = math.radians(150.0) / rate + 3.0
-    while t + turn_time <= duration:
-        segments.append(Turn(sign * 150.0, bank_deg=bank, roll_time_s=3.0))
-        t += turn_time
-        sign = -sign
-    if duration - t > 1e-6:
-        segments.append(Straight(duration - t))
-    return segments
+def world_terrain(dem: Terrain, scenario: Scenario, seed: int) -> Terrain:
+    """The world a scenario flies: ``dem`` itself, or with an active ``[world]`` table the
+    :class:`~warptan.terrain.world.World` made from it (:func:`~warptan.terrain.maps.build_world`; ``seed``: the
+    run's, used when ``world.seed`` is -1)."""
+    try:
+        return build_world(dem, scenario.world, seed)
+    except TerrainError as err:
+        raise ScenarioError(f"scenario {scenario.id}: {err}") from None
 
 
-def _max_height_near(terrain: Terrain, north, east, radius: float) -> float:
-    """The highest post within ``radius`` metres (horizontal distance) of any of the points (north, east)."""
-    rows, cols = terrain.shape
-    best = -np.inf
-    ri, rj = math.ceil(radius / terrain.dn) + 1, math.ceil(radius / terrain.de) + 1
-    for n, e in zip(north, east, strict=True):
-        i, j = round((n - terrain.n0) / terrain.dn), round((e - terrain.e0) / terrain.de)
-        i0, i1, j0, j1 = max(0, i - ri), min(rows, i + ri + 1), max(0, j - rj), min(cols, j + rj + 1)
-        if i0 >= i1 or j0 >= j1:
-            continue
-        dn = terrain.n0 + np.arange(i0, i1) * terrain.dn - n
-        de = terrain.e0 + np.arange(j0, j1) * terrain.de - e
-        inside = dn[:, None] ** 2 + de[None, :] ** 2 <= radius * radius
-        window = np.where(inside, terrain.heights_m[i0:i1, j0:j1], np.nan)
-        if np.isfinite(window).any():
-            best = max(best, float(np.nanmax(window)))
-    return best
+def map_terrain(truth: Terrain, scenario: Scenario, seed: int) -> Terrain:
+    """The filter's map of the world ``truth`` (:meth:`~warptan.terrain.maps.MapSpec.build`)."""
+    try:
+        return scenario.terrain.build(truth, seed)
+    except TerrainError as err:
+        raise ScenarioError(str(err)) from None
 
 
-def track_problem(terrain: Terrain, track: np.ndarray, margin: float, what: str) -> str | None:
-    """Why ``terrain`` does not cover the horizontal ``track`` (K, 2: north, east, m) with ``margin`` metres around
-    it (leaves its bounds, or passes over nodata), or None when it does. ``what`` names the terrain in the text."""
-    n_min, n_max, e_min, e_max = terrain.bounds_ne
-    if (track[:, 0].min() - margin < n_min or track[:, 0].max() + margin > n_max or
-            track[:, 1].min() - margin < e_min or track[:, 1].max() + margin > e_max):
-        return (f"the track (north {track[:, 0].min():.0f}…{track[:, 0].max():.0f} m, east {track[:, 1].min():.0f}…"
-                f"{track[:, 1].max():.0f} m) with a {margin:.0f} m margin leaves the {what} (north {n_min:.0f}…"
-                f"{n_max:.0f}, east {e_min:.0f}…{e_max:.0f})")
-    heights = terrain.height_at(track[:, 0], track[:, 1])
-    if np.isnan(heights).any():
-        return (f"the track passes over nodata in the {what} ({int(np.isnan(heights).sum())} of {len(heights)} "
-                "track points)")
-    return None
-
-
-def build_flight(config: dict, terrain: Terrain) -> Trajectory:
-    """The truth trajectory of a scenario over ``terrain`` (placement and altitude rule applied).
+def build_flight(scenario: Scenario, terrain: Terrain) -> Trajectory:
+    """The truth trajectory of a scenario over ``terrain`` (:meth:`~warptan.nav.flightplan.FlightPlan.fly`).
 
     Raises:
         ScenarioError: the track does not fit ``margin_m`` inside the DEM or passes over nodata.
     """
-    flight, rate = config["flight"], config["imu"]["rate_hz"]
-    shape = Trajectory.build(_segments(flight), flight["speed_mps"], [0.0, 0.0, 0.0], flight["heading_deg"],
-                             rate_hz=rate)
-    n_min, n_max, e_min, e_max = terrain.bounds_ne
-    path = shape.pos_n[:, :2]
-    if flight["placement"] == "hilltop":
-        margin = flight["margin_m"]
-        inner = terrain.heights_m.copy()
-        ci = math.ceil(margin / terrain.dn) + 1
-        cj = math.ceil(margin / terrain.de) + 1
-        inner[:ci], inner[-ci:], inner[:, :cj], inner[:, -cj:] = np.nan, np.nan, np.nan, np.nan
-        i, j = np.unravel_index(np.nanargmax(inner), inner.shape)
-        hill = np.array([terrain.n0 + i * terrain.dn, terrain.e0 + j * terrain.de])
-        centre = path[len(path) // 10:].mean(axis=0)  # centre of the circling part
-        radius = np.median(np.linalg.norm(path[len(path) // 10:] - centre, axis=1))
-        towards_middle = np.array([0.5 * (n_min + n_max), 0.5 * (e_min + e_max)]) - hill
-        towards_middle /= max(np.linalg.norm(towards_middle), 1e-9)
-        offset = hill + (radius + flight["hill_offset_m"]) * towards_middle - centre
-    else:
-        mid = 0.5 * (path.min(axis=0) + path.max(axis=0))
-        offset = np.array([0.5 * (n_min + n_max), 0.5 * (e_min + e_max)]) - mid
-    track = path + offset
-    if not np.isfinite(track).all():
-        raise ScenarioError(f"scenario {config['id']}: the track is not finite (flight.speed_mps = "
-                            f"{flight['speed_mps']:g}, duration_s = {flight['duration_s']:g})")
-    problem = track_problem(terrain, track, flight["margin_m"], "DEM")
-    if problem:
-        raise ScenarioError(f"scenario {config['id']}: {problem}; shorten flight.duration_s or use a larger DEM")
-    radius = 2000.0 if flight["altitude_rule"] == "high" else 1000.0
-    above = ABOVE_TERRAIN_M[flight["altitude_rule"]]
-    sub = track[:: max(1, int(rate))]
-    altitude = _max_height_near(terrain, sub[:, 0], sub[:, 1], radius) + above
-    return Trajectory.build(_segments(flight), flight["speed_mps"], [track[0, 0], track[0, 1], -altitude],
-                            flight["heading_deg"], rate_hz=rate)
+    try:
+        return scenario.flight.fly(terrain, scenario.imu.rate_hz)
+    except FlightPlanError as err:
+        raise ScenarioError(f"scenario {scenario.id}: {err}") from None
 
 
 # ---------------------------------------------------------------------- running
@@ -252,7 +108,8 @@ class ScenarioResult:
     seed: int
     device: str
     terrain: str
-    config: dict
+    config: Scenario
+    """The scenario as it ran (overrides applied)."""
     run: FilterRun
     wall_s: float
     truth_terrain: Terrain = field(repr=False)
@@ -267,7 +124,7 @@ class ScenarioResult:
 
     def __post_init__(self):
         self.rmse = self.run.rmse(0.0)
-        self.rmse_converged = self.run.rmse(self.config["filter"]["converged_after_s"])
+        self.rmse_converged = self.run.rmse(self.config.filter.converged_after_s)
 
     def summary(self) -> dict:
         """JSON-ready numbers of this run."""
@@ -282,10 +139,10 @@ class ScenarioResult:
                       if isinstance(self.truth_terrain, World) else None),
             "rmse_m": self.rmse.tolist(), "rmse_converged_m": self.rmse_converged.tolist(),
             "ins_only_final_error_m": (r.ins_pos[-1] - r.truth_pos[-1]).tolist(),
-            "coverage_3sigma": r.coverage(self.config["filter"]["converged_after_s"]).tolist(),
+            "coverage_3sigma": r.coverage(self.config.filter.converged_after_s).tolist(),
             "min_ess": float(r.ess[1:].min()) if len(r.ess) > 1 else float(r.ess[0]),
             "resamplings": int(r.resampled.sum()), "respreads": int(r.respread.sum()),
-            "declared_unconverged": declared_unconverged(r, self.config["filter"]["converged_after_s"]),
+            "declared_unconverged": declared_unconverged(r, self.config.filter.converged_after_s),
             "updates": updates, "skipped_updates": skipped, "updates_used": used,
             "updates_without_points": updates - skipped - used,
             "max_tempering_stages": int(r.stages.max()),
@@ -300,7 +157,7 @@ class ScenarioResult:
         """Attitude and bias numbers of the run: converged RMSE and 3σ coverage of the attitude error (body
         axes, deg), gyro-bias RMSE after 60 s (deg/h), and the mean reported σ over the RMSE per axis for position
         and attitude (honest bounds: about 1)."""
-        r, conv = self.run, self.config["filter"]["converged_after_s"]
+        r, conv = self.run, self.config.filter.converged_after_s
         sel = r.t_s >= conv
         att_rmse = r.lin_rmse(conv)[3:6]
         pos_sigma = np.mean(r.sigma3_pos[sel], axis=0) / 3.0 if sel.any() else np.full(3, np.nan)
@@ -316,7 +173,7 @@ class ScenarioResult:
             }
 
 
-def scenario_likelihood(config: dict, the_map: Terrain, truth: Terrain | None = None,
+def scenario_likelihood(scenario: Scenario, the_map: Terrain, truth: Terrain | None = None,
                         footprint_m: float | None = None) -> Likelihood:
     """The scenario's likelihood; ``sigma_m = "auto"`` calibrates σ from the sensor noise (range; altimeter ⊕
     barometer for the altimeter with a barometer), the map noise and the
@@ -334,59 +191,57 @@ def scenario_likelihood(config: dict, the_map: Terrain, truth: Terrain | None = 
     2.8/5.1/12.1 m estimated, 2.3/4.8/12.9 m measured against the 30 m triangles). A map on the world's own
     posts has no interpolation error beyond the bilinear-vs-triangles mismatch every sliding model counts.
     ``footprint_m`` replaces the scenario's footprint (a recorded flight's, measured from its scans)."""
-    lk, s = config["likelihood"], config["sensor"]
-    noise_m = s["range_sigma_m"]
-    if s["model"] == "altimeter":  # the residual a - (h_baro - h(p)) carries both sensors' noise
-        noise_m = math.hypot(s["altimeter_sigma_m"], s["baro_sigma_m"] if s["use_baro"] else 0.0)
-    step_m = config["flight"]["speed_mps"] / s["rate_hz"]
+    lk, s = scenario.likelihood, scenario.sensor
+    noise_m = s.range_sigma_m
+    if s.model == "altimeter":  # the residual a - (h_baro - h(p)) carries both sensors' noise
+        noise_m = math.hypot(s.altimeter_sigma_m, s.baro_sigma_m if s.use_baro else 0.0)
+    step_m = scenario.flight.speed_mps / s.rate_hz
     n_corr = max(1.0, math.sqrt(the_map.dn * the_map.de) / step_m)
     n_fp = n_corr
-    if s["model"] != "altimeter":  # the scan's along-track footprint (default: at the flight's clearance)
+    if s.model != "altimeter":  # the scan's along-track footprint (default: at the flight's clearance)
         if footprint_m is None:
-            bank = config["flight"]["bank_deg"] if config["flight"]["pattern"] != "straight" else 0.0
-            footprint_m = 2.0 * ABOVE_TERRAIN_M[config["flight"]["altitude_rule"]] * math.tan(
-                math.radians(s["scan_half_angle_deg"])) / math.cos(math.radians(bank))
+            footprint_m = scenario.flight.footprint_m(s.scan_half_angle_deg)
         n_fp = max(n_corr, footprint_m / step_m)
-    map_sigma = config["terrain"]["map_noise_m"]
-    if lk["map_aware"] and truth is not None and map_grid_differs(config, truth):
+    map_sigma = scenario.terrain.map_noise_m
+    if lk.map_aware and truth is not None and scenario.terrain.grid_differs(truth):
         map_sigma = math.hypot(map_sigma, the_map.interpolation_sigma_m(map_sigma))
-    return Likelihood(lk["kind"], r_err=lk["r_err_m2"], sigma_m=None if lk["sigma_m"] == "auto" else lk["sigma_m"],
-                      nu=lk["nu"], sensor_sigma_m=noise_m, map_sigma_m=map_sigma,
+    return Likelihood(lk.kind, r_err=lk.r_err_m2, sigma_m=None if lk.sigma_m == "auto" else lk.sigma_m,
+                      nu=lk.nu, sensor_sigma_m=noise_m, map_sigma_m=map_sigma,
                       map_correlation=n_corr, footprint_correlation=n_fp,
-                      map_error_sigma_m=lk["map_error_rms_m"], map_error_corr_m=lk["map_error_corr_m"],
-                      track_step_m=step_m, fix_corr_m=the_map.slope_correlation_m if lk["map_error_rms_m"] > 0 else 0.0)
+                      map_error_sigma_m=lk.map_error_rms_m, map_error_corr_m=lk.map_error_corr_m,
+                      track_step_m=step_m, fix_corr_m=the_map.slope_correlation_m if lk.map_error_rms_m > 0 else 0.0)
 
 
 def prepare(name_or_path, seed: int = 0, terrain=None, *, seeds=None, device=None, batched: bool = False,
             **overrides):
-    """Validate and build everything a run needs (config, truth terrain, flight) without running it: the file and
-    overrides, the seeds (``seeds``, default ``[seed]``; ``batched``: run as one batch, which a map with per-seed
-    noise cannot be), the memory the run needs on ``device`` (when given), the terrain, the flight inside the DEM,
-    and the filter's map. ``warptan run --check`` is this."""
-    config = load_config(name_or_path, **overrides)
-    seeds = check_seeds([seed] if seeds is None else seeds, config["run"]["seed"])
-    if batched and len(seeds) > 1 and per_seed_maps(config):
-        raise ScenarioError(f"{config['id']}: map_noise_m with map_seed = -1, or a [world] with seed = -1, gives "
+    """Validate and build everything a run needs (the :class:`Scenario`, the world, the flight) without running
+    it: the file and overrides, the seeds (``seeds``, default ``[seed]``; ``batched``: run as one batch, which a map
+    with per-seed noise cannot be), the memory the run needs on ``device`` (when given), the terrain, the flight
+    inside the DEM, and the filter's map. ``warptan run --check`` is this."""
+    scenario = load_config(name_or_path, **overrides)
+    base = scenario.run.seed
+    seeds = check_seeds([seed] if seeds is None else seeds, base)
+    if batched and len(seeds) > 1 and per_seed_maps(scenario):
+        raise ScenarioError(f"{scenario.id}: map_noise_m with map_seed = -1, or a [world] with seed = -1, gives "
                             "every seed its own map or world; run the seeds one by one (without --batch), or fix "
                             "terrain.map_seed / world.seed")
     if device is not None:  # seeds one by one hold one seed's memory at a time
-        check_memory(config, len(seeds) if batched else 1, device)
-    truth_terrain = world_terrain(resolve_terrain(config, terrain), config, config["run"]["seed"] + seeds[0])
-    flight = build_flight(config, truth_terrain)
-    the_map = map_terrain(truth_terrain, config, config["run"]["seed"] + seeds[0])
+        check_memory(scenario, len(seeds) if batched else 1, device)
+    truth_terrain = world_terrain(resolve_terrain(scenario, terrain), scenario, base + seeds[0])
+    flight = build_flight(scenario, truth_terrain)
+    the_map = map_terrain(truth_terrain, scenario, base + seeds[0])
     if the_map is not truth_terrain:  # the map must cover the flight as the world must
-        problem = track_problem(the_map, flight.pos_n[:, :2], config["flight"]["margin_m"], f"map {the_map.name}")
+        problem = track_problem(the_map, flight.pos_n[:, :2], scenario.flight.margin_m, f"map {the_map.name}")
         if problem:
-            raise ScenarioError(f"scenario {config['id']}: the filter's map does not cover the flight: {problem}; "
+            raise ScenarioError(f"scenario {scenario.id}: the filter's map does not cover the flight: {problem}; "
                                 "give a map of the same ground (terrain.map_path / --map)")
-    return config, truth_terrain, flight
+    return scenario, truth_terrain, flight
 
 
-def per_seed_maps(config: dict) -> bool:
+def per_seed_maps(scenario: Scenario) -> bool:
     """The filter's map has noise drawn per seed (``map_noise_m`` with ``map_seed = -1``): every seed reads its own
     map, so the seeds cannot share one batched filter."""
-    t = config["terrain"]
-    return (bool(t["map_noise_m"]) and t["map_seed"] < 0) or WorldModel.from_config(config["world"]).per_seed
+    return scenario.terrain.per_seed or scenario.world.per_seed
 
 
 def run_scenario(name_or_path, seed: int = 0, device="cpu", progress=None, export_logs=None,
@@ -407,35 +262,24 @@ def run_scenario(name_or_path, seed: int = 0, device="cpu", progress=None, expor
     return run_scenario_batch(name_or_path, [seed], device, progress, export_logs, **overrides)[0]
 
 
-def scenario_model(config: dict, the_map: Terrain, likelihood: Likelihood):
+def scenario_model(scenario: Scenario, the_map: Terrain, likelihood: Likelihood):
     """The scenario's measurement model on ``the_map``."""
-    s = config["sensor"]
-    model_kwargs = {"use_baro": s["use_baro"], "baro_sigma_m": max(s["baro_sigma_m"], 0.1)} \
-        if s["model"] == "altimeter" else {}
-    if s["model"] != "raycast":
-        model_kwargs["surface"] = s["surface"] == "triangles"
-    return make_model(s["model"], the_map, likelihood, backend=s["backend"], **model_kwargs)
+    s = scenario.sensor
+    model_kwargs = {"use_baro": s.use_baro, "baro_sigma_m": max(s.baro_sigma_m, 0.1)} if s.model == "altimeter" \
+        else {}
+    if s.model != "raycast":
+        model_kwargs["surface"] = s.surface == "triangles"
+    return make_model(s.model, the_map, likelihood, backend=s.backend, **model_kwargs)
 
 
-def filter_config(config: dict) -> FilterConfig:
-    """The scenario's filter settings (:class:`~warptan.filter.config.FilterConfig`)."""
-    f = config["filter"]
-    return FilterConfig(n_particles=f["particles"], resample_threshold=f["resample_threshold"],
-                        resampler=f["resampler"], pos_noise=f["pos_noise_m_rthz"],
-                        kalman_pos_noise=f["kalman_pos_noise_m_rthz"], regularize=f["regularize"],
-                        shrinkage=f["shrinkage"], temper_ess=f["temper_ess"], max_stages=f["max_stages"],
-                        integrity_window=f["integrity_window"], integrity_threshold=f["integrity_threshold"],
-                        measurement_update=f["measurement_update"], closed_loop=f["closed_loop"])
-
-
-def terrain_spec(config: dict, terrain=None) -> str:
+def terrain_spec(scenario: Scenario, terrain=None) -> str:
     """The spec :func:`resolve_terrain` loads the world from (a name, path or ``synthetic:`` spec; a Terrain object
     given directly: its name)."""
     if isinstance(terrain, Terrain):
         return terrain.name
     if terrain is not None:
         return os.fspath(terrain)
-    return config["terrain"]["path"] if config["terrain"]["kind"] == "path" else config["terrain"]["kind"]
+    return scenario.terrain.dem
 
 
 def run_scenario_batch(name_or_path, seeds, device="cpu", progress=None, export_logs=None,
@@ -452,35 +296,34 @@ def run_scenario_batch(name_or_path, seeds, device="cpu", progress=None, export_
 
     terrain = overrides.pop("terrain", None)
     seeds = list(seeds)
-    config, truth_terrain, flight = prepare(name_or_path, terrain=terrain, seeds=seeds, device=device, batched=True,
+    scenario, truth_terrain, flight = prepare(name_or_path, terrain=terrain, seeds=seeds, device=device, batched=True,
                                             **overrides)
     seeds = [int(seed) for seed in seeds]  # checked by prepare
-    s = config["sensor"]
-    total_seeds = [int(config["run"]["seed"]) + seed for seed in seeds]
-    the_map = map_terrain(truth_terrain, config, total_seeds[0])  # a World's map: the DEM it was made from
-    likelihood = scenario_likelihood(config, the_map, truth_terrain)
-    model = scenario_model(config, the_map, likelihood)
-    if s["model"] == "altimeter":
-        sensor = RadarAltimeter(s["altimeter_sigma_m"])
+    s = scenario.sensor
+    total_seeds = [int(scenario.run.seed) + seed for seed in seeds]
+    the_map = map_terrain(truth_terrain, scenario, total_seeds[0])  # a World's map: the DEM it was made from
+    likelihood = scenario_likelihood(scenario, the_map, truth_terrain)
+    model = scenario_model(scenario, the_map, likelihood)
+    if s.model == "altimeter":
+        sensor = RadarAltimeter(s.altimeter_sigma_m)
     else:
-        sensor = PointCloudSensor(ScanPattern.grid(s["scan_nx"], s["scan_ny"], s["scan_half_angle_deg"]),
-                                  range_sigma_m=s["range_sigma_m"])
-    ie = config["initial_error"]
-    imus = [ImuModel(config["imu"]["grade"], config["imu"]["rate_hz"], seed=ts) for ts in total_seeds]
+        sensor = PointCloudSensor(ScanPattern.grid(s.scan_nx, s.scan_ny, s.scan_half_angle_deg),
+                                  range_sigma_m=s.range_sigma_m)
+    imus = [ImuModel(scenario.imu.grade, scenario.imu.rate_hz, seed=ts) for ts in total_seeds]
     record = {} if export_logs is not None else None
     t0 = time.perf_counter()
     runs = run_filter(
-        flight, the_map, model, imus, sensor, terrain_truth=truth_terrain, baro=Barometer(s["baro_sigma_m"]),
-        config=filter_config(config), device=device, seed=total_seeds, meas_rate_hz=s["rate_hz"],
-        initial=InitialErrors(tuple(ie["pos_m"]), ie["vel_mps"], tuple(ie["att_deg"])), progress=progress,
+        flight, the_map, model, imus, sensor, terrain_truth=truth_terrain, baro=Barometer(s.baro_sigma_m),
+        config=scenario.filter.config(), device=device, seed=total_seeds, meas_rate_hz=s.rate_hz,
+        initial=scenario.initial_error.errors(), progress=progress,
         record=record)
     wall = time.perf_counter() - t0
     if export_logs is not None:
         from warptan.io.export import logs_from_record
 
-        export_logs.extend(logs_from_record(record, flight, config, likelihood, total_seeds, seeds,
-                                            terrain_spec(config, terrain), truth_terrain))
-    return [ScenarioResult(scenario=config["id"], seed=seed, device=run.device, terrain=truth_terrain.name,
-                           config=config, run=run, wall_s=wall, truth_terrain=truth_terrain, map=the_map.name,
+        export_logs.extend(logs_from_record(record, flight, scenario.to_dict(), likelihood, total_seeds, seeds,
+                                            terrain_spec(scenario, terrain), truth_terrain))
+    return [ScenarioResult(scenario=scenario.id, seed=seed, device=run.device, terrain=truth_terrain.name,
+                           config=scenario, run=run, wall_s=wall, truth_terrain=truth_terrain, map=the_map.name,
                            map_sigma_m=likelihood.map_sigma_m)
             for seed, run in zip(seeds, runs, strict=True)]

@@ -1,0 +1,414 @@
+"""The device program of a measurement update: :class:`UpdateProgram`, the base of
+:class:`~warptan.filter.mpf.MarginalizedParticleFilter` that launches it (it holds no state of its own: the filter's
+constructor makes the arrays it launches on).
+
+Per IMU sample (``predict``) the host only buffers the sample (into one of two pinned staging sets on CUDA,
+alternating per interval, so that the host fills one while the device's graph copies the other; an event per set
+says when it is free again). Per measurement (``update``), all on the device, no host decision, captured as one
+graph on CUDA:
+
+1. one kernel (:mod:`warptan.kernels.nav`, float64; one thread per filter on the CPU, one 32-thread block per filter
+   on CUDA whose lanes share the 3×3 blocks in shared memory): the buffered samples run through the nominal INS and
+   the Riccati recursion (``N_k``, ``L_k``, ``P``), and the K steps a particle would take are composed into one
+   affine map with Gaussian noise (``Φ``, ``chol S``) — the same distribution as K separate moves;
+2. every particle moves, the model scores its pose, and the log-likelihood is
+   applied in tempering stages (progressive correction, Oudjane & Musso 2000; SPEC §6b): each stage applies
+   the largest exponent ``γ`` of what remains that keeps ESS ≥ ``temper_ess · n`` (chosen on the device from
+   20 geometric candidates by streaming log-sum-exp reductions), normalises per filter, and resamples when
+   exponent remains or ESS < ``resample_threshold · n``; the next stage re-evaluates the model at the moved
+   particles. Every resampling is regularised (Musso, Oudjane & Le Gland 2001) with partial kernel shrinkage
+   (Liu & West 2001): ``dp_i = a dp_anc + (1 - a) m + h chol(Σ̂) z_i``, ``a = sqrt(1 - s h²)``, Σ̂ and m the
+   weighted covariance and mean of dp before resampling, ``h`` Silverman's bandwidth for d = 3 times
+   ``regularize``, ``s`` = ``shrinkage``: the cloud's covariance grows by ``1 + (1 - s) h²`` per resampling.
+   A model that cannot fix the position with one reading (the altimeter: ``fixes_per_scan`` False; it returns each
+   particle's position information ``g gᵀ/σ²``) keeps the jitter within what one reading resolves: ``h`` is scaled by
+   ``f = min(1, sqrt(JITTER_NIS / tr(h² Σ̂ Ī_p)))`` (:data:`warptan.kernels.mpf.JITTER_NIS`), and each particle is
+   scored for that kernel ``(h f)² Σ̂`` (the map's height mean and variance over it,
+   :func:`warptan.kernels.sliding.kernel_height`; ``h · chol(P0)`` before the first reading and after a re-spread).
+   Measured on S9 over the 30 m tile (CPU, 60 seeds): seeds over 5 m 9 → 3, 3σ coverage N/E 90/90 → 95.5/97 %.
+   Measured (8 seeds, 120 s, per-point likelihood): s = 0 lets the covariance grow by 1 + h² per resampling and
+   over flat terrain, where nothing contracts it, the altimeter run S12 drifted 2–3 km; s = 1 keeps the
+   covariance exactly and the flat point-cloud run S11 became overconfident (3σ coverage 62/47 %, RMSE
+   4.0/6.4 m); s = 0.5 gave S11 2.1/2.0 m at 97/98 % and S12 20/18 m at 99/100 %. Then the integrity monitor,
+   the update's record, P's measurement update and (closed loop) the injection.
+
+Steps 1–2 are a fixed sequence of copies and launches on persistent buffers (``max_stages`` stages; a filter that is
+done ignores the later ones), so it is captured as a graph (one per staging set) and replayed (CUDA; ``graph=True`` on
+the CPU, where Warp replays it on one thread). The CPU default is eager: stages no filter needs are not launched (the
+host reads the flags, free on the CPU), with the same result, and the fixed pieces between those decisions replay
+launches recorded once with their arguments packed (:class:`warptan.parallel.Recorder`: packing cost ~40 µs per
+launch, a third of a small step; the row splits over cores are kept, which a CPU graph loses). Measured A/B on this
+2-core VM (N = 500, M = 100, gaussian, 4 × 40 steps interleaved): sliding 2.29 vs 3.50 ms, dda 6.05 vs 7.41 ms per
+step; N = 5000 sliding 14.1 vs 14.4 ms. Host work per step does not depend on the number of particles; a batch of B
+filters (independent seeds, same model) shares every launch. Measured on an H100 (N = 500, M = 400, gaussian,
+``benchmarks/filter_step_device_h100.json``): sliding 0.77 ms, dda 0.95 ms per synchronised step, 0.52 / 0.70 ms
+pipelined; with the nav interval on the host and P's update read back per update it was 2.16 / 1.67 ms.
+
+On CUDA a tempering stage's per-filter pieces after the candidates' partials (ESS, selection, log-likelihood
+partials, maximum, exp partials, weight statistics, normalisation, Kalman update) run as one block per filter
+(:data:`warptan.kernels.mpf.stage_block_kernel`), and so does a resampling (:data:`~warptan.kernels.mpf.
+resample_block_kernel`): the same functions on the same values with barriers between them, the same bits as the
+separate kernels (a graph node costs a few µs whatever its work: 14 nodes a stage became 3). The CPU keeps the
+separate kernels (whose particle loops split over cores). ``_lean`` (CUDA, where it measured faster; slower on a
+2-core CPU) fuses the head (moves, poses, statistics reset) and the tail (integrity + re-spread; record + P's update +
+reset) likewise, nests the stages' conditionals and queues the interval (a graph of its own) as soon as the
+measurement passed the model's ``check``, so that the device integrates it while the host stages the scan; the same
+bits on the CPU (``tests/test_mpf.py``).
+"""
+
+from __future__ import annotations
+
+import warp as wp
+
+from warptan.filter.records import step_seed
+from warptan.kernels import likelihood as klik
+from warptan.kernels import mpf as kmpf
+from warptan.kernels import nav as knav
+from warptan.parallel import launch, launch_rows, rows_of
+
+_STREAM_INIT, _STREAM_MOVE, _STREAM_RESAMPLE = 0, 1, 2
+"""The counter-based random streams of the initial draw, the particle moves and the resamplings."""
+
+
+class UpdateProgram:
+    """The launches of an interval and of a measurement update, their CPU recordings and CUDA graphs (see the module
+    docstring). A base class of :class:`~warptan.filter.mpf.MarginalizedParticleFilter`, whose attributes it reads."""
+
+    def _stage_interval(self) -> None:
+        """Host part of an interval (O(B)): the sample count and the interval's seeds next to the buffered samples."""
+        ints = self._ints_np[self._set]
+        ints[:, knav.INT_STEPS] = self._k
+        ints[:, knav.INT_MOVE_SEED] = step_seed(self.seeds, self.n_imu_steps, _STREAM_MOVE)
+        ints[:, knav.INT_RESAMPLE_SEED] = step_seed(self.seeds, self.n_updates + 1, _STREAM_RESAMPLE)
+        self._interval_k = self._k
+        self._k = 0
+
+    def _launch_interval(self) -> None:
+        """Device part of an interval: the staged samples and seeds to the device (CUDA: two copies from pinned
+        memory), then one kernel runs them through the nominal INS and the Riccati and composes the interval's Φ and
+        chol(S) (:mod:`warptan.kernels.nav`, float64)."""
+        if self.device.is_cuda:
+            wp.copy(self._imu, self._imu_host[self._set])
+            wp.copy(self._ints, self._ints_host[self._set])
+        nav, out = self._nav, self._dev
+        phi, noise, scratch = self._scratch
+        tiled = self.device.is_cuda
+        launch_rows(knav.nav_interval_kernels[tiled], self.n_filters,
+                    lambda a, b: ([a or 0, self._ints, self.dt, self._q_dev[0], self.q_rough, self._q_lin,
+                                   self._q_dev[1], self._imu, nav["pos"], nav["vel"], nav["quat"], nav["ba"],
+                                   nav["bg"], nav["cov"], phi, noise, scratch],
+                                  [out["phi"], out["chol"], out["pose"], out["att_cov"], out["p_col"]]),
+                    self.device, row_cost=4000 * max(self._interval_k, 1),
+                    block_dim=knav.NAV_BLOCK_DIM if tiled else None)
+
+    def _next_set(self) -> None:
+        """After the device work that reads the current staging set is queued: switch sets (CUDA), first waiting
+        until the work queued on the other set, two intervals ago, is done."""
+        if not self.device.is_cuda:
+            return
+        wp.get_stream(self.device).record_event(self._events[self._set])
+        self._set ^= 1
+        wp.synchronize_event(self._events[self._set])  # returns at once if never recorded
+
+    def _launch_time_update(self) -> None:
+        dv, n, st = self._dev, self.n, self.state
+        launch_rows(kmpf.time_update_kernel, self.n_filters * n,
+                    lambda a, b: ([a or 0, n, dv["seeds"], dv["phi"], dv["chol"]],
+                                  [rows_of(st.dp, a, b), rows_of(st.lin, a, b)]), self.device, row_cost=30)
+
+    def _launch_move(self) -> None:
+        self._launch_interval()
+        self._launch_time_update()
+
+    def _piece(self, key, fn, *args) -> None:
+        """A fixed piece of the device work: replayed from its recorded launches on the CPU, else launched."""
+        if self._recorder is None:
+            fn(*args)
+        else:
+            self._recorder.run(key, lambda: fn(*args))
+
+    def _launch_poses(self) -> None:
+        launch(kmpf.particle_poses_kernel, dim=self.n_filters * self.n,
+                  inputs=[self.n, self._dev["pose"], self.state.dp, self.state.lin],
+                  outputs=[self._pos, self._quat], device=self.device)
+
+    def _launch_stage(self, out, stage: int) -> None:
+        """One tempering stage: choose the exponent, weight, normalise and decide to resample (device)."""
+        d, b, n, st = self.device, self.n_filters, self.n, self.state
+        lam, info = self._attitude_info(out)
+        if d.is_cpu and not self._block_stages:  # candidates in order until one is taken (same bits, usually 1 of 20)
+            launch(kmpf.temper_search_kernel, dim=b,
+                   inputs=[n, stage, self.params, out.loglik, out.n_valid, out.meta, st.logw, self._stats],
+                   outputs=[self._temper_partials, self._unpred_partials, self._temper_ess], device=d)
+        else:  # every candidate in parallel
+            launch(kmpf.temper_partials_kernel, dim=(b, kmpf.N_CHUNKS, kmpf.N_TEMPER),
+                   inputs=[n, stage, out.loglik, out.n_valid, out.meta, st.logw, self._stats],
+                   outputs=[self._temper_partials, self._unpred_partials], device=d)
+        if self._block_stages:  # CUDA: the stage's eight other pieces in one block per filter
+            launch(kmpf.stage_block_kernel, dim=[b],
+                   inputs=[n, stage, int(stage == self.max_stages - 1), self.params, out.loglik, out.n_valid, out.meta,
+                           out.nis, st.dp, lam, info, *self._position_info(out), int(self.measurement_update),
+                           self._feedback, self._dev["p_col"]],
+                   outputs=[self._temper_partials, self._unpred_partials, self._temper_ess, self._chunk_max,
+                            self._chunk_counts, self._chunk_min_nis, self._chunk_sums, st.logw, self._stats,
+                            self._kernel_chol, st.lin], block_dim=kmpf.STAGE_BLOCK_DIM, device=d)
+            return
+        if not d.is_cpu:
+            launch(kmpf.temper_ess_kernel, dim=(b, kmpf.N_TEMPER), inputs=[self._temper_partials],
+                   outputs=[self._temper_ess], device=d)
+        launch(kmpf.temper_select_kernel, dim=b,
+                  inputs=[n, stage, int(stage == self.max_stages - 1), self.params, out.meta, self._temper_ess,
+                          self._unpred_partials], outputs=[self._stats], device=d)
+        launch(kmpf.add_loglik_partials_kernel, dim=(b, kmpf.N_CHUNKS),
+                  inputs=[n, out.loglik, out.n_valid, out.meta, self._stats, out.nis],
+                  outputs=[st.logw, self._chunk_max, self._chunk_counts, self._chunk_min_nis], device=d)
+        launch(kmpf.max_of_partials_kernel, dim=b, inputs=[self._chunk_max, self._chunk_counts, self._chunk_min_nis],
+                  outputs=[self._stats], device=d)
+        launch(kmpf.exp_partials_kernel, dim=(b, kmpf.N_CHUNKS),
+                  inputs=[n, st.logw, st.dp, out.nis, lam, *self._position_info(out), self._stats],
+                  outputs=[self._chunk_sums], device=d)
+        launch(kmpf.weight_stats_kernel, dim=[b], inputs=[n, self.params, self._chunk_sums],
+                        outputs=[self._stats, self._kernel_chol], block_dim=kmpf.N_CHUNKS, device=d)
+        launch(kmpf.normalize_weights_kernel, dim=b * n, inputs=[n, self._stats], outputs=[st.logw], device=d)
+        if self.measurement_update:
+            launch(kmpf.kalman_update_kernel, dim=b * n,
+                   inputs=[n, self.params, self._stats, self._feedback, self._dev["p_col"], lam, info],
+                   outputs=[st.lin], device=d)
+
+    def _position_info(self, out) -> tuple[int, wp.array]:
+        """(1, the particles' horizontal position information) when the model gives it (one that cannot fix the
+        position with one measurement: it then bounds the regularisation jitter,
+        :data:`warptan.kernels.mpf.JITTER_NIS`), else (0, a one-element placeholder)."""
+        info = getattr(out, "info_pos", None)
+        if info is not None:
+            return 1, info
+        if self._no_pos_info is None:
+            self._no_pos_info = wp.zeros(1, dtype=wp.vec3, device=self.device)
+        return 0, self._no_pos_info
+
+    def _attitude_info(self, out) -> tuple[wp.array, wp.array]:
+        """The model's per-particle attitude information (Λ_i, b_i); zeros for a model that gives none."""
+        if out.lam is not None and out.info is not None:
+            return out.lam, out.info
+        if self._no_info is None:
+            nt = self.n_filters * self.n
+            self._no_info = (wp.zeros(nt, dtype=wp.mat33, device=self.device),
+                             wp.zeros(nt, dtype=wp.vec3, device=self.device))
+        return self._no_info
+
+    def _launch_resample(self, stage: int) -> None:
+        """Resample and regularise the filters whose flags say so (device decisions; others are copied)."""
+        d, b, n, st, sp = self.device, self.n_filters, self.n, self.state, self._spare
+        seeds = self._dev["resample_seeds"]
+        if self._block_stages:  # CUDA: the five pieces in one block per filter (same bits)
+            launch(kmpf.resample_block_kernel, dim=[b], inputs=[n, stage, seeds, self.scheme, self.params, self._stats],
+                   outputs=[self._cdf_sums, self._cdf, self._ancestors, st.dp, st.lin, st.logw, sp.dp, sp.lin,
+                            sp.logw], block_dim=kmpf.RESAMPLE_BLOCK_DIM, device=d)
+        else:
+            launch(kmpf.cdf_partials_kernel, dim=(b, kmpf.N_CHUNKS), inputs=[n, st.logw, self._stats],
+                   outputs=[self._cdf_sums], device=d)
+            launch(kmpf.cdf_kernel, dim=(b, kmpf.N_CHUNKS), inputs=[n, st.logw, self._stats, self._cdf_sums],
+                   outputs=[self._cdf], device=d)
+            launch(kmpf.ancestors_kernel, dim=b * n, inputs=[n, stage, seeds, self.scheme, self._stats, self._cdf],
+                   outputs=[self._ancestors], device=d)
+            launch(kmpf.gather_kernel, dim=b * n, inputs=[n, stage, seeds, self.params, self._stats, self._ancestors,
+                   st.dp, st.lin, st.logw], outputs=[sp.dp, sp.lin, sp.logw], device=d)
+            launch(kmpf.copy_particles_kernel, dim=b * n, inputs=[sp.dp, sp.lin, sp.logw],
+                   outputs=[st.dp, st.lin, st.logw], device=d)
+        if self._mode_table() is not None:
+            post, spare = self._out.mode_post, self._mode_spare
+            launch(kmpf.gather_modes_kernel, dim=b * n, inputs=[self._ancestors, self._mode_mean, post],
+                   outputs=list(spare), device=d)
+            launch(kmpf.copy_modes_kernel, dim=b * n, inputs=list(spare), outputs=[self._mode_mean, post], device=d)
+
+    def _mode_table(self) -> wp.array | None:
+        """The model's map-error mode table when its likelihood states a map error (else None: no mode state)."""
+        table = getattr(self.model, "mode_table", None)
+        return table if table is not None and self.model.likelihood.models_map_error else None
+
+    def _launch_modes(self) -> None:
+        """The particles' map-error mode prior for the next scan (after the integrity monitor's re-spread)."""
+        table = self._mode_table()
+        if table is None:
+            return
+        d, b, m = self.device, self.n_filters, table.shape[0] - klik.MODE_EXTRA_ROWS
+        launch(kmpf.modes_finalize_kernel, dim=b * self.n,
+               inputs=[self.n, m, table, self._stats, self._out.mode_post, self._mode_var], outputs=[self._mode_mean],
+               device=d)
+        launch(kmpf.modes_variance_kernel, dim=b, inputs=[m, table, self._stats], outputs=[self._mode_var], device=d)
+
+    def _launch_integrity(self) -> None:
+        d, b, n, st = self.device, self.n_filters, self.n, self.state
+        launch(kmpf.integrity_kernel, dim=b, inputs=[self.params, self._stats, self._integrity],
+               outputs=[self._kernel_chol], device=d)
+        launch(kmpf.respread_kernel, dim=b * n,
+                  inputs=[n, 2 * n * self.max_stages, self._dev["resample_seeds"], self.params, self._stats,
+                          st.dp, st.logw], device=d)
+
+    def _launch_record(self) -> None:
+        d, b, st = self.device, self.n_filters, self.state
+        launch(kmpf.summary_partials_kernel, dim=(b, kmpf.N_CHUNKS), inputs=[self.n, st.logw, st.dp, st.lin],
+                  outputs=[self._summary_sums], device=d)
+        launch(kmpf.summary_kernel, dim=[b],
+                        inputs=[self.params, self._summary_sums, self._stats, self._integrity, self._slot],
+                        outputs=[self._history, self._feedback], block_dim=kmpf.N_CHUNKS, device=d)
+        self._launch_feedback()
+        launch(kmpf.advance_slot_kernel, dim=1, inputs=[self._slot], device=d)
+
+    def _launch_feedback(self) -> None:
+        """What the update feeds back, on the device: the nominal's record, the Kalman measurement update of P, and
+        in closed loop the injection into the nominal INS with the particles' reset."""
+        d, b, st, nav = self.device, self.n_filters, self.state, self._nav
+        launch(kmpf.covariance_update_kernel, dim=b,
+                  inputs=[int(self.measurement_update), int(self.closed_loop), self._feedback, self._slot],
+                  outputs=[nav["cov"], nav["pos"], nav["vel"], nav["quat"], nav["ba"], nav["bg"], self._injections,
+                           self._nominal_hist, self._p_hist], device=d)
+        if self.closed_loop:
+            launch(kmpf.reset_kernel, dim=b * self.n, inputs=[self.n, self._feedback],
+                      outputs=[st.dp, st.lin], device=d)
+
+    def _device_update(self, out, read_flags: bool = False) -> None:
+        """The device part of an update: move, then up to ``max_stages`` tempering stages (each after the first
+        re-evaluates the model at the moved particles), the integrity monitor, the record. A stage after the
+        first runs only when some filter still has exponent left: decided on the host when ``read_flags`` (free
+        on the CPU, which runs launches in order), else by a device flag and a conditional node
+        (``wp.capture_if``: no host sync, and in a captured graph a converged update costs one stage). Filters
+        that are done ignore a stage that runs for the others, so both paths give the same result. The pieces
+        between host decisions are fixed sequences (:meth:`_piece`)."""
+        self._piece("move", self._launch_head)
+        self._launch_model("model0")
+        self._piece("weigh0", self._launch_weigh, out, 0)
+        self._resample_if(stage=0, read_flags=read_flags)
+        for stage in range(1, self.max_stages):
+            if read_flags:
+                if not (self._stats.numpy()[:, kmpf.ST_REMAIN] > 0).any():
+                    break
+                self._piece(("poses", stage), self._launch_poses)
+                self._launch_model(("model", stage))
+                self._piece(("weigh", stage), self._launch_stage, out, stage)
+                self._resample_if(stage=stage, read_flags=True)
+            elif self._lean:
+                self._stages_if(out, stage)
+                break
+            else:
+                launch(kmpf.more_stages_kernel, dim=1, inputs=[self._stats], outputs=[self._more_stages],
+                       device=self.device)
+                wp.capture_if(self._more_stages, on_true=self._extra_stage, out=out, stage=stage)
+        self._piece("tail", self._launch_tail)
+
+    def _stages_if(self, out, stage: int) -> None:
+        """Stage ``stage`` and the later ones as nested conditionals: a later stage's test only runs when this one
+        ran (a converged update pays one test, not ``max_stages - 1``)."""
+        if stage >= self.max_stages:
+            return
+        launch(kmpf.more_stages_kernel, dim=1, inputs=[self._stats], outputs=[self._more_stages], device=self.device)
+        wp.capture_if(self._more_stages, on_true=self._stage_then_more, out=out, stage=stage)
+
+    def _stage_then_more(self, out, stage: int) -> None:
+        self._extra_stage(out, stage)
+        self._stages_if(out, stage + 1)
+
+    def _launch_head(self) -> None:
+        if not self._lean:
+            self._launch_move()
+            self._launch_poses()
+            return
+        if not self._early:  # (early: queued before the scan was staged)
+            self._launch_interval()  # then the particles' moves, poses and the statistics' reset in one launch
+        dv, n, st = self._dev, self.n, self.state
+        launch(kmpf.move_pose_kernel, dim=self.n_filters * n,
+               inputs=[n, dv["seeds"], dv["phi"], dv["chol"], dv["pose"], self._exponent],
+               outputs=[st.dp, st.lin, self._pos, self._quat, self._stats], device=self.device)
+
+    def _launch_model(self, key) -> None:
+        """The model at the particles' poses: a recorded piece for a model that launches only through
+        :mod:`warptan.parallel` (``recordable``), else launched anew."""
+        if getattr(self.model, "recordable", False):
+            self._piece(key, self.model.launch, self._pos, self._quat)
+        else:
+            self.model.launch(self._pos, self._quat)
+
+    def _launch_weigh(self, out, stage: int) -> None:
+        if not self._lean:  # (lean: the head reset the statistics)
+            launch(kmpf.begin_update_kernel, dim=self.n_filters, inputs=[self._exponent], outputs=[self._stats],
+                   device=self.device)
+        self._launch_stage(out, stage)
+
+    def _extra_stage(self, out, stage: int) -> None:
+        """A tempering stage after the first (graph path): poses and model at the moved particles, weights,
+        resampling."""
+        self._launch_poses()
+        self.model.launch(self._pos, self._quat)
+        self._launch_stage(out, stage)
+        self._launch_resample(stage)
+
+    def _resample_if(self, stage: int, read_flags: bool) -> None:
+        """Resampling after a stage (skipped when ``read_flags`` shows no filter needs it)."""
+        if not read_flags or self._stats.numpy()[:, kmpf.ST_RESAMPLE].any():
+            self._piece(("resample", stage), self._launch_resample, stage)
+
+    def _launch_tail(self) -> None:
+        if not self._lean:
+            self._launch_integrity()
+            self._launch_modes()
+            self._launch_record()
+            return
+        d, b, n, st, nav = self.device, self.n_filters, self.n, self.state, self._nav
+        launch(kmpf.integrity_block_kernel, dim=[b],
+               inputs=[n, 2 * n * self.max_stages, self._dev["resample_seeds"], self.params, self._stats],
+               outputs=[self._integrity, self._kernel_chol, st.dp, st.logw], block_dim=kmpf.STAGE_BLOCK_DIM, device=d)
+        self._launch_modes()
+        launch(kmpf.record_block_kernel, dim=[b],
+               inputs=[n, self.params, int(self.measurement_update), int(self.closed_loop), st.logw, self._stats,
+                       self._integrity, self._slot],
+               outputs=[self._summary_sums, self._history, self._feedback, nav["cov"], nav["pos"], nav["vel"],
+                        nav["quat"], nav["ba"], nav["bg"], self._injections, self._nominal_hist, self._p_hist, st.dp,
+                        st.lin], block_dim=kmpf.STAGE_BLOCK_DIM, device=d)
+        launch(kmpf.advance_slot_kernel, dim=1, inputs=[self._slot], device=d)
+
+    def _queue_update(self, out) -> None:
+        """The device work of an update: eager launches (the CPU replaying its recorded pieces) or the graph."""
+        if self._recorder is not None:
+            key = self._record_key()
+            if key != self._graph_key:  # re-record when an array the recorded launches hold was replaced
+                self._recorder.clear()
+                self._graph_key = key
+        if not self.graph:
+            self._device_update(out, read_flags=self.device.is_cpu)
+            return
+        if self._graph_key is None:  # the first update runs eagerly: modules load, buffers settle
+            self._graph_key = ()
+            self._device_update(out)
+            return
+        self._replay("update", self._device_update, out)
+
+    def _queue_interval(self) -> None:
+        """The interval alone (the lean update queues it before the scan is staged): launched, or its graph."""
+        if not self.graph or self._graph_key is None:  # (the first update runs eagerly)
+            self._launch_interval()
+        else:
+            self._replay("interval", self._launch_interval)
+
+    def _replay(self, name: str, fn, *args) -> None:
+        """Launch the graph of ``fn(*args)`` for the current staging set (one per set: its copies read that set),
+        captured at its first use; all graphs are dropped when a buffer they hold was replaced."""
+        key = self._record_key()
+        if key != self._graph_key:
+            self._graphs.clear()
+            self._graph_key = key
+        graph = self._graphs.get((name, self._set))
+        if graph is None:
+            wp.capture_begin(device=self.device)
+            try:
+                fn(*args)
+            finally:
+                graph = self._graphs[(name, self._set)] = wp.capture_end(device=self.device)
+        wp.capture_launch(graph)
+
+    def _record_key(self) -> tuple:
+        """The generation of everything the recorded launches (graphs or CPU recordings) hold: the filter's own
+        arrays (replaced when the history grows), the model's buffers, likelihood struct and attitude covariance
+        (``model.generation``, bumped by the model whenever it replaces one of them) and the update's switches. A
+        recording of another key is stale and is dropped (identities of freed arrays could be reused: no ``id()``)."""
+        return (self._generation, getattr(self.model, "generation", 0), self.measurement_update, self.closed_loop,
+                self._early)
