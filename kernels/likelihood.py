@@ -1,3 +1,5 @@
+# Over 500 lines on purpose: the per-point accumulators (Acc, ModeAcc) and their init, add, pack, unpack, block sum
+# and finish are one unit (a field added to Acc touches each of them) compiled into every likelihood kernel.
 """Per-particle reduction of residuals into the paper's scalar error and a log-likelihood (SPEC §5).
 
 Input: an (N, M) array of residuals (m, NaN = the particle's prediction for point j is invalid), and per

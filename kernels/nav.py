@@ -1,3 +1,5 @@
+# About 500 lines on purpose: the nominal INS, the Riccati recursion and the interval's composition of one kernel,
+# in its CPU (a thread per filter) and CUDA (a block per filter) forms, which share every function.
 """The nominal INS and the shared Kalman covariance of B filters, one measurement interval per launch (SPEC §3, §6).
 
 Float64, on the filter's device: on the CPU one thread per filter b steps through the K IMU samples of the interval;

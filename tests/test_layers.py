@@ -123,3 +123,17 @@ def test_the_checks_see_an_upward_import_and_a_cycle(tmp_path):
     assert len(upward) == 1 and "(terrain) imports warptan.sim.a (sim)" in upward[0]
     cycles = _cycles(modules)
     assert cycles and set(cycles[0]) == {"warptan.sim.a", "warptan.sim.b"}
+
+
+MAX_LINES = 520
+"""About 500 lines: a module above this says at its top why it is one module."""
+
+
+def test_big_modules_say_why():
+    """No module is over ~500 lines unless a comment at its top (before its docstring) says why."""
+    unexplained = []
+    for name, path in _modules().items():
+        text = path.read_text()
+        if text.count("\n") > MAX_LINES and not text.startswith("# "):
+            unexplained.append(f"{name} ({text.count(chr(10))} lines)")
+    assert not unexplained, f"modules over {MAX_LINES} lines with no comment at their top saying why: {unexplained}"

@@ -40,7 +40,8 @@ def _terrain_info(args) -> int:
 
 
 def _terrain_export(args) -> int:
-    from warptan.terrain.grid import Terrain, check_export_path
+    from warptan.terrain.grid import Terrain
+    from warptan.terrain.meshfile import check_export_path
 
     check_export_path(args.out, args.overwrite)  # before the DEM is loaded
     terrain = Terrain.load(args.terrain, spacing=args.spacing)

@@ -1,3 +1,6 @@
+# Over 500 lines on purpose: the three models share one base (MeasurementModel: validation, staging, buffers, the
+# map-error mode table, binding to the filter) and differ only in their launches; the likelihood's settings and its
+# calibration are warptan.sensing.likelihood.
 """Measurement models: one log-likelihood per particle from its hypothetical pose (paper eqs. 14–17, SPEC §5).
 
 Each model takes the particles' poses on the device — positions (N,) vec3 NED in m and attitudes (N,)

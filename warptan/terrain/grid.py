@@ -1,3 +1,6 @@
+# Over 500 lines on purpose: Terrain is the one object users hold (heights, frame, CRS, device copies), and its
+# loaders, height queries, map statistics and views are its methods; what is not (raster I/O, generated surfaces,
+# mesh files, maps and worlds) lives in the sibling modules.
 """Terrain: a DEM as a regular north/east height grid, its samplers and its triangle mesh (SPEC §2, §9).
 
 Posts are at ``north = n0 + i*dn``, ``east = e0 + j*de`` (``i`` grows north); heights are metres above
@@ -11,11 +14,9 @@ triangulated grid, built with the SAH BVH constructor) are built lazily, once pe
 
 from __future__ import annotations
 
-import contextlib
 import functools
 import math
 import os
-import tempfile
 import warnings
 from dataclasses import dataclass, field
 from importlib import resources
@@ -27,10 +28,8 @@ import warp as wp
 from warptan.checks import LOCAL_FRAME_M
 from warptan.device import resolve_device
 from warptan.kernels import terrain as kterrain
-from warptan.outputs import current_umask
 from warptan.terrain.raster import TerrainError, check_spacing, latlon_to_projected, projected_to_latlon, read_raster
 
-SYNTHETIC_KINDS = ("rugged", "flat")
 NAMED_TERRAINS = {
     "rugged": "thuringia_hilly_srtm3_crop44km.tif",
     "rugged30": "san_gabriel_rugged_srtm1_30m_utm11.tif",
@@ -199,21 +198,9 @@ class Terrain:
             spacing: Post spacing in m.
             seed: Random seed.
         """
-        if kind not in SYNTHETIC_KINDS:
-            raise TerrainError(f"unknown synthetic terrain kind {kind!r}; choose one of {', '.join(SYNTHETIC_KINDS)}")
-        spacing = check_spacing(spacing)
-        size_m = check_spacing(size_m, "size_m")
-        n = math.floor(size_m / spacing) + 1
-        if n < 8:
-            raise TerrainError(f"size_m={size_m} with spacing={spacing} gives only {n} posts a side (need ≥ 8)")
-        if n * n > 60_000_000:
-            raise TerrainError(f"size_m={size_m} with spacing={spacing} gives {n}×{n} posts; use a larger spacing")
-        rng = np.random.default_rng(np.random.PCG64(seed))
-        if kind == "rugged":
-            heights = 200.0 + 800.0 * _fractal(rng, n, spacing, beta=2.3, longest_m=12_000.0)
-        else:
-            heights = 150.0 + 6.0 * _fractal(rng, n, spacing, beta=2.0, longest_m=8_000.0)
-        half = 0.5 * (n - 1) * spacing
+        from warptan.terrain.synthetic import synthetic_heights
+
+        heights, half, spacing, size_m = synthetic_heights(kind, size_m, spacing, seed)
         return cls(
             heights, -half, -half, spacing, spacing, name=f"synthetic:{kind}",
             description=f"synthetic {kind} terrain, {size_m:g} m square, {spacing:g} m posts, seed {seed}",
@@ -532,47 +519,20 @@ class Terrain:
                   inputs=[self.grid(device), int(bool(surface)), north_m, east_m], outputs=[out], device=device)
         return out
 
-    # ------------------------------------------------------------------ export
+    # ------------------------------------------------------------------ export (warptan.terrain.meshfile)
     def to_trimesh(self, frame: str = "ned"):
         """The triangulated grid as a ``trimesh.Trimesh`` in NED (default) or ENU (x east, y north, z up)."""
-        import trimesh
+        from warptan.terrain.meshfile import to_trimesh
 
-        verts, faces = self.mesh_arrays()
-        if frame == "enu":
-            verts = np.stack([verts[:, 1], verts[:, 0], -verts[:, 2]], axis=1)
-        elif frame != "ned":
-            raise ValueError(f"frame must be 'ned' or 'enu', got {frame!r}")
-        used = np.unique(faces)
-        remap = np.full(len(verts), -1, dtype=np.int64)
-        remap[used] = np.arange(len(used))
-        return trimesh.Trimesh(vertices=verts[used], faces=remap[faces], process=False)
+        return to_trimesh(self, frame)
 
     def export(self, path: str | os.PathLike, frame: str = "enu", overwrite: bool = False) -> None:
         """Write the mesh for viewing (.ply, .glb, .obj, .stl; ENU with z up by default). An existing file is
         replaced only with ``overwrite=True`` (whole or not at all); a failed write names the file and leaves
-        it as it was."""
-        path = check_export_path(path, overwrite)
-        ext = os.path.splitext(path)[1].lower()
-        mesh = self.to_trimesh(frame)
-        folder = os.path.dirname(path) or "."
-        # Written beside the target and renamed over it: an existing file is replaced whole or not at all.
-        try:
-            fd, tmp = tempfile.mkstemp(prefix=".warptan-export-", suffix=ext, dir=folder)
-        except OSError as err:
-            raise TerrainError(f"{path}: cannot create a file in {folder} ({err.strerror or err})") from None
-        try:
-            with os.fdopen(fd, "wb") as f:
-                mesh.export(f, file_type=ext[1:])
-            os.chmod(tmp, 0o666 & ~current_umask())
-            os.replace(tmp, path)
-        except OSError as err:
-            with contextlib.suppress(OSError):
-                os.remove(tmp)
-            raise TerrainError(f"writing {path} failed: {err.strerror or err}; nothing was written") from None
-        except BaseException:
-            with contextlib.suppress(OSError):
-                os.remove(tmp)
-            raise
+        it as it was (:func:`warptan.terrain.meshfile.export_mesh`)."""
+        from warptan.terrain.meshfile import export_mesh
+
+        export_mesh(self, path, frame, overwrite)
 
     def info(self) -> dict:
         """A summary for people: source, CRS, bounds, spacing, shape, height range, nodata fraction."""
@@ -593,27 +553,6 @@ class Terrain:
         return out
 
 
-MESH_FORMATS = (".ply", ".glb", ".obj", ".stl")
-"""File types :meth:`Terrain.export` writes."""
-
-
-def check_export_path(path: str | os.PathLike, overwrite: bool = False) -> str:
-    """``path`` as text when :meth:`Terrain.export` may write it (a known format, an existing folder, not an
-    existing file unless ``overwrite``), else a TerrainError naming the problem."""
-    path = os.fspath(path)
-    ext = os.path.splitext(path)[1].lower()
-    if ext not in MESH_FORMATS:
-        raise TerrainError(f"{path}: unsupported mesh format {ext!r}; use {', '.join(MESH_FORMATS)}")
-    if os.path.isdir(path):
-        raise TerrainError(f"{path}: is a folder; give a file name")
-    folder = os.path.dirname(path) or "."
-    if not os.path.isdir(folder):
-        raise TerrainError(f"{path}: its folder {folder} does not exist; create it first")
-    if os.path.lexists(path) and not overwrite:
-        raise TerrainError(f"{path} exists; nothing was written (pass --overwrite, or overwrite=True, to replace it)")
-    return path
-
-
 def _crs_summary(crs_wkt: str | None) -> str:
     if not crs_wkt:
         return "none (local NED grid)"
@@ -627,17 +566,3 @@ def _crs_summary(crs_wkt: str | None) -> str:
     if params.get("proj") == "tmerc":
         return f"transverse Mercator, lat_0={params.get('lat_0', 0):.4f}, lon_0={params.get('lon_0', 0):.4f}, WGS84"
     return crs.to_string()
-
-
-def _fractal(rng: np.random.Generator, n: int, spacing: float, beta: float, longest_m: float) -> np.ndarray:
-    """An (n, n) surface in [0, 1] with a power-law spectrum ``|k|^-beta`` above wavelength ``longest_m``."""
-    m = 1 << math.ceil(math.log2(n))
-    k = np.fft.fftfreq(m, d=spacing)
-    kk = np.hypot(*np.meshgrid(k, k, indexing="ij"))
-    k0 = 1.0 / longest_m
-    amp = (kk * kk + k0 * k0) ** (-beta / 2.0)
-    amp[0, 0] = 0.0
-    noise = rng.standard_normal((m, m)) + 1j * rng.standard_normal((m, m))
-    z = np.fft.ifft2(noise * amp).real[:n, :n]
-    z -= z.min()
-    return z / z.max()
