@@ -553,7 +553,7 @@ def test_block_forms_equal_the_separate_kernels(device, rugged, monkeypatch, mod
 def test_rejected_measurement_loses_nothing(rugged, lean):
     """A measurement the model rejects raises before the filter moves: the buffered IMU samples, the nominal
     INS and the particles are as if it had never been offered (also in the lean update, CUDA's default, which
-    checks the measurement before it queues the interval)."""
+    checks the measurement before it queues the interval and the particles' moves)."""
     truth = Trajectory.build([Straight(1.0)], 100.0, [0, 0, -(rugged.h_max + 600.0)])
     runs = []
     for offer_bad in (False, True):
@@ -572,7 +572,7 @@ def test_rejected_measurement_loses_nothing(rugged, lean):
 
 
 def test_refused_after_the_check_is_a_flush(rugged):
-    """The lean update (CUDA's default; forced here) queues the interval once the model's ``check`` passed: a model
+    """The lean update (CUDA's default; forced here) queues the head (interval, moves) once ``check`` passed: a model
     whose ``stage`` still refuses the measurement leaves the filter as after ``flush()`` (the same estimate, bit for
     bit, as a twin that flushed), and the next update goes on alike."""
     truth = Trajectory.build([Straight(1.0)], 100.0, [0, 0, -(rugged.h_max + 600.0)])

@@ -238,8 +238,8 @@ class MarginalizedParticleFilter(ImuIntake):
         # the update's head and tail fused, the stages' conditionals nested (same bits; the CPU runs it in
         # tests/test_mpf.py): on CUDA, where it measured faster (H100, S8 one filter: device 0.309 -> 0.273 ms)
         self._lean = self.device.is_cuda
-        self._early = False  # this update's interval was queued before its scan was staged (lean, see update)
-        self._interval_first = True  # (lean: queue the interval before staging the scan; False for an A/B)
+        self._early = False  # this update's head was queued before its scan was staged (lean, see update)
+        self._interval_first = True  # (lean: queue the head before staging the scan; False for an A/B)
         self._recorder = Recorder() if self.device.is_cpu and not self.graph else None
         """Eager CPU updates replay their fixed pieces from recorded launches (:class:`warptan.parallel.Recorder`);
         None launches every kernel anew (CUDA eager, or set to None to compare)."""
@@ -347,8 +347,8 @@ class MarginalizedParticleFilter(ImuIntake):
     def update(self, measurement, sync: bool = True):
         """Weight the particles by ``measurement`` (a list of B for a batch; taken at the current nominal time)
         and resample / re-spread where needed. A measurement the model rejects raises before anything moves (on
-        CUDA the interval is queued once the model's ``check`` passed, to run while the scan is staged: a model whose
-        ``stage`` refused it after that leaves the filter as after :meth:`flush`).
+        CUDA the interval and the particles' moves are queued once the model's ``check`` passed, to run while the
+        scan is staged: a model whose ``stage`` refused it after that leaves the filter as after :meth:`flush`).
 
         Returns:
             :class:`UpdateInfo` (a list of B for a batch); with ``sync=False`` nothing (no host sync: the
@@ -360,14 +360,15 @@ class MarginalizedParticleFilter(ImuIntake):
         attitude = None
         likelihood = getattr(self.model, "likelihood", None)
         map_modes = getattr(likelihood, "models_map_error", False)
-        # lean (CUDA): the interval goes to the device once the measurement is checked, and runs while the host
-        # stages the scan (not under map-error modes, whose scan geometry reads the last interval's attitude)
+        # lean (CUDA): the update's head (the interval, the particles' moves and poses) goes to the device once the
+        # measurement is checked, and runs while the host stages the scan (not under map-error modes, whose scan
+        # geometry reads the last interval's attitude)
         self._early = (self._lean and self._interval_first and not map_modes
                        and callable(getattr(self.model, "check", None)))
         if self._early:
             self.model.check(measurement)  # a measurement refused here moves nothing
             self._stage_interval()
-            self._queue_interval()
+            self._queue_head()
         elif map_modes:
             # the map-error modes' scan geometry needs the platform's attitude: the nominal of the last interval
             # (one device-to-host copy of 4 numbers; 0.1 s old at 10 Hz, what the geometry's tolerance allows)
@@ -376,8 +377,7 @@ class MarginalizedParticleFilter(ImuIntake):
         try:
             out = self.model.stage(measurement, self._pos, self._quat, **extra)  # validates first: nothing moves
         except BaseException:
-            if self._early:  # refused after the interval went to the device: the filter is as after flush()
-                self._launch_time_update()
+            if self._early:  # refused after the head (interval, moves) went to the device: as after flush()
                 self._next_set()
             raise
         if attitude is not None:  # ground read again after the modes forgot it: B positions to the host

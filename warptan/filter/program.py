@@ -51,9 +51,9 @@ resample_block_kernel`): the same functions on the same values with barriers bet
 separate kernels (a graph node costs a few µs whatever its work: 14 nodes a stage became 3). The CPU keeps the
 separate kernels (whose particle loops split over cores). ``_lean`` (CUDA, where it measured faster; slower on a
 2-core CPU) fuses the head (moves, poses, statistics reset) and the tail (integrity + re-spread; record + P's update +
-reset) likewise, nests the stages' conditionals and queues the interval (a graph of its own) as soon as the
-measurement passed the model's ``check``, so that the device integrates it while the host stages the scan; the same
-bits on the CPU (``tests/test_mpf.py``).
+reset) likewise, nests the stages' conditionals and queues the head (the interval, the particles' moves
+and poses: a graph of its own) as soon as the measurement passed the model's ``check``, so that the device runs it
+while the host stages the scan; the same bits on the CPU (``tests/test_mpf.py``).
 """
 
 from __future__ import annotations
@@ -312,9 +312,13 @@ class UpdateProgram:
         if not self._lean:
             self._launch_move()
             self._launch_poses()
-            return
-        if not self._early:  # (early: queued before the scan was staged)
-            self._launch_interval()  # then the particles' moves, poses and the statistics' reset in one launch
+        elif not self._early:  # (early: queued before the scan was staged, :meth:`_queue_head`)
+            self._launch_lean_head()
+
+    def _launch_lean_head(self) -> None:
+        """The interval, then the particles' moves, poses and the statistics' reset in one launch (none of which
+        reads the scan)."""
+        self._launch_interval()
         dv, n, st = self._dev, self.n, self.state
         launch(kmpf.move_pose_kernel, dim=self.n_filters * n,
                inputs=[n, dv["seeds"], dv["phi"], dv["chol"], dv["pose"], self._exponent],
@@ -382,12 +386,13 @@ class UpdateProgram:
             return
         self._replay("update", self._device_update, out)
 
-    def _queue_interval(self) -> None:
-        """The interval alone (the lean update queues it before the scan is staged): launched, or its graph."""
+    def _queue_head(self) -> None:
+        """The update's head alone (the lean update queues it before the scan is staged: the interval, the moves,
+        the poses): launched, or its graph."""
         if not self.graph or self._graph_key is None:  # (the first update runs eagerly)
-            self._launch_interval()
+            self._launch_lean_head()
         else:
-            self._replay("interval", self._launch_interval)
+            self._replay("head", self._launch_lean_head)
 
     def _replay(self, name: str, fn, *args) -> None:
         """Launch the graph of ``fn(*args)`` for the current staging set (one per set: its copies read that set),
