@@ -1,0 +1,112 @@
+"""Device time of each piece of one filter's measurement update on CUDA, warm, as the update's graph runs it: the
+head (interval, moves, poses), the model, a tempering stage (candidates' partials + the stage block), a resampling,
+the tail (integrity, record, slot), and the whole update graph. Each piece is captured ``--reps`` times in a row in
+one graph, replayed ``--repeats`` times between events; the median per piece is reported (µs). A piece repeated on
+its own output does the same work as in an update (stage 0 is always active; a resampling copies the particles
+whether or not it draws).
+
+    python scripts/bench_update_pieces.py --scenario S8 S7 --json pieces.json     (a CUDA device)
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import sys
+
+import numpy as np
+import warp as wp
+
+from warptan.cli import count_arg
+from warptan.device import quiet_warp
+from warptan.filter.mpf import MarginalizedParticleFilter
+from warptan.filter.prior import initial_nominal, prior_linear_cov
+from warptan.meta import run_meta
+from warptan.nav.imu import ImuModel
+
+
+def _filter(sid: str, device: str):
+    import bench_filter_step as bfs
+
+    setup = bfs.scenario_setup(sid, device, 10.0, scan_nx=20, scan_ny=20)
+    truth = setup["truth"]
+    imu = ImuModel(setup["grade"], truth.rate_hz, seed=0)
+    f, w, _ = imu.corrupt(truth.f_b, truth.w_b)
+    nominal = initial_nominal(truth.state(0), setup["initial"], np.random.default_rng(0))
+    mpf = MarginalizedParticleFilter(setup["model"], nominal, imu.grade, truth.rate_hz,
+                                     np.asarray(setup["initial"].pos_m), prior_linear_cov(setup["initial"], imu),
+                                     setup["filter"], n_particles=500, device=device, seed=0)
+    ipm, rng = setup["imu_per_meas"], np.random.default_rng(1)
+    scan = None
+    for it in range(30):
+        k = it * ipm
+        scan = setup["sensor"].measure(setup["world"], truth.pos_n[k + ipm], truth.quat_nb[k + ipm], rng)
+        mpf.predict_many(f[k:k + ipm], w[k:k + ipm])
+        mpf.update(scan, sync=False)
+    wp.synchronize_device(device)
+    mpf.predict_many(f[30 * ipm:31 * ipm], w[30 * ipm:31 * ipm])
+    mpf._stage_interval()
+    mpf._early = False
+    return mpf, mpf.model.stage(scan, mpf._pos, mpf._quat)
+
+
+def _time(fn, device, reps: int, repeats: int) -> float:
+    """Median µs per call of ``fn`` captured ``reps`` times in one graph."""
+    fn()
+    wp.capture_begin(device=device)
+    try:
+        for _ in range(reps):
+            fn()
+    finally:
+        graph = wp.capture_end(device=device)
+    stream = wp.get_stream(device)
+    times = []
+    for _ in range(repeats):
+        start, end = wp.Event(device, enable_timing=True), wp.Event(device, enable_timing=True)
+        stream.record_event(start)
+        wp.capture_launch(graph)
+        stream.record_event(end)
+        wp.synchronize_event(end)
+        times.append(1e3 * wp.get_event_elapsed_time(start, end) / reps)
+    return statistics.median(times)
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--scenario", nargs="+", default=["S8", "S7"])
+    parser.add_argument("--device", default="cuda:0")
+    parser.add_argument("--reps", type=count_arg, default=50)
+    parser.add_argument("--repeats", type=count_arg, default=20)
+    parser.add_argument("--json", dest="json_out")
+    args = parser.parse_args(argv)
+    quiet_warp()
+    if not wp.get_device(args.device).is_cuda:
+        print("bench_update_pieces: error: needs a CUDA device", file=sys.stderr)
+        return 2
+    rows = []
+    for sid in args.scenario:
+        mpf, out = _filter(sid, args.device)
+        pieces = {
+            "head (interval, moves, poses)": mpf._launch_lean_head,
+            "poses": mpf._launch_poses,
+            "model": lambda m=mpf: m.model.launch(m._pos, m._quat),
+            "tempering stage (partials + block)": lambda m=mpf, o=out: m._launch_stage(o, 0),
+            "resampling": lambda m=mpf: m._launch_resample(0),
+            "tail (integrity, record, slot)": mpf._launch_tail,
+            "whole update (device program)": lambda m=mpf, o=out: m._device_update(o),
+        }
+        row = {"scenario": sid, "B": 1, "N": mpf.n, "M": int(out.residual_m.shape[1]), "lean": mpf._lean,
+               "pieces_us": {name: _time(fn, args.device, args.reps, args.repeats) for name, fn in pieces.items()}}
+        rows.append(row)
+        print(sid, json.dumps({k: round(v, 1) for k, v in row["pieces_us"].items()}))
+    if args.json_out:
+        with open(args.json_out, "w") as fh:
+            json.dump({"meta": run_meta([args.device], command=" ".join(["bench_update_pieces.py", *sys.argv[1:]]),
+                                        what=__doc__.split("\n\n")[0]), "rows": rows}, fh, indent=1)
+        print(f"wrote {args.json_out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
