@@ -41,6 +41,25 @@ def build_parser() -> argparse.ArgumentParser:
     info.add_argument("terrain", nargs="?", default=DEFAULT_TERRAIN, help=spec_help)
     info.add_argument("--spacing", type=number_arg(0.0, True), default=None, help="resample to this post spacing in m")
     info.add_argument("--json", action="store_true", help="print JSON instead of a table")
+    where = info.add_argument_group("information", "where terrain navigation works: the 1σ horizontal position "
+                                    "bound of one scan and of a leg of scans at every post (--information)")
+    where.add_argument("--information", action="store_true", help="compute the information map")
+    where.add_argument("--sensor", default="S8", help="the sensor of this scenario (S1…S12 or a .toml): its scan or "
+                       "altimeter, noise, surface, rate, speed and stated map error (default S8)")
+    where.add_argument("--altitude-agl", type=number_arg(0.0, True), default=None, metavar="M",
+                       help="height above the terrain in m (default: the scenario's altitude rule, 600 or 150 m)")
+    where.add_argument("--heading-deg", type=_finite, default=0.0, help="flight heading, degrees from north")
+    where.add_argument("--scans", type=count_arg, default=10, help="scans along the leg of the second bound "
+                       "(default 10: one second at 10 Hz)")
+    where.add_argument("--map-error-m", type=number_arg(0.0, False), default=None, metavar="RMS",
+                       help="the DEM's stated correlated error, RMS in m (default: the scenario's)")
+    where.add_argument("--map-error-corr-m", type=number_arg(0.0, False), default=None, metavar="L",
+                       help="its correlation length in m (default: the scenario's)")
+    where.add_argument("--stride", type=count_arg, default=1, help="every N-th post (default 1)")
+    where.add_argument("--out", action="append", default=[], metavar="FILE",
+                       help="write the map: .png (a picture with units) and/or .tif (GeoTIFF, 2 bands: one scan, "
+                       "the leg; needs a DEM with a CRS); may be given twice")
+    where.add_argument("--overwrite", action="store_true", help="replace output files that exist")
     info.set_defaults(func=_terrain_info)
 
     export = tsub.add_parser("export", help="write the triangulated DEM as PLY/GLB/OBJ/STL for viewing")

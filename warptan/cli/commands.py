@@ -14,6 +14,8 @@ from warptan.progress import progress_bar
 def _terrain_info(args) -> int:
     from warptan.terrain.grid import Terrain
 
+    if args.information:
+        return _information(args)
     terrain = Terrain.load(args.terrain, spacing=args.spacing)
     info = terrain.info()
     if args.json:
@@ -36,6 +38,69 @@ def _terrain_info(args) -> int:
         f"nodata      {100.0 * info['nodata_fraction']:.3f} % of posts",
     ]
     print("\n".join(lines))
+    return 0
+
+
+def _information(args) -> int:
+    """``warptan terrain info DEM --information``: the information map of the DEM for a scenario's sensor."""
+    import math
+
+    import numpy as np
+
+    from warptan.nav.flightplan import ABOVE_TERRAIN_M
+    from warptan.sensing.sensors import ScanPattern
+    from warptan.sim.scenario_config import load_config
+    from warptan.terrain.grid import Terrain, TerrainError
+    from warptan.terrain.information import check_geotiff_target
+
+    outs = [os.fspath(o) for o in args.out]
+    for out in outs:  # before any work
+        if not out.lower().endswith((".png", ".tif", ".tiff")):
+            raise TerrainError(f"{out}: the information map is written as .png or .tif (GeoTIFF)")
+        if os.path.lexists(out) and not args.overwrite:
+            raise TerrainError(f"{out} exists; nothing was written (pass --overwrite to replace it)")
+        folder = os.path.dirname(out) or "."
+        if not os.path.isdir(folder):
+            raise TerrainError(f"{out}: its folder {folder} does not exist; create it first")
+    scenario = load_config(args.sensor)
+    s, lk = scenario.sensor, scenario.likelihood
+    rms = lk.map_error_rms_m if args.map_error_m is None else args.map_error_m
+    corr = lk.map_error_corr_m if args.map_error_corr_m is None else args.map_error_corr_m
+    agl = ABOVE_TERRAIN_M.get(scenario.flight.altitude_rule, 600.0) if args.altitude_agl is None else args.altitude_agl
+    terrain = Terrain.load(args.terrain, spacing=args.spacing)
+    for out in outs:
+        check_geotiff_target(out, terrain.crs_wkt)
+    if s.model == "altimeter":
+        dirs, sigma = [[0.0, 0.0, 1.0]], math.hypot(s.altimeter_sigma_m, s.baro_sigma_m if s.use_baro else 0.0)
+    else:
+        dirs, sigma = ScanPattern.grid(s.scan_nx, s.scan_ny, s.scan_half_angle_deg).dirs_s, s.range_sigma_m
+    surface = "triangles" if s.model == "raycast" or s.surface == "triangles" else "bilinear"
+    m = terrain.information_map(dirs, agl, sigma, heading_deg=args.heading_deg, n_scans=args.scans,
+                                scan_step_m=scenario.flight.speed_mps / s.rate_hz,
+                                map_noise_m=scenario.terrain.map_noise_m, map_error_rms_m=rms, map_error_corr_m=corr,
+                                vertical_known=s.model == "altimeter" and s.use_baro, surface=surface,
+                                stride=args.stride, sensor=f"{scenario.id} ({s.model})")
+    written = [m.save_geotiff(out) if out.lower().endswith((".tif", ".tiff")) else m.save_png(out) for out in outs]
+    summary = {"terrain": terrain.name, **m.settings}
+    for key, bound in (("one_scan", m.bound_scan_m), ("leg", m.bound_leg_m)):
+        on_map = np.isfinite(bound) | np.isinf(bound)
+        fixed = np.isfinite(bound)
+        summary[f"{key}_bound_median_m"] = float(np.median(bound[fixed])) if fixed.any() else None  # no fix
+        summary[f"{key}_fix_fraction"] = float(fixed.sum() / max(on_map.sum(), 1))
+    if args.json:
+        print(json.dumps({**summary, "files": written}, indent=2))
+        return 0
+    print(f"information map of {terrain.name} for {m.settings['sensor']} at {agl:g} m above the terrain, heading "
+          f"{args.heading_deg:g}°, σ {sigma:g} m" + (f", map error {rms:g} m / {corr:g} m" if rms else ""))
+    def median(key):
+        value = summary[f"{key}_bound_median_m"]
+        return "no fix" if value is None else f"{value:.3g} m"
+
+    print(f"1σ horizontal bound (DRMS), median where the terrain fixes the position: one scan {median('one_scan')} "
+          f"({100 * summary['one_scan_fix_fraction']:.0f} % of posts fix it), {args.scans} scans {median('leg')} "
+          f"({100 * summary['leg_fix_fraction']:.0f} %)")
+    for path in written:
+        print(f"wrote {path}")
     return 0
 
 

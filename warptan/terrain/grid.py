@@ -519,6 +519,13 @@ class Terrain:
                   inputs=[self.grid(device), int(bool(surface)), north_m, east_m], outputs=[out], device=device)
         return out
 
+    def information_map(self, dirs_body, altitude_agl_m: float, sigma_m: float, **options):
+        """The Fisher information of a scan about the horizontal position at every post, and its 1σ bound
+        (:func:`warptan.terrain.information.information_map`, which takes the ``options``)."""
+        from warptan.terrain.information import information_map
+
+        return information_map(self, dirs_body, altitude_agl_m, sigma_m, **options)
+
     # ------------------------------------------------------------------ export (warptan.terrain.meshfile)
     def to_trimesh(self, frame: str = "ned"):
         """The triangulated grid as a ``trimesh.Trimesh`` in NED (default) or ENU (x east, y north, z up)."""
