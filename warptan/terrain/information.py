@@ -1,6 +1,6 @@
-"""Where terrain navigation works: the Fisher information of a scan about the horizontal position at every cell of a
-DEM, and the 1σ position bound it gives (:func:`information_map`, :meth:`warptan.terrain.grid.Terrain.
-information_map`; ``warptan terrain info DEM --information``).
+"""Where terrain navigation works: the Fisher information of a scan about the horizontal position at every post of
+a DEM, and the 1σ position bound it gives (:func:`information_map`; ``Terrain.information_map``; ``warptan terrain
+info DEM --information``).
 
 The aircraft flies level at ``altitude_agl_m`` above each cell, heading ``heading_deg``; its scan (unit ray
 directions in the body frame, x forward, y right, z down) reads the map at the nominal footprint, the rays met by
