@@ -140,3 +140,46 @@ def test_command_line_writes_the_map(tmp_path):
     bad = subprocess.run([*cmd, "terrain", "info", "synthetic:rugged,size_m=3000", "--information",
                           "--out", str(tmp_path / "x.tif")], capture_output=True, text=True)
     assert bad.returncode == 2 and "needs the DEM's CRS" in bad.stderr and not (tmp_path / "x.tif").exists()
+
+
+# ---------------------------------------------------------------------- the bound along a flight
+def test_bound_of_one_update_is_the_closed_form(plane):
+    """One altimeter reading with a barometer over the plane, no time before it: the bound's position covariance is
+    ``(P0⁻¹ + J)⁻¹`` with ``J = [g gᵀ/(σ_a² + σ_b²), 0; 0, 1/σ_b²]`` (g the slope), within 1 %; the other states
+    keep their prior."""
+    from warptan.filter.bound import pcrb
+    from warptan.nav.imu import imu_grade
+    from warptan.nav.trajectory import Straight, Trajectory
+
+    flight = Trajectory.build([Straight(1.0)], 100.0, [1200.0, 1200.0, -1000.0])
+    p0 = np.diag(np.r_[[40.0, 30.0, 10.0], np.full(12, 0.01)] ** 2)
+    sigmas = pcrb(flight, plane, [0], imu_grade("navigation"), p0, dirs_body=None, sigma_m=2.0, baro_sigma_m=1.0)
+    g = np.array(SLOPE)
+    info = np.zeros((3, 3))
+    info[:2, :2] = np.outer(g, g) / 5.0
+    info[2, 2] = 1.0
+    want = np.linalg.inv(np.linalg.inv(p0[:3, :3]) + info)
+    np.testing.assert_allclose(sigmas[1, :3], np.sqrt(np.diag(want)), rtol=0.01)
+    np.testing.assert_allclose(sigmas[1, 3:], np.sqrt(np.diag(p0))[3:], rtol=1e-9)
+    assert sigmas[0] == pytest.approx(np.sqrt(np.diag(p0)))
+
+
+@pytest.mark.statistical
+def test_filter_is_never_better_than_its_bound():
+    """S8 and S1 (banked), 20 seeds each (200 particles, 35–45 s): the filter's horizontal mean squared error after
+    convergence is not below the flight's posterior Cramér–Rao bound by more than twice its own Monte-Carlo
+    standard error; every run's summary carries the bound per epoch and its converged value, and the results table
+    shows it beside the RMSE."""
+    from warptan.sim.report import aggregate, markdown_table
+
+    for sid, duration in (("S8", 35.0), ("S1", 45.0)):
+        runs = wt.run_scenario_batch(sid, list(range(20)), "cpu", duration_s=duration, particles=200)
+        first = runs[0]
+        sel = first.run.t_s >= first.config.filter.converged_after_s
+        mse = np.array([(r.run.error[sel, :2] ** 2).sum(axis=1).mean() for r in runs])
+        bound2 = float(np.mean(first.pcrb_m[sel] ** 2))
+        assert mse.mean() >= bound2 - 2.0 * mse.std(ddof=1) / math.sqrt(len(mse)), (sid, mse.mean(), bound2)
+        assert 0.0 < bound2 < mse.mean() and np.isfinite(first.pcrb_m).all()
+        s = first.summary()
+        assert len(s["pcrb_m"]) == len(first.run.t_s) and s["pcrb_converged_m"] == pytest.approx(math.sqrt(bound2))
+        assert "horizontal RMSE / bound" in markdown_table(aggregate(runs))

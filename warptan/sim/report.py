@@ -166,6 +166,8 @@ def aggregate(results) -> dict[str, dict]:
             "rmse_mean_m": rm.tolist(), "rmse_ci95_m": rh.tolist(),
             "rmse_converged_mean_m": cm.tolist(), "rmse_converged_ci95_m": ch.tolist(),
             "paper_rmse_m": list(cfg.paper_rmse_m),
+            "rmse_horizontal_converged_mean_m": float(np.mean([np.hypot(*r.rmse_converged[:2]) for r in runs])),
+            "pcrb_converged_mean_m": float(np.mean([getattr(r, "pcrb_converged_m", np.nan) for r in runs])),
             "coverage_3sigma_mean": np.mean([r.run.coverage(cfg.filter.converged_after_s) for r in runs],
                                             axis=0).tolist(),
             **_linear_aggregate([r.linear_summary() for r in runs]),
@@ -264,8 +266,8 @@ def markdown_table(agg: dict[str, dict]) -> str:
     """The results as a Markdown table (RMSE x / y / z = north / east / down, m)."""
     lines = [
         "| id | terrain | IMU | bank | alt | model | seeds | RMSE x / y / z (m), whole run | after convergence "
-        "| paper | 3σ coverage N/E/D |",
-        "|---|---|---|---|---|---|---|---|---|---|---|",
+        "| horizontal RMSE / bound (m) | paper | 3σ coverage N/E/D |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for sid in sorted(agg, key=lambda s: int(s[1:]) if s[1:].isdigit() else 99):
         a = agg[sid]
@@ -277,9 +279,18 @@ def markdown_table(agg: dict[str, dict]) -> str:
             f"| {sid} | {terrain} | {a['imu']} | {a['bank_deg']:g}° | {a['altitude_rule']} | {model} | "
             f"{len(a['seeds'])} | {_fmt(a['rmse_mean_m'], a['rmse_ci95_m'])} | "
             f"{_fmt(a['rmse_converged_mean_m'], a['rmse_converged_ci95_m'])} | "
+            f"{_bound_cell(a)} | "
             f"{' / '.join(f'{v:g}' for v in a['paper_rmse_m'])} | "
             f"{_pct(a['coverage_3sigma_mean'])} |")
     return "\n".join(lines)
+
+
+def _bound_cell(a: dict) -> str:
+    """The converged horizontal RMSE (mean over the seeds) beside the flight's posterior Cramér–Rao bound."""
+    rmse, bound = a.get("rmse_horizontal_converged_mean_m", np.nan), a.get("pcrb_converged_mean_m", np.nan)
+    if not np.isfinite(rmse):
+        return "–"
+    return f"{rmse:.3g} / {bound:.3g}" if np.isfinite(bound) else f"{rmse:.3g} / –"
 
 
 def hillshade(heights: np.ndarray, dn: float, de: float, azimuth_deg: float = 315.0, altitude_deg: float = 45.0):
@@ -345,6 +356,10 @@ def plot_run(result, terrain, out_prefix: str | os.PathLike) -> list[str]:
         ax.plot(run.t_s, run.error[:, k], "b-", lw=1, label="estimate − truth")
         ax.fill_between(run.t_s, -run.sigma3_pos[:, k], run.sigma3_pos[:, k], color="b", alpha=0.15, label="±3σ")
         ax.plot(run.t_s, (run.ins_pos - run.truth_pos)[:, k], "r--", lw=0.8, label="INS only")
+        bound = getattr(result, "pcrb_sigma_m", None)
+        if bound is not None:  # the flight's posterior Cramér–Rao bound, ±3σ
+            ax.plot(run.t_s, 3 * bound[:, k], "k--", lw=0.9, label="±3σ bound (PCRB)")
+            ax.plot(run.t_s, -3 * bound[:, k], "k--", lw=0.9)
         lim = max(5.0, 1.5 * _p95(run.error[:, k]) if truth else 1.2 * _p95(run.sigma3_pos[:, k]))
         ax.set_ylim(-lim, lim)
         ax.set_ylabel(f"{name} error (m)")

@@ -117,6 +117,9 @@ class ScenarioResult:
     """The terrain the filter read (its name; equal to ``terrain`` when the map is the world)."""
     map_sigma_m: float = 0.0
     """The map σ of the likelihood, m (stated noise, with the map's interpolation error when map-aware)."""
+    pcrb_sigma_m: np.ndarray | None = field(default=None, repr=False)
+    """(T, 3) σ north, east, down of the posterior Cramér–Rao bound at the epochs (:mod:`warptan.filter.bound`; a
+    simulated flight's, None for a recorded one), m."""
     rmse: np.ndarray = field(init=False)
     """(3,) RMSE north, east, down over the whole run, m."""
     rmse_converged: np.ndarray = field(init=False)
@@ -126,13 +129,30 @@ class ScenarioResult:
         self.rmse = self.run.rmse(0.0)
         self.rmse_converged = self.run.rmse(self.config.filter.converged_after_s)
 
+    @property
+    def pcrb_m(self) -> np.ndarray | None:
+        """(T,) the bound's horizontal DRMS ``sqrt(σ_n² + σ_e²)`` at the epochs, m (None without a bound)."""
+        return None if self.pcrb_sigma_m is None else np.hypot(self.pcrb_sigma_m[:, 0], self.pcrb_sigma_m[:, 1])
+
+    @property
+    def pcrb_converged_m(self) -> float:
+        """The bound's horizontal DRMS, RMS over the epochs after ``filter.converged_after_s`` (as the RMSE is
+        taken), m; NaN without a bound or such epochs."""
+        sel = self.run.t_s >= self.config.filter.converged_after_s
+        if self.pcrb_sigma_m is None or not sel.any():
+            return math.nan
+        return float(np.sqrt(np.mean(self.pcrb_m[sel] ** 2)))
+
     def summary(self) -> dict:
         """JSON-ready numbers of this run."""
         from warptan.sim.report import declared_unconverged, update_counts
 
         r = self.run
         updates, skipped, used = update_counts(r)
+        bound = self.pcrb_m
         return {
+            "pcrb_m": None if bound is None else bound.tolist(), "pcrb_converged_m": self.pcrb_converged_m,
+            "rmse_horizontal_converged_m": float(np.hypot(*self.rmse_converged[:2])),
             "scenario": self.scenario, "seed": self.seed, "device": self.device, "terrain": self.terrain,
             "map": self.map or self.terrain, "map_sigma_m": self.map_sigma_m,
             "world": ({"model": dataclasses.asdict(self.truth_terrain.model), **self.truth_terrain.parts}
@@ -323,7 +343,32 @@ def run_scenario_batch(name_or_path, seeds, device="cpu", progress=None, export_
 
         export_logs.extend(logs_from_record(record, flight, scenario.to_dict(), likelihood, total_seeds, seeds,
                                             terrain_spec(scenario, terrain), truth_terrain))
+    bound = scenario_bound(scenario, flight, the_map, runs[0].t_s)
     return [ScenarioResult(scenario=scenario.id, seed=seed, device=run.device, terrain=truth_terrain.name,
                            config=scenario, run=run, wall_s=wall, truth_terrain=truth_terrain, map=the_map.name,
-                           map_sigma_m=likelihood.map_sigma_m)
+                           map_sigma_m=likelihood.map_sigma_m, pcrb_sigma_m=bound)
             for seed, run in zip(seeds, runs, strict=True)]
+
+
+def scenario_bound(scenario: Scenario, flight: Trajectory, the_map: Terrain, t_s: np.ndarray) -> np.ndarray:
+    """(T, 3) σ north, east, down of the flight's posterior Cramér–Rao bound at the epochs ``t_s`` (:func:`warptan.
+    filter.bound.pcrb`): the scenario's sensor (its noise alone: the bound's truth), the filter's map, the stated
+    map error, the IMU grade and the filter's prior."""
+    from warptan.filter.bound import pcrb
+    from warptan.filter.prior import prior_sigma
+    from warptan.nav.imu import imu_grade
+
+    s, lk = scenario.sensor, scenario.likelihood
+    grade = imu_grade(scenario.imu.grade)
+    epochs = np.rint(np.asarray(t_s[1:]) * flight.rate_hz).astype(np.int64)
+    p0 = np.diag(prior_sigma(scenario.initial_error.errors(), grade) ** 2)
+    if s.model == "altimeter":
+        sensor = {"dirs_body": None, "sigma_m": s.altimeter_sigma_m,
+                  "baro_sigma_m": s.baro_sigma_m if s.use_baro else None}
+    else:
+        sensor = {"dirs_body": ScanPattern.grid(s.scan_nx, s.scan_ny, s.scan_half_angle_deg).dirs_s,
+                  "sigma_m": s.range_sigma_m}
+    sigmas = pcrb(flight, the_map, epochs, grade, p0, map_error_rms_m=lk.map_error_rms_m,
+                  map_error_corr_m=lk.map_error_corr_m, surface=s.model == "raycast" or s.surface == "triangles",
+                  **sensor)
+    return sigmas[:, :3]

@@ -1,0 +1,137 @@
+"""The best a filter can do on a flight: the posterior Cramér–Rao bound (PCRB) of the INS error along a simulated
+flight (:func:`pcrb`), to set beside the filter's RMSE.
+
+Linearised at the truth: the 15-state error of :mod:`warptan.nav.ins` moves with the exact error transition ``F`` of
+each IMU step at the true state and ideal samples and the IMU grade's noise ``Q`` (the noise the simulated IMU has;
+the filter's own tuning noise on the position is not part of the truth and is left out: a bound with it would not be
+a bound); each update adds the information of the scan at the true pose, ``J_z = Hᵀ R⁻¹ H``: per point the map's
+gradient under the ray, ``v = (∂h/∂n, ∂h/∂e, 1)`` on the position and ``−r vᵀ R(q) [u_b]×`` on the attitude error
+(the ray of range r turned by it), with the sensor's noise and the map's stated correlated error as modes over the
+footprint, each counted ``κ`` times along the track as the filter counts it
+(:func:`warptan.terrain.information.error_modes`). An altimeter with a barometer reads the horizontal gradient and the
+barometer the altitude. The recursion is the Riccati of that linear system, ``P ← F P Fᵀ + Q`` per IMU step and
+``P ← (P⁻¹ + J_z)⁻¹`` per update, from the filter's prior; its horizontal DRMS ``sqrt(P_nn + P_ee)`` is the bound.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from warptan.nav.frames import quat_to_mat
+from warptan.nav.ins import error_transition, process_noise
+from warptan.terrain.information import MIN_DOWN, error_modes
+
+TRACK_SCANS = 64
+"""Scans along the track over which a map-error mode's sharing ``κ`` is counted."""
+
+
+def _skew(u: np.ndarray) -> np.ndarray:
+    """(M, 3, 3) cross-product matrices."""
+    z = np.zeros(len(u))
+    return np.stack([np.stack([z, -u[:, 2], u[:, 1]], -1), np.stack([u[:, 2], z, -u[:, 0]], -1),
+                     np.stack([-u[:, 1], u[:, 0], z], -1)], axis=1)
+
+
+def _gradients(terrain, north: np.ndarray, east: np.ndarray, surface: bool, eps: float = 1e-3):
+    """(∂h/∂n, ∂h/∂e) of the map at the points, by central differences of its surface (bilinear or triangles)."""
+    height = terrain.surface_height_at if surface else terrain.height_at
+    gn = (height(north + eps, east) - height(north - eps, east)) / (2 * eps)
+    ge = (height(north, east + eps) - height(north, east - eps)) / (2 * eps)
+    return gn, ge
+
+
+def scan_information(terrain, pos_n: np.ndarray, quat_nb: np.ndarray, dirs_body: np.ndarray | None, sigma_m: float,
+                     baro_sigma_m: float | None = None, map_error_rms_m: float = 0.0, map_error_corr_m: float = 0.0,
+                     track_step_m: float = 10.0, surface: bool = False, kappa_cache: dict | None = None) -> np.ndarray:
+    """J_z (15 × 15) of one scan at the true pose (see the module docstring); ``dirs_body`` None: the altimeter (one
+    nadir reading; with ``baro_sigma_m`` a barometer fixes the altitude). Zero where the scan reads no valid map."""
+    j = np.zeros((15, 15))
+    agl = -pos_n[2] - float(terrain.height_at(pos_n[0], pos_n[1]))
+    if not (agl > 0.0):
+        return j
+    if dirs_body is None:  # the altimeter: the terrain under the aircraft
+        gn, ge = _gradients(terrain, np.array([pos_n[0]]), np.array([pos_n[1]]), surface)
+        if not np.isfinite(gn[0] + ge[0]):
+            return j
+        if baro_sigma_m is not None:
+            g = np.array([gn[0], ge[0], 0.0])
+            j[:3, :3] = np.outer(g, g) / max(sigma_m ** 2 + baro_sigma_m ** 2, 1e-6)
+            j[2, 2] += 1.0 / max(baro_sigma_m, 1e-3) ** 2
+        else:
+            g = np.array([gn[0], ge[0], 1.0])
+            j[:3, :3] = np.outer(g, g) / max(sigma_m, 1e-3) ** 2
+        return j
+    rot = quat_to_mat(quat_nb)
+    u_b = dirs_body / np.linalg.norm(dirs_body, axis=1, keepdims=True)
+    u_n = u_b @ rot.T
+    keep = u_n[:, 2] > MIN_DOWN
+    u_b, u_n = u_b[keep], u_n[keep]
+    r = agl / u_n[:, 2]
+    off = r[:, None] * u_n[:, :2]
+    gn, ge = _gradients(terrain, pos_n[0] + off[:, 0], pos_n[1] + off[:, 1], surface)
+    ok = np.isfinite(gn + ge)
+    if not ok.any():
+        return j
+    v = np.stack([gn, ge, np.ones_like(gn)], axis=1)[ok]
+    g = np.zeros((int(ok.sum()), 15))
+    g[:, 0:3] = v
+    g[:, 6:9] = -r[ok, None] * np.einsum("pi,ij,pjk->pk", v, rot, _skew(u_b[ok]))
+    white = max(sigma_m, 1e-3) ** 2  # (a noiseless sensor would fix the position exactly: a bound of zero)
+    if map_error_rms_m > 0.0:
+        along = np.array([math.cos(math.atan2(rot[1, 0], rot[0, 0])), math.sin(math.atan2(rot[1, 0], rot[0, 0]))])
+        shifts = np.arange(TRACK_SCANS)[:, None] * track_step_m * along[None, :]
+        first = kappa_cache is None or "kappa" not in kappa_cache
+        modes, lam, kappa, white = error_modes(off[ok], map_error_rms_m, map_error_corr_m, white,
+                                               shifts if first else None)
+        if kappa_cache is not None:  # κ of the first scan's footprint, mode by mode, for the whole flight (a lag
+            kappa_cache.setdefault("kappa", kappa)  # costs a correlation matrix); a mode beyond them counts once
+            cached = kappa_cache["kappa"]
+            kappa = np.ones(len(lam))
+            kappa[:min(len(lam), len(cached))] = cached[:len(lam)]
+        lam = kappa * lam
+        q = modes.astype(np.float64).T @ g  # (K, 15)
+        j = (g.T @ g - (q.T * (lam / (white + lam))) @ q) / white
+    else:
+        j = g.T @ g / white
+    return j
+
+
+def pcrb(truth, terrain, epochs, grade, p0: np.ndarray, *, dirs_body=None, sigma_m: float, baro_sigma_m=None,
+         map_error_rms_m: float = 0.0, map_error_corr_m: float = 0.0, surface: bool = False) -> np.ndarray:
+    """(T, 15) σ of the bound at the prior (t = 0) and after each update ``epochs`` (IMU sample indices).
+
+    Args:
+        truth: The flight (:class:`~warptan.nav.trajectory.Trajectory`).
+        terrain: The filter's map.
+        epochs: IMU sample index of each update.
+        grade: The IMU's grade (its noise is the process noise).
+        p0: (15, 15) prior covariance of [dp, dv, dθ, b_a, b_g].
+        dirs_body, sigma_m, baro_sigma_m, map_error_rms_m, map_error_corr_m, surface: The sensor and map
+            (:func:`scan_information`).
+    """
+    dt = 1.0 / truth.rate_hz
+    q = process_noise(grade, dt)
+    p = np.array(p0, dtype=np.float64)
+    out = [np.sqrt(np.diag(p))]
+    step = float(np.linalg.norm(truth.vel_n[0])) * (epochs[1] - epochs[0]) * dt if len(epochs) > 1 else 10.0
+    cache: dict = {}
+    k = 0
+    for epoch in epochs:
+        for i in range(k, epoch):
+            f = error_transition(truth.state(i), truth.f_b[i], truth.w_b[i], dt)
+            p = f @ p @ f.T + q
+        k = epoch
+        jz = scan_information(terrain, truth.pos_n[epoch], truth.quat_nb[epoch], dirs_body, sigma_m, baro_sigma_m,
+                              map_error_rms_m, map_error_corr_m, step, surface, cache)
+        info = np.linalg.inv(p) + jz
+        p = np.linalg.inv(0.5 * (info + info.T))
+        p = 0.5 * (p + p.T)
+        out.append(np.sqrt(np.clip(np.diag(p), 0.0, None)))
+    return np.array(out)
+
+
+def horizontal_drms(sigmas: np.ndarray) -> np.ndarray:
+    """(T,) ``sqrt(σ_n² + σ_e²)`` of (T, 15) σ, m."""
+    return np.hypot(sigmas[:, 0], sigmas[:, 1])
