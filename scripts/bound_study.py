@@ -1,0 +1,64 @@
+"""The filter against the best possible on the same flights: each scenario's seeds as one batch, the horizontal mean
+squared error after convergence against the flight's posterior Cramér–Rao bound (:mod:`warptan.filter.bound`), and
+whether the filter is ever better than the bound by more than twice its Monte-Carlo standard error (it must not be).
+
+    python scripts/bound_study.py --scenarios all --seeds 20 --device cuda:0 --json results/bound/bound_study.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import time
+
+import numpy as np
+
+from warptan.cli import count_arg
+from warptan.device import quiet_warp
+from warptan.meta import run_meta
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--scenarios", nargs="+", default=["all"])
+    parser.add_argument("--seeds", type=count_arg, default=20)
+    parser.add_argument("--device", default="cpu")
+    parser.add_argument("--duration-s", type=float, default=None)
+    parser.add_argument("--particles", type=count_arg, default=None)
+    parser.add_argument("--json", dest="json_out")
+    args = parser.parse_args(argv)
+    quiet_warp()
+    from warptan.sim.scenario_config import SCENARIO_IDS
+    from warptan.sim.scenarios import run_scenario_batch
+
+    ids = list(SCENARIO_IDS) if args.scenarios == ["all"] else args.scenarios
+    rows = []
+    for sid in ids:
+        t0 = time.perf_counter()
+        runs = run_scenario_batch(sid, list(range(args.seeds)), args.device, duration_s=args.duration_s,
+                                  particles=args.particles)
+        first = runs[0]
+        sel = first.run.t_s >= first.config.filter.converged_after_s
+        mse = np.array([float((r.run.error[sel, :2] ** 2).sum(axis=1).mean()) for r in runs])
+        bound2 = float(np.mean(first.pcrb_m[sel] ** 2))
+        se = float(mse.std(ddof=1) / math.sqrt(len(mse))) if len(mse) > 1 else math.nan
+        row = {"scenario": sid, "seeds": args.seeds, "model": first.config.sensor.model,
+               "rmse_horizontal_converged_m": math.sqrt(mse.mean()), "mse_se_m2": se,
+               "bound_converged_m": math.sqrt(bound2), "rmse_over_bound": math.sqrt(mse.mean() / bound2),
+               "below_bound_beyond_mc_error": bool(mse.mean() < bound2 - 2.0 * se),
+               "per_seed_rmse_horizontal_m": np.sqrt(mse).tolist(), "wall_s": time.perf_counter() - t0}
+        rows.append(row)
+        print(f"{sid}: horizontal RMSE {row['rmse_horizontal_converged_m']:.3g} m, bound "
+              f"{row['bound_converged_m']:.3g} m, ratio {row['rmse_over_bound']:.2f}"
+              + ("  BELOW THE BOUND" if row["below_bound_beyond_mc_error"] else ""), flush=True)
+    if args.json_out:
+        with open(args.json_out, "w") as fh:
+            json.dump({"meta": run_meta([args.device], what=__doc__.split("\n\n")[0]), "rows": rows}, fh, indent=1)
+        print(f"wrote {args.json_out}")
+    return 1 if any(r["below_bound_beyond_mc_error"] for r in rows) else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
