@@ -360,11 +360,27 @@ def replay_frames_block(path: str = "results/replay_frames.json") -> str:
     return "\n".join(lines)
 
 
+def bound_block(path: str = "results/bound/bound_study.json") -> str:
+    """Each scenario's filter against its flights' posterior Cramér–Rao bound (``scripts/bound_study.py``)."""
+    data = _load(path)
+    lines = ["Horizontal RMSE after convergence (all seeds of a scenario pooled) beside the flight's posterior "
+             "Cramér–Rao bound (the best any filter can do on it, `warptan.filter.bound`); below the bound: the "
+             "filter better than the bound by more than twice its Monte-Carlo error (never allowed). "
+             + _provenance(path), "",
+             "| scenario | model | seeds | horizontal RMSE (m) | bound (m) | RMSE / bound | below the bound |",
+             "|---|---|---|---|---|---|---|"]
+    for r in data["rows"]:
+        lines.append(f"| {r['scenario']} | {r['model']} | {r['seeds']} | {r['rmse_horizontal_converged_m']:.3g} | "
+                     f"{r['bound_converged_m']:.3g} | {r['rmse_over_bound']:.2f} | "
+                     f"{'yes' if r['below_bound_beyond_mc_error'] else 'no'} |")
+    return "\n".join(lines)
+
+
 BLOCKS = {"paper": paper_block, "attitude": attitude_block, "paper30": lambda: paper_block("results/paper30"),
           "closed_loop": closed_loop_block, "map_error": map_error_block, "long_flight": long_flight_block,
           "step": step_block, "scenario_step": scenario_step_block, "profile": profile_block, "kernels": kernels_block,
           "threads": threads_block, "numpy": numpy_block, "batch": batch_block, "campaign": campaign_block,
-          "world": world_block, "replay_frames": replay_frames_block}
+          "world": world_block, "replay_frames": replay_frames_block, "bound": bound_block}
 
 _BLOCK = re.compile(r"<!-- generated:(\w+) -->\n.*?<!-- /generated:\1 -->", re.S)
 _FENCE = re.compile(r"```.*?```", re.S)
