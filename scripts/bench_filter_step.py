@@ -95,6 +95,20 @@ def scenario_setup(sid, device, settle_s, terrain=None, **overrides):
             "initial": scenario.initial_error.errors(), "config": scenario}
 
 
+def scenario_filter(sid: str, device: str, n: int = 500, scan_side: int = 20, seed: int = 0):
+    """One filter of scenario ``sid`` with ``n`` particles and a ``scan_side``² scan, as :func:`bench` builds it:
+    ``(filter, specific forces, body rates, setup)`` (the IMU samples of the seed's IMU)."""
+    setup = scenario_setup(sid, device, 10.0, scan_nx=scan_side, scan_ny=scan_side)
+    truth = setup["truth"]
+    imu = ImuModel(setup["grade"], truth.rate_hz, seed=seed)
+    f, w, _ = imu.corrupt(truth.f_b, truth.w_b)
+    nominal = initial_nominal(truth.state(0), setup["initial"], np.random.default_rng(seed))
+    mpf = MarginalizedParticleFilter(setup["model"], nominal, imu.grade, truth.rate_hz,
+                                     np.asarray(setup["initial"].pos_m), prior_linear_cov(setup["initial"], imu),
+                                     setup["filter"], n_particles=n, device=device, seed=seed)
+    return mpf, f, w, setup
+
+
 def kernel_rate(model, pos, quat, measurement, device, repeats=20) -> float:
     """Point evaluations per second of the model kernel alone (``launch`` on staged poses; the bound)."""
     m = model.stage(measurement, pos, quat).residual_m.shape[1]

@@ -20,23 +20,14 @@ import warp as wp
 
 from warptan.cli import count_arg
 from warptan.device import quiet_warp
-from warptan.filter.mpf import MarginalizedParticleFilter
-from warptan.filter.prior import initial_nominal, prior_linear_cov
 from warptan.meta import run_meta
-from warptan.nav.imu import ImuModel
 
 
 def _filter(sid: str, device: str):
     import bench_filter_step as bfs
 
-    setup = bfs.scenario_setup(sid, device, 10.0, scan_nx=20, scan_ny=20)
+    mpf, f, w, setup = bfs.scenario_filter(sid, device)
     truth = setup["truth"]
-    imu = ImuModel(setup["grade"], truth.rate_hz, seed=0)
-    f, w, _ = imu.corrupt(truth.f_b, truth.w_b)
-    nominal = initial_nominal(truth.state(0), setup["initial"], np.random.default_rng(0))
-    mpf = MarginalizedParticleFilter(setup["model"], nominal, imu.grade, truth.rate_hz,
-                                     np.asarray(setup["initial"].pos_m), prior_linear_cov(setup["initial"], imu),
-                                     setup["filter"], n_particles=500, device=device, seed=0)
     ipm, rng = setup["imu_per_meas"], np.random.default_rng(1)
     scan = None
     for it in range(30):

@@ -17,9 +17,6 @@ sys.path.insert(0, sys.argv[1])  # scripts/: bench_filter_step's scenario setup
 import bench_filter_step as bfs
 
 from warptan.device import upload
-from warptan.filter.mpf import MarginalizedParticleFilter
-from warptan.filter.prior import initial_nominal, prior_linear_cov
-from warptan.nav.imu import ImuModel
 
 VARIANTS = {"base": (False, False), "early": (True, False), "pinned": (False, True), "both": (True, True)}
 STEPS, WARMUP = 700, 100
@@ -33,14 +30,7 @@ class Pageable:
 
 
 def build(sid, early, pinned):
-    setup = bfs.scenario_setup(sid, "cuda:0", 10.0, scan_nx=20, scan_ny=20)
-    truth = setup["truth"]
-    imu = ImuModel(setup["grade"], truth.rate_hz, seed=0)
-    f, w, _ = imu.corrupt(truth.f_b, truth.w_b)
-    nominal = initial_nominal(truth.state(0), setup["initial"], np.random.default_rng(0))
-    mpf = MarginalizedParticleFilter(setup["model"], nominal, imu.grade, truth.rate_hz,
-                                     np.asarray(setup["initial"].pos_m), prior_linear_cov(setup["initial"], imu),
-                                     setup["filter"], n_particles=500, device="cuda:0", seed=0)
+    mpf, f, w, setup = bfs.scenario_filter(sid, "cuda:0")
     mpf._interval_first = early
     if not pinned:
         setup["model"]._uploads = Pageable()
