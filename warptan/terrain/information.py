@@ -5,11 +5,12 @@ info DEM --information``).
 The aircraft flies level at ``altitude_agl_m`` above each cell, heading ``heading_deg``; its scan (unit ray
 directions in the body frame, x forward, y right, z down) reads the map at the nominal footprint, the rays met by
 flat ground at that height (the footprint the filter's map-error modes use too). Each point's residual has the
-sensor's white noise ``sigma_m`` (and the map's post noise, ``map_noise_m``) and the map's stated correlated error
-(RMS ``map_error_rms_m``, covariance ``exp(−(r/L)²)``, ``L = map_error_corr_m``; its leading modes over the
-footprint, the rest folded into the white part). A point cloud also reads the altitude (the position error is 3-D
-and the bound is the horizontal block of its inverse, i.e. the vertical marginalised); an altimeter with a
-barometer does not (``vertical_known``). The bound is the DRMS ``sqrt(tr(J_h⁻¹))`` in metres, of one scan and of
+sensor's white noise ``sigma_m`` (taken as the height residual's: a range noise projects to ``σ |u_d + ∇h · u_h|``,
+within a few percent of σ for scans of ±30° over moderate slopes), the map's post noise ``map_noise_m`` and its
+stated correlated error (RMS ``map_error_rms_m``, covariance ``exp(−(r/L)²)``, ``L = map_error_corr_m``; its leading
+modes over the footprint, the rest folded into the white part). A point cloud also reads the altitude (the position
+error is 3-D and the bound is the horizontal block of its inverse, i.e. the vertical marginalised); an altimeter
+with a barometer does not (``vertical_known``). The bound is the DRMS ``sqrt(tr(J_h⁻¹))`` in metres, of one scan and of
 ``n_scans`` scans ``scan_step_m`` apart along a straight leg centred on the cell (their information summed, the
 altitude error common): infinite where the terrain does not fix the position (flat ground, a plane; an altimeter's
 single reading fixes one direction at most). Along the leg each map-error mode is shared by the scans that see the
