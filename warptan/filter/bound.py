@@ -10,8 +10,9 @@ gradient under the ray, ``v = (∂h/∂n, ∂h/∂e, 1)`` on the position and ``
 to ``σ |u_d + ∇h · u_h|``, within a few percent of σ for the scenarios' scans of ±30° over moderate slopes: the
 bound can be that much high) and the map's stated correlated error as modes over the footprint, each counted ``κ``
 times along the track as the filter counts it (:func:`warptan.terrain.information.error_modes`). An altimeter with a
-barometer reads the horizontal gradient and the barometer the altitude. The recursion is the Riccati of that linear system, ``P ← F P Fᵀ + Q`` per IMU step and
-``P ← (P⁻¹ + J_z)⁻¹`` per update, from the filter's prior; its horizontal DRMS ``sqrt(P_nn + P_ee)`` is the bound.
+barometer reads the horizontal gradient and the barometer the altitude. The recursion is the Riccati of that linear
+system, ``P ← F P Fᵀ + Q`` per IMU step and ``P ← (P⁻¹ + J_z)⁻¹`` per update, from the filter's prior; its
+horizontal DRMS ``sqrt(P_nn + P_ee)`` is the bound.
 """
 
 from __future__ import annotations
