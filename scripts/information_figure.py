@@ -33,17 +33,15 @@ def main(argv=None) -> int:
     import matplotlib.pyplot as plt
     from matplotlib.colors import LogNorm
 
-    from warptan.sensing.sensors import ScanPattern
     from warptan.sim.scenario_config import load_config
+    from warptan.sim.scenarios import scenario_scan
 
-    s8, s9 = load_config("S8"), load_config("S9")
-    scan = ScanPattern.grid(s8.sensor.scan_nx, s8.sensor.scan_ny, s8.sensor.scan_half_angle_deg).dirs_s
-    step = s8.flight.speed_mps / s8.sensor.rate_hz
-    cloud = terrain.information_map(scan, 600.0, s8.sensor.range_sigma_m, n_scans=10, scan_step_m=step,
+    s8, s9 = scenario_scan(load_config("S8")), scenario_scan(load_config("S9"))
+    cloud = terrain.information_map(s8["dirs_body"], 600.0, s8["sigma_m"], n_scans=10, scan_step_m=s8["step_m"],
                                     stride=args.stride, sensor="S8")
-    sigma = math.hypot(s9.sensor.altimeter_sigma_m, s9.sensor.baro_sigma_m)
-    alt = terrain.information_map([[0.0, 0.0, 1.0]], 600.0, sigma, n_scans=100, scan_step_m=step,
-                                  vertical_known=True, stride=args.stride, sensor="S9")
+    alt = terrain.information_map([[0.0, 0.0, 1.0]], 600.0, math.hypot(s9["sigma_m"], s9["baro_sigma_m"]),
+                                  n_scans=100, scan_step_m=s9["step_m"], vertical_known=True, stride=args.stride,
+                                  sensor="S9")
     panels = [(cloud.bound_scan_m, "S8 point cloud, one scan"), (cloud.bound_leg_m, "S8, 10 scans (1 s)"),
               (alt.bound_leg_m, "S9 altimeter, 100 readings (10 s, north)")]
     extent = [cloud.east_m[0] / 1e3, cloud.east_m[-1] / 1e3, cloud.north_m[0] / 1e3, cloud.north_m[-1] / 1e3]

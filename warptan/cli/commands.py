@@ -48,38 +48,29 @@ def _information(args) -> int:
     import numpy as np
 
     from warptan.nav.flightplan import ABOVE_TERRAIN_M
-    from warptan.sensing.sensors import ScanPattern
     from warptan.sim.scenario_config import load_config
-    from warptan.terrain.grid import Terrain, TerrainError
+    from warptan.sim.scenarios import scenario_scan
+    from warptan.terrain.grid import Terrain
     from warptan.terrain.information import check_geotiff_target
+    from warptan.terrain.meshfile import check_export_path
 
-    outs = [os.fspath(o) for o in args.out]
-    for out in outs:  # before any work
-        if not out.lower().endswith((".png", ".tif", ".tiff")):
-            raise TerrainError(f"{out}: the information map is written as .png or .tif (GeoTIFF)")
-        if os.path.lexists(out) and not args.overwrite:
-            raise TerrainError(f"{out} exists; nothing was written (pass --overwrite to replace it)")
-        folder = os.path.dirname(out) or "."
-        if not os.path.isdir(folder):
-            raise TerrainError(f"{out}: its folder {folder} does not exist; create it first")
+    outs = [check_export_path(o, args.overwrite, (".png", ".tif", ".tiff"), "information map") for o in args.out]
     scenario = load_config(args.sensor)
-    s, lk = scenario.sensor, scenario.likelihood
+    lk, scan = scenario.likelihood, scenario_scan(scenario)
     rms = lk.map_error_rms_m if args.map_error_m is None else args.map_error_m
     corr = lk.map_error_corr_m if args.map_error_corr_m is None else args.map_error_corr_m
     agl = ABOVE_TERRAIN_M.get(scenario.flight.altitude_rule, 600.0) if args.altitude_agl is None else args.altitude_agl
     terrain = Terrain.load(args.terrain, spacing=args.spacing)
     for out in outs:
         check_geotiff_target(out, terrain.crs_wkt)
-    if s.model == "altimeter":
-        dirs, sigma = [[0.0, 0.0, 1.0]], math.hypot(s.altimeter_sigma_m, s.baro_sigma_m if s.use_baro else 0.0)
-    else:
-        dirs, sigma = ScanPattern.grid(s.scan_nx, s.scan_ny, s.scan_half_angle_deg).dirs_s, s.range_sigma_m
-    surface = "triangles" if s.model == "raycast" or s.surface == "triangles" else "bilinear"
+    baro = scan["baro_sigma_m"]
+    dirs = [[0.0, 0.0, 1.0]] if scan["dirs_body"] is None else scan["dirs_body"]
+    sigma = math.hypot(scan["sigma_m"], baro or 0.0)  # an altimeter's residual carries the barometer's noise
     m = terrain.information_map(dirs, agl, sigma, heading_deg=args.heading_deg, n_scans=args.scans,
-                                scan_step_m=scenario.flight.speed_mps / s.rate_hz,
-                                map_noise_m=scenario.terrain.map_noise_m, map_error_rms_m=rms, map_error_corr_m=corr,
-                                vertical_known=s.model == "altimeter" and s.use_baro, surface=surface,
-                                stride=args.stride, sensor=f"{scenario.id} ({s.model})")
+                                scan_step_m=scan["step_m"], map_noise_m=scenario.terrain.map_noise_m,
+                                map_error_rms_m=rms, map_error_corr_m=corr, vertical_known=baro is not None,
+                                surface="triangles" if scan["surface"] else "bilinear", stride=args.stride,
+                                sensor=f"{scenario.id} ({scenario.sensor.model})")
     written = [m.save_geotiff(out) if out.lower().endswith((".tif", ".tiff")) else m.save_png(out) for out in outs]
     summary = {"terrain": terrain.name, **m.settings}
     for key, bound in (("one_scan", m.bound_scan_m), ("leg", m.bound_leg_m)):

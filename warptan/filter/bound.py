@@ -17,13 +17,11 @@ horizontal DRMS ``sqrt(P_nn + P_ee)`` is the bound.
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 
 from warptan.nav.frames import quat_to_mat
 from warptan.nav.ins import error_transition, process_noise
-from warptan.terrain.information import MIN_DOWN, error_modes
+from warptan.terrain.information import MIN_DOWN, error_modes, leg_shifts
 
 TRACK_SCANS = 64
 """Scans along the track over which a map-error mode's sharing ``κ`` is counted."""
@@ -36,14 +34,6 @@ def _skew(u: np.ndarray) -> np.ndarray:
                      np.stack([-u[:, 1], u[:, 0], z], -1)], axis=1)
 
 
-def _gradients(terrain, north: np.ndarray, east: np.ndarray, surface: bool, eps: float = 1e-3):
-    """(∂h/∂n, ∂h/∂e) of the map at the points, by central differences of its surface (bilinear or triangles)."""
-    height = terrain.surface_height_at if surface else terrain.height_at
-    gn = (height(north + eps, east) - height(north - eps, east)) / (2 * eps)
-    ge = (height(north, east + eps) - height(north, east - eps)) / (2 * eps)
-    return gn, ge
-
-
 def scan_information(terrain, pos_n: np.ndarray, quat_nb: np.ndarray, dirs_body: np.ndarray | None, sigma_m: float,
                      baro_sigma_m: float | None = None, map_error_rms_m: float = 0.0, map_error_corr_m: float = 0.0,
                      track_step_m: float = 10.0, surface: bool = False, kappa_cache: dict | None = None) -> np.ndarray:
@@ -54,7 +44,7 @@ def scan_information(terrain, pos_n: np.ndarray, quat_nb: np.ndarray, dirs_body:
     if not (agl > 0.0):
         return j
     if dirs_body is None:  # the altimeter: the terrain under the aircraft
-        gn, ge = _gradients(terrain, np.array([pos_n[0]]), np.array([pos_n[1]]), surface)
+        gn, ge = terrain.gradient_at(np.array([pos_n[0]]), np.array([pos_n[1]]), surface)
         if not np.isfinite(gn[0] + ge[0]):
             return j
         if baro_sigma_m is not None:
@@ -72,7 +62,7 @@ def scan_information(terrain, pos_n: np.ndarray, quat_nb: np.ndarray, dirs_body:
     u_b, u_n = u_b[keep], u_n[keep]
     r = agl / u_n[:, 2]
     off = r[:, None] * u_n[:, :2]
-    gn, ge = _gradients(terrain, pos_n[0] + off[:, 0], pos_n[1] + off[:, 1], surface)
+    gn, ge = terrain.gradient_at(pos_n[0] + off[:, 0], pos_n[1] + off[:, 1], surface)
     ok = np.isfinite(gn + ge)
     if not ok.any():
         return j
@@ -82,8 +72,7 @@ def scan_information(terrain, pos_n: np.ndarray, quat_nb: np.ndarray, dirs_body:
     g[:, 6:9] = -r[ok, None] * np.einsum("pi,ij,pjk->pk", v, rot, _skew(u_b[ok]))
     white = max(sigma_m, 1e-3) ** 2  # (a noiseless sensor would fix the position exactly: a bound of zero)
     if map_error_rms_m > 0.0:
-        along = np.array([math.cos(math.atan2(rot[1, 0], rot[0, 0])), math.sin(math.atan2(rot[1, 0], rot[0, 0]))])
-        shifts = np.arange(TRACK_SCANS)[:, None] * track_step_m * along[None, :]
+        shifts = leg_shifts(rot[:2, 0], TRACK_SCANS, track_step_m)  # along the body's x axis
         first = kappa_cache is None or "kappa" not in kappa_cache
         modes, lam, kappa, white = error_modes(off[ok], map_error_rms_m, map_error_corr_m, white,
                                                shifts if first else None)

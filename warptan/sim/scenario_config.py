@@ -8,7 +8,6 @@ and runs what a scenario describes."""
 from __future__ import annotations
 
 import collections
-import copy
 import dataclasses
 import difflib
 import os
@@ -177,8 +176,8 @@ SECTIONS = {"terrain": MapSpec, "flight": FlightPlan, "imu": ImuSpec, "sensor": 
 
 @dataclass(frozen=True)
 class Scenario:
-    """A scenario parsed once: its tables as typed, frozen dataclasses (see :data:`SECTIONS`; change one with
-    :func:`dataclasses.replace`)."""
+    """A scenario parsed once: its tables as typed, frozen dataclasses (see :data:`SECTIONS`; a changed copy:
+    :meth:`replace`)."""
 
     id: str
     description: str
@@ -198,7 +197,7 @@ class Scenario:
     def from_dict(cls, config: dict, source: str = "scenario") -> Scenario:
         """From a scenario's tables (a file's, as :mod:`tomllib` reads it; optional tables filled in), validated:
         raises :class:`ScenarioError` listing every problem, naming ``source``."""
-        config = with_optional_defaults(copy.deepcopy(config))
+        config = with_optional_defaults(dict(config))  # (it replaces whole tables: the caller's stay as they were)
         problems = validate(config, source)
         if problems:
             raise ScenarioError(f"{len(problems)} problem(s) in {source}:\n  " + "\n  ".join(problems))
@@ -208,7 +207,7 @@ class Scenario:
     def from_tables(cls, config: dict) -> Scenario:
         """From tables already validated, or made by the program (a replay's: a recorded flight has no altitude
         rule); optional tables are filled in, lists become tuples."""
-        config = with_optional_defaults(copy.deepcopy(config))
+        config = with_optional_defaults(dict(config))
 
         def value(v):
             return tuple(v) if isinstance(v, list) else v

@@ -350,6 +350,19 @@ def run_scenario_batch(name_or_path, seeds, device="cpu", progress=None, export_
             for seed, run in zip(seeds, runs, strict=True)]
 
 
+def scenario_scan(scenario: Scenario) -> dict:
+    """The scenario's sensor as the information map and the bound read it: ``dirs_body`` (the scan's ray directions;
+    None: the altimeter), ``sigma_m`` (its noise), ``baro_sigma_m`` (the barometer's; None without one or for a
+    point cloud), ``surface`` (the map's triangulated surface) and ``step_m`` (the scans' spacing along the track)."""
+    s = scenario.sensor
+    altimeter = s.model == "altimeter"
+    return {"dirs_body": None if altimeter else ScanPattern.grid(s.scan_nx, s.scan_ny, s.scan_half_angle_deg).dirs_s,
+            "sigma_m": s.altimeter_sigma_m if altimeter else s.range_sigma_m,
+            "baro_sigma_m": s.baro_sigma_m if altimeter and s.use_baro else None,
+            "surface": s.model == "raycast" or s.surface == "triangles",
+            "step_m": scenario.flight.speed_mps / s.rate_hz}
+
+
 def scenario_bound(scenario: Scenario, flight: Trajectory, the_map: Terrain, t_s: np.ndarray) -> np.ndarray:
     """(T, 3) σ north, east, down of the flight's posterior Cramér–Rao bound at the epochs ``t_s`` (:func:`warptan.
     filter.bound.pcrb`): the scenario's sensor (its noise alone: the bound's truth), the filter's map, the stated
@@ -358,17 +371,11 @@ def scenario_bound(scenario: Scenario, flight: Trajectory, the_map: Terrain, t_s
     from warptan.filter.prior import prior_sigma
     from warptan.nav.imu import imu_grade
 
-    s, lk = scenario.sensor, scenario.likelihood
+    lk, scan = scenario.likelihood, scenario_scan(scenario)
     grade = imu_grade(scenario.imu.grade)
     epochs = np.rint(np.asarray(t_s[1:]) * flight.rate_hz).astype(np.int64)
     p0 = np.diag(prior_sigma(scenario.initial_error.errors(), grade) ** 2)
-    if s.model == "altimeter":
-        sensor = {"dirs_body": None, "sigma_m": s.altimeter_sigma_m,
-                  "baro_sigma_m": s.baro_sigma_m if s.use_baro else None}
-    else:
-        sensor = {"dirs_body": ScanPattern.grid(s.scan_nx, s.scan_ny, s.scan_half_angle_deg).dirs_s,
-                  "sigma_m": s.range_sigma_m}
-    sigmas = pcrb(flight, the_map, epochs, grade, p0, map_error_rms_m=lk.map_error_rms_m,
-                  map_error_corr_m=lk.map_error_corr_m, surface=s.model == "raycast" or s.surface == "triangles",
-                  **sensor)
+    sigmas = pcrb(flight, the_map, epochs, grade, p0, dirs_body=scan["dirs_body"], sigma_m=scan["sigma_m"],
+                  baro_sigma_m=scan["baro_sigma_m"], map_error_rms_m=lk.map_error_rms_m,
+                  map_error_corr_m=lk.map_error_corr_m, surface=scan["surface"])
     return sigmas[:, :3]

@@ -343,6 +343,20 @@ class Terrain:
         h = np.where(np.isfinite(h00 + h10 + h01 + h11), h, np.nan)
         return np.where(inside, h, np.nan)
 
+    def gradient_at(self, north, east, surface: bool = False) -> tuple[np.ndarray, np.ndarray]:
+        """``(∂h/∂north, ∂h/∂east)`` of the bilinear (default) or triangulated surface at NED horizontal positions,
+        float64, on the host (the expressions of :func:`warptan.kernels.terrain.grid_gradient`); NaN where invalid."""
+        inside, fu, fv, h00, h10, h01, h11 = self._cells(north, east)
+        if surface:
+            lower = fu >= fv
+            gn = np.where(lower, h10 - h00, h11 - h01) / self.dn
+            ge = np.where(lower, h11 - h10, h01 - h00) / self.de
+        else:
+            gn = ((1 - fv) * (h10 - h00) + fv * (h11 - h01)) / self.dn
+            ge = ((1 - fu) * (h01 - h00) + fu * (h11 - h10)) / self.de
+        ok = inside & np.isfinite(h00 + h10 + h01 + h11)
+        return np.where(ok, gn, np.nan), np.where(ok, ge, np.nan)
+
     @functools.cached_property
     def bilinear_mismatch_sigma_m(self) -> float:
         """RMS difference (m) between the bilinear height and the triangulated surface over the valid cells.

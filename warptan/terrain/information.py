@@ -130,6 +130,22 @@ def check_geotiff_target(path, crs_wkt: str | None) -> None:
                            "write a .png, or load a georeferenced DEM")
 
 
+def leg_shifts(direction, n_scans: int, step_m: float) -> np.ndarray:
+    """(n, 2) offsets (north, east; m) of ``n_scans`` scans ``step_m`` apart along the horizontal ``direction``,
+    centred on 0.
+
+    Raises:
+        TerrainError: a scan count that is not a whole number ≥ 1, a step that is not a positive number of metres.
+    """
+    if isinstance(n_scans, bool) or not isinstance(n_scans, (int, np.integer)) or n_scans < 1:
+        raise TerrainError(f"n_scans = {n_scans!r} must be a whole number ≥ 1")
+    if not (math.isfinite(float(step_m)) and step_m > 0.0):
+        raise TerrainError(f"scan_step_m = {step_m!r} must be a positive number of metres")
+    d = np.asarray(direction, dtype=np.float64)[:2]
+    d = d / max(float(np.linalg.norm(d)), 1e-12)
+    return (np.arange(n_scans) - 0.5 * (n_scans - 1))[:, None] * float(step_m) * d[None, :]
+
+
 def scan_footprint(dirs_body, altitude_agl_m: float, heading_deg: float = 0.0, n_scans: int = 1,
                    scan_step_m: float = 10.0) -> np.ndarray:
     """(P, 2) horizontal offsets (north, east; m) from the aircraft of the points its scans read on level ground
@@ -145,10 +161,9 @@ def scan_footprint(dirs_body, altitude_agl_m: float, heading_deg: float = 0.0, n
                            "(a height above it in metres, > 0)")
     if not math.isfinite(float(heading_deg)):
         raise TerrainError(f"heading_deg = {heading_deg!r} must be a finite number of degrees")
-    if isinstance(n_scans, bool) or not isinstance(n_scans, (int, np.integer)) or n_scans < 1:
-        raise TerrainError(f"n_scans = {n_scans!r} must be a whole number ≥ 1")
-    if not (math.isfinite(float(scan_step_m)) and scan_step_m > 0.0):
-        raise TerrainError(f"scan_step_m = {scan_step_m!r} must be a positive number of metres")
+    psi = math.radians(float(heading_deg))
+    c, s = math.cos(psi), math.sin(psi)
+    shifts = leg_shifts((c, s), n_scans, scan_step_m)
     d = np.asarray(dirs_body, dtype=np.float64).reshape(-1, 3)
     down = d[:, 2] > MIN_DOWN
     if not np.isfinite(d).all():
@@ -157,12 +172,9 @@ def scan_footprint(dirs_body, altitude_agl_m: float, heading_deg: float = 0.0, n
         raise TerrainError(f"empty footprint: none of the scan's {len(d)} rays points below the horizon, so none "
                            "meets the ground")
     d = d[down] / np.linalg.norm(d[down], axis=1, keepdims=True)
-    psi = math.radians(float(heading_deg))
-    c, s = math.cos(psi), math.sin(psi)
     xy = agl * d[:, :2] / d[:, 2:3]  # body x forward, y right
     one = np.stack([c * xy[:, 0] - s * xy[:, 1], s * xy[:, 0] + c * xy[:, 1]], axis=1)
-    along = (np.arange(n_scans) - 0.5 * (n_scans - 1)) * float(scan_step_m)
-    out = (one[None, :, :] + along[:, None, None] * np.array([c, s])[None, None, :]).reshape(-1, 2)
+    out = (one[None, :, :] + shifts[:, None, :]).reshape(-1, 2)
     if len(out) > MAX_POINTS:
         raise TerrainError(f"{len(out)} footprint points ({len(one)} rays × {n_scans} scans): at most {MAX_POINTS}")
     return out
@@ -239,7 +251,8 @@ def information_map(terrain, dirs_body, altitude_agl_m: float, sigma_m: float, *
     if isinstance(stride, bool) or not isinstance(stride, (int, np.integer)) or stride < 1:
         raise TerrainError(f"stride = {stride!r} must be a whole number ≥ 1")
     scan = scan_footprint(dirs_body, altitude_agl_m, heading_deg, 1, scan_step_m)
-    leg = scan_footprint(np.array([[0.0, 0.0, 1.0]]), 1.0, heading_deg, n_scans, scan_step_m)  # the scans' centres
+    psi = math.radians(float(heading_deg))
+    leg = leg_shifts((math.cos(psi), math.sin(psi)), n_scans, scan_step_m)  # the scans' centres
     d = resolve_device(device)
     grid = terrain.grid(d)
     rows, cols = (terrain.shape[0] + stride - 1) // stride, (terrain.shape[1] + stride - 1) // stride

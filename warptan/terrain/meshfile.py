@@ -15,13 +15,15 @@ MESH_FORMATS = (".ply", ".glb", ".obj", ".stl")
 """File types :meth:`~warptan.terrain.grid.Terrain.export` writes."""
 
 
-def check_export_path(path: str | os.PathLike, overwrite: bool = False) -> str:
-    """``path`` as text when :meth:`~warptan.terrain.grid.Terrain.export` may write it (a known format, an existing
-    folder, not an existing file unless ``overwrite``), else a TerrainError naming the problem."""
+def check_export_path(path: str | os.PathLike, overwrite: bool = False, formats: tuple = MESH_FORMATS,
+                      what: str = "mesh") -> str:
+    """``path`` as text when a ``what`` file (one of ``formats``; default :meth:`~warptan.terrain.grid.Terrain.
+    export`'s meshes) may be written there (a known format, an existing folder, not an existing file unless
+    ``overwrite``), else a TerrainError naming the problem."""
     path = os.fspath(path)
     ext = os.path.splitext(path)[1].lower()
-    if ext not in MESH_FORMATS:
-        raise TerrainError(f"{path}: unsupported mesh format {ext!r}; use {', '.join(MESH_FORMATS)}")
+    if ext not in formats:
+        raise TerrainError(f"{path}: unsupported {what} format {ext!r}; use {', '.join(formats)}")
     if os.path.isdir(path):
         raise TerrainError(f"{path}: is a folder; give a file name")
     folder = os.path.dirname(path) or "."
