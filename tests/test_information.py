@@ -183,3 +183,22 @@ def test_filter_is_never_better_than_its_bound():
         s = first.summary()
         assert len(s["pcrb_m"]) == len(first.run.t_s) and s["pcrb_converged_m"] == pytest.approx(math.sqrt(bound2))
         assert "horizontal RMSE / bound" in markdown_table(aggregate(runs))
+
+
+@pytest.mark.parametrize("surface", [False, True], ids=["bilinear", "triangles"])
+def test_host_gradient_is_the_surface_slope(hills, surface):
+    """``Terrain.gradient_at`` (the bound's gradients) against central differences of the surface's own heights, at
+    points inside cells (1e-6 relative); NaN off the map."""
+    rng = np.random.default_rng(5)
+    i, j = rng.integers(5, 190, 200), rng.integers(5, 190, 200)
+    fu, fv = rng.uniform(0.1, 0.9, 200), rng.uniform(0.1, 0.9, 200)
+    fv = np.where(np.abs(fu - fv) < 0.05, 0.5 * fu, fv)  # off a triangle's diagonal
+    n, e = hills.n0 + (i + fu) * hills.dn, hills.e0 + (j + fv) * hills.de
+    height = hills.surface_height_at if surface else hills.height_at
+    eps = 1e-4
+    want_n = (height(n + eps, e) - height(n - eps, e)) / (2 * eps)
+    want_e = (height(n, e + eps) - height(n, e - eps)) / (2 * eps)
+    gn, ge = hills.gradient_at(n, e, surface)
+    np.testing.assert_allclose(gn, want_n, rtol=1e-6, atol=1e-7)
+    np.testing.assert_allclose(ge, want_e, rtol=1e-6, atol=1e-7)
+    assert np.isnan(hills.gradient_at(np.array([1e7]), np.array([0.0]), surface)[0]).all()
