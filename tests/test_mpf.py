@@ -1,5 +1,7 @@
 """Marginalized particle filter: Kalman equivalence, convergence on rugged terrain, determinism, recovery."""
 
+import dataclasses
+
 import numpy as np
 import pytest
 import warp as wp
@@ -520,6 +522,47 @@ def test_graph_replay_equals_eager(device, rugged, model_name):
         np.testing.assert_array_equal(eager.ess, replay.ess)
 
 
+@pytest.mark.parametrize(("batch", "shared"), [(1, False), (2, False), (1, True)],
+                         ids=["one", "batch", "shared-model"])
+def test_graph_holds_the_scan_staging(rugged, batch, shared):
+    """CUDA, graph on: the scan's copies and its rows' launch are captured in the update's graph from pinned buffers
+    of the filter's staging set (``MeasurementModel.hold_device_work``). Clouds that bring their own direction
+    arrays every update (a log's scans; a batch's filters each their own) give the same bits as eager launches, and
+    the graphs are captured once per set, not per update. Filters sharing one model (each binding its own arrays
+    to it, so re-capturing every update) keep their staging apart."""
+    if not wp.get_cuda_device_count():
+        pytest.skip("no CUDA device visible to Warp")
+    truth = Trajectory.build([Straight(2.0)], 100.0, [-2000.0, 0.0, -(rugged.h_max + 600.0)])
+    sensor = wt.PointCloudSensor(wt.ScanPattern.grid(5, 5, 30.0))
+    scans = [[sensor.measure(rugged, truth.pos_n[k], truth.quat_nb[k], np.random.default_rng(100 * k + f))
+              for f in range(batch)] for k in range(10, 200, 10)]
+    one = wt.SlidingModel(rugged)
+    models = [one if shared else wt.SlidingModel(rugged) for _ in range(3)]
+    nominal = [truth.state(0)] * batch if batch > 1 else truth.state(0)
+    seed = [3, 9] if batch > 1 else 3
+    filters = [MarginalizedParticleFilter(model, nominal, "navigation", 100.0, [30, 30, 10], np.eye(12) * 1e-4,
+                                          n_particles=128, seed=seed, device="cuda:0", graph=graph)
+               for model, graph in zip(models, (False, True, True), strict=True)]
+    generations = []
+    for i, clouds in enumerate(scans):
+        f, w = truth.f_b[10 * i:10 * i + 10], truth.w_b[10 * i:10 * i + 10]
+        if batch > 1:
+            f, w = np.repeat(f[:, None], batch, axis=1), np.repeat(w[:, None], batch, axis=1)
+        for mpf in filters:  # each update its own direction arrays (copies); the filters take turns
+            own = [dataclasses.replace(c, dirs_s=c.dirs_s.copy()) for c in clouds]
+            mpf.predict_many(f, w)
+            mpf.update(own if batch > 1 else own[0], sync=False)
+        generations.append([model.generation for model in models])
+    eager, *graphs = ([mpf.estimate()] if batch == 1 else mpf.estimate() for mpf in filters)
+    for est in graphs:
+        for a, b in zip(eager, est, strict=True):
+            np.testing.assert_array_equal(a.nav.pos_n, b.nav.pos_n)
+            np.testing.assert_array_equal(a.dp, b.dp)
+    if not shared:
+        assert generations[-1] == generations[len(generations) // 2]  # warm: no buffer replaced per update
+        assert all(len(mpf._graphs) <= 4 for mpf in filters[1:])  # (head, update) x two staging sets
+
+
 @pytest.mark.parametrize(("model_name", "stated"), [("sliding", False), ("sliding", True), ("altimeter", False)],
                          ids=["sliding", "sliding-stated-map-error", "altimeter"])
 def test_block_forms_equal_the_separate_kernels(device, rugged, monkeypatch, model_name, stated):
@@ -789,7 +832,7 @@ def test_closed_loop_injection_keeps_every_particle_total_state(rugged):
     mpf = MarginalizedParticleFilter(model, nominal, "tactical", 100.0, [20, 20, 5],
                                      prior_linear_cov(InitialErrors((20.0, 20.0, 5.0), 0.3, (0.2, 0.2, 0.5)),
                                                       ImuModel("tactical", 100.0)),
-                                     n_particles=400, seed=2, integrity_window=2, closed_loop=True)
+                                     n_particles=400, seed=2, integrity_window=2, closed_loop=True, device="cpu")
     mpf._recorder = None  # launch every kernel anew, so that the hook below runs in every update
     snapshots = []  # every particle's total state just before the update's feedback (eager CPU launches)
     feedback = mpf._launch_feedback

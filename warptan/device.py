@@ -39,11 +39,45 @@ class Uploads:
 
     def __init__(self):
         self._slots: dict = {}
+        self._held: list | None = None
+        self._hold_key = None
+        self.generation = 0
+        """Bumped when a held put allocates its buffer (a graph that copies from the old one is stale)."""
+
+    def hold(self, key) -> None:
+        """Until :meth:`release`, on CUDA: each put writes a pinned buffer of its own for (name, ``key``) and holds its
+        copy, and :meth:`later` holds other device work, for the caller to queue (in its graph, whose copy nodes
+        read these buffers when replayed). ``key`` names the caller's use of the buffers (a filter and its staging
+        set): the caller writes a key's buffers again only once the work queued from them is done."""
+        self._held, self._hold_key = [], key
+
+    def later(self, fn) -> bool:
+        """Hold ``fn`` (device work after the held copies) while holding; False (the caller runs it now) if not."""
+        if self._held is None:
+            return False
+        self._held.append(fn)
+        return True
+
+    def release(self) -> list:
+        """The held copies and work, in order (callables), and stop holding."""
+        held, self._held, self._hold_key = self._held or [], None, None
+        return held
 
     def put(self, name: str, array: wp.array, values) -> None:
         """Copy ``values`` (the array's shape; NumPy casts the dtype) into ``array`` through the buffers of ``name``."""
         if array.device.is_cpu:
             upload(array, values)
+            return
+        if self._held is not None:
+            key = (name, self._hold_key, array.shape, array.dtype, array.device.alias)
+            held = self._slots.get(key)
+            if held is None:
+                buf = wp.empty(array.shape, dtype=array.dtype, device="cpu", pinned=True)
+                held = self._slots[key] = (buf, buf.numpy())
+                self.generation += 1
+            buf, view = held
+            view[...] = values
+            self._held.append(lambda: wp.copy(array, buf))
             return
         slot = self._slots.get(name)
         if slot is None or slot["key"] != (array.shape, array.dtype, array.device):

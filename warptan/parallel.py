@@ -59,24 +59,27 @@ def rows_of(array, a: int | None, b: int | None):
     return array if a is None else array[a:b]
 
 
-def _issue(kernel, dim, block_dim: int | None, inputs, outputs, device, record: bool):
-    """One launch (``wp.launch_tiled`` with ``block_dim``); with ``record`` it is made as a ``warp.Launch``, run now
-    and returned."""
+def _issue(kernel, dim, block_dim: int | None, inputs, outputs, device, record: bool, spread: int | None = None):
+    """One launch (``wp.launch_tiled`` with ``block_dim``; ``spread``: a plain launch in CUDA blocks of that many
+    threads); with ``record`` it is made as a ``warp.Launch``, run now and returned."""
     if block_dim is not None:
         dims = list(dim) if isinstance(dim, (list, tuple)) else [dim]
         cmd = wp.launch_tiled(kernel, dim=dims, inputs=list(inputs), outputs=list(outputs), block_dim=block_dim,
                               device=device, record_cmd=record)
     else:
-        cmd = wp.launch(kernel, dim=dim, inputs=list(inputs), outputs=list(outputs), device=device, record_cmd=record)
+        cmd = wp.launch(kernel, dim=dim, inputs=list(inputs), outputs=list(outputs), device=device, record_cmd=record,
+                        block_dim=spread or 256)
     if record:
         cmd.launch()
     return cmd
 
 
-def launch(kernel, dim, inputs=(), outputs=(), device=None, block_dim: int | None = None) -> None:
+def launch(kernel, dim, inputs=(), outputs=(), device=None, block_dim: int | None = None,
+           spread: int | None = None) -> None:
     """``wp.launch`` (``wp.launch_tiled`` over ``dim`` with ``block_dim``), recorded while a :class:`Recorder`
-    records."""
-    cmd = _issue(kernel, dim, block_dim, inputs, outputs, device, _RECORDING is not None)
+    records. ``spread``: CUDA blocks of this many threads instead of 256, for a launch of few threads with long
+    chains each (more multiprocessors, fewer warps sharing a scheduler)."""
+    cmd = _issue(kernel, dim, block_dim, inputs, outputs, device, _RECORDING is not None, spread)
     if _RECORDING is not None:
         _RECORDING.append(cmd)
 

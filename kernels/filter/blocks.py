@@ -7,7 +7,7 @@ from warptan.kernels.block import block_sync
 from warptan.kernels.filter.common import N_CHUNKS, N_TEMPER, UpdateParams, vec12
 from warptan.kernels.filter.integrity import integrity_step, respread_particle
 from warptan.kernels.filter.moves import move_particle, pose_of_particle
-from warptan.kernels.filter.record import record_summary, reset_particle, summary_partial, update_covariance
+from warptan.kernels.filter.record import record_summary, reset_particle, summary_partial, update_covariance_lanes
 from warptan.kernels.filter.resampling import ancestor, cdf_chunk, cdf_partial, copy_particle, gather
 from warptan.kernels.filter.tempering import begin_stats, temper_ess_of, temper_select
 from warptan.kernels.filter.weights import (
@@ -28,6 +28,10 @@ bits as the separate kernels)."""
 RESAMPLE_BLOCK_DIM = 256
 """Threads of the block that resamples one filter on CUDA (:data:`resample_block_kernel`): a particle or two each
 (each ancestor is a binary search of dependent loads)."""
+
+MOVE_BLOCK_DIM = 32
+"""CUDA block size of :data:`move_pose_kernel`: a particle's move is a long chain (15 normal draws, 40 3×3 products)
+and one filter has a few hundred, so blocks of a warp spread them over 16 multiprocessors instead of two."""
 
 
 @wp.kernel
@@ -210,7 +214,7 @@ def record_block_kernel(
 ):
     """The record and feedback of filter b in one CUDA block (:data:`STAGE_BLOCK_DIM` lanes, so the block sum is
     :data:`summary_kernel`'s): :func:`summary_partial` (lane per chunk), :func:`record_summary`,
-    :func:`update_covariance` (lane 0) and in closed loop :func:`reset_particle`, barriers between
+    :func:`update_covariance_lanes` and in closed loop :func:`reset_particle`, barriers between
     (:data:`summary_partials_kernel`, :data:`summary_kernel`, :data:`covariance_update_kernel`,
     :data:`reset_kernel`: the same bits). The slot advances after, in a launch of its own (every filter reads it)."""
     b, lane = wp.tid()
@@ -220,9 +224,8 @@ def record_block_kernel(
     block_sync()
     record_summary(b, lane, params, summary_sums, stats, integrity, slot, history, feedback)
     block_sync()
-    if lane == 0:
-        update_covariance(b, measurement_update, closed_loop, feedback, slot, cov, pos, vel, quat, accel_bias,
-                          gyro_bias, injections, nominal_hist, p_hist)
+    update_covariance_lanes(b, lane, measurement_update, closed_loop, feedback, slot, cov, pos, vel, quat, accel_bias,
+                            gyro_bias, injections, nominal_hist, p_hist)
     block_sync()
     if closed_loop != 0:
         for k in range(lane, n_per, bd):

@@ -3,6 +3,7 @@ the moments of an estimate."""
 
 import warp as wp
 
+from warptan.kernels.block import block_sync
 from warptan.kernels.filter.common import (
     FB_APPLIED,
     FB_CONVERGED,
@@ -187,6 +188,79 @@ def summary_kernel(params: UpdateParams, partial_in: wp.array3d(dtype=wp.float64
 
 
 @wp.func
+def record_nominal(
+    b: int,
+    t: int,
+    pos: wp.array(dtype=wp.vec3d),
+    vel: wp.array(dtype=wp.vec3d),
+    quat: wp.array(dtype=wp.vec4d),
+    accel_bias: wp.array(dtype=wp.vec3d),
+    gyro_bias: wp.array(dtype=wp.vec3d),
+    nominal_hist: wp.array3d(dtype=wp.float64),
+):
+    """The nominal INS at this update into ``nominal_hist[t, b]`` (p, v, q, b_a, b_g: before any injection)."""
+    for a in range(3):
+        nominal_hist[t, b, NOM_POS + a] = pos[b][a]
+        nominal_hist[t, b, NOM_VEL + a] = vel[b][a]
+        nominal_hist[t, b, NOM_BA + a] = accel_bias[b][a]
+        nominal_hist[t, b, NOM_BG + a] = gyro_bias[b][a]
+    for a in range(4):
+        nominal_hist[t, b, NOM_QUAT + a] = quat[b][a]
+
+
+@wp.func
+def attitude_gain(b: int, feedback: wp.array2d(dtype=wp.float64), p_tt: wp.mat33d) -> wp.mat33d:
+    """``Λ̄ (I + P_θθ Λ̄)⁻¹`` of P's measurement update (Λ̄ = ``feedback`` FB_LAM)."""
+    lam = sym_from(feedback, b, FB_LAM)
+    return lam * wp.inverse(wp.identity(n=3, dtype=wp.float64) + p_tt * lam)
+
+
+@wp.func
+def measured_block(p_rc: wp.mat33d, c_r: wp.mat33d, c_c: wp.mat33d, gain: wp.mat33d) -> wp.mat33d:
+    """Block (r, c) of ``P - P_:θ gain P_θ:`` from the blocks ``P_rθ``, ``P_cθ`` read before any was overwritten."""
+    return p_rc - (c_r * gain) * wp.transpose(c_c)
+
+
+@wp.func
+def symmetrise_pair(b: int, r: int, c: int, cov: wp.array3d(dtype=wp.mat33d)):
+    """Blocks (r, c) and (c, r), r ≤ c, set to their symmetric mean."""
+    m = wp.float64(0.5) * (cov[b, r, c] + wp.transpose(cov[b, c, r]))
+    cov[b, r, c] = m
+    cov[b, c, r] = wp.transpose(m)
+
+
+@wp.func
+def inject_closed_loop(
+    b: int,
+    feedback: wp.array2d(dtype=wp.float64),
+    cov: wp.array3d(dtype=wp.mat33d),
+    pos: wp.array(dtype=wp.vec3d),
+    vel: wp.array(dtype=wp.vec3d),
+    quat: wp.array(dtype=wp.vec4d),
+    accel_bias: wp.array(dtype=wp.vec3d),
+    gyro_bias: wp.array(dtype=wp.vec3d),
+    injections: wp.array(dtype=wp.int32),
+):
+    """Closed loop: nominal ⊕ the mean error, ``P <- G P Gᵀ``, ``injections[b] += 1`` (see
+    :func:`update_covariance`)."""
+    l_hat = wp.vector(length=12, dtype=wp.float64)
+    for a in range(12):
+        l_hat[a] = feedback[b, FB_MEAN_L + a]
+    th = wp.vec3d(l_hat[3], l_hat[4], l_hat[5])
+    pos[b] = pos[b] + wp.vec3d(feedback[b, FB_MEAN_DP], feedback[b, FB_MEAN_DP + 1], feedback[b, FB_MEAN_DP + 2])
+    vel[b] = vel[b] + wp.vec3d(l_hat[0], l_hat[1], l_hat[2])
+    quat[b] = quat_mul_exp_d(quat[b], th)
+    accel_bias[b] = accel_bias[b] + wp.vec3d(l_hat[6], l_hat[7], l_hat[8])
+    gyro_bias[b] = gyro_bias[b] + wp.vec3d(l_hat[9], l_hat[10], l_hat[11])
+    g = wp.identity(n=3, dtype=wp.float64) - wp.float64(0.5) * skew_d(th)
+    for c in range(4):
+        cov[b, 1, c] = g * cov[b, 1, c]
+    for r in range(4):
+        cov[b, r, 1] = cov[b, r, 1] * wp.transpose(g)
+    injections[b] = injections[b] + 1
+
+
+@wp.func
 def update_covariance(
     b: int,
     measurement_update: int,
@@ -203,7 +277,8 @@ def update_covariance(
     nominal_hist: wp.array3d(dtype=wp.float64),
     p_hist: wp.array3d(dtype=wp.float64),
 ):
-    """One thread per filter, after the update's record (float64, on the filter's device):
+    """One thread per filter, after the update's record (float64, on the filter's device;
+    :func:`update_covariance_lanes` is the same work over a block's lanes, the same bits):
 
     1. the nominal INS at this update into ``nominal_hist[slot, b]`` (p, v, q, b_a, b_g: before any injection);
     2. the Kalman measurement update of the shared P (``measurement_update``): ``P⁺ = P - P_:θ Λ̄ (I + A Λ̄)⁻¹ P_θ:``
@@ -216,30 +291,20 @@ def update_covariance(
     t = slot[0]
     record = t < nominal_hist.shape[0]
     if record:
-        for a in range(3):
-            nominal_hist[t, b, NOM_POS + a] = pos[b][a]
-            nominal_hist[t, b, NOM_VEL + a] = vel[b][a]
-            nominal_hist[t, b, NOM_BA + a] = accel_bias[b][a]
-            nominal_hist[t, b, NOM_BG + a] = gyro_bias[b][a]
-        for a in range(4):
-            nominal_hist[t, b, NOM_QUAT + a] = quat[b][a]
+        record_nominal(b, t, pos, vel, quat, accel_bias, gyro_bias, nominal_hist)
     if measurement_update != 0:
-        lam = sym_from(feedback, b, FB_LAM)
-        gain = lam * wp.inverse(wp.identity(n=3, dtype=wp.float64) + cov[b, 1, 1] * lam)
+        gain = attitude_gain(b, feedback, cov[b, 1, 1])
         c0 = cov[b, 0, 1]
         c1 = cov[b, 1, 1]
         c2 = cov[b, 2, 1]
         c3 = cov[b, 3, 1]
         for r in range(4):
-            lg = block_of(r, c0, c1, c2, c3, c3) * gain  # P_:θ's blocks, read before any is overwritten
-            for c in range(4):
-                cov[b, r, c] = cov[b, r, c] - lg * wp.transpose(block_of(c, c0, c1, c2, c3, c3))
-        half = wp.float64(0.5)
+            for c in range(4):  # P_:θ's blocks, read before any is overwritten
+                cov[b, r, c] = measured_block(cov[b, r, c], block_of(r, c0, c1, c2, c3, c3), block_of(c, c0, c1, c2,
+                                              c3, c3), gain)
         for r in range(4):
             for c in range(r, 4):
-                m = half * (cov[b, r, c] + wp.transpose(cov[b, c, r]))
-                cov[b, r, c] = m
-                cov[b, c, r] = wp.transpose(m)
+                symmetrise_pair(b, r, c, cov)
     if record:
         for r in range(4):
             blk = cov[b, r, r]
@@ -247,21 +312,60 @@ def update_covariance(
                 p_hist[t, b, 3 * r + a] = blk[a, a]
     if closed_loop == 0 or feedback[b, FB_CONVERGED] == wp.float64(0.0):
         return
-    l_hat = wp.vector(length=12, dtype=wp.float64)
-    for a in range(12):
-        l_hat[a] = feedback[b, FB_MEAN_L + a]
-    th = wp.vec3d(l_hat[3], l_hat[4], l_hat[5])
-    pos[b] = pos[b] + wp.vec3d(feedback[b, FB_MEAN_DP], feedback[b, FB_MEAN_DP + 1], feedback[b, FB_MEAN_DP + 2])
-    vel[b] = vel[b] + wp.vec3d(l_hat[0], l_hat[1], l_hat[2])
-    quat[b] = quat_mul_exp_d(quat[b], th)
-    accel_bias[b] = accel_bias[b] + wp.vec3d(l_hat[6], l_hat[7], l_hat[8])
-    gyro_bias[b] = gyro_bias[b] + wp.vec3d(l_hat[9], l_hat[10], l_hat[11])
-    g = wp.identity(n=3, dtype=wp.float64) - wp.float64(0.5) * skew_d(th)
-    for c in range(4):
-        cov[b, 1, c] = g * cov[b, 1, c]
-    for r in range(4):
-        cov[b, r, 1] = cov[b, r, 1] * wp.transpose(g)
-    injections[b] = injections[b] + 1
+    inject_closed_loop(b, feedback, cov, pos, vel, quat, accel_bias, gyro_bias, injections)
+
+
+@wp.func
+def update_covariance_lanes(
+    b: int,
+    lane: int,
+    measurement_update: int,
+    closed_loop: int,
+    feedback: wp.array2d(dtype=wp.float64),
+    slot: wp.array(dtype=wp.int32),
+    cov: wp.array3d(dtype=wp.mat33d),
+    pos: wp.array(dtype=wp.vec3d),
+    vel: wp.array(dtype=wp.vec3d),
+    quat: wp.array(dtype=wp.vec4d),
+    accel_bias: wp.array(dtype=wp.vec3d),
+    gyro_bias: wp.array(dtype=wp.vec3d),
+    injections: wp.array(dtype=wp.int32),
+    nominal_hist: wp.array3d(dtype=wp.float64),
+    p_hist: wp.array3d(dtype=wp.float64),
+):
+    """:func:`update_covariance` over the lanes of filter b's block (at least 16; barriers between the phases):
+    lane 4 r + c forms P's block (r, c), then the pairs r ≤ c are symmetrised, then the record; lane 0 records the
+    nominal and injects (a block of fewer than 16 lanes runs :func:`update_covariance` on lane 0). Each block sees
+    the operations of the one-thread form, in which a block was a chain of dependent global reads and writes."""
+    if wp.block_dim() < 16:  # (the CPU's tiled launches run a block as one thread)
+        if lane == 0:
+            update_covariance(b, measurement_update, closed_loop, feedback, slot, cov, pos, vel, quat, accel_bias,
+                              gyro_bias, injections, nominal_hist, p_hist)
+        return
+    t = slot[0]
+    record = t < nominal_hist.shape[0]
+    if lane == 0 and record:
+        record_nominal(b, t, pos, vel, quat, accel_bias, gyro_bias, nominal_hist)
+    r = lane // 4
+    c = lane % 4
+    if measurement_update != 0:
+        m = wp.mat33d()
+        if lane < 16:
+            m = measured_block(cov[b, r, c], cov[b, r, 1], cov[b, c, 1], attitude_gain(b, feedback, cov[b, 1, 1]))
+        block_sync()  # every lane has read P
+        if lane < 16:
+            cov[b, r, c] = m
+        block_sync()
+        if lane < 16 and r <= c:
+            symmetrise_pair(b, r, c, cov)
+        block_sync()
+    if record and lane < 4:
+        blk = cov[b, lane, lane]
+        for a in range(3):
+            p_hist[t, b, 3 * lane + a] = blk[a, a]
+    block_sync()  # the record has read P
+    if lane == 0 and closed_loop != 0 and feedback[b, FB_CONVERGED] != wp.float64(0.0):
+        inject_closed_loop(b, feedback, cov, pos, vel, quat, accel_bias, gyro_bias, injections)
 
 
 @wp.kernel

@@ -51,7 +51,9 @@ class ImuIntake(UpdateProgram):
     def _steps(self, dt, k: int) -> np.ndarray:
         """(K,) step lengths in s: ``dt`` (a number or K of them) or the nominal step; each in (0, MAX_STEP_S]."""
         if dt is None:
-            return np.full(k, self.dt)
+            if k > len(self._nominal_steps):
+                return np.full(k, self.dt)
+            return self._nominal_steps[:k]  # (read only)
         try:
             steps = np.broadcast_to(np.asarray(dt, dtype=np.float64), (k,))
         except (TypeError, ValueError):
@@ -68,10 +70,12 @@ class ImuIntake(UpdateProgram):
         """Buffer (K, B, 3) samples with their (K,) steps: checked as one block; a block with a sample that is not
         finite or beyond the grade's range is refused or held sample by sample (``bad_imu``); the buffer flushes
         itself when full."""
-        with np.errstate(invalid="ignore"):
-            bad = ~((np.abs(f) <= self.grade.accel_range).all(axis=2)
-                    & (np.abs(w) <= self.grade.gyro_range).all(axis=2))
-        if bad.any():
+        # one test for the usual block (a NaN fails it too: NaN <= x is False); the sample-wise test only after it
+        plausible = (np.abs(f).max(initial=0.0) <= self.grade.accel_range
+                     and np.abs(w).max(initial=0.0) <= self.grade.gyro_range)
+        bad = None if plausible else ~((np.abs(f) <= self.grade.accel_range).all(axis=2)
+                                       & (np.abs(w) <= self.grade.gyro_range).all(axis=2))
+        if bad is not None:
             f, w = f.copy(), w.copy()
             for k in range(f.shape[0]):
                 if bad[k].any():

@@ -83,6 +83,7 @@ skipped — no information, so it cannot drag the estimate towards the map — a
 
 from __future__ import annotations
 
+import itertools
 import time
 import warnings
 
@@ -112,6 +113,8 @@ from warptan.nav.imu import ImuGrade, check_rate, imu_grade
 from warptan.nav.ins import NavState, process_noise
 from warptan.parallel import Recorder, launch
 from warptan.sensing.likelihood import RevisitMemory
+
+_FILTERS = itertools.count()
 
 SCHEMES = {name: k for k, name in enumerate(RESAMPLERS)}
 """The kernels' number of each resampling scheme (:data:`warptan.filter.config.RESAMPLERS`)."""
@@ -249,6 +252,9 @@ class MarginalizedParticleFilter(ImuIntake):
         self.n_imu_held = np.zeros(b, dtype=np.int64)
         """Per filter: IMU samples replaced by the last good one (``bad_imu="hold"``)."""
         self._last_imu = np.full((b, 2, 3), np.nan)
+        self._token = next(_FILTERS)  # (names this filter's pinned staging buffers in a model it may share)
+        self._nominal_steps = np.full(MAX_STEPS_PER_INTERVAL, self.dt)
+        self._nominal_steps.flags.writeable = False
         self.n_imu_steps = 0
         self.n_updates = 0
         self.last_n_received = np.zeros(b, dtype=np.int64)
@@ -374,12 +380,21 @@ class MarginalizedParticleFilter(ImuIntake):
             # (one device-to-host copy of 4 numbers; 0.1 s old at 10 Hz, what the geometry's tolerance allows)
             attitude = self._nav["quat"][:1].numpy()[0]
         extra = {} if attitude is None else {"attitude": attitude}  # a model of the user's may not take it
+        # graphs (CUDA, early head): the scan's copies and launches go into the update's graph, from pinned buffers of
+        # this filter's staging set, instead of being issued one by one from Python
+        held = (self._early and self.graph and self.device.is_cuda
+                and callable(getattr(self.model, "hold_device_work", None)))
+        if held:
+            self.model.hold_device_work((self._token, self._set))
         try:
             out = self.model.stage(measurement, self._pos, self._quat, **extra)  # validates first: nothing moves
         except BaseException:
+            if held:
+                self.model.release_device_work()
             if self._early:  # refused after the head (interval, moves) went to the device: as after flush()
                 self._next_set()
             raise
+        staged = self.model.release_device_work() if held else ()
         if attitude is not None:  # ground read again after the modes forgot it: B positions to the host
             if self._revisits is None or self._revisits.likelihood is not likelihood:
                 self._revisits = RevisitMemory(likelihood, self.n_filters)
@@ -403,7 +418,7 @@ class MarginalizedParticleFilter(ImuIntake):
             events = (wp.Event(self.device, enable_timing=True), wp.Event(self.device, enable_timing=True))
             wp.get_stream(self.device).record_event(events[0])
         t_queue = time.perf_counter()
-        self._queue_update(out)
+        self._queue_update(out, staged)
         t_queued = time.perf_counter()
         if timer is not None:
             if events is not None:  # CUDA: issuing is host work, the device time is between the events

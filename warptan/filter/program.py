@@ -322,7 +322,8 @@ class UpdateProgram:
         dv, n, st = self._dev, self.n, self.state
         launch(kmpf.move_pose_kernel, dim=self.n_filters * n,
                inputs=[n, dv["seeds"], dv["phi"], dv["chol"], dv["pose"], self._exponent],
-               outputs=[st.dp, st.lin, self._pos, self._quat, self._stats], device=self.device)
+               outputs=[st.dp, st.lin, self._pos, self._quat, self._stats], device=self.device,
+               spread=kmpf.MOVE_BLOCK_DIM)
 
     def _launch_model(self, key) -> None:
         """The model at the particles' poses: a recorded piece for a model that launches only through
@@ -370,21 +371,28 @@ class UpdateProgram:
                         st.lin], block_dim=kmpf.STAGE_BLOCK_DIM, device=d)
         launch(kmpf.advance_slot_kernel, dim=1, inputs=[self._slot], device=d)
 
-    def _queue_update(self, out) -> None:
-        """The device work of an update: eager launches (the CPU replaying its recorded pieces) or the graph."""
+    def _queue_update(self, out, staged=()) -> None:
+        """The device work of an update: eager launches (the CPU replaying its recorded pieces) or the graph;
+        ``staged``: the scan's copies and launches the model held (:meth:`MeasurementModel.hold_device_work`), queued
+        first (in the graph: replayed from the same pinned buffers)."""
         if self._recorder is not None:
             key = self._record_key()
             if key != self._graph_key:  # re-record when an array the recorded launches hold was replaced
                 self._recorder.clear()
                 self._graph_key = key
         if not self.graph:
-            self._device_update(out, read_flags=self.device.is_cpu)
+            self._staged_update(staged, out, read_flags=self.device.is_cpu)
             return
         if self._graph_key is None:  # the first update runs eagerly: modules load, buffers settle
             self._graph_key = ()
-            self._device_update(out)
+            self._staged_update(staged, out)
             return
-        self._replay("update", self._device_update, out)
+        self._replay("update", self._staged_update, staged, out)
+
+    def _staged_update(self, staged, out, read_flags: bool = False) -> None:
+        for work in staged:
+            work()
+        self._device_update(out, read_flags=read_flags)
 
     def _queue_head(self) -> None:
         """The update's head alone (the lean update queues it before the scan is staged: the interval, the moves,

@@ -269,6 +269,20 @@ class MeasurementModel:
                                            if isinstance(getattr(out, f.name), wp.array)},
                                    n_received=out.n_received.copy())
 
+    def hold_device_work(self, key) -> None:
+        """Until :meth:`release_device_work`: :meth:`stage` writes the measurement into pinned buffers of ``key`` and
+        holds its copies and launches instead of queuing them (see :meth:`warptan.device.Uploads.hold`; CUDA)."""
+        self._uploads.hold(key)
+
+    def release_device_work(self) -> list:
+        """The device work :meth:`stage` held (callables, in order; the caller queues them before :meth:`launch`, in
+        its graph). A new pinned buffer bumps :attr:`generation` (a graph holding the old one is stale)."""
+        before = getattr(self, "_uploads_generation", 0)
+        self._uploads_generation = self._uploads.generation
+        if self._uploads.generation != before:
+            self.generation += 1
+        return self._uploads.release()
+
     def check(self, measurement) -> None:
         """Raise a FilterError for a measurement (or a batch's list) that :meth:`stage` would refuse, touching
         nothing: the filter checks a measurement before its interval moves anything, then stages it while the device
@@ -448,19 +462,26 @@ class _PointCloudModel(MeasurementModel):
         self._uploads.put("ranges", dev_ranges, ranges)
         if same:
             held = self._host.get("dirs")
-            if held is None or held[0] is not first or held[1].device != device:
+            if held is None or held[1].device != device or held[1].shape != (1, m):
                 held = self._host["dirs"] = (first, wp.array(first[None].astype(np.float32), dtype=wp.vec3,
                                                               device=device))
+            elif held[0] is not first:  # another pattern of as many rays (a log's clouds): into the same array
+                self._uploads.put("dirs", held[1], first[None].astype(np.float32))
+                held = self._host["dirs"] = (first, held[1])
             dirs = held[1]
-        else:
-            dirs = wp.array(np.stack([cloud.dirs_s for cloud in items]).astype(np.float32), dtype=wp.vec3,
-                            device=device)
+        else:  # each cloud its own directions: into one (B, M) array kept for this shape
+            dirs = self._host.get("dirs_each")
+            if dirs is None or dirs.shape != (b, m) or dirs.device != device:
+                dirs = self._host["dirs_each"] = wp.empty((b, m), dtype=wp.vec3, device=device)
+            self._uploads.put("dirs_each", dirs, np.stack([cloud.dirs_s for cloud in items]).astype(np.float32))
         cmd = self._host.get("rows_cmd")  # recorded once for these arrays (a launch packs its arguments every time)
         if cmd is None or cmd[0] is not dirs or cmd[1] is not dev_ranges or cmd[2] is not self._staged:
             cmd = self._host["rows_cmd"] = (dirs, dev_ranges, self._staged, wp.launch(
                 klik.cloud_rows_kernel, dim=(b, m), inputs=[dev_ranges, dirs], outputs=[self._staged], device=device,
                 record_cmd=True))
-        cmd[3].launch()
+            self.generation += 1  # (a graph that holds the launch, :meth:`hold_device_work`, holds these arrays)
+        if not self._uploads.later(cmd[3].launch):
+            cmd[3].launch()
         if self.likelihood.models_map_error:  # the modes' scan geometry reads it (:meth:`_scan_geometry`)
             self._host["first"] = (first.astype(np.float32), ranges[0].copy())
         return np.isfinite(ranges).sum(axis=1).astype(np.int64)
