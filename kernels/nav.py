@@ -263,6 +263,9 @@ def _nav_interval(tiled: bool):
     @wp.kernel
     def nav_interval_kernel(
         row0: int,
+        begin: int,
+        finish: int,
+        progress: wp.array2d(dtype=wp.float64),
         counts: wp.array2d(dtype=wp.int32),
         nominal_dt: wp.float64,
         q_pos: wp.array(dtype=wp.float64),
@@ -296,6 +299,11 @@ def _nav_interval(tiled: bool):
         as velocity. ``q_vel_down[b]`` is added to the down velocity's Q^l (a map-error offset's change along the track,
         :meth:`warptan.sensing.likelihood.Likelihood.offset_process`; 0 without one).
 
+        An interval may run as several launches, each taking the samples buffered since the last (``progress[b]`` =
+        [samples done, Σ dt_k / dt] so far; ``counts`` the samples buffered): ``begin`` starts the interval (Φ = I,
+        S = 0, nothing done), else Φ and S are read back from ``phi`` and ``noise``; ``finish`` ends it (the outputs),
+        else Φ and S are left in ``phi`` and ``noise``. Float64 all through: the same bits as one launch.
+
         Tiled (CUDA): P, Φ, S and the Cholesky scratch live in the block's shared memory (:func:`shared_slot`); the
         lanes share each phase's independent pieces (a block column, a block row, one block, one row of the
         Cholesky; :func:`span`), every lane computes the step's small terms (rotation, N_k, the gains) itself, and
@@ -319,19 +327,27 @@ def _nav_interval(tiled: bool):
         for idx in range(i0, i1):
             r = idx // 5
             c = idx % 5
-            s_put(noise, b, r, c, sh, zero)
-            if r == c:
-                phi_put(phi, b, r, c, sh, eye)
-            else:
-                phi_put(phi, b, r, c, sh, zero)
+            if begin != 0:
+                s_put(noise, b, r, c, sh, zero)
+                if r == c:
+                    phi_put(phi, b, r, c, sh, eye)
+                else:
+                    phi_put(phi, b, r, c, sh, zero)
+            elif sh != 0:  # the interval so far, into the shared slots
+                s_put(noise, b, r, c, sh, noise[b, r, c])
+                phi_put(phi, b, r, c, sh, phi[b, r, c])
         p = pos[b]
         v = vel[b]
         q = quat[b]
         ba = accel_bias[b]
         bg = gyro_bias[b]
         n_steps = counts[b, INT_STEPS]
+        k0 = int(0)
         steps = wp.float64(0.0)  # Σ dt_k / dt: the interval in nominal steps (n_steps when evenly spaced)
-        for k in range(n_steps):
+        if begin == 0:
+            k0 = int(progress[b, 0])
+            steps = progress[b, 1]
+        for k in range(k0, n_steps):
             f = imu[b, k, 0]
             w = imu[b, k, 1]
             dt = imu[b, k, 2][0]
@@ -445,6 +461,19 @@ def _nav_interval(tiled: bool):
             pos[b] = p
             vel[b] = v
             quat[b] = q
+            progress[b, 0] = wp.float64(n_steps)
+            progress[b, 1] = steps
+        if finish == 0:  # the interval goes on at the next launch: Φ, S (and P) back to global memory
+            if wp.static(tiled):
+                block_sync()
+                i0, i1 = span(sh, lane, 0, 25)
+                for idx in range(i0, i1):
+                    phi[b, idx // 5, idx % 5] = phi_get(phi, b, idx // 5, idx % 5, sh)
+                    noise[b, idx // 5, idx % 5] = s_get(noise, b, idx // 5, idx % 5, sh)
+                if lane < 16:
+                    cov[b, lane // 4, lane % 4] = p_get(cov, b, lane // 4, lane % 4, sh)
+            return
+        if lane == 0:
             s_put(noise, b, 0, 0, sh, s_get(noise, b, 0, 0, sh) + steps * q_rough * eye)
             for i in range(3):
                 pose_out[b, i] = p[i]

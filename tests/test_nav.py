@@ -42,6 +42,55 @@ def _blocks(a):
     return a.transpose(0, 1, 3, 2, 4).reshape(b, a.shape[1] * 3, a.shape[2] * 3)
 
 
+def test_nav_kernel_split_interval_same_bits(device):
+    """An interval run as several launches (the samples buffered so far, then the rest; ``begin``/``finish``, as
+    ``predict_many`` runs them ahead on CUDA) gives the bits of one launch: nominal, P, Φ, chol S and the outputs
+    the update reads, in both forms (one thread per filter; on CUDA also the block of lanes)."""
+    forms = (False, True) if wp.get_device(device).is_cuda else (False,)
+    rate, k_steps, d, B = 100.0, 10, device, 2
+    dt = 1.0 / rate
+    truth = Trajectory.build([Straight(0.05), Turn(20, bank_deg=30)], rate, [0, 0, -1000.0])
+    imu = ImuModel("tactical", rate, seed=3)
+    f, w, _ = imu.corrupt(truth.f_b[:2 * k_steps], truth.w_b[:2 * k_steps])
+    samples = np.zeros((B, k_steps, 3, 3))
+    samples[:, :, 0] = np.stack([f[:k_steps], f[k_steps:]])
+    samples[:, :, 1] = np.stack([w[:k_steps], w[k_steps:]])
+    samples[:, :, 2, 0] = dt * (1.0 + 0.4 * np.sin(np.arange(k_steps)))
+    initial = InitialErrors()
+    P0 = prior_linear_cov(initial, imu)
+    nominals = [initial_nominal(truth.state(0), initial, np.random.default_rng(b)) for b in range(B)]
+    q_l = np.diag(process_noise(imu.grade, dt)[3:15, 3:15])
+    for tiled in forms:
+        results = []
+        for splits in ((k_steps,), (4, k_steps), (0, 3, 7, 7, k_steps)):
+            nav = [wp.array([n.pos_n for n in nominals], dtype=wp.vec3d, device=d),
+                   wp.array([n.vel_n for n in nominals], dtype=wp.vec3d, device=d),
+                   wp.array([n.quat_nb for n in nominals], dtype=wp.vec4d, device=d),
+                   wp.zeros(B, dtype=wp.vec3d, device=d), wp.zeros(B, dtype=wp.vec3d, device=d),
+                   wp.array(np.stack([P0] * B).reshape(B, 4, 3, 4, 3).transpose(0, 1, 3, 2, 4).copy(),
+                            dtype=wp.mat33d, device=d),
+                   wp.empty((B, 5, 5), dtype=wp.mat33d, device=d), wp.empty((B, 5, 5), dtype=wp.mat33d, device=d),
+                   wp.empty((B, 15, 15), dtype=wp.float64, device=d)]
+            outs = [wp.zeros((B, 5, 5), dtype=wp.mat33, device=d), wp.zeros((B, 5, 5), dtype=wp.mat33, device=d),
+                    wp.zeros((B, 7), dtype=wp.float64, device=d), wp.zeros(B, dtype=wp.mat33, device=d),
+                    wp.zeros((B, 4), dtype=wp.mat33, device=d)]
+            progress = wp.zeros((B, 2), dtype=wp.float64, device=d)
+            for i, upto in enumerate(splits):
+                counts = wp.array(np.full((B, 3), upto, dtype=np.int32), dtype=wp.int32, device=d)
+                inputs = [0, int(i == 0), int(i == len(splits) - 1), progress, counts, dt,
+                          wp.full(B, 0.25 * dt, dtype=wp.float64, device=d), 1e-4, wp.vec4d(*q_l[[0, 3, 6, 9]]),
+                          wp.zeros(B, dtype=wp.float64, device=d), wp.array(samples, dtype=wp.vec3d, device=d), *nav]
+                if tiled:
+                    wp.launch_tiled(knav.nav_interval_kernels[True], dim=[B], inputs=inputs, outputs=outs,
+                                    block_dim=knav.NAV_BLOCK_DIM, device=d)
+                else:
+                    wp.launch(knav.nav_interval_kernels[False], dim=B, inputs=inputs, outputs=outs, device=d)
+            results.append([a.numpy() for a in (*nav[:6], *outs)])
+        for other in results[1:]:
+            for one, split in zip(results[0], other, strict=True):
+                np.testing.assert_array_equal(one, split)
+
+
 @pytest.mark.parametrize("uneven", [False, True])
 def test_nav_kernel_matches_python(device, uneven):
     """The interval kernel (nominal INS, Riccati, interval composition; float64 on the filter's device) against
@@ -93,7 +142,8 @@ def _check_nav_kernel(device, uneven, tiled):
     launch = wp.launch_tiled if tiled else wp.launch
     extra = {"block_dim": knav.NAV_BLOCK_DIM} if tiled else {}
     launch(kernel, dim=[B], **extra,
-           inputs=[0, counts, dt, wp.full(B, 0.25 * dt, dtype=wp.float64, device=d), 0.0,
+           inputs=[0, 1, 1, wp.zeros((B, 2), dtype=wp.float64, device=d), counts, dt,
+                   wp.full(B, 0.25 * dt, dtype=wp.float64, device=d), 0.0,
                    wp.vec4d(qd[0], qd[3], qd[6], qd[9]), wp.full(B, q_vel_down * dt, dtype=wp.float64, device=d),
                    wp.array(np.stack([fb, wb, step_col], axis=2), dtype=wp.vec3d, device=d),
                    pos, vel, quat, ba, bg, cov, phi, noise, scratch],

@@ -38,7 +38,9 @@ class ImuIntake(UpdateProgram):
         """K IMU samples at once, (K, 3) each or (K, B, 3) for a batch: the same as K calls of :meth:`predict` (same
         buffering, flushes, ``bad_imu`` handling and results), with the checks done on the whole block — the host
         cost of an interval is then one call instead of K (20 µs each). ``dt``: each sample's step in s, (K,) or one
-        number (all filters of a batch share it; default the nominal step)."""
+        number (all filters of a batch share it; default the nominal step). On CUDA with graphs the samples buffered
+        so far then run through the nominal INS and the Riccati at once (the same bits as at the update), so that the
+        update which ends the interval does not wait for them; the particles move at the update, as before."""
         t_enter = time.perf_counter()
         b = self.n_filters
         f, w = _imu_arrays(f_b, w_b)
@@ -47,6 +49,7 @@ class ImuIntake(UpdateProgram):
             want = "(K, 3)" if b == 1 else f"(K, {b}, 3)"
             raise FilterError(f"IMU samples must be {want} arrays, got {f.shape} and {w.shape}")
         self._buffer(f.reshape(-1, b, 3), w.reshape(-1, b, 3), self._steps(dt, f.shape[0]), t_enter)
+        self._advance()
 
     def _steps(self, dt, k: int) -> np.ndarray:
         """(K,) step lengths in s: ``dt`` (a number or K of them) or the nominal step; each in (0, MAX_STEP_S]."""

@@ -289,6 +289,8 @@ class MarginalizedParticleFilter(ImuIntake):
         self._imu = wp.empty_like(self._imu_host[0], device=d) if d.is_cuda else self._imu_host[0]
         self._ints = wp.zeros((b, knav.N_INTS), dtype=wp.int32, device=d) if d.is_cuda else self._ints_host[0]
         self._interval_k = 0
+        self._advanced = False  # this interval's samples so far already ran (CUDA graphs: ImuIntake._advance)
+        self._nav_progress = wp.zeros((b, 2), dtype=wp.float64, device=d)  # [samples done, steps] of the interval
         self._dev = {"phi": wp.zeros((b, 5, 5), dtype=wp.mat33, device=d),
                      "chol": wp.zeros((b, 5, 5), dtype=wp.mat33, device=d),
                      "pose": wp.array(np.array([np.r_[x.pos_n, x.quat_nb] for x in nominals]), dtype=wp.float64,
@@ -350,6 +352,14 @@ class MarginalizedParticleFilter(ImuIntake):
         self._launch_poses()
         return self._pos, self._quat
 
+    def _head_first(self) -> bool:
+        """The lean update queues its head before the scan is staged (and, with graphs, :meth:`predict_many` runs
+        the interval's samples ahead): not under map-error modes, whose scan geometry reads the last interval's
+        attitude, nor for a model without ``check``."""
+        likelihood = getattr(self.model, "likelihood", None)
+        return (self._lean and self._interval_first and not getattr(likelihood, "models_map_error", False)
+                and callable(getattr(self.model, "check", None)))
+
     def update(self, measurement, sync: bool = True):
         """Weight the particles by ``measurement`` (a list of B for a batch; taken at the current nominal time)
         and resample / re-spread where needed. A measurement the model rejects raises before anything moves (on
@@ -369,8 +379,7 @@ class MarginalizedParticleFilter(ImuIntake):
         # lean (CUDA): the update's head (the interval, the particles' moves and poses) goes to the device once the
         # measurement is checked, and runs while the host stages the scan (not under map-error modes, whose scan
         # geometry reads the last interval's attitude)
-        self._early = (self._lean and self._interval_first and not map_modes
-                       and callable(getattr(self.model, "check", None)))
+        self._early = self._head_first()
         if self._early:
             self.model.check(measurement)  # a measurement refused here moves nothing
             self._stage_interval()

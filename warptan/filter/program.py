@@ -83,27 +83,44 @@ class UpdateProgram:
         self._interval_k = self._k
         self._k = 0
 
-    def _launch_interval(self) -> None:
+    def _launch_interval(self, finish: bool = True) -> None:
         """Device part of an interval: the staged samples and seeds to the device (CUDA: two copies from pinned
-        memory), then one kernel runs them through the nominal INS and the Riccati and composes the interval's Φ and
-        chol(S) (:mod:`warptan.kernels.nav`, float64)."""
+        memory, the count first: a sample it counts was written before it), then one kernel runs the samples not yet
+        run through the nominal INS and the Riccati and, when ``finish``, composes the interval's Φ and chol(S)
+        (:mod:`warptan.kernels.nav`, float64; :meth:`_advance` runs the samples so far without finishing)."""
         if self.device.is_cuda:
-            wp.copy(self._imu, self._imu_host[self._set])
             wp.copy(self._ints, self._ints_host[self._set])
+            wp.copy(self._imu, self._imu_host[self._set])
         nav, out = self._nav, self._dev
         phi, noise, scratch = self._scratch
         tiled = self.device.is_cuda
+        begin = int(not self._advanced)
         launch_rows(knav.nav_interval_kernels[tiled], self.n_filters,
-                    lambda a, b: ([a or 0, self._ints, self.dt, self._q_dev[0], self.q_rough, self._q_lin,
-                                   self._q_dev[1], self._imu, nav["pos"], nav["vel"], nav["quat"], nav["ba"],
-                                   nav["bg"], nav["cov"], phi, noise, scratch],
+                    lambda a, b: ([a or 0, begin, int(finish), self._nav_progress, self._ints, self.dt,
+                                   self._q_dev[0], self.q_rough, self._q_lin, self._q_dev[1], self._imu, nav["pos"],
+                                   nav["vel"], nav["quat"], nav["ba"], nav["bg"], nav["cov"], phi, noise, scratch],
                                   [out["phi"], out["chol"], out["pose"], out["att_cov"], out["p_col"]]),
                     self.device, row_cost=4000 * max(self._interval_k, 1),
                     block_dim=knav.NAV_BLOCK_DIM if tiled else None)
 
+    def _advance(self) -> None:
+        """CUDA, lean graphs: run the samples buffered so far through the nominal INS and the Riccati now (one graph),
+        so that the update that ends the interval finds that work done or under way instead of queuing it after the
+        scan's check. The same bits as one launch for the interval (:data:`warptan.kernels.nav.nav_interval_kernels`);
+        the particles still move once, at the update."""
+        if not (self._k and self.graph and self.device.is_cuda and self._head_first()):
+            return
+        self._ints_np[self._set][:, knav.INT_STEPS] = self._k  # (the count so far: its copy is queued first)
+        if self._graph_key is None:  # (the first update runs eagerly)
+            self._launch_interval(finish=False)
+        else:
+            self._replay("advance", self._launch_interval, False)
+        self._advanced = True
+
     def _next_set(self) -> None:
         """After the device work that reads the current staging set is queued: switch sets (CUDA), first waiting
         until the work queued on the other set, two intervals ago, is done."""
+        self._advanced = False
         if not self.device.is_cuda:
             return
         wp.get_stream(self.device).record_event(self._events[self._set])
@@ -409,13 +426,14 @@ class UpdateProgram:
         if key != self._graph_key:
             self._graphs.clear()
             self._graph_key = key
-        graph = self._graphs.get((name, self._set))
+        slot = (name, self._set, self._advanced)  # (an interval whose samples ran ahead reads them back)
+        graph = self._graphs.get(slot)
         if graph is None:
             wp.capture_begin(device=self.device)
             try:
                 fn(*args)
             finally:
-                graph = self._graphs[(name, self._set)] = wp.capture_end(device=self.device)
+                graph = self._graphs[slot] = wp.capture_end(device=self.device)
         wp.capture_launch(graph)
 
     def _record_key(self) -> tuple:
