@@ -265,6 +265,7 @@ def _nav_interval(tiled: bool):
         row0: int,
         begin: int,
         finish: int,
+        keep: int,
         progress: wp.array2d(dtype=wp.float64),
         counts: wp.array2d(dtype=wp.int32),
         nominal_dt: wp.float64,
@@ -301,8 +302,9 @@ def _nav_interval(tiled: bool):
 
         An interval may run as several launches, each taking the samples buffered since the last (``progress[b]`` =
         [samples done, Σ dt_k / dt] so far; ``counts`` the samples buffered): ``begin`` starts the interval (Φ = I,
-        S = 0, nothing done), else Φ and S are read back from ``phi`` and ``noise``; ``finish`` ends it (the outputs),
-        else Φ and S are left in ``phi`` and ``noise``. Float64 all through: the same bits as one launch.
+        S = 0, nothing done), else Φ and S are read back from ``phi`` and ``noise``; ``keep`` leaves Φ and S there
+        for a later launch; ``finish`` writes the outputs of the interval as it stands (without changing Φ, S or P:
+        a later launch may go on from them). Float64 all through: the same bits as one launch.
 
         Tiled (CUDA): P, Φ, S and the Cholesky scratch live in the block's shared memory (:func:`shared_slot`); the
         lanes share each phase's independent pieces (a block column, a block row, one block, one row of the
@@ -463,8 +465,8 @@ def _nav_interval(tiled: bool):
             quat[b] = q
             progress[b, 0] = wp.float64(n_steps)
             progress[b, 1] = steps
-        if finish == 0:  # the interval goes on at the next launch: Φ, S (and P) back to global memory
-            if wp.static(tiled):
+        if wp.static(tiled):
+            if keep != 0:  # the interval may go on at a later launch: Φ, S (and P) back to global memory
                 block_sync()
                 i0, i1 = span(sh, lane, 0, 25)
                 for idx in range(i0, i1):
@@ -472,21 +474,28 @@ def _nav_interval(tiled: bool):
                     noise[b, idx // 5, idx % 5] = s_get(noise, b, idx // 5, idx % 5, sh)
                 if lane < 16:
                     cov[b, lane // 4, lane % 4] = p_get(cov, b, lane // 4, lane % 4, sh)
+        if finish == 0:
             return
         if lane == 0:
-            s_put(noise, b, 0, 0, sh, s_get(noise, b, 0, 0, sh) + steps * q_rough * eye)
             for i in range(3):
                 pose_out[b, i] = p[i]
             for i in range(4):
                 pose_out[b, 3 + i] = q[i]
         block_sync()
-        # ---- outputs: Φ (float32) and chol(S), scalar Cholesky on a 15×15 scratch (semi-definite safe)
+        # ---- outputs: Φ (float32) and chol(S), scalar Cholesky on a 15×15 scratch (semi-definite safe); the
+        # roughening's dp-only noise joins S's first block here (S itself stays as the samples left it)
+        rough = steps * q_rough * eye
         i0, i1 = span(sh, lane, 0, 25)
         for idx in range(i0, i1):
             r = idx // 5
             c = idx % 5
             phi_out[b, r, c] = wp.mat33(phi_get(phi, b, r, c, sh))
-            blk = half * (s_get(noise, b, r, c, sh) + wp.transpose(s_get(noise, b, c, r, sh)))
+            s_rc = s_get(noise, b, r, c, sh)
+            s_cr = s_get(noise, b, c, r, sh)
+            if r == 0 and c == 0:
+                s_rc = s_rc + rough
+                s_cr = s_rc
+            blk = half * (s_rc + wp.transpose(s_cr))
             for i in range(3):
                 for j in range(3):
                     put_f64(chol_scratch, b, 3 * r + i, 3 * c + j, sh, blk[i, j])

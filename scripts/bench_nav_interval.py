@@ -29,7 +29,7 @@ def _arrays(b: int, k: int, device):
     imu[:, :, 1] = [0.01, -0.02, 0.03]
     imu[:, :, 2, 0] = 0.01
     d = device
-    inputs = [0, 1, 1, wp.zeros((b, 2), dtype=wp.float64, device=d),
+    inputs = [0, 1, 1, 0, wp.zeros((b, 2), dtype=wp.float64, device=d),
               wp.array(np.full((b, knav.N_INTS), k, dtype=np.int32), dtype=wp.int32, device=d), 0.01,
               wp.full(b, 0.0025, dtype=wp.float64, device=d), 0.0, wp.vec4d(1e-6, 1e-10, 1e-10, 1e-14),
               wp.zeros(b, dtype=wp.float64, device=d), wp.array(imu, dtype=wp.vec3d, device=d),

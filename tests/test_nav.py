@@ -43,9 +43,10 @@ def _blocks(a):
 
 
 def test_nav_kernel_split_interval_same_bits(device):
-    """An interval run as several launches (the samples buffered so far, then the rest; ``begin``/``finish``, as
-    ``predict_many`` runs them ahead on CUDA) gives the bits of one launch: nominal, P, Φ, chol S and the outputs
-    the update reads, in both forms (one thread per filter; on CUDA also the block of lanes)."""
+    """An interval run as several launches (the samples buffered so far, then the rest; ``begin``/``keep``, as
+    ``predict_many`` runs them ahead on CUDA), each writing the outputs as the interval stands (``finish``) or not,
+    gives the bits of one launch: nominal, P, Φ, chol S and the outputs the update reads, in both forms (one thread
+    per filter; on CUDA also the block of lanes)."""
     forms = (False, True) if wp.get_device(device).is_cuda else (False,)
     rate, k_steps, d, B = 100.0, 10, device, 2
     dt = 1.0 / rate
@@ -62,7 +63,8 @@ def test_nav_kernel_split_interval_same_bits(device):
     q_l = np.diag(process_noise(imu.grade, dt)[3:15, 3:15])
     for tiled in forms:
         results = []
-        for splits in ((k_steps,), (4, k_steps), (0, 3, 7, 7, k_steps)):
+        for splits, ahead in (((k_steps,), 0), ((4, k_steps), 0), ((0, 3, 7, 7, k_steps), 0),
+                              ((4, k_steps), 1), ((0, 3, 7, 7, k_steps), 1)):
             nav = [wp.array([n.pos_n for n in nominals], dtype=wp.vec3d, device=d),
                    wp.array([n.vel_n for n in nominals], dtype=wp.vec3d, device=d),
                    wp.array([n.quat_nb for n in nominals], dtype=wp.vec4d, device=d),
@@ -77,7 +79,8 @@ def test_nav_kernel_split_interval_same_bits(device):
             progress = wp.zeros((B, 2), dtype=wp.float64, device=d)
             for i, upto in enumerate(splits):
                 counts = wp.array(np.full((B, 3), upto, dtype=np.int32), dtype=wp.int32, device=d)
-                inputs = [0, int(i == 0), int(i == len(splits) - 1), progress, counts, dt,
+                last = i == len(splits) - 1
+                inputs = [0, int(i == 0), int(last or ahead), int(not last), progress, counts, dt,
                           wp.full(B, 0.25 * dt, dtype=wp.float64, device=d), 1e-4, wp.vec4d(*q_l[[0, 3, 6, 9]]),
                           wp.zeros(B, dtype=wp.float64, device=d), wp.array(samples, dtype=wp.vec3d, device=d), *nav]
                 if tiled:
@@ -142,7 +145,7 @@ def _check_nav_kernel(device, uneven, tiled):
     launch = wp.launch_tiled if tiled else wp.launch
     extra = {"block_dim": knav.NAV_BLOCK_DIM} if tiled else {}
     launch(kernel, dim=[B], **extra,
-           inputs=[0, 1, 1, wp.zeros((B, 2), dtype=wp.float64, device=d), counts, dt,
+           inputs=[0, 1, 1, 0, wp.zeros((B, 2), dtype=wp.float64, device=d), counts, dt,
                    wp.full(B, 0.25 * dt, dtype=wp.float64, device=d), 0.0,
                    wp.vec4d(qd[0], qd[3], qd[6], qd[9]), wp.full(B, q_vel_down * dt, dtype=wp.float64, device=d),
                    wp.array(np.stack([fb, wb, step_col], axis=2), dtype=wp.vec3d, device=d),

@@ -83,44 +83,64 @@ class UpdateProgram:
         self._interval_k = self._k
         self._k = 0
 
-    def _launch_interval(self, finish: bool = True) -> None:
-        """Device part of an interval: the staged samples and seeds to the device (CUDA: two copies from pinned
-        memory, the count first: a sample it counts was written before it), then one kernel runs the samples not yet
-        run through the nominal INS and the Riccati and, when ``finish``, composes the interval's Φ and chol(S)
-        (:mod:`warptan.kernels.nav`, float64; :meth:`_advance` runs the samples so far without finishing)."""
+    def _copy_interval(self) -> None:
+        """CUDA: the staged count, seeds and samples to the device (two copies from pinned memory, the count first: a
+        sample it counts was written before it)."""
         if self.device.is_cuda:
             wp.copy(self._ints, self._ints_host[self._set])
             wp.copy(self._imu, self._imu_host[self._set])
+
+    def _launch_interval(self, keep: bool = False) -> None:
+        """Device part of an interval: the staged samples and seeds to the device, then one kernel runs the samples
+        not yet run through the nominal INS and the Riccati and composes the interval's Φ and chol(S) as it stands
+        (:mod:`warptan.kernels.nav`, float64); ``keep``: the interval may go on (:meth:`_advance`)."""
+        self._copy_interval()
         nav, out = self._nav, self._dev
         phi, noise, scratch = self._scratch
         tiled = self.device.is_cuda
-        begin = int(not self._advanced)
+        begin = int(self._ahead == 0)
         launch_rows(knav.nav_interval_kernels[tiled], self.n_filters,
-                    lambda a, b: ([a or 0, begin, int(finish), self._nav_progress, self._ints, self.dt,
+                    lambda a, b: ([a or 0, begin, 1, int(keep), self._nav_progress, self._ints, self.dt,
                                    self._q_dev[0], self.q_rough, self._q_lin, self._q_dev[1], self._imu, nav["pos"],
                                    nav["vel"], nav["quat"], nav["ba"], nav["bg"], nav["cov"], phi, noise, scratch],
                                   [out["phi"], out["chol"], out["pose"], out["att_cov"], out["p_col"]]),
                     self.device, row_cost=4000 * max(self._interval_k, 1),
                     block_dim=knav.NAV_BLOCK_DIM if tiled else None)
 
+    def _end_interval(self) -> None:
+        """The interval's end on the device: its outputs (Φ, chol S, the pose) as the samples so far left them: what
+        :meth:`_advance` already wrote when no sample came after it (then only the seeds go up), else the launch."""
+        if self._ahead_state() == 2:
+            self._copy_interval()
+        else:
+            self._launch_interval()
+
+    def _ahead_state(self) -> int:
+        """0: none of the interval's samples ran ahead (:meth:`_advance`); 1: some did, more came after; 2: all did
+        (after :meth:`_stage_interval`, which fixes the interval's count). Graphs are kept per state."""
+        if self._ahead == 0:
+            return 0
+        return 2 if self._ahead == (self._interval_k if self._k == 0 else -1) else 1
+
     def _advance(self) -> None:
-        """CUDA, lean graphs: run the samples buffered so far through the nominal INS and the Riccati now (one graph),
-        so that the update that ends the interval finds that work done or under way instead of queuing it after the
-        scan's check. The same bits as one launch for the interval (:data:`warptan.kernels.nav.nav_interval_kernels`);
+        """CUDA, lean graphs: run the samples buffered so far through the nominal INS and the Riccati now and write
+        the interval's outputs as it stands (one graph), so that the update which ends the interval finds that work
+        done or under way instead of queuing it after the scan's check; a sample buffered after this one runs at
+        the update. The same bits as one launch for the interval (:data:`warptan.kernels.nav.nav_interval_kernels`);
         the particles still move once, at the update."""
         if not (self._k and self.graph and self.device.is_cuda and self._head_first()):
             return
         self._ints_np[self._set][:, knav.INT_STEPS] = self._k  # (the count so far: its copy is queued first)
         if self._graph_key is None:  # (the first update runs eagerly)
-            self._launch_interval(finish=False)
+            self._launch_interval(keep=True)
         else:
-            self._replay("advance", self._launch_interval, False)
-        self._advanced = True
+            self._replay("advance", self._launch_interval, True)
+        self._ahead = self._k
 
     def _next_set(self) -> None:
         """After the device work that reads the current staging set is queued: switch sets (CUDA), first waiting
         until the work queued on the other set, two intervals ago, is done."""
-        self._advanced = False
+        self._ahead = 0
         if not self.device.is_cuda:
             return
         wp.get_stream(self.device).record_event(self._events[self._set])
@@ -134,7 +154,7 @@ class UpdateProgram:
                                   [rows_of(st.dp, a, b), rows_of(st.lin, a, b)]), self.device, row_cost=30)
 
     def _launch_move(self) -> None:
-        self._launch_interval()
+        self._end_interval()
         self._launch_time_update()
 
     def _piece(self, key, fn, *args) -> None:
@@ -335,7 +355,7 @@ class UpdateProgram:
     def _launch_lean_head(self) -> None:
         """The interval, then the particles' moves, poses and the statistics' reset in one launch (none of which
         reads the scan)."""
-        self._launch_interval()
+        self._end_interval()
         dv, n, st = self._dev, self.n, self.state
         launch(kmpf.move_pose_kernel, dim=self.n_filters * n,
                inputs=[n, dv["seeds"], dv["phi"], dv["chol"], dv["pose"], self._exponent],
@@ -426,7 +446,7 @@ class UpdateProgram:
         if key != self._graph_key:
             self._graphs.clear()
             self._graph_key = key
-        slot = (name, self._set, self._advanced)  # (an interval whose samples ran ahead reads them back)
+        slot = (name, self._set, self._ahead_state())  # (the interval's launch differs when samples ran ahead)
         graph = self._graphs.get(slot)
         if graph is None:
             wp.capture_begin(device=self.device)
