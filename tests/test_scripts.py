@@ -35,6 +35,24 @@ def test_compare_kernel_timings_rejects_unknown_device():
     assert proc.returncode == 2 and "unknown or absent device 'tpu'" in proc.stderr
 
 
+def test_step_timeline_runs_on_cuda_or_refuses(tmp_path):
+    """`step_timeline.py` reads CUDA events: on a CUDA device it writes each scenario's stamps (the step's end after
+    its start), on the CPU it refuses in one line, exit 2."""
+    import warp as wp
+
+    script = str(ROOT / "scripts" / "step_timeline.py")
+    if not wp.get_cuda_device_count():
+        proc = subprocess.run([sys.executable, script, "--device", "cpu"], capture_output=True, text=True, timeout=120)
+        assert proc.returncode == 2 and "records CUDA events" in proc.stderr
+        return
+    out = tmp_path / "t.json"
+    proc = subprocess.run([sys.executable, script, "--scenario", "S8", "--steps", "10", "--json", str(out)],
+                          capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr
+    row = json.loads(out.read_text())["results"]["S8"]
+    assert 0 < row["device_head_start"] < row["device_main_end"] < row["host_sync_return"]
+
+
 def test_readme_tables_come_from_the_artifacts(tmp_path):
     """`scripts/readme_tables.py --check` passes on the committed pages (README, docs/results.md) and fails when a
     number in a generated block is edited by hand, or when a measured number is typed into the prose."""
