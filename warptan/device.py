@@ -41,8 +41,6 @@ class Uploads:
         self._slots: dict = {}
         self._held: list | None = None
         self._hold_key = None
-        self.generation = 0
-        """Bumped when a held put allocates its buffer (a graph that copies from the old one is stale)."""
 
     def hold(self, key) -> None:
         """Until :meth:`release`, on CUDA: each put writes a pinned buffer of its own for (name, ``key``) and holds its
@@ -69,12 +67,13 @@ class Uploads:
             upload(array, values)
             return
         if self._held is not None:
+            # a buffer per (name, key, shape), kept: a graph that copies from it holds it (a new shape is a new
+            # buffer, and the caller's arrays of that shape are new too: its graphs are re-captured anyway)
             key = (name, self._hold_key, array.shape, array.dtype, array.device.alias)
             held = self._slots.get(key)
             if held is None:
                 buf = wp.empty(array.shape, dtype=array.dtype, device="cpu", pinned=True)
                 held = self._slots[key] = (buf, buf.numpy())
-                self.generation += 1
             buf, view = held
             view[...] = values
             self._held.append(lambda: wp.copy(array, buf))

@@ -276,11 +276,7 @@ class MeasurementModel:
 
     def release_device_work(self) -> list:
         """The device work :meth:`stage` held (callables, in order; the caller queues them before :meth:`launch`, in
-        its graph). A new pinned buffer bumps :attr:`generation` (a graph holding the old one is stale)."""
-        before = getattr(self, "_uploads_generation", 0)
-        self._uploads_generation = self._uploads.generation
-        if self._uploads.generation != before:
-            self.generation += 1
+        its graph)."""
         return self._uploads.release()
 
     def check(self, measurement) -> None:
