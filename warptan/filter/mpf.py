@@ -352,14 +352,6 @@ class MarginalizedParticleFilter(ImuIntake):
         self._launch_poses()
         return self._pos, self._quat
 
-    def _head_first(self) -> bool:
-        """The lean update queues its head before the scan is staged (and, with graphs, :meth:`predict_many` runs
-        the interval's samples ahead): not under map-error modes, whose scan geometry reads the last interval's
-        attitude, nor for a model without ``check``."""
-        likelihood = getattr(self.model, "likelihood", None)
-        return (self._lean and self._interval_first and not getattr(likelihood, "models_map_error", False)
-                and callable(getattr(self.model, "check", None)))
-
     def update(self, measurement, sync: bool = True):
         """Weight the particles by ``measurement`` (a list of B for a batch; taken at the current nominal time)
         and resample / re-spread where needed. A measurement the model rejects raises before anything moves (on
@@ -388,22 +380,7 @@ class MarginalizedParticleFilter(ImuIntake):
             # the map-error modes' scan geometry needs the platform's attitude: the nominal of the last interval
             # (one device-to-host copy of 4 numbers; 0.1 s old at 10 Hz, what the geometry's tolerance allows)
             attitude = self._nav["quat"][:1].numpy()[0]
-        extra = {} if attitude is None else {"attitude": attitude}  # a model of the user's may not take it
-        # graphs (CUDA, early head): the scan's copies and launches go into the update's graph, from pinned buffers of
-        # this filter's staging set, instead of being issued one by one from Python
-        held = (self._early and self.graph and self.device.is_cuda
-                and callable(getattr(self.model, "hold_device_work", None)))
-        if held:
-            self.model.hold_device_work((self._token, self._set))
-        try:
-            out = self.model.stage(measurement, self._pos, self._quat, **extra)  # validates first: nothing moves
-        except BaseException:
-            if held:
-                self.model.release_device_work()
-            if self._early:  # refused after the head (interval, moves) went to the device: as after flush()
-                self._next_set()
-            raise
-        staged = self.model.release_device_work() if held else ()
+        out, staged = self._stage_scan(measurement, attitude)
         if attitude is not None:  # ground read again after the modes forgot it: B positions to the host
             if self._revisits is None or self._revisits.likelihood is not likelihood:
                 self._revisits = RevisitMemory(likelihood, self.n_filters)

@@ -122,6 +122,34 @@ class UpdateProgram:
             return 0
         return 2 if self._ahead == (self._interval_k if self._k == 0 else -1) else 1
 
+    def _head_first(self) -> bool:
+        """The lean update queues its head before the scan is staged (and, with graphs, :meth:`predict_many` runs
+        the interval's samples ahead): not under map-error modes, whose scan geometry reads the last interval's
+        attitude, nor for a model without ``check``."""
+        likelihood = getattr(self.model, "likelihood", None)
+        return (self._lean and self._interval_first and not getattr(likelihood, "models_map_error", False)
+                and callable(getattr(self.model, "check", None)))
+
+    def _stage_scan(self, measurement, attitude) -> tuple:
+        """The model's ``stage`` of the scan (validating first: nothing moves), and the device work it held. With
+        graphs on CUDA and an early head the scan's copies and launches go into the update's graph, from pinned
+        buffers of this filter's staging set, instead of being issued one by one from Python. A scan refused after
+        the head (interval, moves) went to the device leaves the filter as after ``flush()``."""
+        extra = {} if attitude is None else {"attitude": attitude}  # a model of the user's may not take it
+        held = (self._early and self.graph and self.device.is_cuda
+                and callable(getattr(self.model, "hold_device_work", None)))
+        if held:
+            self.model.hold_device_work((self._token, self._set))
+        try:
+            out = self.model.stage(measurement, self._pos, self._quat, **extra)
+        except BaseException:
+            if held:
+                self.model.release_device_work()
+            if self._early:
+                self._next_set()
+            raise
+        return out, (self.model.release_device_work() if held else ())
+
     def _advance(self) -> None:
         """CUDA, lean graphs: run the samples buffered so far through the nominal INS and the Riccati now and write
         the interval's outputs as it stands (one graph), so that the update which ends the interval finds that work
