@@ -83,12 +83,13 @@ class UpdateProgram:
         self._interval_k = self._k
         self._k = 0
 
-    def _copy_interval(self) -> None:
-        """CUDA: the staged count, seeds and samples to the device (two copies from pinned memory, the count first: a
-        sample it counts was written before it)."""
+    def _copy_interval(self, samples: bool = True) -> None:
+        """CUDA: the staged count and seeds, and (``samples``) the samples, to the device (copies from pinned memory,
+        the count first: a sample it counts was written before it)."""
         if self.device.is_cuda:
             wp.copy(self._ints, self._ints_host[self._set])
-            wp.copy(self._imu, self._imu_host[self._set])
+            if samples:
+                wp.copy(self._imu, self._imu_host[self._set])
 
     def _launch_interval(self, keep: bool = False) -> None:
         """Device part of an interval: the staged samples and seeds to the device, then one kernel runs the samples
@@ -111,7 +112,7 @@ class UpdateProgram:
         """The interval's end on the device: its outputs (Φ, chol S, the pose) as the samples so far left them: what
         :meth:`_advance` already wrote when no sample came after it (then only the seeds go up), else the launch."""
         if self._ahead_state() == 2:
-            self._copy_interval()
+            self._copy_interval(samples=False)  # (no kernel reads the samples again: a batch's are ~0.5 MB)
         else:
             self._launch_interval()
 
