@@ -648,6 +648,75 @@ def test_refused_after_the_check_is_a_flush(rugged):
         np.testing.assert_array_equal(flushed.cov_pos, refused.cov_pos)
 
 
+def test_samples_run_ahead_give_the_same_bits(rugged):
+    """``predict_many`` running its samples through the nav interval at once (``_run_ahead``: the CUDA graph
+    default; forced here on the CPU with the lean update it goes with) leaves the estimates, records, covariances and
+    nominals bit for bit as running them at the update: samples after the ones run ahead (``predict``, a second
+    block), an estimate in the middle of an interval, a buffer that fills and flushes, a measurement refused by the
+    model's check and one refused by its stage after the head went out."""
+    for plain, ahead in zip(_run_ahead_flight(rugged, False), _run_ahead_flight(rugged, True), strict=True):
+        np.testing.assert_array_equal(plain, ahead)
+
+
+def _run_ahead_flight(rugged, ahead: bool) -> list:
+    truth = Trajectory.build([Straight(3.0)], 100.0, [-3000.0, 0.0, -(rugged.h_max + 600.0)])
+    sensor = wt.PointCloudSensor(wt.ScanPattern.grid(5, 5, 30.0))
+    model = wt.SlidingModel(rugged)
+    mpf = MarginalizedParticleFilter(model, truth.state(0), "navigation", 100.0, [30, 30, 10], np.eye(12) * 1e-4,
+                                     n_particles=200, seed=4)
+    mpf._lean, mpf._run_ahead = True, ahead
+    kept, launch_interval = [], mpf._launch_interval
+    mpf._launch_interval = lambda keep=False: (kept.append(keep), launch_interval(keep))[1]
+    at, estimates = [0], []
+
+    def feed(n, one_by_one=False):
+        k = at[0]
+        if one_by_one:
+            for j in range(k, k + n):
+                mpf.predict(truth.f_b[j], truth.w_b[j])
+        else:
+            mpf.predict_many(truth.f_b[k:k + n], truth.w_b[k:k + n])
+        at[0] += n
+
+    def scan():
+        k = at[0]
+        return sensor.measure(rugged, truth.pos_n[k], truth.quat_nb[k], np.random.default_rng(k))
+
+    def refuse(*args, **kwargs):
+        raise FilterError("refused by the model's stage")
+
+    feed(10)
+    mpf.update(scan())
+    feed(4)
+    feed(6, one_by_one=True)  # samples after those run ahead
+    mpf.update(scan())
+    feed(3)
+    feed(7)  # two blocks ahead
+    mpf.update(scan())
+    feed(5)
+    estimates.append(mpf.estimate())  # mid-interval: a flush
+    feed(5)
+    mpf.update(scan())
+    feed(40)
+    feed(40)  # the buffer fills (64) and flushes
+    mpf.update(scan())
+    feed(10)
+    with pytest.raises(ValueError, match="sliding model needs a PointCloud"):
+        mpf.update(wt.AltimeterReading(500.0, 1000.0))  # refused by the check: nothing moves
+    mpf.update(scan())
+    feed(10)
+    model.stage = refuse
+    with pytest.raises(FilterError, match="refused by the model's stage"):
+        mpf.update(scan())  # refused after the head: as after a flush
+    del model.stage
+    feed(10)
+    mpf.update(scan())
+    estimates.append(mpf.estimate())
+    assert any(kept) == ahead  # (the samples did run ahead, or did not)
+    return [*(e.dp for e in estimates), *(e.nav.pos_n for e in estimates), mpf.history(), mpf.covariance_history(),
+            mpf.nominal_history()]
+
+
 def _posterior_after_one_update(device, temper_ess, regularize, n=20_000, seed=0):
     """One update of a filter with a wide Gaussian prior on dp by a sharp linear-Gaussian position measurement."""
     nominal = Trajectory.build([Straight(1.0)], 100.0, [0, 0, -1000.0]).state(0)

@@ -123,5 +123,5 @@ class ImuIntake(UpdateProgram):
         if self._k == 0:
             return
         self._stage_interval()
-        self._piece("flush", self._launch_move)
+        self._piece(("flush", self._ahead_state()), self._launch_move)
         self._next_set()

@@ -289,7 +289,8 @@ class MarginalizedParticleFilter(ImuIntake):
         self._imu = wp.empty_like(self._imu_host[0], device=d) if d.is_cuda else self._imu_host[0]
         self._ints = wp.zeros((b, knav.N_INTS), dtype=wp.int32, device=d) if d.is_cuda else self._ints_host[0]
         self._interval_k = 0
-        self._ahead = 0  # this interval's samples that already ran (CUDA graphs: UpdateProgram._advance)
+        self._ahead = 0  # this interval's samples that already ran (UpdateProgram._advance)
+        self._run_ahead = self.graph and d.is_cuda  # predict_many runs its samples at once (the CUDA graph default)
         self._nav_progress = wp.zeros((b, 2), dtype=wp.float64, device=d)  # [samples done, steps] of the interval
         self._dev = {"phi": wp.zeros((b, 5, 5), dtype=wp.mat33, device=d),
                      "chol": wp.zeros((b, 5, 5), dtype=wp.mat33, device=d),

@@ -152,15 +152,15 @@ class UpdateProgram:
         return out, (self.model.release_device_work() if held else ())
 
     def _advance(self) -> None:
-        """CUDA, lean graphs: run the samples buffered so far through the nominal INS and the Riccati now and write
-        the interval's outputs as it stands (one graph), so that the update which ends the interval finds that work
-        done or under way instead of queuing it after the scan's check; a sample buffered after this one runs at
-        the update. The same bits as one launch for the interval (:data:`warptan.kernels.nav.nav_interval_kernels`);
-        the particles still move once, at the update."""
-        if not (self._k and self.graph and self.device.is_cuda and self._head_first()):
+        """``_run_ahead`` (the default with CUDA graphs) and a lean head-first update: run the samples buffered so far
+        through the nominal INS and the Riccati now and write the interval's outputs as it stands (one graph), so
+        that the update which ends the interval finds that work done or under way instead of queuing it after the
+        scan's check; a sample buffered after this one runs at the update. The same bits as one launch for the
+        interval (:data:`warptan.kernels.nav.nav_interval_kernels`); the particles still move once, at the update."""
+        if not (self._k and self._run_ahead and self._head_first()):
             return
         self._ints_np[self._set][:, knav.INT_STEPS] = self._k  # (the count so far: its copy is queued first)
-        if self._graph_key is None:  # (the first update runs eagerly)
+        if not self.graph or self._graph_key is None:  # (the first update runs eagerly)
             self._launch_interval(keep=True)
         else:
             self._replay("advance", self._launch_interval, True)
@@ -341,7 +341,7 @@ class UpdateProgram:
         (``wp.capture_if``: no host sync, and in a captured graph a converged update costs one stage). Filters
         that are done ignore a stage that runs for the others, so both paths give the same result. The pieces
         between host decisions are fixed sequences (:meth:`_piece`)."""
-        self._piece("move", self._launch_head)
+        self._piece(("move", self._ahead_state()), self._launch_head)  # (the interval's launch differs by state)
         self._launch_model("model0")
         self._piece("weigh0", self._launch_weigh, out, 0)
         self._resample_if(stage=0, read_flags=read_flags)
