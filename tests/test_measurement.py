@@ -328,6 +328,34 @@ def test_staged_cloud_rows_are_the_clouds(device):
             assert out.n_received[k] == ok.sum()
 
 
+def test_held_staging_runs_when_released(device):
+    """``hold_device_work``: a scan staged while the model holds leaves the staged rows as they were (its rows' launch,
+    and on CUDA its copies, are handed back instead of queued); running what ``release_device_work`` returns, in
+    order, stages it exactly as an unheld ``stage`` does. Not holding, nothing is held."""
+    rng = np.random.default_rng(5)
+    terrain = wt.Terrain.synthetic("rugged", size_m=4000.0, spacing=30.0, seed=6)
+    pattern = wt.ScanPattern.grid(4, 3, 25.0)
+    first, second = ([wt.PointCloud(pattern.dirs_s.copy(), rng.uniform(500.0, 900.0, pattern.m)) for _ in range(2)]
+                     for _ in range(2))
+    pos = wp.array(np.zeros((4, 3), np.float32), dtype=wp.vec3, device=device)
+    quat = wp.array(np.tile([1.0, 0.0, 0.0, 0.0], (4, 1)).astype(np.float32), dtype=wp.vec4, device=device)
+    model = wt.SlidingModel(terrain, wt.Likelihood("gaussian", sigma_m=2.0))
+    reference = wt.SlidingModel(terrain, wt.Likelihood("gaussian", sigma_m=2.0))
+    model.stage(first, pos, quat)
+    before = model._staged.numpy().copy()
+    assert model.release_device_work() == [] and not model._uploads.later(lambda: None)
+    model.hold_device_work(("test", 0))
+    model.stage(second, pos, quat)
+    held = model.release_device_work()
+    assert held and all(callable(work) for work in held)
+    np.testing.assert_array_equal(model._staged.numpy(), before)  # nothing ran yet
+    for work in held:
+        work()
+    reference.stage(second, pos, quat)
+    np.testing.assert_array_equal(model._staged.numpy(), reference._staged.numpy())
+    assert not np.array_equal(model._staged.numpy(), before)
+
+
 def test_altimeter_model(device):
     """Altimeter residual a - (h_baro - h(p_i)) matches NumPy, plus the barometer's altitude term; an off-map
     particle gets the floor (no NaN); without a barometer each particle's own altitude is used."""
