@@ -344,7 +344,7 @@ def test_held_staging_runs_when_released(device):
     model.stage(first, pos, quat)
     before = model._staged.numpy().copy()
     assert model.release_device_work() == [] and not model._uploads.later(lambda: None)
-    model.hold_device_work(("test", 0))
+    model.hold_device_work({})
     model.stage(second, pos, quat)
     held = model.release_device_work()
     assert held and all(callable(work) for work in held)

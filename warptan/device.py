@@ -40,14 +40,14 @@ class Uploads:
     def __init__(self):
         self._slots: dict = {}
         self._held: list | None = None
-        self._hold_key = None
+        self._buffers: dict | None = None
 
-    def hold(self, key) -> None:
-        """Until :meth:`release`, on CUDA: each put writes a pinned buffer of its own for (name, ``key``) and holds its
-        copy, and :meth:`later` holds other device work, for the caller to queue (in its graph, whose copy nodes
-        read these buffers when replayed). ``key`` names the caller's use of the buffers (a filter and its staging
-        set): the caller writes a key's buffers again only once the work queued from them is done."""
-        self._held, self._hold_key = [], key
+    def hold(self, buffers: dict) -> None:
+        """Until :meth:`release`, on CUDA: each put writes a pinned buffer kept in ``buffers`` (the caller's dict, one
+        per use of them: a filter's staging set) and holds its copy, and :meth:`later` holds other device work, for
+        the caller to queue (in its graph, whose copy nodes read these buffers when replayed). The caller owns the
+        buffers and writes them again only once the work queued from them is done."""
+        self._held, self._buffers = [], buffers
 
     def later(self, fn) -> bool:
         """Hold ``fn`` (device work after the held copies) while holding; False (the caller runs it now) if not."""
@@ -58,7 +58,7 @@ class Uploads:
 
     def release(self) -> list:
         """The held copies and work, in order (callables), and stop holding."""
-        held, self._held, self._hold_key = self._held or [], None, None
+        held, self._held, self._buffers = self._held or [], None, None
         return held
 
     def put(self, name: str, array: wp.array, values) -> None:
@@ -67,14 +67,14 @@ class Uploads:
             upload(array, values)
             return
         if self._held is not None:
-            # a buffer per (name, key, shape), kept: a graph that copies from it holds it (a new shape is a new
-            # buffer, and the caller's arrays of that shape are new too: its graphs are re-captured anyway)
-            key = (name, self._hold_key, array.shape, array.dtype, array.device.alias)
-            held = self._slots.get(key)
-            if held is None:
+            # a buffer per (name, shape), kept: a graph that copies from it holds it (a new shape is a new buffer,
+            # and the caller's arrays of that shape are new too: its graphs are re-captured anyway)
+            key = (name, array.shape, array.dtype, array.device.alias)
+            kept = self._buffers.get(key)
+            if kept is None:
                 buf = wp.empty(array.shape, dtype=array.dtype, device="cpu", pinned=True)
-                held = self._slots[key] = (buf, buf.numpy())
-            buf, view = held
+                kept = self._buffers[key] = (buf, buf.numpy())
+            buf, view = kept
             view[...] = values
             self._held.append(lambda: wp.copy(array, buf))
             return

@@ -83,7 +83,6 @@ skipped — no information, so it cannot drag the estimate towards the map — a
 
 from __future__ import annotations
 
-import itertools
 import time
 import warnings
 
@@ -113,8 +112,6 @@ from warptan.nav.imu import ImuGrade, check_rate, imu_grade
 from warptan.nav.ins import NavState, process_noise
 from warptan.parallel import Recorder, launch
 from warptan.sensing.likelihood import RevisitMemory
-
-_FILTERS = itertools.count()
 
 SCHEMES = {name: k for k, name in enumerate(RESAMPLERS)}
 """The kernels' number of each resampling scheme (:data:`warptan.filter.config.RESAMPLERS`)."""
@@ -252,7 +249,6 @@ class MarginalizedParticleFilter(ImuIntake):
         self.n_imu_held = np.zeros(b, dtype=np.int64)
         """Per filter: IMU samples replaced by the last good one (``bad_imu="hold"``)."""
         self._last_imu = np.full((b, 2, 3), np.nan)
-        self._token = next(_FILTERS)  # (names this filter's pinned staging buffers in a model it may share)
         self._nominal_steps = np.full(MAX_STEPS_PER_INTERVAL, self.dt)
         self._nominal_steps.flags.writeable = False
         self.n_imu_steps = 0
@@ -285,6 +281,7 @@ class MarginalizedParticleFilter(ImuIntake):
         self._imu_np = [x.numpy() for x in self._imu_host]
         self._ints_np = [x.numpy() for x in self._ints_host]
         self._events = [wp.Event(device=d) for _ in range(n_sets)] if d.is_cuda else []
+        self._staging_buffers = [{} for _ in range(n_sets)]  # the scan's pinned buffers per set (_stage_scan)
         self._set = 0
         self._imu = wp.empty_like(self._imu_host[0], device=d) if d.is_cuda else self._imu_host[0]
         self._ints = wp.zeros((b, knav.N_INTS), dtype=wp.int32, device=d) if d.is_cuda else self._ints_host[0]

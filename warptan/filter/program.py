@@ -121,7 +121,7 @@ class UpdateProgram:
         (after :meth:`_stage_interval`, which fixes the interval's count). Graphs are kept per state."""
         if self._ahead == 0:
             return 0
-        return 2 if self._ahead == (self._interval_k if self._k == 0 else -1) else 1
+        return 2 if self._k == 0 and self._ahead == self._interval_k else 1
 
     def _head_first(self) -> bool:
         """The lean update queues its head before the scan is staged (and, with graphs, :meth:`predict_many` runs
@@ -140,7 +140,7 @@ class UpdateProgram:
         held = (self._early and self.graph and self.device.is_cuda
                 and callable(getattr(self.model, "hold_device_work", None)))
         if held:
-            self.model.hold_device_work((self._token, self._set))
+            self.model.hold_device_work(self._staging_buffers[self._set])
         try:
             out = self.model.stage(measurement, self._pos, self._quat, **extra)
         except BaseException:
@@ -456,6 +456,7 @@ class UpdateProgram:
         self._replay("update", self._staged_update, staged, out)
 
     def _staged_update(self, staged, out, read_flags: bool = False) -> None:
+        """The scan's held device work (in order), then the update's."""
         for work in staged:
             work()
         self._device_update(out, read_flags=read_flags)

@@ -269,10 +269,11 @@ class MeasurementModel:
                                            if isinstance(getattr(out, f.name), wp.array)},
                                    n_received=out.n_received.copy())
 
-    def hold_device_work(self, key) -> None:
-        """Until :meth:`release_device_work`: :meth:`stage` writes the measurement into pinned buffers of ``key`` and
-        holds its copies and launches instead of queuing them (see :meth:`warptan.device.Uploads.hold`; CUDA)."""
-        self._uploads.hold(key)
+    def hold_device_work(self, buffers: dict) -> None:
+        """Until :meth:`release_device_work`: :meth:`stage` writes the measurement into pinned buffers kept in the
+        caller's ``buffers`` and holds its copies and launches instead of queuing them (see
+        :meth:`warptan.device.Uploads.hold`; CUDA)."""
+        self._uploads.hold(buffers)
 
     def release_device_work(self) -> list:
         """The device work :meth:`stage` held (callables, in order; the caller queues them before :meth:`launch`, in
@@ -457,14 +458,14 @@ class _PointCloudModel(MeasurementModel):
             dev_ranges = self._host["dev_ranges"] = wp.empty((b, m), dtype=wp.float32, device=device)
         self._uploads.put("ranges", dev_ranges, ranges)
         if same:
-            held = self._host.get("dirs")
-            if held is None or held[1].device != device or held[1].shape != (1, m):
-                held = self._host["dirs"] = (first, wp.array(first[None].astype(np.float32), dtype=wp.vec3,
+            kept = self._host.get("dirs")
+            if kept is None or kept[1].device != device or kept[1].shape != (1, m):
+                kept = self._host["dirs"] = (first, wp.array(first[None].astype(np.float32), dtype=wp.vec3,
                                                               device=device))
-            elif held[0] is not first:  # another pattern of as many rays (a log's clouds): into the same array
-                self._uploads.put("dirs", held[1], first[None].astype(np.float32))
-                held = self._host["dirs"] = (first, held[1])
-            dirs = held[1]
+            elif kept[0] is not first:  # another pattern of as many rays (a log's clouds): into the same array
+                self._uploads.put("dirs", kept[1], first[None].astype(np.float32))
+                kept = self._host["dirs"] = (first, kept[1])
+            dirs = kept[1]
         else:  # each cloud its own directions: into one (B, M) array kept for this shape
             dirs = self._host.get("dirs_each")
             if dirs is None or dirs.shape != (b, m) or dirs.device != device:
