@@ -125,13 +125,19 @@ def block_of(k: int, m0: wp.mat33d, m1: wp.mat33d, m2: wp.mat33d, m3: wp.mat33d,
     return m0
 
 
-NAV_BLOCK_DIM = 32
-"""Threads of a CUDA block that runs one filter's interval (:data:`nav_interval_kernels`; at least 25): the lanes
+NAV_BLOCK_DIM = 64
+"""Threads of a CUDA block that runs one filter's interval (:data:`nav_interval_kernels`; two warps): the lanes
 share the 3×3 blocks of the interval's matrices (:func:`span`) and meet at :func:`block_sync` between the phases of
-a step. One thread per filter took 0.27 ms for a 10-sample interval on an H100 (a chain of ~270 dependent 3×3
-products a sample, each waiting on its loads); as 100 threads of one launch the filters' ~7 KB working sets shared
-the caches of a few multiprocessors (1.9 ms for 100 filters): a block per filter keeps a multiprocessor each."""
+a step. P's pieces run on the first warp, Φ's and S's on the second (:data:`SIDE_LANE`), side by side: in one warp
+the two loops of a phase ran one after the other (an H100 spent 50 of the 64 µs of a 10-sample interval in those
+phases with 32 lanes). One thread per filter took 0.27 ms for a 10-sample interval on an H100 (a chain of ~270
+dependent 3×3 products a sample, each waiting on its loads); as 100 threads of one launch the filters' ~7 KB
+working sets shared the caches of a few multiprocessors (1.9 ms for 100 filters): a block per filter keeps a
+multiprocessor each."""
 
+
+SIDE_LANE = wp.constant(32)
+"""The first lane of the second warp: where the pieces of Φ and S start (those of P start at lane 0)."""
 
 COV_AT = wp.constant(0)
 """Where the tiled kernel keeps each matrix in the block's shared memory (float64 slots): P (4×4 blocks), Φ and S
@@ -396,7 +402,7 @@ def _nav_interval(tiled: bool):
                                  p_get(cov, b, 3, c, sh), a, bm, e, jm)
                 p_put(cov, b, 0, c, sh, y0)
                 p_put(cov, b, 1, c, sh, y1)
-            i0, i1 = span(sh, lane, 0, 10)
+            i0, i1 = span(sh, lane - SIDE_LANE, 0, 10)
             for idx in range(i0, i1):
                 which = idx // 5
                 c = idx % 5
@@ -414,7 +420,7 @@ def _nav_interval(tiled: bool):
                                  a, bm, e, jm)
                 p_put(cov, b, r, 0, sh, wp.transpose(y0))
                 p_put(cov, b, r, 1, sh, wp.transpose(y1))
-            i0, i1 = span(sh, lane, 0, 5)
+            i0, i1 = span(sh, lane - SIDE_LANE, 0, 5)
             for r in range(i0, i1):
                 y0, y1, y2 = apply_t(wp.transpose(s_get(noise, b, r, 0, sh)), wp.transpose(s_get(noise, b, r, 1, sh)),
                                      wp.transpose(s_get(noise, b, r, 2, sh)), wp.transpose(s_get(noise, b, r, 3, sh)),
@@ -435,7 +441,7 @@ def _nav_interval(tiled: bool):
                     if r == 0 and q_vel_down[b] > wp.float64(0.0):
                         m[2, 2] = m[2, 2] + q_vel_down[b] * scale
                 p_put(cov, b, r, c, sh, m)
-            i0, i1 = span(sh, lane, 0, 25)
+            i0, i1 = span(sh, lane - SIDE_LANE, 0, 25)
             for idx in range(i0, i1):
                 r = idx // 5
                 c = idx % 5

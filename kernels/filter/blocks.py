@@ -4,17 +4,17 @@ resampling, the update's head and tail."""
 import warp as wp
 
 from warptan.kernels.block import block_sync
-from warptan.kernels.filter.common import N_CHUNKS, UpdateParams, vec12
+from warptan.kernels.filter.common import N_CHUNKS, N_TEMPER, UpdateParams, vec12
 from warptan.kernels.filter.integrity import integrity_step, respread_particle
 from warptan.kernels.filter.moves import move_particle, pose_of_particle
 from warptan.kernels.filter.record import record_summary, reset_particle, summary_partial, update_covariance_lanes
 from warptan.kernels.filter.resampling import ancestor, cdf_chunk, cdf_partial, copy_particle, gather
-from warptan.kernels.filter.tempering import begin_stats, temper_ess_lanes, temper_select
+from warptan.kernels.filter.tempering import begin_stats, temper_ess_of, temper_select
 from warptan.kernels.filter.weights import (
     add_loglik_partial,
     exp_partial,
     kalman_update,
-    max_of_partials_lanes,
+    max_of_partials,
     normalize_weight,
     weight_stats,
 )
@@ -23,9 +23,8 @@ wp.set_module_options({"enable_backward": False})
 
 STAGE_BLOCK_DIM = 64
 """Threads of the block that runs one filter's tempering stage on CUDA (:data:`stage_block_kernel`): one lane per
-chunk (``N_CHUNKS``), so the block sums of the candidates' ESS and of the weight statistics are the ones
-:data:`temper_ess_kernel` and :data:`weight_stats_kernel` make, launched with as many lanes (the same bits as the
-separate kernels)."""
+chunk (``N_CHUNKS``), so the weight statistics' block sum is the one :data:`weight_stats_kernel` makes (the same
+bits as the separate kernels)."""
 RESAMPLE_BLOCK_DIM = 256
 """Threads of the block that resamples one filter on CUDA (:data:`resample_block_kernel`): a particle or two each
 (each ancestor is a binary search of dependent loads)."""
@@ -71,20 +70,22 @@ def stage_block_kernel(
     :data:`weight_stats_kernel`, :data:`normalize_weights_kernel` and (``kalman``) :data:`kalman_update_kernel`, in
     that order, the block's lanes sharing each one's threads with a barrier between them: the same functions on the
     same values (the same bits) in one launch instead of eight, each of which cost a graph node's few µs for a few
-    hundred particles. The sums over the chunks are the block's (:func:`temper_ess_lanes`,
-    :func:`max_of_partials_lanes`, :func:`weight_stats`): on an H100 the candidates' ESS took 10.5 µs of the block's
-    25 µs as 20 lanes each looping over the 64 chunks, the maxima 2.6 µs on lane 0. The candidates' partials stay a
-    launch of their own: 1 280 float64 log-sum-exp streams a filter, which 64 lanes would run 20 deep."""
+    hundred particles. The candidates' partials stay a launch of their own: 1 280 float64 log-sum-exp streams a
+    filter, which 64 lanes would run 20 deep."""
     b, lane = wp.tid()
     bd = wp.block_dim()
-    temper_ess_lanes(b, lane, partials, unpred, ess)
-    if lane == 0:  # (the lane that wrote ess)
-        temper_select(b, n_per, stage, last_stage, params, meta, ess, stats)
+    for g in range(lane, N_TEMPER, bd):
+        temper_ess_of(b, g, partials, ess)
+    block_sync()
+    if lane == 0:
+        temper_select(b, n_per, stage, last_stage, params, meta, ess, unpred, stats)
     block_sync()
     for c in range(lane, N_CHUNKS, bd):
         add_loglik_partial(b, c, n_per, loglik, n_valid, meta, stats, nis, logw, chunk_max, chunk_counts,
                            chunk_min_nis)
-    max_of_partials_lanes(b, lane, chunk_max, chunk_counts, chunk_min_nis, stats)
+    block_sync()
+    if lane == 0:
+        max_of_partials(b, chunk_max, chunk_counts, chunk_min_nis, stats)
     block_sync()
     for c in range(lane, N_CHUNKS, bd):
         exp_partial(b, c, n_per, logw, dp, nis, lam, with_ip, info_pos, stats, chunk_sums)

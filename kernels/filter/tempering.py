@@ -127,8 +127,7 @@ def temper_partials_kernel(
 
 @wp.func
 def temper_ess_of(b: int, g: int, partial_in: wp.array4d(dtype=wp.float64), ess_out: wp.array2d(dtype=wp.float64)):
-    """The ESS candidate g of filter b would leave, from the chunks' streaming partials (one thread: the chunks in
-    order)."""
+    """The ESS candidate g of filter b would leave, from the chunks' streaming partials."""
     big = partial_in[b, 0, g, 0]
     for c in range(N_CHUNKS):
         big = wp.max(big, partial_in[b, c, g, 0])
@@ -141,55 +140,11 @@ def temper_ess_of(b: int, g: int, partial_in: wp.array4d(dtype=wp.float64), ess_
     ess_out[b, g] = s1 * s1 / s2
 
 
-@wp.func
-def unpredictable_of(b: int, unpred_in: wp.array2d(dtype=wp.float64), ess_out: wp.array2d(dtype=wp.float64)):
-    """One thread: the weighted fraction of received points the particles cannot predict, summed over the chunks
-    in order, into ``ess_out[b, N_TEMPER]`` (where :func:`temper_select` reads it)."""
-    frac = wp.float64(0.0)
-    for c in range(N_CHUNKS):
-        frac += unpred_in[b, c]
-    ess_out[b, N_TEMPER] = frac
-
-
-@wp.func
-def temper_ess_lanes(b: int, lane: int, partial_in: wp.array4d(dtype=wp.float64),
-                     unpred_in: wp.array2d(dtype=wp.float64), ess_out: wp.array2d(dtype=wp.float64)):
-    """Every candidate's ESS (:func:`temper_ess_of`) and the unpredictable fraction (:func:`unpredictable_of`) of
-    filter b over the lanes of a block (``wp.launch_tiled``): each lane sums its own chunks in order, then the
-    block's maximum and sums (tile reductions) combine the lanes. With one lane (the CPU) that is the one-thread
-    order, the same bits; on CUDA (:data:`~warptan.kernels.filter.blocks.STAGE_BLOCK_DIM` lanes, a chunk each) the
-    sums' order is the reduction's: ~2 µs on an H100 instead of ~10 µs for 20 lanes each looping over the 64
-    chunks. Every lane must call it; lane 0 writes ``ess_out[b, :]``."""
-    bd = wp.block_dim()
-    frac = wp.float64(0.0)
-    for c in range(lane, N_CHUNKS, bd):
-        frac += unpred_in[b, c]
-    frac = wp.tile_sum(wp.tile(frac))[0]
-    if lane == 0:
-        ess_out[b, N_TEMPER] = frac
-    for g in range(N_TEMPER):
-        big = wp.float64(-1.0e300)
-        for c in range(lane, N_CHUNKS, bd):
-            big = wp.max(big, partial_in[b, c, g, 0])
-        big = wp.tile_max(wp.tile(big))[0]
-        s1 = wp.float64(0.0)
-        s2 = wp.float64(0.0)
-        for c in range(lane, N_CHUNKS, bd):
-            scale = wp.exp(partial_in[b, c, g, 0] - big)
-            s1 += partial_in[b, c, g, 1] * scale
-            s2 += partial_in[b, c, g, 2] * scale * scale
-        s = wp.tile_sum(wp.tile(wp.vec2d(s1, s2), preserve_type=True))[0]
-        if lane == 0:
-            ess_out[b, g] = s[0] * s[0] / s[1]
-
-
 @wp.kernel
-def temper_ess_kernel(partial_in: wp.array4d(dtype=wp.float64), unpred_in: wp.array2d(dtype=wp.float64),
-                      ess_out: wp.array2d(dtype=wp.float64)):
-    """One block per filter (``wp.launch_tiled``; :data:`~warptan.kernels.filter.blocks.STAGE_BLOCK_DIM` lanes on
-    CUDA, the stage block's, so that both forms give the same bits): :func:`temper_ess_lanes`."""
-    b, lane = wp.tid()
-    temper_ess_lanes(b, lane, partial_in, unpred_in, ess_out)
+def temper_ess_kernel(partial_in: wp.array4d(dtype=wp.float64), ess_out: wp.array2d(dtype=wp.float64)):
+    """Filter b, candidate g: :func:`temper_ess_of`."""
+    b, g = wp.tid()
+    temper_ess_of(b, g, partial_in, ess_out)
 
 
 @wp.kernel
@@ -221,7 +176,6 @@ def temper_search_kernel(
         temper_ess_of(b, g, partial_out, ess_out)
         if params.temper_ess <= 0.0 or ess_out[b, g] >= target:
             break
-    unpredictable_of(b, unpred_out, ess_out)
 
 
 @wp.func
@@ -233,13 +187,14 @@ def temper_select(
     params: UpdateParams,
     meta: wp.array2d(dtype=wp.float32),
     ess_in: wp.array2d(dtype=wp.float64),
+    unpred_in: wp.array2d(dtype=wp.float64),
     stats: wp.array2d(dtype=wp.float64),
 ):
     """One thread per filter: this stage's exponent, the largest candidate that keeps ESS ≥ ``temper_ess · n``
     (the smallest candidate when none does; all that remains when ``temper_ess`` is 0). At stage 0 an update
     with no valid received point, or one whose predictions are mostly impossible (``max_unpredictable``: the
-    map does not cover the scan; the weighted fraction ``ess_in[b, N_TEMPER]``), is skipped: exponent 0. At the
-    last stage what remains is dropped (the update is then softer than the likelihood, never sharper)."""
+    map does not cover the scan), is skipped: exponent 0. At the last stage what remains is dropped (the
+    update is then softer than the likelihood, never sharper)."""
     rem = stats[b, ST_REMAIN]
     stats[b, ST_RESAMPLE] = wp.float64(0.0)
     stats[b, ST_GAMMA] = wp.float64(0.0)
@@ -249,7 +204,9 @@ def temper_select(
         return
     stats[b, ST_ACTIVE] = wp.float64(1.0)
     if stage == 0:
-        frac = ess_in[b, N_TEMPER]
+        frac = wp.float64(0.0)
+        for c in range(N_CHUNKS):
+            frac += unpred_in[b, c]
         if meta[b, META_RECEIVED] <= 0.0 or frac > wp.float64(params.max_unpredictable):
             stats[b, ST_SKIP] = wp.float64(1.0)
             stats[b, ST_REMAIN] = wp.float64(0.0)
@@ -282,8 +239,9 @@ def temper_select_kernel(
     params: UpdateParams,
     meta: wp.array2d(dtype=wp.float32),
     ess_in: wp.array2d(dtype=wp.float64),
+    unpred_in: wp.array2d(dtype=wp.float64),
     stats: wp.array2d(dtype=wp.float64),
 ):
     """One thread per (b): :func:`temper_select`."""
     b = wp.tid()
-    temper_select(b, n_per, stage, last_stage, params, meta, ess_in, stats)
+    temper_select(b, n_per, stage, last_stage, params, meta, ess_in, unpred_in, stats)

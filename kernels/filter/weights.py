@@ -127,28 +127,6 @@ def max_of_partials(b: int, max_in: wp.array2d(dtype=wp.float32), counts_in: wp.
     stats[b, ST_MAX] = wp.float64(m)
 
 
-@wp.func
-def max_of_partials_lanes(b: int, lane: int, max_in: wp.array2d(dtype=wp.float32),
-                          counts_in: wp.array3d(dtype=wp.int32), min_nis_in: wp.array2d(dtype=wp.float32),
-                          stats: wp.array2d(dtype=wp.float64)):
-    """:func:`max_of_partials` over the lanes of a block (``wp.launch_tiled``): each lane its own chunks (those of
-    its :func:`add_loglik_partial`, so no barrier between), then the block's maximum and sums. Maxima, minima and
-    integer sums do not depend on the order: the same bits as the one-thread form. Every lane must call it; lane 0
-    writes the statistics."""
-    ext = wp.vec2f(-1.0e38, -1.0e38)  # (max, -min): the chunks' own starting values
-    counts = wp.vec2i()
-    for k in range(lane, N_CHUNKS, wp.block_dim()):
-        ext = wp.max(ext, wp.vec2f(max_in[b, k], -min_nis_in[b, k]))
-        counts += wp.vec2i(counts_in[b, k, 0], counts_in[b, k, 1])
-    ext = wp.tile_reduce(wp.max, wp.tile(ext, preserve_type=True))[0]
-    counts = wp.tile_sum(wp.tile(counts, preserve_type=True))[0]
-    if lane == 0 and stats[b, ST_ACTIVE] != wp.float64(0.0):
-        stats[b, ST_NIS_MIN] = wp.float64(-ext[1])
-        stats[b, ST_BAD] = wp.float64(counts[0])
-        stats[b, ST_UNPREDICTABLE] = wp.float64(counts[1])
-        stats[b, ST_MAX] = wp.float64(ext[0])
-
-
 @wp.kernel
 def max_of_partials_kernel(max_in: wp.array2d(dtype=wp.float32), counts_in: wp.array3d(dtype=wp.int32),
                            min_nis_in: wp.array2d(dtype=wp.float32), stats: wp.array2d(dtype=wp.float64)):

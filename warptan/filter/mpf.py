@@ -319,7 +319,7 @@ class MarginalizedParticleFilter(ImuIntake):
         self._summary_sums = wp.empty((b, kmpf.N_CHUNKS, kmpf.N_SUMMARY_SUMS), dtype=wp.float64, device=d)
         self._temper_partials = wp.empty((b, kmpf.N_CHUNKS, kmpf.N_TEMPER, 3), dtype=wp.float64, device=d)
         self._unpred_partials = wp.empty((b, kmpf.N_CHUNKS), dtype=wp.float64, device=d)
-        self._temper_ess = wp.empty((b, kmpf.N_TEMPER + 1), dtype=wp.float64, device=d)  # + unpredictable
+        self._temper_ess = wp.empty((b, kmpf.N_TEMPER), dtype=wp.float64, device=d)
         self._integrity = wp.zeros((b, kmpf.N_INTEGRITY), dtype=wp.float64, device=d)
         self._more_stages = wp.zeros(1, dtype=wp.int32, device=d)
         self._cdf_sums = wp.empty((b, kmpf.N_CHUNKS), dtype=wp.float64, device=d)

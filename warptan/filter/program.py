@@ -219,12 +219,12 @@ class UpdateProgram:
                             self._chunk_counts, self._chunk_min_nis, self._chunk_sums, st.logw, self._stats,
                             self._kernel_chol, st.lin], block_dim=kmpf.STAGE_BLOCK_DIM, device=d)
             return
-        if not d.is_cpu:  # (the stage block's lanes: the same bits)
-            launch(kmpf.temper_ess_kernel, dim=[b], inputs=[self._temper_partials, self._unpred_partials],
-                   outputs=[self._temper_ess], block_dim=kmpf.STAGE_BLOCK_DIM, device=d)
+        if not d.is_cpu:
+            launch(kmpf.temper_ess_kernel, dim=(b, kmpf.N_TEMPER), inputs=[self._temper_partials],
+                   outputs=[self._temper_ess], device=d)
         launch(kmpf.temper_select_kernel, dim=b,
-                  inputs=[n, stage, int(stage == self.max_stages - 1), self.params, out.meta, self._temper_ess],
-                  outputs=[self._stats], device=d)
+                  inputs=[n, stage, int(stage == self.max_stages - 1), self.params, out.meta, self._temper_ess,
+                          self._unpred_partials], outputs=[self._stats], device=d)
         launch(kmpf.add_loglik_partials_kernel, dim=(b, kmpf.N_CHUNKS),
                   inputs=[n, out.loglik, out.n_valid, out.meta, self._stats, out.nis],
                   outputs=[st.logw, self._chunk_max, self._chunk_counts, self._chunk_min_nis], device=d)
