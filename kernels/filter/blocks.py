@@ -4,7 +4,7 @@ resampling, the update's head and tail."""
 import warp as wp
 
 from warptan.kernels.block import block_sync
-from warptan.kernels.filter.common import N_CHUNKS, N_TEMPER, UpdateParams, vec12
+from warptan.kernels.filter.common import N_CHUNKS, N_TEMPER, ST_REMAIN, UpdateParams, vec12
 from warptan.kernels.filter.integrity import integrity_step, respread_particle
 from warptan.kernels.filter.moves import move_particle, pose_of_particle
 from warptan.kernels.filter.record import record_summary, reset_particle, summary_partial, update_covariance_lanes
@@ -63,6 +63,7 @@ def stage_block_kernel(
     stats: wp.array2d(dtype=wp.float64),
     kernel_chol: wp.array(dtype=wp.mat33),
     lin: wp.array(dtype=vec12),
+    more: wp.array(dtype=wp.int32),
 ):
     """One tempering stage of filter b after :data:`temper_partials_kernel`, in one CUDA block (``wp.launch_tiled``,
     :data:`STAGE_BLOCK_DIM` lanes): the pieces of :data:`temper_ess_kernel`, :data:`temper_select_kernel`,
@@ -74,6 +75,8 @@ def stage_block_kernel(
     filter, which 64 lanes would run 20 deep."""
     b, lane = wp.tid()
     bd = wp.block_dim()
+    if b == 0 and lane == 0:  # (the resampling after sets it: :data:`resample_block_kernel`)
+        more[0] = 0
     for g in range(lane, N_TEMPER, bd):
         temper_ess_of(b, g, partials, ess)
     block_sync()
@@ -116,10 +119,17 @@ def resample_block_kernel(
     dp_spare: wp.array(dtype=wp.vec3),
     lin_spare: wp.array(dtype=vec12),
     logw_spare: wp.array(dtype=wp.float32),
+    pose: wp.array2d(dtype=wp.float64),
+    pos_out: wp.array(dtype=wp.vec3),
+    quat_out: wp.array(dtype=wp.vec4),
+    more: wp.array(dtype=wp.int32),
 ):
     """Resampling of filter b in one CUDA block (:data:`RESAMPLE_BLOCK_DIM` lanes): :data:`cdf_partials_kernel`,
     :data:`cdf_kernel`, :data:`ancestors_kernel`, :data:`gather_kernel` (into the spare arrays) and
-    :data:`copy_particles_kernel` (back), a barrier between them; the same bits in one launch instead of five."""
+    :data:`copy_particles_kernel` (back), a barrier between them; the same bits in one launch instead of five. Then
+    what the next stage would launch before its model: the particles' poses (:data:`particle_poses_kernel`, each
+    lane its own particles) and, when the filter has exponent left, ``more[0] = 1`` (:data:`more_stages_kernel`'s
+    flag, which :data:`stage_block_kernel` cleared): two graph nodes fewer a stage."""
     b, lane = wp.tid()
     bd = wp.block_dim()
     for c in range(lane, N_CHUNKS, bd):
@@ -137,6 +147,9 @@ def resample_block_kernel(
     block_sync()
     for k in range(lane, n_per, bd):
         copy_particle(b * n_per + k, dp_spare, lin_spare, logw_spare, dp, lin, logw)
+        pose_of_particle(b * n_per + k, n_per, pose, dp, lin, pos_out, quat_out)
+    if lane == 0 and stats[b, ST_REMAIN] > wp.float64(0.0):
+        more[0] = 1
 
 
 @wp.kernel
@@ -164,6 +177,20 @@ def move_pose_kernel(
         begin_stats(i // n_per, exponent, stats)
 
 
+@wp.func
+def integrity_lanes(b: int, lane: int, n_per: int, offset: int, seeds: wp.array(dtype=wp.int32), params: UpdateParams,
+                    stats: wp.array2d(dtype=wp.float64), integrity: wp.array2d(dtype=wp.float64),
+                    kernel_chol: wp.array(dtype=wp.mat33), dp: wp.array(dtype=wp.vec3),
+                    logw: wp.array(dtype=wp.float32)):
+    """Filter b's integrity monitor over the lanes of its block: :func:`integrity_step` (lane 0), a barrier,
+    :func:`respread_particle` (every lane must call it)."""
+    if lane == 0:
+        integrity_step(b, params, stats, integrity, kernel_chol)
+    block_sync()
+    for k in range(lane, n_per, wp.block_dim()):
+        respread_particle(b * n_per + k, n_per, offset, seeds, params, stats, dp, logw)
+
+
 @wp.kernel
 def integrity_block_kernel(
     n_per: int,
@@ -180,11 +207,7 @@ def integrity_block_kernel(
     (lane 0), a barrier, :func:`respread_particle` (:data:`integrity_kernel` + :data:`respread_kernel`, the same
     bits)."""
     b, lane = wp.tid()
-    if lane == 0:
-        integrity_step(b, params, stats, integrity, kernel_chol)
-    block_sync()
-    for k in range(lane, n_per, wp.block_dim()):
-        respread_particle(b * n_per + k, n_per, offset, seeds, params, stats, dp, logw)
+    integrity_lanes(b, lane, n_per, offset, seeds, params, stats, integrity, kernel_chol, dp, logw)
 
 
 @wp.kernel
@@ -193,6 +216,10 @@ def record_block_kernel(
     params: UpdateParams,
     measurement_update: int,
     closed_loop: int,
+    with_integrity: int,
+    offset: int,
+    seeds: wp.array(dtype=wp.int32),
+    kernel_chol: wp.array(dtype=wp.mat33),
     logw: wp.array(dtype=wp.float32),
     stats: wp.array2d(dtype=wp.float64),
     integrity: wp.array2d(dtype=wp.float64),
@@ -213,12 +240,16 @@ def record_block_kernel(
     lin: wp.array(dtype=vec12),
 ):
     """The record and feedback of filter b in one CUDA block (:data:`STAGE_BLOCK_DIM` lanes, so the block sum is
-    :data:`summary_kernel`'s): :func:`summary_partial` (lane per chunk), :func:`record_summary`,
-    :func:`update_covariance_lanes` and in closed loop :func:`reset_particle`, barriers between
-    (:data:`summary_partials_kernel`, :data:`summary_kernel`, :data:`covariance_update_kernel`,
+    :data:`summary_kernel`'s): with ``with_integrity`` first :data:`integrity_block_kernel`'s work (when no map-error
+    mode runs between them: one graph node fewer), then :func:`summary_partial` (lane per chunk),
+    :func:`record_summary`, :func:`update_covariance_lanes` and in closed loop :func:`reset_particle`, barriers
+    between (:data:`summary_partials_kernel`, :data:`summary_kernel`, :data:`covariance_update_kernel`,
     :data:`reset_kernel`: the same bits). The slot advances after, in a launch of its own (every filter reads it)."""
     b, lane = wp.tid()
     bd = wp.block_dim()
+    if with_integrity != 0:  # (the same for every lane of the block: its barriers are reached by all)
+        integrity_lanes(b, lane, n_per, offset, seeds, params, stats, integrity, kernel_chol, dp, logw)
+        block_sync()
     for c in range(lane, N_CHUNKS, bd):
         summary_partial(b, c, n_per, logw, dp, lin, summary_sums)
     block_sync()

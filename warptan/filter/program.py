@@ -217,7 +217,7 @@ class UpdateProgram:
                            self._feedback, self._dev["p_col"]],
                    outputs=[self._temper_partials, self._unpred_partials, self._temper_ess, self._chunk_max,
                             self._chunk_counts, self._chunk_min_nis, self._chunk_sums, st.logw, self._stats,
-                            self._kernel_chol, st.lin], block_dim=kmpf.STAGE_BLOCK_DIM, device=d)
+                            self._kernel_chol, st.lin, self._more_stages], block_dim=kmpf.STAGE_BLOCK_DIM, device=d)
             return
         if not d.is_cpu:
             launch(kmpf.temper_ess_kernel, dim=(b, kmpf.N_TEMPER), inputs=[self._temper_partials],
@@ -269,7 +269,8 @@ class UpdateProgram:
         if self._block_stages:  # CUDA: the five pieces in one block per filter (same bits)
             launch(kmpf.resample_block_kernel, dim=[b], inputs=[n, stage, seeds, self.scheme, self.params, self._stats],
                    outputs=[self._cdf_sums, self._cdf, self._ancestors, st.dp, st.lin, st.logw, sp.dp, sp.lin,
-                            sp.logw], block_dim=kmpf.RESAMPLE_BLOCK_DIM, device=d)
+                            sp.logw, self._dev["pose"], self._pos, self._quat, self._more_stages],
+                   block_dim=kmpf.RESAMPLE_BLOCK_DIM, device=d)
         else:
             launch(kmpf.cdf_partials_kernel, dim=(b, kmpf.N_CHUNKS), inputs=[n, st.logw, self._stats],
                    outputs=[self._cdf_sums], device=d)
@@ -367,7 +368,9 @@ class UpdateProgram:
         ran (a converged update pays one test, not ``max_stages - 1``)."""
         if stage >= self.max_stages:
             return
-        launch(kmpf.more_stages_kernel, dim=1, inputs=[self._stats], outputs=[self._more_stages], device=self.device)
+        if not self._block_stages:  # (the block forms set the flag: :data:`~warptan.kernels.mpf.resample_block_kernel`)
+            launch(kmpf.more_stages_kernel, dim=1, inputs=[self._stats], outputs=[self._more_stages],
+                   device=self.device)
         wp.capture_if(self._more_stages, on_true=self._stage_then_more, out=out, stage=stage)
 
     def _stage_then_more(self, out, stage: int) -> None:
@@ -406,9 +409,10 @@ class UpdateProgram:
         self._launch_stage(out, stage)
 
     def _extra_stage(self, out, stage: int) -> None:
-        """A tempering stage after the first (graph path): poses and model at the moved particles, weights,
-        resampling."""
-        self._launch_poses()
+        """A tempering stage after the first (graph path): poses (which the block form of the last resampling
+        wrote) and model at the moved particles, weights, resampling."""
+        if not self._block_stages:
+            self._launch_poses()
         self.model.launch(self._pos, self._quat)
         self._launch_stage(out, stage)
         self._launch_resample(stage)
@@ -425,13 +429,16 @@ class UpdateProgram:
             self._launch_record()
             return
         d, b, n, st, nav = self.device, self.n_filters, self.n, self.state, self._nav
-        launch(kmpf.integrity_block_kernel, dim=[b],
-               inputs=[n, 2 * n * self.max_stages, self._dev["resample_seeds"], self.params, self._stats],
-               outputs=[self._integrity, self._kernel_chol, st.dp, st.logw], block_dim=kmpf.STAGE_BLOCK_DIM, device=d)
-        self._launch_modes()
+        offset, seeds = 2 * n * self.max_stages, self._dev["resample_seeds"]
+        modes = self._mode_table() is not None  # (the modes run between the integrity monitor and the record)
+        if modes:
+            launch(kmpf.integrity_block_kernel, dim=[b], inputs=[n, offset, seeds, self.params, self._stats],
+                   outputs=[self._integrity, self._kernel_chol, st.dp, st.logw], block_dim=kmpf.STAGE_BLOCK_DIM,
+                   device=d)
+            self._launch_modes()
         launch(kmpf.record_block_kernel, dim=[b],
-               inputs=[n, self.params, int(self.measurement_update), int(self.closed_loop), st.logw, self._stats,
-                       self._integrity, self._slot],
+               inputs=[n, self.params, int(self.measurement_update), int(self.closed_loop), int(not modes), offset,
+                       seeds, self._kernel_chol, st.logw, self._stats, self._integrity, self._slot],
                outputs=[self._summary_sums, self._history, self._feedback, nav["cov"], nav["pos"], nav["vel"],
                         nav["quat"], nav["ba"], nav["bg"], self._injections, self._nominal_hist, self._p_hist, st.dp,
                         st.lin], block_dim=kmpf.STAGE_BLOCK_DIM, device=d)
