@@ -4,33 +4,17 @@ resampling, the update's head and tail."""
 import warp as wp
 
 from warptan.kernels.block import block_sync
-from warptan.kernels.filter.common import (
-    N_CHUNKS,
-    N_ESS_PARTS,
-    N_MAX_PARTS,
-    N_TEMPER,
-    N_UNPRED_PARTS,
-    ST_REMAIN,
-    UpdateParams,
-    vec12,
-)
+from warptan.kernels.filter.common import N_CHUNKS, N_TEMPER, ST_REMAIN, UpdateParams, vec12
 from warptan.kernels.filter.integrity import integrity_step, respread_particle
 from warptan.kernels.filter.moves import move_particle, pose_of_particle
 from warptan.kernels.filter.record import record_summary, reset_particle, summary_partial, update_covariance_lanes
 from warptan.kernels.filter.resampling import ancestor, cdf_chunk, cdf_partial, copy_particle, gather
-from warptan.kernels.filter.tempering import (
-    begin_stats,
-    temper_ess_combine,
-    temper_ess_part,
-    temper_select,
-    unpredictable_part,
-)
+from warptan.kernels.filter.tempering import begin_stats, temper_ess_of, temper_select
 from warptan.kernels.filter.weights import (
     add_loglik_partial,
     exp_partial,
     kalman_update,
     max_of_partials,
-    max_of_partials_part,
     normalize_weight,
     weight_stats,
 )
@@ -87,24 +71,14 @@ def stage_block_kernel(
     :data:`weight_stats_kernel`, :data:`normalize_weights_kernel` and (``kalman``) :data:`kalman_update_kernel`, in
     that order, the block's lanes sharing each one's threads with a barrier between them: the same functions on the
     same values (the same bits) in one launch instead of eight, each of which cost a graph node's few µs for a few
-    hundred particles. The loops over the 64 chunks run in parts the lanes take side by side, then combined (the
-    candidates' ESS: :func:`temper_ess_part`, the unpredictable fraction: :func:`unpredictable_part`, the maxima:
-    :func:`max_of_partials_part`; the one-thread forms add the same parts): 20 lanes each looping over the 64 chunks
-    for the ESS took 10.5 µs of the block's 25 µs on an H100, lane 0's maxima 2.6 µs. (Tile reductions instead cost
-    0.4 µs each: 42 of them made the block slower.) The candidates' partials stay a launch of their own: 1 280
-    float64 log-sum-exp streams a filter, which 64 lanes would run 20 deep."""
+    hundred particles. The candidates' partials stay a launch of their own: 1 280 float64 log-sum-exp streams a
+    filter, which 64 lanes would run 20 deep."""
     b, lane = wp.tid()
     bd = wp.block_dim()
     if b == 0 and lane == 0:  # (the resampling after sets it: :data:`resample_block_kernel`)
         more[0] = 0
-    for k in range(lane, N_TEMPER * N_ESS_PARTS, bd):
-        temper_ess_part(b, k % N_TEMPER, k // N_TEMPER, partials)
-    block_sync()
-    for k in range(lane, N_TEMPER + N_UNPRED_PARTS, bd):
-        if k < N_TEMPER:
-            temper_ess_combine(b, k, partials, ess)
-        elif stage == 0:
-            unpredictable_part(b, k - N_TEMPER, unpred)
+    for g in range(lane, N_TEMPER, bd):
+        temper_ess_of(b, g, partials, ess)
     block_sync()
     if lane == 0:
         temper_select(b, n_per, stage, last_stage, params, meta, ess, unpred, stats)
@@ -113,11 +87,8 @@ def stage_block_kernel(
         add_loglik_partial(b, c, n_per, loglik, n_valid, meta, stats, nis, logw, chunk_max, chunk_counts,
                            chunk_min_nis)
     block_sync()
-    for j in range(lane, N_MAX_PARTS, bd):
-        max_of_partials_part(b, j, chunk_max, chunk_counts, chunk_min_nis)
-    block_sync()
     if lane == 0:
-        max_of_partials(b, N_MAX_PARTS, chunk_max, chunk_counts, chunk_min_nis, stats)
+        max_of_partials(b, chunk_max, chunk_counts, chunk_min_nis, stats)
     block_sync()
     for c in range(lane, N_CHUNKS, bd):
         exp_partial(b, c, n_per, logw, dp, nis, lam, with_ip, info_pos, stats, chunk_sums)

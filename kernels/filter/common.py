@@ -39,15 +39,6 @@ NOM_BG = wp.constant(13)
 N_NOMINAL = 16
 N_TEMPER = wp.constant(20)
 """Candidate exponents of a tempering stage: ``γ_k = remaining · TEMPER_RATIO^k``."""
-N_ESS_PARTS = wp.constant(3)
-"""Parts a candidate's ESS is summed in over the chunks (chunk ``c`` in part ``c mod N_ESS_PARTS``), then combined,
-in every form: the stage block's lanes take a (candidate, part) each (60 of its 64), a third of the chunks each."""
-N_UNPRED_PARTS = wp.constant(8)
-"""Parts the unpredictable fraction is summed in over the chunks (chunk ``c`` in part ``c mod N_UNPRED_PARTS``)
-before :func:`~warptan.kernels.filter.tempering.temper_select` adds them, in every form."""
-N_MAX_PARTS = wp.constant(8)
-"""Parts the stage block takes the log-weights' maximum and counts in over the chunks before lane 0 combines them
-(order-free: the same values as one pass)."""
 JITTER_NIS = wp.constant(1.0)
 """A model that cannot fix the position with one measurement (the altimeter: a contour per reading) is found from the
 accumulated profile, which each particle's weight carries; a resampled particle keeps its ancestor's weight, which

@@ -5,10 +5,8 @@ import warp as wp
 
 from warptan.kernels.filter.common import (
     N_CHUNKS,
-    N_ESS_PARTS,
     N_STATS,
     N_TEMPER,
-    N_UNPRED_PARTS,
     ST_ACTIVE,
     ST_APPLIED,
     ST_GAMMA,
@@ -128,75 +126,25 @@ def temper_partials_kernel(
 
 
 @wp.func
-def temper_ess_part(b: int, g: int, part: int, partial_io: wp.array4d(dtype=wp.float64)):
-    """Candidate g of filter b over the chunks ``part, part + N_ESS_PARTS, ...``: their maximum, then their
-    streaming partials rescaled to it and summed in order, written over chunk ``part``'s (no other part reads it)."""
-    big = partial_io[b, part, g, 0]
-    for c in range(part + N_ESS_PARTS, N_CHUNKS, N_ESS_PARTS):
-        big = wp.max(big, partial_io[b, c, g, 0])
-    s1 = wp.float64(0.0)
-    s2 = wp.float64(0.0)
-    for c in range(part, N_CHUNKS, N_ESS_PARTS):
-        scale = wp.exp(partial_io[b, c, g, 0] - big)
-        s1 += partial_io[b, c, g, 1] * scale
-        s2 += partial_io[b, c, g, 2] * scale * scale
-    partial_io[b, part, g, 0] = big
-    partial_io[b, part, g, 1] = s1
-    partial_io[b, part, g, 2] = s2
-
-
-@wp.func
-def temper_ess_combine(b: int, g: int, partial_in: wp.array4d(dtype=wp.float64),
-                       ess_out: wp.array2d(dtype=wp.float64)):
-    """The ESS candidate g of filter b would leave, from its :data:`N_ESS_PARTS` parts (:func:`temper_ess_part`)."""
+def temper_ess_of(b: int, g: int, partial_in: wp.array4d(dtype=wp.float64), ess_out: wp.array2d(dtype=wp.float64)):
+    """The ESS candidate g of filter b would leave, from the chunks' streaming partials."""
     big = partial_in[b, 0, g, 0]
-    for part in range(1, N_ESS_PARTS):
-        big = wp.max(big, partial_in[b, part, g, 0])
+    for c in range(N_CHUNKS):
+        big = wp.max(big, partial_in[b, c, g, 0])
     s1 = wp.float64(0.0)
     s2 = wp.float64(0.0)
-    for part in range(N_ESS_PARTS):
-        scale = wp.exp(partial_in[b, part, g, 0] - big)
-        s1 += partial_in[b, part, g, 1] * scale
-        s2 += partial_in[b, part, g, 2] * scale * scale
+    for c in range(N_CHUNKS):
+        scale = wp.exp(partial_in[b, c, g, 0] - big)
+        s1 += partial_in[b, c, g, 1] * scale
+        s2 += partial_in[b, c, g, 2] * scale * scale
     ess_out[b, g] = s1 * s1 / s2
 
 
-@wp.func
-def temper_ess_of(b: int, g: int, partial_io: wp.array4d(dtype=wp.float64), ess_out: wp.array2d(dtype=wp.float64)):
-    """The ESS candidate g of filter b would leave, from the chunks' streaming partials: its parts one after the
-    other, then combined (what the stage block's lanes compute side by side: the same values; the partials of
-    chunks ``0 .. N_ESS_PARTS - 1`` are overwritten)."""
-    for part in range(N_ESS_PARTS):
-        temper_ess_part(b, g, part, partial_io)
-    temper_ess_combine(b, g, partial_io, ess_out)
-
-
-@wp.func
-def unpredictable_part(b: int, j: int, unpred_io: wp.array2d(dtype=wp.float64)):
-    """The unpredictable fraction's chunks ``j, j + N_UNPRED_PARTS, ...`` summed in order, written over chunk j's
-    (:func:`temper_select` adds the parts)."""
-    frac = unpred_io[b, j]
-    for c in range(j + N_UNPRED_PARTS, N_CHUNKS, N_UNPRED_PARTS):
-        frac += unpred_io[b, c]
-    unpred_io[b, j] = frac
-
-
-@wp.func
-def unpredictable_parts(b: int, unpred_io: wp.array2d(dtype=wp.float64)):
-    """One thread: every part of :func:`unpredictable_part` (the stage block's lanes do them side by side)."""
-    for j in range(N_UNPRED_PARTS):
-        unpredictable_part(b, j, unpred_io)
-
-
 @wp.kernel
-def temper_ess_kernel(stage: int, partial_io: wp.array4d(dtype=wp.float64), unpred_io: wp.array2d(dtype=wp.float64),
-                      ess_out: wp.array2d(dtype=wp.float64)):
-    """Filter b, candidate g: :func:`temper_ess_of`; at stage 0 candidate 0's thread also sums the unpredictable
-    fraction's parts (:func:`unpredictable_parts`)."""
+def temper_ess_kernel(partial_in: wp.array4d(dtype=wp.float64), ess_out: wp.array2d(dtype=wp.float64)):
+    """Filter b, candidate g: :func:`temper_ess_of`."""
     b, g = wp.tid()
-    temper_ess_of(b, g, partial_io, ess_out)
-    if g == 0 and stage == 0:
-        unpredictable_parts(b, unpred_io)
+    temper_ess_of(b, g, partial_in, ess_out)
 
 
 @wp.kernel
@@ -228,8 +176,6 @@ def temper_search_kernel(
         temper_ess_of(b, g, partial_out, ess_out)
         if params.temper_ess <= 0.0 or ess_out[b, g] >= target:
             break
-    if stage == 0:
-        unpredictable_parts(b, unpred_out)
 
 
 @wp.func
@@ -259,8 +205,8 @@ def temper_select(
     stats[b, ST_ACTIVE] = wp.float64(1.0)
     if stage == 0:
         frac = wp.float64(0.0)
-        for j in range(N_UNPRED_PARTS):  # (the parts: :func:`unpredictable_part`)
-            frac += unpred_in[b, j]
+        for c in range(N_CHUNKS):
+            frac += unpred_in[b, c]
         if meta[b, META_RECEIVED] <= 0.0 or frac > wp.float64(params.max_unpredictable):
             stats[b, ST_SKIP] = wp.float64(1.0)
             stats[b, ST_REMAIN] = wp.float64(0.0)

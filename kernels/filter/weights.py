@@ -8,7 +8,6 @@ from warptan.kernels.filter.common import (
     JITTER_NIS,
     N_CHUNK_SUMS,
     N_CHUNKS,
-    N_MAX_PARTS,
     ST_ACTIVE,
     ST_APPLIED,
     ST_BAD,
@@ -107,19 +106,17 @@ def add_loglik_partials_kernel(
 
 
 @wp.func
-def max_of_partials(b: int, n_chunks: int, max_in: wp.array2d(dtype=wp.float32),
-                    counts_in: wp.array3d(dtype=wp.int32), min_nis_in: wp.array2d(dtype=wp.float32),
-                    stats: wp.array2d(dtype=wp.float64)):
+def max_of_partials(b: int, max_in: wp.array2d(dtype=wp.float32), counts_in: wp.array3d(dtype=wp.int32),
+                    min_nis_in: wp.array2d(dtype=wp.float32), stats: wp.array2d(dtype=wp.float64)):
     """One thread per active filter: the maximum log-weight, bad log-likelihoods, unpredictable particles, the
-    smallest NIS, over the first ``n_chunks`` chunks' partials (all of them, or the stage block's parts:
-    :func:`max_of_partials_part`; maxima, minima and integer sums do not depend on the order)."""
+    smallest NIS."""
     if stats[b, ST_ACTIVE] == wp.float64(0.0):
         return
     m = max_in[b, 0]
     least = min_nis_in[b, 0]
     bad = int(0)
     unpredictable = int(0)
-    for k in range(n_chunks):
+    for k in range(N_CHUNKS):
         m = wp.max(m, max_in[b, k])
         least = wp.min(least, min_nis_in[b, k])
         bad += counts_in[b, k, 0]
@@ -130,32 +127,12 @@ def max_of_partials(b: int, n_chunks: int, max_in: wp.array2d(dtype=wp.float32),
     stats[b, ST_MAX] = wp.float64(m)
 
 
-@wp.func
-def max_of_partials_part(b: int, j: int, max_io: wp.array2d(dtype=wp.float32), counts_io: wp.array3d(dtype=wp.int32),
-                         min_nis_io: wp.array2d(dtype=wp.float32)):
-    """Chunks ``j, j + N_MAX_PARTS, ...``: their maximum, counts and smallest NIS, written over chunk j's (no other
-    part reads it)."""
-    m = max_io[b, j]
-    least = min_nis_io[b, j]
-    bad = counts_io[b, j, 0]
-    unpredictable = counts_io[b, j, 1]
-    for k in range(j + N_MAX_PARTS, N_CHUNKS, N_MAX_PARTS):
-        m = wp.max(m, max_io[b, k])
-        least = wp.min(least, min_nis_io[b, k])
-        bad += counts_io[b, k, 0]
-        unpredictable += counts_io[b, k, 1]
-    max_io[b, j] = m
-    min_nis_io[b, j] = least
-    counts_io[b, j, 0] = bad
-    counts_io[b, j, 1] = unpredictable
-
-
 @wp.kernel
 def max_of_partials_kernel(max_in: wp.array2d(dtype=wp.float32), counts_in: wp.array3d(dtype=wp.int32),
                            min_nis_in: wp.array2d(dtype=wp.float32), stats: wp.array2d(dtype=wp.float64)):
     """One thread per (b): :func:`max_of_partials`."""
     b = wp.tid()
-    max_of_partials(b, N_CHUNKS, max_in, counts_in, min_nis_in, stats)
+    max_of_partials(b, max_in, counts_in, min_nis_in, stats)
 
 
 @wp.func

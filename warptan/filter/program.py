@@ -220,8 +220,8 @@ class UpdateProgram:
                             self._kernel_chol, st.lin, self._more_stages], block_dim=kmpf.STAGE_BLOCK_DIM, device=d)
             return
         if not d.is_cpu:
-            launch(kmpf.temper_ess_kernel, dim=(b, kmpf.N_TEMPER), inputs=[stage],
-                   outputs=[self._temper_partials, self._unpred_partials, self._temper_ess], device=d)
+            launch(kmpf.temper_ess_kernel, dim=(b, kmpf.N_TEMPER), inputs=[self._temper_partials],
+                   outputs=[self._temper_ess], device=d)
         launch(kmpf.temper_select_kernel, dim=b,
                   inputs=[n, stage, int(stage == self.max_stages - 1), self.params, out.meta, self._temper_ess,
                           self._unpred_partials], outputs=[self._stats], device=d)
