@@ -60,7 +60,7 @@ from __future__ import annotations
 
 import warp as wp
 
-from warptan.filter.records import step_seed
+from warptan.filter.records import step_seed, step_seed_int
 from warptan.kernels import likelihood as klik
 from warptan.kernels import mpf as kmpf
 from warptan.kernels import nav as knav
@@ -77,9 +77,17 @@ class UpdateProgram:
     def _stage_interval(self) -> None:
         """Host part of an interval (O(B)): the sample count and the interval's seeds next to the buffered samples."""
         ints = self._ints_np[self._set]
-        ints[:, knav.INT_STEPS] = self._k
-        ints[:, knav.INT_MOVE_SEED] = step_seed(self.seeds, self.n_imu_steps, _STREAM_MOVE)
-        ints[:, knav.INT_RESAMPLE_SEED] = step_seed(self.seeds, self.n_updates + 1, _STREAM_RESAMPLE)
+        if ints.shape[0] == 1:  # one filter: Python integers, one row written (5.9 -> ~2 µs a step on the CPU)
+            row = [0] * knav.N_INTS
+            seed = int(self.seeds[0])
+            row[knav.INT_STEPS] = self._k
+            row[knav.INT_MOVE_SEED] = step_seed_int(seed, self.n_imu_steps, _STREAM_MOVE)
+            row[knav.INT_RESAMPLE_SEED] = step_seed_int(seed, self.n_updates + 1, _STREAM_RESAMPLE)
+            ints[0] = row
+        else:
+            ints[:, knav.INT_STEPS] = self._k
+            ints[:, knav.INT_MOVE_SEED] = step_seed(self.seeds, self.n_imu_steps, _STREAM_MOVE)
+            ints[:, knav.INT_RESAMPLE_SEED] = step_seed(self.seeds, self.n_updates + 1, _STREAM_RESAMPLE)
         self._interval_k = self._k
         self._k = 0
 

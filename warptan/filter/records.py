@@ -15,7 +15,7 @@ from warptan.nav.ins import NavState
 _MASK64 = (1 << 64) - 1
 
 
-def _step_seed_int(seed: int, counter: int, stream: int) -> int:
+def step_seed_int(seed: int, counter: int, stream: int) -> int:
     """:func:`step_seed` of one seed in Python integers (the same 64-bit wrap-around)."""
     x = (seed * 0x9E3779B97F4A7C15 + counter * 0xBF58476D1CE4E5B9 + stream * 0x94D049BB133111EB) & _MASK64
     x ^= x >> 31
@@ -31,8 +31,8 @@ def step_seed(seed, counter: int, stream: int):
     arr = np.asarray(seed)
     if arr.size <= 8 and arr.dtype.kind in "iu":
         if arr.ndim == 0:
-            return _step_seed_int(int(arr), int(counter), int(stream))
-        return np.array([_step_seed_int(int(v), int(counter), int(stream)) for v in arr.ravel()],
+            return step_seed_int(int(arr), int(counter), int(stream))
+        return np.array([step_seed_int(int(v), int(counter), int(stream)) for v in arr.ravel()],
                         dtype=np.int64).reshape(arr.shape)
     with np.errstate(over="ignore"):
         x = (np.asarray(seed, dtype=np.uint64) * np.uint64(0x9E3779B97F4A7C15)
