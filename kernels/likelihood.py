@@ -106,6 +106,8 @@ META_RECEIVED = wp.constant(0)
 """Column of a model's per-filter ``meta`` (B, 2): the number of valid received points."""
 META_FLOOR = wp.constant(1)
 """Column of ``meta``: the log-likelihood floor for a particle whose value is not finite."""
+CLOUD_META_COLS = wp.constant(2)
+"""Columns of ``meta``, which a point cloud's upload carries after its ranges (:data:`cloud_rows_kernel`)."""
 
 
 @wp.func
@@ -120,11 +122,12 @@ def row_dir(row: cloud_row) -> wp.vec3:
 
 @wp.kernel
 def cloud_rows_kernel(ranges: wp.array2d(dtype=wp.float32), dirs: wp.array2d(dtype=wp.vec3),
-                      rows_out: wp.array2d(dtype=cloud_row)):
+                      rows_out: wp.array2d(dtype=cloud_row), meta_out: wp.array2d(dtype=wp.float32)):
     """Filter f's point j as its row of the staged cloud from its range (m, NaN = invalid) and its unit direction
     (``dirs`` (1, M): one pattern shared by every filter; (B, M): one per filter): the point ``r d`` (0 where
-    invalid), ``d``, ``r``, valid. The host uploads the ranges only (a batch of 100 clouds of 400 points built its
-    rows with NumPy in 1 ms)."""
+    invalid), ``d``, ``r``, valid; point 0 also copies the filter's meta row, which follows its M ranges
+    (:data:`CLOUD_META_COLS` columns). The host uploads the ranges and meta only, as one copy (a batch of 100 clouds
+    of 400 points built its rows with NumPy in 1 ms; the meta's copy of its own was a graph node, ~2 µs)."""
     f, j = wp.tid()
     d = dirs[wp.min(f, dirs.shape[0] - 1), j]
     r = ranges[f, j]
@@ -133,6 +136,10 @@ def cloud_rows_kernel(ranges: wp.array2d(dtype=wp.float32), dirs: wp.array2d(dty
     if ok:
         c = d * r
     rows_out[f, j] = cloud_row(c[0], c[1], c[2], d[0], d[1], d[2], r, wp.where(ok, 1.0, 0.0))
+    if j == 0:
+        m = rows_out.shape[1]
+        for k in range(CLOUD_META_COLS):
+            meta_out[f, k] = ranges[f, m + k]
 
 
 @wp.struct

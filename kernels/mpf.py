@@ -20,12 +20,11 @@ them under one name (``kmpf``).
 
 from warptan.kernels.filter.blocks import (
     MOVE_BLOCK_DIM,
-    RESAMPLE_BLOCK_DIM,
+    RECORD_BLOCK_DIM,
     STAGE_BLOCK_DIM,
     integrity_block_kernel,
     move_pose_kernel,
     record_block_kernel,
-    resample_block_kernel,
     stage_block_kernel,
 )
 from warptan.kernels.filter.common import (
@@ -186,7 +185,7 @@ __all__ = [
     'JITTER_NIS', 'MAX_WINDOW', 'MOM_DP', 'MOM_DPDP', 'MOM_L', 'MOM_LL', 'MOM_W', 'MOVE_BLOCK_DIM', 'NOM_BA', 'NOM_BG',
     'NOM_POS', 'NOM_QUAT', 'NOM_VEL', 'N_CHUNKS', 'N_CHUNK_SUMS', 'N_FEEDBACK', 'N_INTEGRITY', 'N_MOMENTS',
     'N_MOMENT_CHUNKS', 'N_NOMINAL', 'N_STATS', 'N_SUMMARY', 'N_SUMMARY_SUMS', 'N_TEMPER', 'RANDN_EPS',
-    'RESAMPLE_BLOCK_DIM', 'STAGE_BLOCK_DIM', 'ST_ACTIVE', 'ST_APPLIED', 'ST_BAD', 'ST_CHOL', 'ST_ESS', 'ST_GAMMA',
+    'RECORD_BLOCK_DIM', 'STAGE_BLOCK_DIM', 'ST_ACTIVE', 'ST_APPLIED', 'ST_BAD', 'ST_CHOL', 'ST_ESS', 'ST_GAMMA',
     'ST_JITTER', 'ST_LAM', 'ST_LOGNORM', 'ST_MAX', 'ST_MEAN_DP', 'ST_NIS', 'ST_NIS_MIN', 'ST_REMAIN',
     'ST_RESAMPLE', 'ST_RESAMPLES', 'ST_RESPREAD', 'ST_SKIP', 'ST_STAGES', 'ST_UNPREDICTABLE', 'TEMPER_RATIO',
     'UpdateParams', 'add_loglik_partial', 'add_loglik_partials_kernel', 'advance_slot_kernel', 'ancestor',
@@ -198,7 +197,7 @@ __all__ = [
     'max_of_partials', 'max_of_partials_kernel', 'modes_finalize_kernel', 'modes_variance_kernel',
     'moment_partials_kernel', 'more_stages_kernel', 'move_particle', 'move_pose_kernel', 'normal_pair',
     'normalize_weight', 'normalize_weights_kernel', 'pair_products', 'particle_poses_kernel', 'pose_of_particle',
-    'record_block_kernel', 'record_summary', 'resample_block_kernel', 'reset_kernel', 'reset_particle',
+    'record_block_kernel', 'record_summary', 'reset_kernel', 'reset_particle',
     'respread_kernel', 'respread_particle', 'search_cdf', 'stage_block_kernel', 'stage_loglik', 'stats_chol',
     'summary_kernel', 'summary_partial', 'summary_partials_kernel', 'summary_vec', 'sym_from',
     'temper_ess_kernel', 'temper_ess_of', 'temper_partial', 'temper_partials_kernel', 'temper_search_kernel',

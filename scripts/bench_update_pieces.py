@@ -1,9 +1,9 @@
-"""Device time of each piece of one filter's measurement update on CUDA, warm, as the update's graph runs it: the
-head (interval, moves, poses), the model, a tempering stage (candidates' partials + the stage block), a resampling,
-the tail (integrity, record, slot), and the whole update graph. Each piece is captured ``--reps`` times in a row in
-one graph, replayed ``--repeats`` times between events; the median per piece is reported (µs). A piece repeated on
-its own output does the same work as in an update (stage 0 is always active; a resampling copies the particles
-whether or not it draws).
+"""Device time of each piece of one filter's measurement update on CUDA, warm, as the update's graph runs it: the head
+(interval, moves, poses), the model, a tempering stage with its resampling (one block per filter: candidates'
+partials, exponent, weights, resampling, poses), the tail (integrity, record, slot), and the whole update graph. Each
+piece is captured ``--reps`` times in a row in one graph, replayed ``--repeats`` times between events; the median per
+piece is reported (µs). A piece repeated on its own output does the same work as in an update (stage 0 is always
+active; a resampling copies the particles whether or not it draws).
 
     python scripts/bench_update_pieces.py --scenario S8 S7 --json pieces.json     (a CUDA device)
 """
@@ -82,8 +82,8 @@ def main(argv=None) -> int:
             "head (interval, moves, poses)": mpf._launch_lean_head,
             "poses": mpf._launch_poses,
             "model": lambda m=mpf: m.model.launch(m._pos, m._quat),
-            "tempering stage (partials + block)": lambda m=mpf, o=out: m._launch_stage(o, 0),
-            "resampling": lambda m=mpf: m._launch_resample(0),
+            "tempering stage and resampling (one block)": lambda m=mpf, o=out: (m._launch_stage(o, 0),
+                                                                                 m._launch_resample(0)),
             "tail (integrity, record, slot)": mpf._launch_tail,
             "whole update (device program)": lambda m=mpf, o=out: m._device_update(o),
         }

@@ -7,7 +7,13 @@ from warptan.kernels.block import block_sync
 from warptan.kernels.filter.common import N_CHUNKS, N_TEMPER, ST_REMAIN, UpdateParams, vec12
 from warptan.kernels.filter.integrity import integrity_step, respread_particle
 from warptan.kernels.filter.moves import move_particle, pose_of_particle
-from warptan.kernels.filter.record import record_summary, reset_particle, summary_partial, update_covariance_lanes
+from warptan.kernels.filter.record import (
+    end_update,
+    record_summary,
+    reset_particle,
+    summary_partial,
+    update_covariance_lanes,
+)
 from warptan.kernels.filter.resampling import ancestor, cdf_chunk, cdf_partial, copy_particle, gather
 from warptan.kernels.filter.tempering import begin_stats, temper_ess_of, temper_select
 from warptan.kernels.filter.weights import (
@@ -21,13 +27,16 @@ from warptan.kernels.filter.weights import (
 
 wp.set_module_options({"enable_backward": False})
 
-STAGE_BLOCK_DIM = 64
-"""Threads of the block that runs one filter's tempering stage on CUDA (:data:`stage_block_kernel`): one lane per
-chunk (``N_CHUNKS``), so the weight statistics' block sum is the one :data:`weight_stats_kernel` makes (the same
-bits as the separate kernels)."""
-RESAMPLE_BLOCK_DIM = 256
-"""Threads of the block that resamples one filter on CUDA (:data:`resample_block_kernel`): a particle or two each
-(each ancestor is a binary search of dependent loads)."""
+STAGE_BLOCK_DIM = 256
+"""Threads of the block that runs one filter's tempering stage and its resampling on CUDA (:data:`stage_block_kernel`):
+a particle or two each in the resampling (each ancestor is a binary search of dependent loads); the per-chunk pieces
+take the first ``N_CHUNKS`` lanes, so their block sums are the ones :data:`weight_stats_kernel` makes (the lanes after
+add zeros: the same bits as the separate kernels). Measured on an H100 (S8 / S7, the update graph's device time,
+``scripts/step_timeline.py``, two rounds): 256 lanes 172 / 223 µs, 128 lanes 175 / 226 µs, 64 lanes 202 / 250 µs."""
+RECORD_BLOCK_DIM = 64
+"""Threads of the blocks that run one filter's integrity monitor and record on CUDA (:data:`integrity_block_kernel`,
+:data:`record_block_kernel`): one lane per chunk (``N_CHUNKS``), so the summary's block sum is
+:data:`summary_kernel`'s."""
 
 MOVE_BLOCK_DIM = 32
 """CUDA block size of :data:`move_pose_kernel`: a particle's move is a long chain (15 normal draws, 40 3×3 products)
@@ -44,7 +53,6 @@ def stage_block_kernel(
     n_valid: wp.array(dtype=wp.int32),
     meta: wp.array2d(dtype=wp.float32),
     nis: wp.array(dtype=wp.float32),
-    dp: wp.array(dtype=wp.vec3),
     lam: wp.array(dtype=wp.mat33),
     info: wp.array(dtype=wp.vec3),
     with_ip: int,
@@ -52,6 +60,9 @@ def stage_block_kernel(
     kalman: int,
     feedback: wp.array2d(dtype=wp.float64),
     p_col: wp.array2d(dtype=wp.mat33),
+    seeds: wp.array(dtype=wp.int32),
+    scheme: int,
+    pose: wp.array2d(dtype=wp.float64),
     partials: wp.array4d(dtype=wp.float64),
     unpred: wp.array2d(dtype=wp.float64),
     ess: wp.array2d(dtype=wp.float64),
@@ -59,24 +70,42 @@ def stage_block_kernel(
     chunk_counts: wp.array3d(dtype=wp.int32),
     chunk_min_nis: wp.array2d(dtype=wp.float32),
     chunk_sums: wp.array3d(dtype=wp.float64),
-    logw: wp.array(dtype=wp.float32),
     stats: wp.array2d(dtype=wp.float64),
     kernel_chol: wp.array(dtype=wp.mat33),
+    cdf_sums: wp.array2d(dtype=wp.float64),
+    cdf: wp.array(dtype=wp.float32),
+    ancestors: wp.array(dtype=wp.int32),
+    dp: wp.array(dtype=wp.vec3),
     lin: wp.array(dtype=vec12),
+    logw: wp.array(dtype=wp.float32),
+    dp_spare: wp.array(dtype=wp.vec3),
+    lin_spare: wp.array(dtype=vec12),
+    logw_spare: wp.array(dtype=wp.float32),
+    pos_out: wp.array(dtype=wp.vec3),
+    quat_out: wp.array(dtype=wp.vec4),
     more: wp.array(dtype=wp.int32),
 ):
-    """One tempering stage of filter b after :data:`temper_partials_kernel`, in one CUDA block (``wp.launch_tiled``,
-    :data:`STAGE_BLOCK_DIM` lanes): the pieces of :data:`temper_ess_kernel`, :data:`temper_select_kernel`,
-    :data:`add_loglik_partials_kernel`, :data:`max_of_partials_kernel`, :data:`exp_partials_kernel`,
-    :data:`weight_stats_kernel`, :data:`normalize_weights_kernel` and (``kalman``) :data:`kalman_update_kernel`, in
-    that order, the block's lanes sharing each one's threads with a barrier between them: the same functions on the
-    same values (the same bits) in one launch instead of eight, each of which cost a graph node's few µs for a few
-    hundred particles. The candidates' partials stay a launch of their own: 1 280 float64 log-sum-exp streams a
-    filter, which 64 lanes would run 20 deep."""
+    """One tempering stage of filter b after :data:`temper_partials_kernel`, and its resampling, in one CUDA block
+    (``wp.launch_tiled``, :data:`STAGE_BLOCK_DIM` lanes), the block's lanes sharing each piece's threads with a barrier
+    between pieces:
+
+    * the stage: :data:`temper_ess_kernel`, :data:`temper_select_kernel`,
+      :data:`add_loglik_partials_kernel`, :data:`max_of_partials_kernel`, :data:`exp_partials_kernel`,
+      :data:`weight_stats_kernel`, :data:`normalize_weights_kernel` and (``kalman``) :data:`kalman_update_kernel`;
+    * the resampling (the filters whose statistics say so; the others keep their particles):
+      :data:`cdf_partials_kernel`, :data:`cdf_kernel`, :data:`ancestors_kernel`, :data:`gather_kernel` (into the
+      spare arrays), :data:`copy_particles_kernel` (back);
+    * what the next stage would launch before its model: the particles' poses (:data:`particle_poses_kernel`) and,
+      when the filter has exponent left, ``more[stage + 1] = 1`` (the next stage's flag; :data:`advance_slot_kernel`
+      or the record block clears the flags at the update's end).
+
+    The same functions on the same values, the same bits as the separate kernels, in one graph node instead of
+    fifteen (two before the resampling joined it: a node costs ~2 µs whatever its work). The candidates' partials stay
+    a launch of their own: 1 280 float64 log-sum-exp streams a filter, which one multiprocessor would run five deep
+    (inside this block the stage and resampling took 63 / 50 µs against 51 / 41 µs with them apart, S8 / S7, H100,
+    ``scripts/bench_update_pieces.py``)."""
     b, lane = wp.tid()
     bd = wp.block_dim()
-    if b == 0 and lane == 0:  # (the resampling after sets it: :data:`resample_block_kernel`)
-        more[0] = 0
     for g in range(lane, N_TEMPER, bd):
         temper_ess_of(b, g, partials, ess)
     block_sync()
@@ -100,38 +129,7 @@ def stage_block_kernel(
         normalize_weight(i, n_per, stats, logw)
         if kalman != 0:
             kalman_update(i, n_per, params, stats, feedback, p_col, lam, info, lin)
-
-
-@wp.kernel
-def resample_block_kernel(
-    n_per: int,
-    stage: int,
-    seeds: wp.array(dtype=wp.int32),
-    scheme: int,
-    params: UpdateParams,
-    stats: wp.array2d(dtype=wp.float64),
-    cdf_sums: wp.array2d(dtype=wp.float64),
-    cdf: wp.array(dtype=wp.float32),
-    ancestors: wp.array(dtype=wp.int32),
-    dp: wp.array(dtype=wp.vec3),
-    lin: wp.array(dtype=vec12),
-    logw: wp.array(dtype=wp.float32),
-    dp_spare: wp.array(dtype=wp.vec3),
-    lin_spare: wp.array(dtype=vec12),
-    logw_spare: wp.array(dtype=wp.float32),
-    pose: wp.array2d(dtype=wp.float64),
-    pos_out: wp.array(dtype=wp.vec3),
-    quat_out: wp.array(dtype=wp.vec4),
-    more: wp.array(dtype=wp.int32),
-):
-    """Resampling of filter b in one CUDA block (:data:`RESAMPLE_BLOCK_DIM` lanes): :data:`cdf_partials_kernel`,
-    :data:`cdf_kernel`, :data:`ancestors_kernel`, :data:`gather_kernel` (into the spare arrays) and
-    :data:`copy_particles_kernel` (back), a barrier between them; the same bits in one launch instead of five. Then
-    what the next stage would launch before its model: the particles' poses (:data:`particle_poses_kernel`, each
-    lane its own particles) and, when the filter has exponent left, ``more[0] = 1`` (:data:`more_stages_kernel`'s
-    flag, which :data:`stage_block_kernel` cleared): two graph nodes fewer a stage."""
-    b, lane = wp.tid()
-    bd = wp.block_dim()
+    block_sync()
     for c in range(lane, N_CHUNKS, bd):
         cdf_partial(b, c, n_per, logw, stats, cdf_sums)
     block_sync()
@@ -149,7 +147,7 @@ def resample_block_kernel(
         copy_particle(b * n_per + k, dp_spare, lin_spare, logw_spare, dp, lin, logw)
         pose_of_particle(b * n_per + k, n_per, pose, dp, lin, pos_out, quat_out)
     if lane == 0 and stats[b, ST_REMAIN] > wp.float64(0.0):
-        more[0] = 1
+        more[stage + 1] = 1
 
 
 @wp.kernel
@@ -203,7 +201,7 @@ def integrity_block_kernel(
     dp: wp.array(dtype=wp.vec3),
     logw: wp.array(dtype=wp.float32),
 ):
-    """The integrity monitor of filter b in one CUDA block (:data:`STAGE_BLOCK_DIM` lanes): :func:`integrity_step`
+    """The integrity monitor of filter b in one CUDA block (:data:`RECORD_BLOCK_DIM` lanes): :func:`integrity_step`
     (lane 0), a barrier, :func:`respread_particle` (:data:`integrity_kernel` + :data:`respread_kernel`, the same
     bits)."""
     b, lane = wp.tid()
@@ -218,6 +216,7 @@ def record_block_kernel(
     closed_loop: int,
     with_integrity: int,
     offset: int,
+    advance: int,
     seeds: wp.array(dtype=wp.int32),
     kernel_chol: wp.array(dtype=wp.mat33),
     logw: wp.array(dtype=wp.float32),
@@ -238,13 +237,16 @@ def record_block_kernel(
     p_hist: wp.array3d(dtype=wp.float64),
     dp: wp.array(dtype=wp.vec3),
     lin: wp.array(dtype=vec12),
+    more: wp.array(dtype=wp.int32),
 ):
-    """The record and feedback of filter b in one CUDA block (:data:`STAGE_BLOCK_DIM` lanes, so the block sum is
+    """The record and feedback of filter b in one CUDA block (:data:`RECORD_BLOCK_DIM` lanes, so the block sum is
     :data:`summary_kernel`'s): with ``with_integrity`` first :data:`integrity_block_kernel`'s work (when no map-error
     mode runs between them: one graph node fewer), then :func:`summary_partial` (lane per chunk),
     :func:`record_summary`, :func:`update_covariance_lanes` and in closed loop :func:`reset_particle`, barriers
     between (:data:`summary_partials_kernel`, :data:`summary_kernel`, :data:`covariance_update_kernel`,
-    :data:`reset_kernel`: the same bits). The slot advances after, in a launch of its own (every filter reads it)."""
+    :data:`reset_kernel`: the same bits). With ``advance`` (one filter: no other block reads the slot) lane 0 then
+    ends the update (:func:`end_update`: the slot advances, the stage flags clear), else a launch of its own does
+    (:data:`advance_slot_kernel`, after every filter's record)."""
     b, lane = wp.tid()
     bd = wp.block_dim()
     if with_integrity != 0:  # (the same for every lane of the block: its barriers are reached by all)
@@ -261,3 +263,5 @@ def record_block_kernel(
     if closed_loop != 0:
         for k in range(lane, n_per, bd):
             reset_particle(b * n_per + k, n_per, feedback, dp, lin)
+    if advance != 0 and lane == 0:  # (no lane reads the slot after the barrier above)
+        end_update(slot, more)

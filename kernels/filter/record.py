@@ -436,9 +436,19 @@ def reset_kernel(
 
 
 
-@wp.kernel
-def advance_slot_kernel(slot: wp.array(dtype=wp.int32)):
+@wp.func
+def end_update(slot: wp.array(dtype=wp.int32), more: wp.array(dtype=wp.int32)):
+    """The update's end: the history slot advances; the tempering stages' flags (``more[s]``: stage s runs) clear for
+    the next update."""
     slot[0] = slot[0] + 1
+    for s in range(more.shape[0]):
+        more[s] = 0
+
+
+@wp.kernel
+def advance_slot_kernel(slot: wp.array(dtype=wp.int32), more: wp.array(dtype=wp.int32)):
+    """One thread, after every filter's record: :func:`end_update`."""
+    end_update(slot, more)
 
 
 @wp.kernel

@@ -321,7 +321,9 @@ class MarginalizedParticleFilter(ImuIntake):
         self._unpred_partials = wp.empty((b, kmpf.N_CHUNKS), dtype=wp.float64, device=d)
         self._temper_ess = wp.empty((b, kmpf.N_TEMPER), dtype=wp.float64, device=d)
         self._integrity = wp.zeros((b, kmpf.N_INTEGRITY), dtype=wp.float64, device=d)
-        self._more_stages = wp.zeros(1, dtype=wp.int32, device=d)
+        # the tempering stages' flags: more[s] = 1 when stage s runs (set on the device, cleared at the update's end)
+        self._more_stages = wp.zeros(self.max_stages + 1, dtype=wp.int32, device=d)
+        self._stage_flags = [self._more_stages[s:s + 1] for s in range(self.max_stages + 1)]
         self._cdf_sums = wp.empty((b, kmpf.N_CHUNKS), dtype=wp.float64, device=d)
         self._stats = wp.zeros((b, kmpf.N_STATS), dtype=wp.float64, device=d)
         self._exponent = wp.ones(b, dtype=wp.float32, device=d)  # per update (RevisitMemory)

@@ -46,9 +46,9 @@ pipelined; with the nav interval on the host and P's update read back per update
 
 On CUDA a tempering stage's per-filter pieces after the candidates' partials (ESS, selection, log-likelihood
 partials, maximum, exp partials, weight statistics, normalisation, Kalman update) run as one block per filter
-(:data:`warptan.kernels.mpf.stage_block_kernel`), and so does a resampling (:data:`~warptan.kernels.mpf.
-resample_block_kernel`): the same functions on the same values with barriers between them, the same bits as the
-separate kernels (a graph node costs a few µs whatever its work: 14 nodes a stage became 3). The CPU keeps the
+(:data:`warptan.kernels.mpf.stage_block_kernel`) together with the stage's resampling, the particles' poses and
+the next stage's flag: the same functions on the same values with barriers between them, the same bits as the
+separate kernels (a graph node costs ~2 µs whatever its work: 16 nodes a stage became 2). The CPU keeps the
 separate kernels (whose particle loops split over cores). ``_lean`` (CUDA, where it measured faster; slower on a
 2-core CPU) fuses the head (moves, poses, statistics reset) and the tail (integrity + re-spread; record + P's update +
 reset) likewise, nests the stages' conditionals and queues the head (the interval, the particles' moves
@@ -210,7 +210,22 @@ class UpdateProgram:
         """One tempering stage: choose the exponent, weight, normalise and decide to resample (device)."""
         d, b, n, st = self.device, self.n_filters, self.n, self.state
         lam, info = self._attitude_info(out)
-        if d.is_cpu and not self._block_stages:  # candidates in order until one is taken (same bits, usually 1 of 20)
+        if self._block_stages:  # CUDA: the stage and its resampling in one block per filter
+            launch(kmpf.temper_partials_kernel, dim=(b, kmpf.N_CHUNKS, kmpf.N_TEMPER),
+                   inputs=[n, stage, out.loglik, out.n_valid, out.meta, st.logw, self._stats],
+                   outputs=[self._temper_partials, self._unpred_partials], device=d)
+            seeds, sp = self._dev["resample_seeds"], self._spare
+            launch(kmpf.stage_block_kernel, dim=[b],
+                   inputs=[n, stage, int(stage == self.max_stages - 1), self.params, out.loglik, out.n_valid, out.meta,
+                           out.nis, lam, info, *self._position_info(out), int(self.measurement_update),
+                           self._feedback, self._dev["p_col"], seeds, self.scheme, self._dev["pose"]],
+                   outputs=[self._temper_partials, self._unpred_partials, self._temper_ess, self._chunk_max,
+                            self._chunk_counts, self._chunk_min_nis, self._chunk_sums, self._stats,
+                            self._kernel_chol, self._cdf_sums, self._cdf, self._ancestors, st.dp, st.lin, st.logw,
+                            sp.dp, sp.lin, sp.logw, self._pos, self._quat, self._more_stages],
+                   block_dim=kmpf.STAGE_BLOCK_DIM, device=d)
+            return
+        if d.is_cpu:  # candidates in order until one is taken (same bits, usually 1 of 20)
             launch(kmpf.temper_search_kernel, dim=b,
                    inputs=[n, stage, self.params, out.loglik, out.n_valid, out.meta, st.logw, self._stats],
                    outputs=[self._temper_partials, self._unpred_partials, self._temper_ess], device=d)
@@ -218,15 +233,6 @@ class UpdateProgram:
             launch(kmpf.temper_partials_kernel, dim=(b, kmpf.N_CHUNKS, kmpf.N_TEMPER),
                    inputs=[n, stage, out.loglik, out.n_valid, out.meta, st.logw, self._stats],
                    outputs=[self._temper_partials, self._unpred_partials], device=d)
-        if self._block_stages:  # CUDA: the stage's eight other pieces in one block per filter
-            launch(kmpf.stage_block_kernel, dim=[b],
-                   inputs=[n, stage, int(stage == self.max_stages - 1), self.params, out.loglik, out.n_valid, out.meta,
-                           out.nis, st.dp, lam, info, *self._position_info(out), int(self.measurement_update),
-                           self._feedback, self._dev["p_col"]],
-                   outputs=[self._temper_partials, self._unpred_partials, self._temper_ess, self._chunk_max,
-                            self._chunk_counts, self._chunk_min_nis, self._chunk_sums, st.logw, self._stats,
-                            self._kernel_chol, st.lin, self._more_stages], block_dim=kmpf.STAGE_BLOCK_DIM, device=d)
-            return
         if not d.is_cpu:
             launch(kmpf.temper_ess_kernel, dim=(b, kmpf.N_TEMPER), inputs=[self._temper_partials],
                    outputs=[self._temper_ess], device=d)
@@ -271,15 +277,12 @@ class UpdateProgram:
         return self._no_info
 
     def _launch_resample(self, stage: int) -> None:
-        """Resample and regularise the filters whose flags say so (device decisions; others are copied)."""
+        """Resample and regularise the filters whose flags say so (device decisions; others are copied). The block
+        form resampled in the stage's block (:data:`~warptan.kernels.mpf.stage_block_kernel`): only the map-error
+        modes' gather is left then."""
         d, b, n, st, sp = self.device, self.n_filters, self.n, self.state, self._spare
         seeds = self._dev["resample_seeds"]
-        if self._block_stages:  # CUDA: the five pieces in one block per filter (same bits)
-            launch(kmpf.resample_block_kernel, dim=[b], inputs=[n, stage, seeds, self.scheme, self.params, self._stats],
-                   outputs=[self._cdf_sums, self._cdf, self._ancestors, st.dp, st.lin, st.logw, sp.dp, sp.lin,
-                            sp.logw, self._dev["pose"], self._pos, self._quat, self._more_stages],
-                   block_dim=kmpf.RESAMPLE_BLOCK_DIM, device=d)
-        else:
+        if not self._block_stages:
             launch(kmpf.cdf_partials_kernel, dim=(b, kmpf.N_CHUNKS), inputs=[n, st.logw, self._stats],
                    outputs=[self._cdf_sums], device=d)
             launch(kmpf.cdf_kernel, dim=(b, kmpf.N_CHUNKS), inputs=[n, st.logw, self._stats, self._cdf_sums],
@@ -328,7 +331,7 @@ class UpdateProgram:
                         inputs=[self.params, self._summary_sums, self._stats, self._integrity, self._slot],
                         outputs=[self._history, self._feedback], block_dim=kmpf.N_CHUNKS, device=d)
         self._launch_feedback()
-        launch(kmpf.advance_slot_kernel, dim=1, inputs=[self._slot], device=d)
+        launch(kmpf.advance_slot_kernel, dim=1, inputs=[self._slot], outputs=[self._more_stages], device=d)
 
     def _launch_feedback(self) -> None:
         """What the update feeds back, on the device: the nominal's record, the Kalman measurement update of P, and
@@ -366,9 +369,9 @@ class UpdateProgram:
                 self._stages_if(out, stage)
                 break
             else:
-                launch(kmpf.more_stages_kernel, dim=1, inputs=[self._stats], outputs=[self._more_stages],
-                       device=self.device)
-                wp.capture_if(self._more_stages, on_true=self._extra_stage, out=out, stage=stage)
+                flag = self._stage_flags[stage]
+                launch(kmpf.more_stages_kernel, dim=1, inputs=[self._stats], outputs=[flag], device=self.device)
+                wp.capture_if(flag, on_true=self._extra_stage, out=out, stage=stage)
         self._piece("tail", self._launch_tail)
 
     def _stages_if(self, out, stage: int) -> None:
@@ -376,10 +379,10 @@ class UpdateProgram:
         ran (a converged update pays one test, not ``max_stages - 1``)."""
         if stage >= self.max_stages:
             return
-        if not self._block_stages:  # (the block forms set the flag: :data:`~warptan.kernels.mpf.resample_block_kernel`)
-            launch(kmpf.more_stages_kernel, dim=1, inputs=[self._stats], outputs=[self._more_stages],
-                   device=self.device)
-        wp.capture_if(self._more_stages, on_true=self._stage_then_more, out=out, stage=stage)
+        flag = self._stage_flags[stage]
+        if not self._block_stages:  # (the block form set it: :data:`~warptan.kernels.mpf.stage_block_kernel`)
+            launch(kmpf.more_stages_kernel, dim=1, inputs=[self._stats], outputs=[flag], device=self.device)
+        wp.capture_if(flag, on_true=self._stage_then_more, out=out, stage=stage)
 
     def _stage_then_more(self, out, stage: int) -> None:
         self._extra_stage(out, stage)
@@ -441,16 +444,18 @@ class UpdateProgram:
         modes = self._mode_table() is not None  # (the modes run between the integrity monitor and the record)
         if modes:
             launch(kmpf.integrity_block_kernel, dim=[b], inputs=[n, offset, seeds, self.params, self._stats],
-                   outputs=[self._integrity, self._kernel_chol, st.dp, st.logw], block_dim=kmpf.STAGE_BLOCK_DIM,
+                   outputs=[self._integrity, self._kernel_chol, st.dp, st.logw], block_dim=kmpf.RECORD_BLOCK_DIM,
                    device=d)
             self._launch_modes()
+        one = int(b == 1)  # (one filter: its block ends the update, no launch of its own)
         launch(kmpf.record_block_kernel, dim=[b],
                inputs=[n, self.params, int(self.measurement_update), int(self.closed_loop), int(not modes), offset,
-                       seeds, self._kernel_chol, st.logw, self._stats, self._integrity, self._slot],
+                       one, seeds, self._kernel_chol, st.logw, self._stats, self._integrity, self._slot],
                outputs=[self._summary_sums, self._history, self._feedback, nav["cov"], nav["pos"], nav["vel"],
                         nav["quat"], nav["ba"], nav["bg"], self._injections, self._nominal_hist, self._p_hist, st.dp,
-                        st.lin], block_dim=kmpf.STAGE_BLOCK_DIM, device=d)
-        launch(kmpf.advance_slot_kernel, dim=1, inputs=[self._slot], device=d)
+                        st.lin, self._more_stages], block_dim=kmpf.RECORD_BLOCK_DIM, device=d)
+        if not one:
+            launch(kmpf.advance_slot_kernel, dim=1, inputs=[self._slot], outputs=[self._more_stages], device=d)
 
     def _queue_update(self, out, staged=()) -> None:
         """The device work of an update: eager launches (the CPU replaying its recorded pieces) or the graph;

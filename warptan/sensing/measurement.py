@@ -296,17 +296,20 @@ class MeasurementModel:
         if n % b:
             raise FilterError(f"{n} particles cannot be split evenly over {b} filters")
         out = self._buffers(device, n, b, self._m_of(items))
-        n_received = self._fill(items)
-        out.n_received[:] = n_received
-        k = self.likelihood.outlier_sigmas
-        meta = np.empty((b, 2), dtype=np.float32)
-        meta[:, klik.META_RECEIVED] = n_received
-        meta[:, klik.META_FLOOR] = -0.5 * k * k * np.maximum(1, n_received)
-        self._uploads.put("meta", out.meta, meta)
+        out.n_received[:] = self._fill(items, out.meta)
         self.n_per = n // b
         self.n_filters = b
         self._ensure_modes(device, quat_nb, attitude)
         return out
+
+    def _meta(self, n_received: np.ndarray) -> np.ndarray:
+        """(B, 2) float32 rows of ``meta`` (``klik.META_*``): each filter's received points and its log-likelihood
+        floor (what a non-finite log-likelihood scores)."""
+        k = self.likelihood.outlier_sigmas
+        meta = np.empty((len(n_received), 2), dtype=np.float32)
+        meta[:, klik.META_RECEIVED] = n_received
+        meta[:, klik.META_FLOOR] = -0.5 * k * k * np.maximum(1, n_received)
+        return meta
 
     MODES_REBUILD = 0.25
     """The map-error mode table is rebuilt when a scan's nominal ground geometry moved by more than this fraction
@@ -441,21 +444,26 @@ class _PointCloudModel(MeasurementModel):
         sens = 1.0 / down if self.name == "raycast" else np.ones(len(u))
         return xy, sens, _forward(quat)
 
-    def _fill(self, items) -> np.ndarray:
+    def _fill(self, items, meta: wp.array) -> np.ndarray:
+        """The clouds into the staged rows and ``meta``; returns each cloud's finite ranges."""
         b, m = self._staged.shape
         device = self._staged.device
-        # the batch at once: the ranges go up, a kernel writes the rows (:func:`cloud_rows_kernel`); the directions
-        # of one pattern that every cloud shares (a sensor's scans) go up once
+        # the batch at once: the ranges and the meta rows go up as one copy, a kernel writes the rows and the meta
+        # (:func:`cloud_rows_kernel`); the directions of one pattern that every cloud shares (a sensor's scans) go
+        # up once
         first = items[0].dirs_s
         same = all(cloud.dirs_s is first for cloud in items)
+        cols = m + klik.CLOUD_META_COLS
         ranges = self._host.get("ranges")
-        if ranges is None or ranges.shape != (b, m):
-            ranges = self._host["ranges"] = np.empty((b, m), dtype=np.float32)
+        if ranges is None or ranges.shape != (b, cols):
+            ranges = self._host["ranges"] = np.empty((b, cols), dtype=np.float32)
         for k, cloud in enumerate(items):
-            ranges[k] = cloud.ranges_m
+            ranges[k, :m] = cloud.ranges_m
+        n_received = np.isfinite(ranges[:, :m]).sum(axis=1).astype(np.int64)
+        ranges[:, m:] = self._meta(n_received)
         dev_ranges = self._host.get("dev_ranges")
-        if dev_ranges is None or dev_ranges.shape != (b, m) or dev_ranges.device != device:
-            dev_ranges = self._host["dev_ranges"] = wp.empty((b, m), dtype=wp.float32, device=device)
+        if dev_ranges is None or dev_ranges.shape != (b, cols) or dev_ranges.device != device:
+            dev_ranges = self._host["dev_ranges"] = wp.empty((b, cols), dtype=wp.float32, device=device)
         self._uploads.put("ranges", dev_ranges, ranges)
         if same:
             kept = self._host.get("dirs")
@@ -472,16 +480,17 @@ class _PointCloudModel(MeasurementModel):
                 dirs = self._host["dirs_each"] = wp.empty((b, m), dtype=wp.vec3, device=device)
             self._uploads.put("dirs_each", dirs, np.stack([cloud.dirs_s for cloud in items]).astype(np.float32))
         cmd = self._host.get("rows_cmd")  # recorded once for these arrays (a launch packs its arguments every time)
-        if cmd is None or cmd[0] is not dirs or cmd[1] is not dev_ranges or cmd[2] is not self._staged:
-            cmd = self._host["rows_cmd"] = (dirs, dev_ranges, self._staged, wp.launch(
-                klik.cloud_rows_kernel, dim=(b, m), inputs=[dev_ranges, dirs], outputs=[self._staged], device=device,
-                record_cmd=True))
+        if cmd is None or cmd[0] is not dirs or cmd[1] is not dev_ranges or cmd[2] is not self._staged \
+                or cmd[3] is not meta:
+            cmd = self._host["rows_cmd"] = (dirs, dev_ranges, self._staged, meta, wp.launch(
+                klik.cloud_rows_kernel, dim=(b, m), inputs=[dev_ranges, dirs], outputs=[self._staged, meta],
+                device=device, record_cmd=True))
             self.generation += 1  # (a graph that holds the launch, :meth:`hold_device_work`, holds these arrays)
-        if not self._uploads.later(cmd[3].launch):
-            cmd[3].launch()
+        if not self._uploads.later(cmd[4].launch):
+            cmd[4].launch()
         if self.likelihood.models_map_error:  # the modes' scan geometry reads it (:meth:`_scan_geometry`)
-            self._host["first"] = (first.astype(np.float32), ranges[0].copy())
-        return np.isfinite(ranges).sum(axis=1).astype(np.int64)
+            self._host["first"] = (first.astype(np.float32), ranges[0, :m].copy())
+        return n_received
 
 
 def _forward(quat: np.ndarray) -> np.ndarray:
@@ -617,14 +626,17 @@ class AltimeterModel(MeasurementModel):
     def _staging_buffer(device, b, m):
         return wp.empty(b, dtype=wp.vec4, device=device)
 
-    def _fill(self, items) -> np.ndarray:
+    def _fill(self, items, meta: wp.array) -> np.ndarray:
+        """The readings into the staged rows and ``meta``; returns 1 for each valid reading."""
         rng_m = np.array([r.range_m for r in items], dtype=np.float64)
         baro = np.array([r.baro_alt_m for r in items], dtype=np.float64)
         valid = np.array([r.valid for r in items]) & np.logical_or(not self.use_baro, np.isfinite(baro))
         host = np.stack([np.where(valid, rng_m, 0.0), np.where(np.isfinite(baro), baro, 0.0), valid,
                          np.full(len(items), 1.0 / self.baro_sigma_m**2)], axis=1)
         self._uploads.put("readings", self._staged, host)
-        return valid.astype(np.int64)
+        n_received = valid.astype(np.int64)
+        self._uploads.put("meta", meta, self._meta(n_received))
+        return n_received
 
     def bind_particle_kernel(self, chol: wp.array | None) -> None:
         """Score each particle for its regularisation kernel: ``chol`` ((B,) mat33 on the particles' device, m: each
