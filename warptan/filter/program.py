@@ -210,10 +210,15 @@ class UpdateProgram:
         """One tempering stage: choose the exponent, weight, normalise and decide to resample (device)."""
         d, b, n, st = self.device, self.n_filters, self.n, self.state
         lam, info = self._attitude_info(out)
-        if self._block_stages:  # CUDA: the stage and its resampling in one block per filter
+        if d.is_cpu and not self._block_stages:  # candidates in order until one is taken (same bits, usually 1 of 20)
+            launch(kmpf.temper_search_kernel, dim=b,
+                   inputs=[n, stage, self.params, out.loglik, out.n_valid, out.meta, st.logw, self._stats],
+                   outputs=[self._temper_partials, self._unpred_partials, self._temper_ess], device=d)
+        else:  # every candidate in parallel
             launch(kmpf.temper_partials_kernel, dim=(b, kmpf.N_CHUNKS, kmpf.N_TEMPER),
                    inputs=[n, stage, out.loglik, out.n_valid, out.meta, st.logw, self._stats],
                    outputs=[self._temper_partials, self._unpred_partials], device=d)
+        if self._block_stages:  # CUDA: the stage's other pieces and its resampling in one block per filter
             seeds, sp = self._dev["resample_seeds"], self._spare
             launch(kmpf.stage_block_kernel, dim=[b],
                    inputs=[n, stage, int(stage == self.max_stages - 1), self.params, out.loglik, out.n_valid, out.meta,
@@ -225,14 +230,6 @@ class UpdateProgram:
                             sp.dp, sp.lin, sp.logw, self._pos, self._quat, self._more_stages],
                    block_dim=kmpf.STAGE_BLOCK_DIM, device=d)
             return
-        if d.is_cpu:  # candidates in order until one is taken (same bits, usually 1 of 20)
-            launch(kmpf.temper_search_kernel, dim=b,
-                   inputs=[n, stage, self.params, out.loglik, out.n_valid, out.meta, st.logw, self._stats],
-                   outputs=[self._temper_partials, self._unpred_partials, self._temper_ess], device=d)
-        else:  # every candidate in parallel
-            launch(kmpf.temper_partials_kernel, dim=(b, kmpf.N_CHUNKS, kmpf.N_TEMPER),
-                   inputs=[n, stage, out.loglik, out.n_valid, out.meta, st.logw, self._stats],
-                   outputs=[self._temper_partials, self._unpred_partials], device=d)
         if not d.is_cpu:
             launch(kmpf.temper_ess_kernel, dim=(b, kmpf.N_TEMPER), inputs=[self._temper_partials],
                    outputs=[self._temper_ess], device=d)
