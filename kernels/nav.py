@@ -125,19 +125,29 @@ def block_of(k: int, m0: wp.mat33d, m1: wp.mat33d, m2: wp.mat33d, m3: wp.mat33d,
     return m0
 
 
-NAV_BLOCK_DIM = 64
-"""Threads of a CUDA block that runs one filter's interval (:data:`nav_interval_kernels`; two warps): the lanes
+NAV_BLOCK_DIM = 128
+"""Threads of a CUDA block that runs one filter's interval (:data:`nav_interval_kernels`; four warps): the lanes
 share the 3×3 blocks of the interval's matrices (:func:`span`) and meet at :func:`block_sync` between the phases of
-a step. P's pieces run on the first warp, Φ's and S's on the second (:data:`SIDE_LANE`), side by side: in one warp
-the two loops of a phase ran one after the other (an H100 spent 50 of the 64 µs of a 10-sample interval in those
-phases with 32 lanes). One thread per filter took 0.27 ms for a 10-sample interval on an H100 (a chain of ~270
-dependent 3×3 products a sample, each waiting on its loads); as 100 threads of one launch the filters' ~7 KB
-working sets shared the caches of a few multiprocessors (1.9 ms for 100 filters): a block per filter keeps a
-multiprocessor each."""
+a step. Each warp has its own pieces, side by side: P's on the first, Φ's and S's on the second (:data:`SIDE_LANE`),
+the gains' on the third (:data:`GAIN_LANE`: ``P A^nᵀ`` while the first warp applies ``A^l`` to P's columns, ``N_k``
+and the gains while it applies it to the rows), and the nominal INS on the fourth (:data:`NOMINAL_LANE`: the
+mechanization of step k and the transition blocks of step k + 1 while the others run step k). With two warps every
+lane formed the step's transition blocks, ``N_k``, its inverse and the gains itself, and advanced the nominal state:
+~1 200 of the ~2 300 instructions a warp issued per sample, on the path of every step (ncu, H100: 255 registers, a
+warp issuing every 4.3 cycles). A 10-sample interval went 56.5 → 42.0 µs, 100 filters 60.6 → 49.5 µs
+(``scripts/bench_nav_interval.py``). Tried and slower: the nominal lane's work spread over three phases (43.3 µs), the
+transition blocks read again after each barrier instead of held (47.8 µs). One thread per filter took 0.27 ms for a
+10-sample interval (a chain of ~270 dependent 3×3 products a sample, each waiting on its loads); as 100 threads of one
+launch the filters' ~7 KB working sets shared the caches of a few multiprocessors (1.9 ms for 100 filters): a block per
+filter keeps a multiprocessor each."""
 
 
 SIDE_LANE = wp.constant(32)
 """The first lane of the second warp: where the pieces of Φ and S start (those of P start at lane 0)."""
+GAIN_LANE = wp.constant(64)
+"""The first lane of the third warp: ``P A^nᵀ`` by block rows, then ``N_k`` and the gains (four pieces each)."""
+NOMINAL_LANE = wp.constant(96)
+"""The lane of the fourth warp that advances the nominal state and forms the next step's transition blocks."""
 
 COV_AT = wp.constant(0)
 """Where the tiled kernel keeps each matrix in the block's shared memory (float64 slots): P (4×4 blocks), Φ and S
@@ -146,6 +156,16 @@ PHI_AT = wp.constant(144)
 NOISE_AT = wp.constant(369)
 CHOL_AT = wp.constant(594)
 NAV_SHARED_SLOTS = 819
+WORK_AT = CHOL_AT
+"""The steps' scratch blocks (:func:`w_get`) share the Cholesky's slots, which only the interval's end uses: the rows
+0–1 of ``A^l P`` (``W_Q``, 2×4 blocks), ``P A^nᵀ`` by block rows (``W_PA``), the gains ``L_k N_k⁻¹`` and ``P A^nᵀ
+N_k⁻¹`` (``W_GAIN``), ``N_k`` (``W_NK``) and a step's transition blocks ``A, B, E, J`` (``W_TERMS``, two steps
+alternating: 25 blocks, the 225 slots of the 15×15 scratch). On the CPU they are the filter's ``chol_scratch`` row."""
+W_Q = wp.constant(0)
+W_PA = wp.constant(8)
+W_GAIN = wp.constant(12)
+W_NK = wp.constant(16)
+W_TERMS = wp.constant(17)
 
 
 @wp.func_native("""
@@ -258,6 +278,81 @@ def ps_put(phi: wp.array3d(dtype=wp.mat33d), noise: wp.array3d(dtype=wp.mat33d),
 
 
 @wp.func
+def w_f64(a: wp.array3d(dtype=wp.float64), b: int, o: int, sh: int) -> wp.float64:
+    """Float64 ``o`` of filter b's step scratch (:data:`WORK_AT`): a shared slot, or ``chol_scratch`` on the CPU."""
+    if sh == 0:
+        return a[b, o // 15, o % 15]
+    return shared_slot(WORK_AT + o, wp.float64(0.0), 0)
+
+
+@wp.func
+def w_get(a: wp.array3d(dtype=wp.float64), b: int, idx: int, sh: int) -> wp.mat33d:
+    """Block ``idx`` of the step scratch (:data:`WORK_AT`)."""
+    o = 9 * idx
+    return wp.mat33d(w_f64(a, b, o, sh), w_f64(a, b, o + 1, sh), w_f64(a, b, o + 2, sh),
+                     w_f64(a, b, o + 3, sh), w_f64(a, b, o + 4, sh), w_f64(a, b, o + 5, sh),
+                     w_f64(a, b, o + 6, sh), w_f64(a, b, o + 7, sh), w_f64(a, b, o + 8, sh))
+
+
+@wp.func
+def w_put(a: wp.array3d(dtype=wp.float64), b: int, idx: int, sh: int, m: wp.mat33d):
+    o = 9 * idx
+    for i in range(3):
+        for j in range(3):
+            if sh == 0:
+                a[b, (o + 3 * i + j) // 15, (o + 3 * i + j) % 15] = m[i, j]
+            else:
+                shared_slot(WORK_AT + o + 3 * i + j, m[i, j], 1)
+
+
+@wp.func
+def lp_get(cov: wp.array3d(dtype=wp.mat33d), work: wp.array3d(dtype=wp.float64), b: int, r: int, c: int,
+           sh: int) -> wp.mat33d:
+    """Block (r, c) of ``A^l P``: rows 0–1 from the scratch (``W_Q``), rows 2–3 are P's (``A^l`` leaves them)."""
+    if r < 2:
+        return w_get(work, b, W_Q + 4 * r + c, sh)
+    return p_get(cov, b, r, c, sh)
+
+
+@wp.func
+def gain_blk(work: wp.array3d(dtype=wp.float64), b: int, k: int, sh: int) -> wp.mat33d:
+    """Block k of ``G = [I; L_k N_k⁻¹ ...]`` (k = 0: the identity; 1..4: the gains of dv, dθ, dba, dbg)."""
+    if k == 0:
+        return wp.identity(n=3, dtype=wp.float64)
+    return w_get(work, b, W_GAIN + k - 1, sh)
+
+
+@wp.func
+def step_terms(imu: wp.array3d(dtype=wp.vec3d), b: int, k: int, q: wp.vec4d, ba: wp.vec3d, bg: wp.vec3d,
+               work: wp.array3d(dtype=wp.float64), sh: int):
+    """The transition blocks of step k from the nominal state before it (attitude ``q``, biases ``ba``, ``bg``):
+    ``A = -R [a]x dt``, ``B = -R dt``, ``E = Exp(w dt)ᵀ``, ``J = -J_r(w dt) dt``, into the scratch's
+    ``W_TERMS + 4 (k % 2)`` (two steps alternate: the lanes read step k's while the nominal lane forms step k + 1's)."""
+    half = wp.float64(0.5)
+    eye = wp.identity(n=3, dtype=wp.float64)
+    dt = imu[b, k, 2][0]
+    rot = rot_d(q)
+    wdt = (imu[b, k, 1] - bg) * dt
+    angle = wp.length(wdt)
+    kx = skew_d(wdt)
+    kk = kx * kx
+    c1 = wp.float64(1.0)
+    c2 = half
+    j1 = half
+    j2 = wp.float64(1.0) / wp.float64(6.0)
+    if angle >= wp.float64(1.0e-8):
+        c1 = wp.sin(angle) / angle
+        c2 = (wp.float64(1.0) - wp.cos(angle)) / (angle * angle)
+        j1 = c2
+        j2 = (angle - wp.sin(angle)) / (angle * angle * angle)
+    at = W_TERMS + 4 * (k % 2)
+    w_put(work, b, at, sh, -(rot * skew_d(imu[b, k, 0] - ba)) * dt)
+    w_put(work, b, at + 1, sh, -rot * dt)
+    w_put(work, b, at + 2, sh, wp.transpose(eye + c1 * kx + c2 * kk))
+    w_put(work, b, at + 3, sh, -(eye - j1 * kx + j2 * kk) * dt)
+
+
+@wp.func
 def p_times_an(a: wp.array3d(dtype=wp.mat33d), b: int, r: int, sh: int, dt: wp.float64, am: wp.mat33d,
                bm: wp.mat33d) -> wp.mat33d:
     """Block row r of ``P A^nᵀ``: ``dt P_r0 + dt/2 (P_r1 Aᵀ + P_r2 Bᵀ)``."""
@@ -314,9 +409,9 @@ def _nav_interval(tiled: bool):
 
         Tiled (CUDA): P, Φ, S and the Cholesky scratch live in the block's shared memory (:func:`shared_slot`); the
         lanes share each phase's independent pieces (a block column, a block row, one block, one row of the
-        Cholesky; :func:`span`), every lane computes the step's small terms (rotation, N_k, the gains) itself, and
-        :func:`block_sync` separates the phases. On the CPU one thread does every piece in the same order: each
-        block sees the same operations in either form."""
+        Cholesky; :func:`span`), a warp of its own forms the gains, one lane advances the nominal state and forms the
+        next step's transition blocks (:data:`NAV_BLOCK_DIM`), and :func:`block_sync` separates the phases. On the
+        CPU one thread does every piece in the same order: each block sees the same operations in either form."""
         if wp.static(tiled):
             t, lane = wp.tid()
             sh = 1
@@ -324,6 +419,7 @@ def _nav_interval(tiled: bool):
             t = wp.tid()
             lane = 0
             sh = 0
+        nominal = lane == NOMINAL_LANE or sh == 0  # the lane that holds the nominal state (the CPU's one thread)
         b = row0 + t
         if wp.static(tiled):  # P into the block's shared slots (lane 4 r + c: block (r, c)), back at the end
             if lane < 16:
@@ -355,53 +451,27 @@ def _nav_interval(tiled: bool):
         if begin == 0:
             k0 = int(progress[b, 0])
             steps = progress[b, 1]
+        if nominal and k0 < n_steps:
+            step_terms(imu, b, k0, q, ba, bg, chol_scratch, sh)
         for k in range(k0, n_steps):
-            f = imu[b, k, 0]
-            w = imu[b, k, 1]
             dt = imu[b, k, 2][0]
             scale = dt / nominal_dt  # exactly 1 for a nominal step: the same bits as a fixed step
             steps = steps + scale
-            rot = rot_d(q)
-            acc = f - ba
-            wdt = (w - bg) * dt
-            a = -(rot * skew_d(acc)) * dt
-            bm = -rot * dt
-            angle = wp.length(wdt)
-            kx = skew_d(wdt)
-            kk = kx * kx
-            c1 = wp.float64(1.0)
-            c2 = half
-            j1 = half
-            j2 = wp.float64(1.0) / wp.float64(6.0)
-            if angle >= wp.float64(1.0e-8):
-                c1 = wp.sin(angle) / angle
-                c2 = (wp.float64(1.0) - wp.cos(angle)) / (angle * angle)
-                j1 = c2
-                j2 = (angle - wp.sin(angle)) / (angle * angle * angle)
-            e = wp.transpose(eye + c1 * kx + c2 * kk)
-            jm = -(eye - j1 * kx + j2 * kk) * dt
-            block_sync()  # the previous step's P and S are written
-            # ---- Riccati (P in 4×4 blocks: dv, dth, dba, dbg); every lane forms N_k and the gains
-            pa0 = p_times_an(cov, b, 0, sh, dt, a, bm)
-            pa1 = p_times_an(cov, b, 1, sh, dt, a, bm)
-            pa2 = p_times_an(cov, b, 2, sh, dt, a, bm)
-            pa3 = p_times_an(cov, b, 3, sh, dt, a, bm)
-            nk = sym_d(dt * pa0 + half * dt * (a * pa1 + bm * pa2) + (q_pos[b] * scale) * eye)
-            l0, l1 = apply_l(pa0, pa1, pa2, pa3, a, bm, e, jm)
-            inv_nk = wp.inverse(nk)
-            g0 = l0 * inv_nk
-            g1 = l1 * inv_nk
-            g2 = pa2 * inv_nk
-            g3 = pa3 * inv_nk
-            block_sync()  # every lane has read P
-            # P <- A^l P A^lᵀ: A^l on the block columns, then on the rows (transposed); Φ <- T Φ and S <- T S Tᵀ
-            # alike (pieces 0..4 Φ's columns, 5..9 S's)
+            block_sync()  # the previous step's P and S are written, and this step's transition blocks
+            at = W_TERMS + 4 * (k % 2)
+            a = w_get(chol_scratch, b, at, sh)
+            bm = w_get(chol_scratch, b, at + 1, sh)
+            e = w_get(chol_scratch, b, at + 2, sh)
+            jm = w_get(chol_scratch, b, at + 3, sh)
+            # ---- Riccati (P in 4×4 blocks: dv, dth, dba, dbg). A^l P by block columns (its rows 0–1 into the
+            # scratch: P itself is still read), Φ <- T Φ and S <- T S by columns (pieces 0..4 Φ's, 5..9 S's),
+            # P A^nᵀ by block rows, and the nominal state's step
             i0, i1 = span(sh, lane, 0, 4)
             for c in range(i0, i1):
                 y0, y1 = apply_l(p_get(cov, b, 0, c, sh), p_get(cov, b, 1, c, sh), p_get(cov, b, 2, c, sh),
                                  p_get(cov, b, 3, c, sh), a, bm, e, jm)
-                p_put(cov, b, 0, c, sh, y0)
-                p_put(cov, b, 1, c, sh, y1)
+                w_put(chol_scratch, b, W_Q + c, sh, y0)
+                w_put(chol_scratch, b, W_Q + 4 + c, sh, y1)
             i0, i1 = span(sh, lane - SIDE_LANE, 0, 10)
             for idx in range(i0, i1):
                 which = idx // 5
@@ -412,14 +482,30 @@ def _nav_interval(tiled: bool):
                 ps_put(phi, noise, which, b, 0, c, sh, y0)
                 ps_put(phi, noise, which, b, 1, c, sh, y1)
                 ps_put(phi, noise, which, b, 2, c, sh, y2)
+            i0, i1 = span(sh, lane - GAIN_LANE, 0, 4)
+            for r in range(i0, i1):
+                w_put(chol_scratch, b, W_PA + r, sh, p_times_an(cov, b, r, sh, dt, a, bm))
+            if nominal:  # the mechanization (warptan.nav.ins._step_inplace)
+                rot = rot_d(q)
+                wdt = (imu[b, k, 1] - bg) * dt
+                an = rot * (imu[b, k, 0] - ba) + wp.vec3d(wp.float64(0.0), wp.float64(0.0), wp.float64(GRAVITY_D))
+                p = p + v * dt + half * dt * dt * an
+                v = v + an * dt
+                q = quat_mul_exp_d(q, wdt)
             block_sync()
+            # (A^l P) A^lᵀ by block rows (transposed) into P, S <- S Tᵀ by rows; N_k = A^n P A^nᵀ + Q^n and the gains
+            # L_k N_k⁻¹ (piece 0: dv, 1: dθ) and (P A^nᵀ)_r N_k⁻¹ (2: dba, 3: dbg); the next step's blocks
             i0, i1 = span(sh, lane, 0, 4)
             for r in range(i0, i1):
-                y0, y1 = apply_l(wp.transpose(p_get(cov, b, r, 0, sh)), wp.transpose(p_get(cov, b, r, 1, sh)),
-                                 wp.transpose(p_get(cov, b, r, 2, sh)), wp.transpose(p_get(cov, b, r, 3, sh)),
-                                 a, bm, e, jm)
+                y0, y1 = apply_l(wp.transpose(lp_get(cov, chol_scratch, b, r, 0, sh)),
+                                 wp.transpose(lp_get(cov, chol_scratch, b, r, 1, sh)),
+                                 wp.transpose(lp_get(cov, chol_scratch, b, r, 2, sh)),
+                                 wp.transpose(lp_get(cov, chol_scratch, b, r, 3, sh)), a, bm, e, jm)
                 p_put(cov, b, r, 0, sh, wp.transpose(y0))
                 p_put(cov, b, r, 1, sh, wp.transpose(y1))
+                if r < 2:
+                    p_put(cov, b, r, 2, sh, lp_get(cov, chol_scratch, b, r, 2, sh))
+                    p_put(cov, b, r, 3, sh, lp_get(cov, chol_scratch, b, r, 3, sh))
             i0, i1 = span(sh, lane - SIDE_LANE, 0, 5)
             for r in range(i0, i1):
                 y0, y1, y2 = apply_t(wp.transpose(s_get(noise, b, r, 0, sh)), wp.transpose(s_get(noise, b, r, 1, sh)),
@@ -428,14 +514,34 @@ def _nav_interval(tiled: bool):
                 s_put(noise, b, r, 0, sh, wp.transpose(y0))
                 s_put(noise, b, r, 1, sh, wp.transpose(y1))
                 s_put(noise, b, r, 2, sh, wp.transpose(y2))
+            i0, i1 = span(sh, lane - GAIN_LANE, 0, 4)
+            for r in range(i0, i1):
+                pa0 = w_get(chol_scratch, b, W_PA, sh)
+                pa1 = w_get(chol_scratch, b, W_PA + 1, sh)
+                pa2 = w_get(chol_scratch, b, W_PA + 2, sh)
+                pa3 = w_get(chol_scratch, b, W_PA + 3, sh)
+                nk = sym_d(dt * pa0 + half * dt * (a * pa1 + bm * pa2) + (q_pos[b] * scale) * eye)
+                l0, l1 = apply_l(pa0, pa1, pa2, pa3, a, bm, e, jm)
+                gain = pa3
+                if r == 0:
+                    gain = l0
+                elif r == 1:
+                    gain = l1
+                elif r == 2:
+                    gain = pa2
+                w_put(chol_scratch, b, W_GAIN + r, sh, gain * wp.inverse(nk))
+                if r == 0:
+                    w_put(chol_scratch, b, W_NK, sh, nk)
+            if nominal and k + 1 < n_steps:
+                step_terms(imu, b, k + 1, q, ba, bg, chol_scratch, sh)
             block_sync()
             # P += - L N Lᵀ + Q^l (block (r, c): piece 4 r + c); S += G N Gᵀ, G = [I; L] (piece 5 r + c)
             i0, i1 = span(sh, lane, 0, 16)
             for idx in range(i0, i1):
                 r = idx // 4
                 c = idx % 4
-                gn = block_of(r + 1, eye, g0, g1, g2, g3) * nk
-                m = p_get(cov, b, r, c, sh) - gn * wp.transpose(block_of(c + 1, eye, g0, g1, g2, g3))
+                gn = gain_blk(chol_scratch, b, r + 1, sh) * w_get(chol_scratch, b, W_NK, sh)
+                m = p_get(cov, b, r, c, sh) - gn * wp.transpose(gain_blk(chol_scratch, b, c + 1, sh))
                 if r == c:
                     m = m + (q_lin[r] * scale) * eye
                     if r == 0 and q_vel_down[b] > wp.float64(0.0):
@@ -445,9 +551,9 @@ def _nav_interval(tiled: bool):
             for idx in range(i0, i1):
                 r = idx // 5
                 c = idx % 5
-                gn = block_of(r, eye, g0, g1, g2, g3) * nk
-                s_put(noise, b, r, c, sh, s_get(noise, b, r, c, sh) + gn * wp.transpose(block_of(c, eye, g0, g1, g2,
-                                                                                                    g3)))
+                gn = gain_blk(chol_scratch, b, r, sh) * w_get(chol_scratch, b, W_NK, sh)
+                s_put(noise, b, r, c, sh, s_get(noise, b, r, c, sh) + gn * wp.transpose(gain_blk(chol_scratch, b, c,
+                                                                                                   sh)))
             block_sync()
             # P symmetrised (piece 4 r + c, r ≤ c, writes both of a pair)
             i0, i1 = span(sh, lane, 0, 16)
@@ -460,12 +566,7 @@ def _nav_interval(tiled: bool):
                     m = half * (p_get(cov, b, r, c, sh) + wp.transpose(p_get(cov, b, c, r, sh)))
                     p_put(cov, b, r, c, sh, m)
                     p_put(cov, b, c, r, sh, wp.transpose(m))
-            # ---- mechanization (warptan.nav.ins._step_inplace), every lane
-            an = rot * acc + wp.vec3d(wp.float64(0.0), wp.float64(0.0), wp.float64(GRAVITY_D))
-            p = p + v * dt + half * dt * dt * an
-            v = v + an * dt
-            q = quat_mul_exp_d(q, wdt)
-        if lane == 0:
+        if nominal:
             pos[b] = p
             vel[b] = v
             quat[b] = q
@@ -482,7 +583,7 @@ def _nav_interval(tiled: bool):
                     cov[b, lane // 4, lane % 4] = p_get(cov, b, lane // 4, lane % 4, sh)
         if finish == 0:
             return
-        if lane == 0:
+        if nominal:
             for i in range(3):
                 pose_out[b, i] = p[i]
             for i in range(4):
