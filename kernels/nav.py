@@ -156,16 +156,16 @@ PHI_AT = wp.constant(144)
 NOISE_AT = wp.constant(369)
 CHOL_AT = wp.constant(594)
 NAV_SHARED_SLOTS = 819
-WORK_AT = CHOL_AT
-"""The steps' scratch blocks (:func:`w_get`) share the Cholesky's slots, which only the interval's end uses: the rows
-0–1 of ``A^l P`` (``W_Q``, 2×4 blocks), ``P A^nᵀ`` by block rows (``W_PA``), the gains ``L_k N_k⁻¹`` and ``P A^nᵀ
-N_k⁻¹`` (``W_GAIN``), ``N_k`` (``W_NK``) and a step's transition blocks ``A, B, E, J`` (``W_TERMS``, two steps
-alternating: 25 blocks, the 225 slots of the 15×15 scratch). On the CPU they are the filter's ``chol_scratch`` row."""
 W_Q = wp.constant(0)
 W_PA = wp.constant(8)
 W_GAIN = wp.constant(12)
 W_NK = wp.constant(16)
 W_TERMS = wp.constant(17)
+"""The blocks of the steps' scratch (:func:`w_get`): they share the Cholesky's slots, which only the interval's end
+uses: the rows 0–1 of ``A^l P`` (``W_Q``, 2×4 blocks), ``P A^nᵀ`` by block rows (``W_PA``), the gains ``L_k N_k⁻¹``
+and ``P A^nᵀ N_k⁻¹`` (``W_GAIN``), ``N_k`` (``W_NK``) and a step's transition blocks ``A, B, E, J`` (``W_TERMS``, two
+steps alternating: 25 blocks, the 225 slots of the 15×15 scratch). On the CPU they are the filter's ``chol_scratch``
+row."""
 
 
 @wp.func_native("""
@@ -213,17 +213,29 @@ def put_blk(a: wp.array3d(dtype=wp.mat33d), b: int, r: int, c: int, at: int, nco
 @wp.func
 def get_f64(a: wp.array3d(dtype=wp.float64), b: int, i: int, j: int, sh: int) -> wp.float64:
     """Entry (i, j) of filter b's 15×15 Cholesky scratch (shared slots when ``sh``)."""
-    if sh == 0:
-        return a[b, i, j]
-    return shared_slot(CHOL_AT + 15 * i + j, wp.float64(0.0), 0)
+    return scratch_f64(a, b, 15 * i + j, sh)
 
 
 @wp.func
 def put_f64(a: wp.array3d(dtype=wp.float64), b: int, i: int, j: int, sh: int, v: wp.float64):
+    scratch_put(a, b, 15 * i + j, sh, v)
+
+
+@wp.func
+def scratch_f64(a: wp.array3d(dtype=wp.float64), b: int, o: int, sh: int) -> wp.float64:
+    """Float64 ``o`` (row-major) of filter b's 15×15 scratch: the shared slots at :data:`CHOL_AT` when ``sh``, else
+    ``chol_scratch``. The Cholesky uses it at the interval's end, the steps before as blocks (:func:`w_get`)."""
     if sh == 0:
-        a[b, i, j] = v
+        return a[b, o // 15, o % 15]
+    return shared_slot(CHOL_AT + o, wp.float64(0.0), 0)
+
+
+@wp.func
+def scratch_put(a: wp.array3d(dtype=wp.float64), b: int, o: int, sh: int, v: wp.float64):
+    if sh == 0:
+        a[b, o // 15, o % 15] = v
     else:
-        shared_slot(CHOL_AT + 15 * i + j, v, 1)
+        shared_slot(CHOL_AT + o, v, 1)
 
 
 @wp.func
@@ -278,31 +290,19 @@ def ps_put(phi: wp.array3d(dtype=wp.mat33d), noise: wp.array3d(dtype=wp.mat33d),
 
 
 @wp.func
-def w_f64(a: wp.array3d(dtype=wp.float64), b: int, o: int, sh: int) -> wp.float64:
-    """Float64 ``o`` of filter b's step scratch (:data:`WORK_AT`): a shared slot, or ``chol_scratch`` on the CPU."""
-    if sh == 0:
-        return a[b, o // 15, o % 15]
-    return shared_slot(WORK_AT + o, wp.float64(0.0), 0)
-
-
-@wp.func
 def w_get(a: wp.array3d(dtype=wp.float64), b: int, idx: int, sh: int) -> wp.mat33d:
-    """Block ``idx`` of the step scratch (:data:`WORK_AT`)."""
+    """Block ``idx`` of the step scratch (the 15×15 scratch's slots as 25 blocks: ``W_Q`` ...)."""
     o = 9 * idx
-    return wp.mat33d(w_f64(a, b, o, sh), w_f64(a, b, o + 1, sh), w_f64(a, b, o + 2, sh),
-                     w_f64(a, b, o + 3, sh), w_f64(a, b, o + 4, sh), w_f64(a, b, o + 5, sh),
-                     w_f64(a, b, o + 6, sh), w_f64(a, b, o + 7, sh), w_f64(a, b, o + 8, sh))
+    return wp.mat33d(scratch_f64(a, b, o, sh), scratch_f64(a, b, o + 1, sh), scratch_f64(a, b, o + 2, sh),
+                     scratch_f64(a, b, o + 3, sh), scratch_f64(a, b, o + 4, sh), scratch_f64(a, b, o + 5, sh),
+                     scratch_f64(a, b, o + 6, sh), scratch_f64(a, b, o + 7, sh), scratch_f64(a, b, o + 8, sh))
 
 
 @wp.func
 def w_put(a: wp.array3d(dtype=wp.float64), b: int, idx: int, sh: int, m: wp.mat33d):
-    o = 9 * idx
     for i in range(3):
         for j in range(3):
-            if sh == 0:
-                a[b, (o + 3 * i + j) // 15, (o + 3 * i + j) % 15] = m[i, j]
-            else:
-                shared_slot(WORK_AT + o + 3 * i + j, m[i, j], 1)
+            scratch_put(a, b, 9 * idx + 3 * i + j, sh, m[i, j])
 
 
 @wp.func
@@ -515,23 +515,24 @@ def _nav_interval(tiled: bool):
                 s_put(noise, b, r, 1, sh, wp.transpose(y1))
                 s_put(noise, b, r, 2, sh, wp.transpose(y2))
             i0, i1 = span(sh, lane - GAIN_LANE, 0, 4)
-            for r in range(i0, i1):
+            if i0 < i1:  # (a lane of the gains' warp forms N_k, its inverse and L_k; the CPU's thread once)
                 pa0 = w_get(chol_scratch, b, W_PA, sh)
                 pa1 = w_get(chol_scratch, b, W_PA + 1, sh)
                 pa2 = w_get(chol_scratch, b, W_PA + 2, sh)
                 pa3 = w_get(chol_scratch, b, W_PA + 3, sh)
                 nk = sym_d(dt * pa0 + half * dt * (a * pa1 + bm * pa2) + (q_pos[b] * scale) * eye)
                 l0, l1 = apply_l(pa0, pa1, pa2, pa3, a, bm, e, jm)
-                gain = pa3
-                if r == 0:
-                    gain = l0
-                elif r == 1:
-                    gain = l1
-                elif r == 2:
-                    gain = pa2
-                w_put(chol_scratch, b, W_GAIN + r, sh, gain * wp.inverse(nk))
-                if r == 0:
-                    w_put(chol_scratch, b, W_NK, sh, nk)
+                inv_nk = wp.inverse(nk)
+                for r in range(i0, i1):
+                    gain = pa3
+                    if r == 0:
+                        gain = l0
+                        w_put(chol_scratch, b, W_NK, sh, nk)
+                    elif r == 1:
+                        gain = l1
+                    elif r == 2:
+                        gain = pa2
+                    w_put(chol_scratch, b, W_GAIN + r, sh, gain * inv_nk)
             if nominal and k + 1 < n_steps:
                 step_terms(imu, b, k + 1, q, ba, bg, chol_scratch, sh)
             block_sync()
