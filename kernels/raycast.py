@@ -33,6 +33,11 @@ BACKEND_BISECTION = wp.constant(2)
 BIG = wp.constant(1.0e30)
 EDGE_EPS = wp.constant(1.0e-5)
 BAND_PAD = wp.constant(0.05)
+RESIDUAL_MAX_REGISTERS = 64
+"""Registers a thread of :data:`raycast_residual_kernel` may hold on CUDA (``__maxnreg__``): the compiler gave it 125,
+which left a quarter of an H100's warps resident; at 64 half of them are. S7's model (the residual kernel and the
+per-particle reduction, N = 500, M = 400) took 39.0 µs against 43.1 µs (96 registers: 42.8 µs), the same bits
+(``scripts/bench_update_pieces.py``, ``scripts/step_digest.py``)."""
 
 
 @wp.func
@@ -291,7 +296,7 @@ def raycast_pattern_kernel(
     range_out[i, j] = cast_ray(grid, mesh, backend, pos_n[i], d, step_m, n_bisect)
 
 
-@wp.kernel
+@wp.kernel(cuda_max_registers=RESIDUAL_MAX_REGISTERS)
 def raycast_residual_kernel(
     grid: HeightGrid,
     mesh: wp.uint64,
