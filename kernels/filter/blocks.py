@@ -4,9 +4,9 @@ resampling, the update's head and tail."""
 import warp as wp
 
 from warptan.kernels.block import block_sync
-from warptan.kernels.filter.common import N_CHUNKS, N_TEMPER, ST_REMAIN, UpdateParams, vec12
+from warptan.kernels.filter.common import N_CHUNKS, N_TEMPER, ST_REMAIN, ST_RESPREAD, WARP_LANES, UpdateParams, vec12
 from warptan.kernels.filter.integrity import integrity_step, respread_particle
-from warptan.kernels.filter.moves import move_particle, pose_of_particle
+from warptan.kernels.filter.moves import move_particle, nominal_pose, pose_at, pose_of_particle
 from warptan.kernels.filter.record import (
     end_update,
     record_summary,
@@ -14,8 +14,8 @@ from warptan.kernels.filter.record import (
     summary_partial,
     update_covariance_lanes,
 )
-from warptan.kernels.filter.resampling import ancestor, cdf_chunk, cdf_partial, copy_particle, gather
-from warptan.kernels.filter.tempering import begin_stats, temper_ess_of, temper_select
+from warptan.kernels.filter.resampling import ancestor, cdf_chunk, cdf_partial, copy_particle, gather, gathered
+from warptan.kernels.filter.tempering import begin_stats, temper_ess_lanes, temper_select
 from warptan.kernels.filter.weights import (
     add_loglik_partial,
     exp_partial,
@@ -29,18 +29,34 @@ wp.set_module_options({"enable_backward": False})
 
 STAGE_BLOCK_DIM = 256
 """Threads of the block that runs one filter's tempering stage and its resampling on CUDA (:data:`stage_block_kernel`):
-a particle or two each in the resampling (each ancestor is a binary search of dependent loads); the per-chunk pieces
-take the first ``N_CHUNKS`` lanes, so their block sums are the ones :data:`weight_stats_kernel` makes (the lanes after
-add zeros: the same bits as the separate kernels). Measured on an H100 (S8 / S7, the update graph's device time,
-``scripts/step_timeline.py``, two rounds): 256 lanes 172 / 223 µs, 128 lanes 175 / 226 µs, 64 lanes 202 / 250 µs."""
+a particle or two each in the resampling (each ancestor is a binary search of dependent loads; a lane's two gathered
+particles wait in registers for the barrier); the per-chunk pieces take the first ``N_CHUNKS`` lanes and the chunk
+reductions a warp each (:func:`~warptan.kernels.filter.common.chunk_sum`, the candidates' ESS a warp per candidate),
+the same functions as the separate kernels: the same bits. Measured on an H100 (S8 / S7, the update graph's device
+time, ``scripts/step_timeline.py``, two rounds): 256 lanes 172 / 223 µs, 128 lanes 175 / 226 µs, 64 lanes 202 / 250
+µs; 512 lanes do not launch (the kernel needs more than 128 registers a thread)."""
 RECORD_BLOCK_DIM = 64
 """Threads of the blocks that run one filter's integrity monitor and record on CUDA (:data:`integrity_block_kernel`,
-:data:`record_block_kernel`): one lane per chunk (``N_CHUNKS``), so the summary's block sum is
-:data:`summary_kernel`'s."""
+:data:`record_block_kernel`): one lane per chunk (``N_CHUNKS``); the summary's sum over the chunks is the first warp's,
+as in :data:`summary_kernel`."""
 
 MOVE_BLOCK_DIM = 32
 """CUDA block size of :data:`move_pose_kernel`: a particle's move is a long chain (15 normal draws, 40 3×3 products)
 and one filter has a few hundred, so blocks of a warp spread them over 16 multiprocessors instead of two."""
+
+
+@wp.func
+def put_particle(i: int, d: wp.vec3, lm: vec12, lw: float, p_nom: wp.vec3d, q_nom: wp.vec4,
+                 dp: wp.array(dtype=wp.vec3), lin: wp.array(dtype=vec12), logw: wp.array(dtype=wp.float32),
+                 pos_out: wp.array(dtype=wp.vec3), quat_out: wp.array(dtype=wp.vec4)):
+    """Particle i set to (d, lm, lw) and its pose written: :func:`copy_particle` then :func:`pose_of_particle` on
+    values already at hand (the nominal pose read before: a load after the stores waits for them)."""
+    dp[i] = d
+    lin[i] = lm
+    logw[i] = lw
+    p, q = pose_at(p_nom, q_nom, d, lm)
+    pos_out[i] = p
+    quat_out[i] = q
 
 
 @wp.kernel
@@ -106,8 +122,8 @@ def stage_block_kernel(
     ``scripts/bench_update_pieces.py``)."""
     b, lane = wp.tid()
     bd = wp.block_dim()
-    for g in range(lane, N_TEMPER, bd):
-        temper_ess_of(b, g, partials, ess)
+    for g in range(lane // WARP_LANES, N_TEMPER, wp.max(bd // WARP_LANES, 1)):  # (a warp per candidate)
+        temper_ess_lanes(b, g, lane % WARP_LANES, partials, ess)
     block_sync()
     if lane == 0:
         temper_select(b, n_per, stage, last_stage, params, meta, ess, unpred, stats)
@@ -116,8 +132,8 @@ def stage_block_kernel(
         add_loglik_partial(b, c, n_per, loglik, n_valid, meta, stats, nis, logw, chunk_max, chunk_counts,
                            chunk_min_nis)
     block_sync()
-    if lane == 0:
-        max_of_partials(b, chunk_max, chunk_counts, chunk_min_nis, stats)
+    if lane < WARP_LANES:
+        max_of_partials(b, lane, chunk_max, chunk_counts, chunk_min_nis, stats)
     block_sync()
     for c in range(lane, N_CHUNKS, bd):
         exp_partial(b, c, n_per, logw, dp, nis, lam, with_ip, info_pos, stats, chunk_sums)
@@ -139,13 +155,33 @@ def stage_block_kernel(
     for k in range(lane, n_per, bd):
         ancestor(b * n_per + k, n_per, stage, seeds, scheme, stats, cdf, ancestors)
     block_sync()
-    for k in range(lane, n_per, bd):
-        gather(b * n_per + k, n_per, stage, seeds, params, stats, ancestors, dp, lin, logw, dp_spare, lin_spare,
-               logw_spare)
-    block_sync()
-    for k in range(lane, n_per, bd):
-        copy_particle(b * n_per + k, dp_spare, lin_spare, logw_spare, dp, lin, logw)
-        pose_of_particle(b * n_per + k, n_per, pose, dp, lin, pos_out, quat_out)
+    if n_per <= 2 * bd:  # (CUDA) a lane's two particles wait in registers for the barrier: no spare round trip
+        i0 = b * n_per + lane
+        i1 = i0 + bd
+        p_nom, q_nom = nominal_pose(pose, b)
+        d0 = wp.vec3()
+        l0 = vec12()
+        w0 = float(0.0)
+        d1 = wp.vec3()
+        l1 = vec12()
+        w1 = float(0.0)
+        if lane < n_per:
+            d0, l0, w0 = gathered(i0, n_per, stage, seeds, params, stats, ancestors, dp, lin, logw)
+        if lane + bd < n_per:
+            d1, l1, w1 = gathered(i1, n_per, stage, seeds, params, stats, ancestors, dp, lin, logw)
+        block_sync()
+        if lane < n_per:
+            put_particle(i0, d0, l0, w0, p_nom, q_nom, dp, lin, logw, pos_out, quat_out)
+        if lane + bd < n_per:
+            put_particle(i1, d1, l1, w1, p_nom, q_nom, dp, lin, logw, pos_out, quat_out)
+    else:
+        for k in range(lane, n_per, bd):
+            gather(b * n_per + k, n_per, stage, seeds, params, stats, ancestors, dp, lin, logw, dp_spare, lin_spare,
+                   logw_spare)
+        block_sync()
+        for k in range(lane, n_per, bd):
+            copy_particle(b * n_per + k, dp_spare, lin_spare, logw_spare, dp, lin, logw)
+            pose_of_particle(b * n_per + k, n_per, pose, dp, lin, pos_out, quat_out)
     if lane == 0 and stats[b, ST_REMAIN] > wp.float64(0.0):
         more[stage + 1] = 1
 
@@ -185,6 +221,8 @@ def integrity_lanes(b: int, lane: int, n_per: int, offset: int, seeds: wp.array(
     if lane == 0:
         integrity_step(b, params, stats, integrity, kernel_chol)
     block_sync()
+    if stats[b, ST_RESPREAD] == wp.float64(0.0):  # (read once: the loop's own test re-read it per particle)
+        return
     for k in range(lane, n_per, wp.block_dim()):
         respread_particle(b * n_per + k, n_per, offset, seeds, params, stats, dp, logw)
 

@@ -4,12 +4,18 @@ small float64 helpers."""
 
 import warp as wp
 
+from warptan.kernels.block import on_cuda, warp_sum
+
 wp.set_module_options({"enable_backward": False})
 
 vec12 = wp.types.vector(length=12, dtype=wp.float32)
 
 N_CHUNKS = wp.constant(64)
 """Partial sums per filter in the weight reductions (threads of their first stage, per filter)."""
+WARP_LANES = wp.constant(32)
+"""Lanes of a CUDA warp. A chunk reduction on CUDA is one warp's: lane l takes chunks l and l + 32
+(``N_CHUNKS`` = 2 × ``WARP_LANES``), then the warp's butterfly (:func:`warptan.kernels.block.warp_sum`)."""
+assert N_CHUNKS == 2 * WARP_LANES
 N_CHUNK_SUMS = wp.constant(21)
 """Values per chunk of the weight reductions: Σe, Σe², Σe dp (3), Σe dp∘dp (3), Σe (xy, xz, yz), Σe nis,
 Σe Λ (6: 00 11 22 01 02 12), Σe I_p (3: nn ee ne; the position information of a model that cannot fix the position
@@ -132,6 +138,35 @@ def chunk_range(c: int, n: int):
     size = (n + N_CHUNKS - 1) // N_CHUNKS
     lo = wp.min(c * size, n)
     return lo, wp.min(lo + size, n)
+
+
+stats_vec = wp.types.vector(length=32, dtype=wp.float64)
+"""A filter's row of the statistics (``N_STATS`` values) in registers."""
+
+
+@wp.func
+def stats_row(stats: wp.array2d(dtype=wp.float64), b: int) -> stats_vec:
+    """Filter b's statistics read at once: independent loads, one round trip, before a piece's stores (a load after
+    a store waits for it)."""
+    r = stats_vec()
+    for k in range(N_STATS):
+        r[k] = stats[b, k]
+    return r
+
+
+@wp.func
+def chunk_sum(b: int, lane: int, a: int, sums_in: wp.array3d(dtype=wp.float64)) -> wp.float64:
+    """Value a of filter b's chunk sums, summed over the chunks: on CUDA by the 32 lanes of a warp (``lane`` in
+    [0, 32), every lane calls it and gets the total: chunks ``lane`` and ``lane + 32``, then the warp's butterfly);
+    on the CPU (one thread) the chunks in order. On an H100 (clock stamps in the stage and record blocks, S8) the
+    weight statistics and the record took 7.3 / 6.5 µs with a block's ``wp.tile_sum`` of the 21 / 34 sums, 5.0 / 6.1
+    µs with this (the rest is lane 0's chain of stores)."""
+    if on_cuda() == 0:
+        s = wp.float64(0.0)
+        for k in range(N_CHUNKS):
+            s += sums_in[b, k, a]
+        return s
+    return warp_sum(sums_in[b, lane, a] + sums_in[b, lane + WARP_LANES, a])
 
 
 RANDN_EPS = wp.constant(5.96e-8)

@@ -78,6 +78,22 @@ def time_update_kernel(
 
 
 @wp.func
+def nominal_pose(pose: wp.array2d(dtype=wp.float64), b: int):
+    """Filter b's nominal pose as :func:`pose_at` takes it: position (float64), attitude quaternion (float32)."""
+    return (wp.vec3d(pose[b, 0], pose[b, 1], pose[b, 2]),
+            wp.vec4(wp.float32(pose[b, 3]), wp.float32(pose[b, 4]), wp.float32(pose[b, 5]), wp.float32(pose[b, 6])))
+
+
+@wp.func
+def pose_at(p_nom: wp.vec3d, q_nom: wp.vec4, d: wp.vec3, lm: vec12):
+    """:func:`pose_of_particle` of a particle given by value, its filter's nominal pose at hand (:func:`nominal_pose`):
+    (position, attitude)."""
+    p = wp.vec3(wp.float32(p_nom[0] + wp.float64(d[0])), wp.float32(p_nom[1] + wp.float64(d[1])),
+                wp.float32(p_nom[2] + wp.float64(d[2])))
+    return p, wp.normalize(quat_mul_wxyz(q_nom, quat_exp_wxyz(wp.vec3(lm[3], lm[4], lm[5]))))
+
+
+@wp.func
 def pose_of_particle(
     i: int,
     n_per: int,
@@ -89,16 +105,10 @@ def pose_of_particle(
 ):
     """Hypothetical poses ``p_i = p_nom + dp_i`` (sum in float64), ``q_i = q_nom ⊗ Exp(dth_i)``;
     ``pose[b] = [p_nom (3), q_nom (4)]`` of the particle's filter."""
-    b = i // n_per
-    d = dp[i]
-    lm = lin[i]
-    pos_out[i] = wp.vec3(
-        wp.float32(pose[b, 0] + wp.float64(d[0])),
-        wp.float32(pose[b, 1] + wp.float64(d[1])),
-        wp.float32(pose[b, 2] + wp.float64(d[2])),
-    )
-    q_nom = wp.vec4(wp.float32(pose[b, 3]), wp.float32(pose[b, 4]), wp.float32(pose[b, 5]), wp.float32(pose[b, 6]))
-    quat_out[i] = wp.normalize(quat_mul_wxyz(q_nom, quat_exp_wxyz(wp.vec3(lm[3], lm[4], lm[5]))))
+    p_nom, q_nom = nominal_pose(pose, i // n_per)
+    p, q = pose_at(p_nom, q_nom, dp[i], lin[i])
+    pos_out[i] = p
+    quat_out[i] = q
 
 
 @wp.kernel

@@ -33,7 +33,6 @@ from warptan.kernels.filter.common import (
     MOM_L,
     MOM_LL,
     MOM_W,
-    N_CHUNKS,
     N_MOMENT_CHUNKS,
     N_MOMENTS,
     NOM_BA,
@@ -52,9 +51,12 @@ from warptan.kernels.filter.common import (
     ST_SKIP,
     ST_STAGES,
     ST_UNPREDICTABLE,
+    WARP_LANES,
     UpdateParams,
     chunk_range,
+    chunk_sum,
     pair_products,
+    stats_row,
     summary_vec,
     sym_from,
     vec12,
@@ -124,40 +126,44 @@ def record_summary(
     """One block per filter (``wp.launch_tiled``, lanes over the chunks): the update's record in
     ``history[slot[0], b]`` (``H_*`` columns) and ``feedback[b]`` (``FB_*`` columns: what the covariance update and
     the closed loop read)."""
-    part = summary_vec()
-    for c in range(lane, N_CHUNKS, wp.block_dim()):
+    # what lane 0 reads, read before it writes anything (a load after a store waits for it)
+    st = stats_row(stats, b)
+    converged = feedback[b, FB_CONVERGED]
+    since = integrity[b, IN_SINCE]
+    nis_avg = integrity[b, IN_MEAN]
+    t = slot[0]
+    tot = summary_vec()
+    if lane < WARP_LANES:  # (the block's first warp; the CPU's one thread)
         for a in range(34):
-            part[a] += partial_in[b, c, a]
-    tot = wp.tile_sum(wp.tile(part, preserve_type=True))[0]
+            tot[a] = chunk_sum(b, lane, a, partial_in)
     if lane != 0:
         return
     s = tot[0]
-    applied = stats[b, ST_APPLIED]
-    if stats[b, ST_SKIP] != wp.float64(0.0):
+    applied = st[ST_APPLIED]
+    if st[ST_SKIP] != wp.float64(0.0):
         applied = wp.float64(0.0)
     feedback[b, FB_APPLIED] = applied
     gate = wp.float64(1.0)  # the verdict the particles' Kalman update read (the previous update's), not yet renewed
     if params.gate_linear != 0:
-        gate = feedback[b, FB_CONVERGED]
+        gate = converged
     for a in range(6):
-        feedback[b, FB_LAM + a] = gate * applied * stats[b, ST_LAM + a]
+        feedback[b, FB_LAM + a] = gate * applied * st[ST_LAM + a]
     for a in range(3):
         feedback[b, FB_MEAN_DP + a] = tot[1 + a] / s
     for a in range(12):
         feedback[b, FB_MEAN_L + a] = tot[10 + a] / s
-    judged = integrity[b, IN_SINCE] >= wp.float64(params.integrity_min_updates)
-    ok = integrity[b, IN_MEAN] <= wp.float64(params.integrity_threshold) and stats[b, ST_RESPREAD] == wp.float64(0.0)
+    judged = since >= wp.float64(params.integrity_min_updates)
+    ok = nis_avg <= wp.float64(params.integrity_threshold) and st[ST_RESPREAD] == wp.float64(0.0)
     feedback[b, FB_CONVERGED] = wp.where(judged and ok, wp.float64(1.0), wp.float64(0.0))
-    t = slot[0]
     if t >= history.shape[0]:
         return
     cov = weighted_cov(s, wp.vec3d(tot[1], tot[2], tot[3]), wp.vec3d(tot[4], tot[5], tot[6]),
                        wp.vec3d(tot[7], tot[8], tot[9]))
-    history[t, b, H_ESS] = stats[b, ST_ESS]
-    history[t, b, H_RESAMPLES] = stats[b, ST_RESAMPLES]
-    history[t, b, H_RESPREAD] = stats[b, ST_RESPREAD]
-    history[t, b, H_BAD] = stats[b, ST_BAD]
-    history[t, b, H_UNPREDICTABLE] = stats[b, ST_UNPREDICTABLE]
+    history[t, b, H_ESS] = st[ST_ESS]
+    history[t, b, H_RESAMPLES] = st[ST_RESAMPLES]
+    history[t, b, H_RESPREAD] = st[ST_RESPREAD]
+    history[t, b, H_BAD] = st[ST_BAD]
+    history[t, b, H_UNPREDICTABLE] = st[ST_UNPREDICTABLE]
     history[t, b, H_SUM_W] = s
     for a in range(3):
         history[t, b, H_MEAN_DP + a] = tot[1 + a] / s
@@ -165,12 +171,12 @@ def record_summary(
     history[t, b, H_COV_DP + 3] = cov[0, 1]
     history[t, b, H_COV_DP + 4] = cov[0, 2]
     history[t, b, H_COV_DP + 5] = cov[1, 2]
-    history[t, b, H_STAGES] = stats[b, ST_STAGES]
-    history[t, b, H_NIS] = stats[b, ST_NIS_MIN]
-    history[t, b, H_NIS_POST] = stats[b, ST_NIS]
-    history[t, b, H_NIS_AVG] = integrity[b, IN_MEAN]
-    history[t, b, H_SKIPPED] = stats[b, ST_SKIP]
-    history[t, b, H_APPLIED] = stats[b, ST_APPLIED]
+    history[t, b, H_STAGES] = st[ST_STAGES]
+    history[t, b, H_NIS] = st[ST_NIS_MIN]
+    history[t, b, H_NIS_POST] = st[ST_NIS]
+    history[t, b, H_NIS_AVG] = nis_avg
+    history[t, b, H_SKIPPED] = st[ST_SKIP]
+    history[t, b, H_APPLIED] = st[ST_APPLIED]
     for a in range(12):
         mean = tot[10 + a] / s
         history[t, b, H_MEAN_L + a] = mean

@@ -116,6 +116,42 @@ def ancestors_kernel(
 
 
 @wp.func
+def gathered(
+    i: int,
+    n_per: int,
+    stage: int,
+    seeds: wp.array(dtype=wp.int32),
+    params: UpdateParams,
+    stats: wp.array2d(dtype=wp.float64),
+    ancestors: wp.array(dtype=wp.int32),
+    dp_in: wp.array(dtype=wp.vec3),
+    lin_in: wp.array(dtype=vec12),
+    logw_in: wp.array(dtype=wp.float32),
+):
+    """Slot i's particle after a resampling of its filter: its ancestor's, with uniform weights and the regularisation
+    jitter with (partial) kernel shrinkage (Liu & West 2001): ``dp = a dp_anc + (1 - a) m + h chol(Σ̂) z``,
+    ``a = sqrt(1 - s h²)``, ``h`` the bandwidth times the stage's ``ST_JITTER`` (:data:`JITTER_NIS`), Σ̂ and m the
+    weighted covariance and mean of dp before resampling (stream
+    ``stage · 2n + n + j``): the mean is kept and the covariance grows by ``1 + (1 - s) h²``.
+    The Kalman mean is the ancestor's (see :mod:`warptan.filter.mpf`). In other filters its own (the ancestor is
+    the slot). Returns (dp, l, log-weight)."""
+    b = i // n_per
+    a = ancestors[i]
+    d = dp_in[a]
+    lw = logw_in[a]
+    if stats[b, ST_RESAMPLE] != wp.float64(0.0):
+        lw = -wp.log(float(n_per))
+        h = params.bandwidth * wp.float32(stats[b, ST_JITTER])
+        if h > 0.0:
+            state = wp.rand_init(seeds[b], stage * 2 * n_per + n_per + i % n_per)
+            shrink = wp.sqrt(wp.max(1.0 - params.shrinkage * h * h, 0.0))
+            mean = wp.vec3(wp.float32(stats[b, ST_MEAN_DP]), wp.float32(stats[b, ST_MEAN_DP + 1]),
+                           wp.float32(stats[b, ST_MEAN_DP + 2]))
+            d = shrink * d + (1.0 - shrink) * mean + h * (stats_chol(stats, b) * gaussian3(state))
+    return d, lin_in[a], lw
+
+
+@wp.func
 def gather(
     i: int,
     n_per: int,
@@ -131,27 +167,10 @@ def gather(
     lin_out: wp.array(dtype=vec12),
     logw_out: wp.array(dtype=wp.float32),
 ):
-    """Slot i takes its ancestor in a resampling filter, with uniform weights and the regularisation jitter with
-    (partial) kernel shrinkage (Liu & West 2001): ``dp = a dp_anc + (1 - a) m + h chol(Σ̂) z``,
-    ``a = sqrt(1 - s h²)``, ``h`` the bandwidth times the stage's ``ST_JITTER`` (:data:`JITTER_NIS`), Σ̂ and m the
-    weighted covariance and mean of dp before resampling (stream
-    ``stage · 2n + n + j``): the mean is kept and the covariance grows by ``1 + (1 - s) h²``.
-    The Kalman mean is the ancestor's (see :mod:`warptan.filter.mpf`). Other filters copy."""
-    b = i // n_per
-    a = ancestors[i]
-    d = dp_in[a]
-    lw = logw_in[a]
-    if stats[b, ST_RESAMPLE] != wp.float64(0.0):
-        lw = -wp.log(float(n_per))
-        h = params.bandwidth * wp.float32(stats[b, ST_JITTER])
-        if h > 0.0:
-            state = wp.rand_init(seeds[b], stage * 2 * n_per + n_per + i % n_per)
-            shrink = wp.sqrt(wp.max(1.0 - params.shrinkage * h * h, 0.0))
-            mean = wp.vec3(wp.float32(stats[b, ST_MEAN_DP]), wp.float32(stats[b, ST_MEAN_DP + 1]),
-                           wp.float32(stats[b, ST_MEAN_DP + 2]))
-            d = shrink * d + (1.0 - shrink) * mean + h * (stats_chol(stats, b) * gaussian3(state))
+    """Slot i takes :func:`gathered` (into other arrays than the ones it reads)."""
+    d, lm, lw = gathered(i, n_per, stage, seeds, params, stats, ancestors, dp_in, lin_in, logw_in)
     dp_out[i] = d
-    lin_out[i] = lin_in[a]
+    lin_out[i] = lm
     logw_out[i] = lw
 
 

@@ -3,6 +3,7 @@ stage's exponent (Oudjane & Musso 2000)."""
 
 import warp as wp
 
+from warptan.kernels.block import on_cuda, warp_max, warp_sum
 from warptan.kernels.filter.common import (
     N_CHUNKS,
     N_STATS,
@@ -15,6 +16,7 @@ from warptan.kernels.filter.common import (
     ST_SKIP,
     ST_STAGES,
     TEMPER_RATIO,
+    WARP_LANES,
     UpdateParams,
     chunk_range,
     stage_loglik,
@@ -140,11 +142,33 @@ def temper_ess_of(b: int, g: int, partial_in: wp.array4d(dtype=wp.float64), ess_
     ess_out[b, g] = s1 * s1 / s2
 
 
+@wp.func
+def temper_ess_lanes(b: int, g: int, lane: int, partial_in: wp.array4d(dtype=wp.float64),
+                     ess_out: wp.array2d(dtype=wp.float64)):
+    """:func:`temper_ess_of` by the 32 lanes of a CUDA warp (``lane`` in [0, 32); every lane must call it): lane l
+    takes chunks l and l + 32, the maximum and the two sums go through the warp's butterfly
+    (:func:`~warptan.kernels.block.warp_sum`: a pairwise tree over the chunks, the same bits in every lane and
+    launch form). One thread reading the 64 chunks in order took 6.8 µs a stage on an H100 (128 dependent loads
+    per candidate). On the CPU (one thread): :func:`temper_ess_of`, the chunks in order."""
+    if on_cuda() == 0:
+        temper_ess_of(b, g, partial_in, ess_out)
+        return
+    m0 = partial_in[b, lane, g, 0]
+    m1 = partial_in[b, lane + WARP_LANES, g, 0]
+    big = warp_max(wp.max(m0, m1))
+    e0 = wp.exp(m0 - big)
+    e1 = wp.exp(m1 - big)
+    s1 = warp_sum(partial_in[b, lane, g, 1] * e0 + partial_in[b, lane + WARP_LANES, g, 1] * e1)
+    s2 = warp_sum(partial_in[b, lane, g, 2] * e0 * e0 + partial_in[b, lane + WARP_LANES, g, 2] * e1 * e1)
+    if lane == 0:
+        ess_out[b, g] = s1 * s1 / s2
+
+
 @wp.kernel
 def temper_ess_kernel(partial_in: wp.array4d(dtype=wp.float64), ess_out: wp.array2d(dtype=wp.float64)):
-    """Filter b, candidate g: :func:`temper_ess_of`."""
-    b, g = wp.tid()
-    temper_ess_of(b, g, partial_in, ess_out)
+    """Filter b, candidate g, a warp (``wp.launch_tiled``, ``WARP_LANES`` lanes): :func:`temper_ess_lanes`."""
+    b, g, lane = wp.tid()
+    temper_ess_lanes(b, g, lane, partial_in, ess_out)
 
 
 @wp.kernel

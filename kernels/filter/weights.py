@@ -3,6 +3,7 @@ attitude information), normalisation and each particle's Kalman measurement upda
 
 import warp as wp
 
+from warptan.kernels.block import on_cuda, warp_max, warp_sum
 from warptan.kernels.filter.common import (
     FB_CONVERGED,
     JITTER_NIS,
@@ -26,13 +27,14 @@ from warptan.kernels.filter.common import (
     ST_RESAMPLES,
     ST_SKIP,
     ST_UNPREDICTABLE,
+    WARP_LANES,
     UpdateParams,
     chol3,
     chunk_range,
+    chunk_sum,
     chunk_vec,
     pair_products,
     stage_loglik,
-    stats_chol,
     vec12,
     weighted_cov,
 )
@@ -106,21 +108,32 @@ def add_loglik_partials_kernel(
 
 
 @wp.func
-def max_of_partials(b: int, max_in: wp.array2d(dtype=wp.float32), counts_in: wp.array3d(dtype=wp.int32),
+def max_of_partials(b: int, lane: int, max_in: wp.array2d(dtype=wp.float32), counts_in: wp.array3d(dtype=wp.int32),
                     min_nis_in: wp.array2d(dtype=wp.float32), stats: wp.array2d(dtype=wp.float64)):
-    """One thread per active filter: the maximum log-weight, bad log-likelihoods, unpredictable particles, the
-    smallest NIS."""
+    """An active filter: the maximum log-weight, bad log-likelihoods, unpredictable particles, the smallest NIS over
+    its chunks. On CUDA by the 32 lanes of a warp (every lane calls it: chunks ``lane`` and ``lane + 32``, then the
+    warp's butterfly; maxima, minima and whole counts in float64 are exact in any order, the same bits as one thread
+    in order, which the CPU runs; lane 0 took 1.2 µs a stage on an H100)."""
     if stats[b, ST_ACTIVE] == wp.float64(0.0):
         return
     m = max_in[b, 0]
     least = min_nis_in[b, 0]
     bad = int(0)
     unpredictable = int(0)
-    for k in range(N_CHUNKS):
-        m = wp.max(m, max_in[b, k])
-        least = wp.min(least, min_nis_in[b, k])
-        bad += counts_in[b, k, 0]
-        unpredictable += counts_in[b, k, 1]
+    if on_cuda() == 0:
+        for k in range(N_CHUNKS):
+            m = wp.max(m, max_in[b, k])
+            least = wp.min(least, min_nis_in[b, k])
+            bad += counts_in[b, k, 0]
+            unpredictable += counts_in[b, k, 1]
+    else:
+        k = lane + WARP_LANES
+        m = wp.float32(warp_max(wp.float64(wp.max(max_in[b, lane], max_in[b, k]))))
+        least = wp.float32(-warp_max(-wp.float64(wp.min(min_nis_in[b, lane], min_nis_in[b, k]))))
+        bad = int(warp_sum(wp.float64(counts_in[b, lane, 0] + counts_in[b, k, 0])))
+        unpredictable = int(warp_sum(wp.float64(counts_in[b, lane, 1] + counts_in[b, k, 1])))
+    if lane != 0:
+        return
     stats[b, ST_NIS_MIN] = wp.float64(least)
     stats[b, ST_BAD] = wp.float64(bad)
     stats[b, ST_UNPREDICTABLE] = wp.float64(unpredictable)
@@ -130,9 +143,9 @@ def max_of_partials(b: int, max_in: wp.array2d(dtype=wp.float32), counts_in: wp.
 @wp.kernel
 def max_of_partials_kernel(max_in: wp.array2d(dtype=wp.float32), counts_in: wp.array3d(dtype=wp.int32),
                            min_nis_in: wp.array2d(dtype=wp.float32), stats: wp.array2d(dtype=wp.float64)):
-    """One thread per (b): :func:`max_of_partials`."""
-    b = wp.tid()
-    max_of_partials(b, max_in, counts_in, min_nis_in, stats)
+    """Filter b, a warp (``wp.launch_tiled``, ``WARP_LANES`` lanes; one thread on the CPU): :func:`max_of_partials`."""
+    b, lane = wp.tid()
+    max_of_partials(b, lane, max_in, counts_in, min_nis_in, stats)
 
 
 @wp.func
@@ -227,17 +240,21 @@ def weight_stats(
     resample: when ESS < threshold · n, or when exponent remains (between tempering stages)."""
     if stats[b, ST_ACTIVE] == wp.float64(0.0):
         return
-    part = chunk_vec()
-    for k in range(lane, N_CHUNKS, wp.block_dim()):
+    # what lane 0 reads of the statistics, read before it writes any (a load after a store waits for it: on an H100
+    # each such round trip cost ~0.4 µs of this piece's 7)
+    max_lw = stats[b, ST_MAX]
+    remain = stats[b, ST_REMAIN]
+    resamples = stats[b, ST_RESAMPLES]
+    tot = chunk_vec()
+    if lane < WARP_LANES:  # (the block's first warp; the CPU's one thread)
         for a in range(N_CHUNK_SUMS):
-            part[a] += sums_in[b, k, a]
-    tot = wp.tile_sum(wp.tile(part, preserve_type=True))[0]
+            tot[a] = chunk_sum(b, lane, a, sums_in)
     if lane != 0:
         return
     s1 = tot[0]
     ess = s1 * s1 / tot[1]
     stats[b, ST_ESS] = ess
-    stats[b, ST_LOGNORM] = stats[b, ST_MAX] + wp.log(s1)
+    stats[b, ST_LOGNORM] = max_lw + wp.log(s1)
     m1 = wp.vec3d(tot[2], tot[3], tot[4])
     for a in range(3):
         stats[b, ST_MEAN_DP + a] = m1[a] / s1
@@ -254,15 +271,19 @@ def weight_stats(
     ip = wp.vec3d(tot[18], tot[19], tot[20]) / s1
     q = wp.float64(params.bandwidth * params.bandwidth) * (cov[0, 0] * ip[0] + cov[1, 1] * ip[1]
                                                            + wp.float64(2.0) * cov[0, 1] * ip[2])
-    stats[b, ST_JITTER] = wp.float64(1.0)
+    jitter = wp.float64(1.0)
     if q > wp.float64(JITTER_NIS):
-        stats[b, ST_JITTER] = wp.sqrt(wp.float64(JITTER_NIS) / q)
-    kernel_chol[b] = wp.float32(wp.float64(params.bandwidth) * stats[b, ST_JITTER]) * stats_chol(stats, b)
+        jitter = wp.sqrt(wp.float64(JITTER_NIS) / q)
+    stats[b, ST_JITTER] = jitter
+    z = wp.float32(0.0)  # (stats_chol of what was just stored)
+    kernel_chol[b] = wp.float32(wp.float64(params.bandwidth) * jitter) * wp.mat33(
+        wp.float32(lo[0, 0]), z, z, wp.float32(lo[1, 0]), wp.float32(lo[1, 1]), z,
+        wp.float32(lo[2, 0]), wp.float32(lo[2, 1]), wp.float32(lo[2, 2]))
     for a in range(6):
         stats[b, ST_LAM + a] = tot[12 + a] / s1
-    if ess < wp.float64(params.resample_threshold) * wp.float64(n_per) or stats[b, ST_REMAIN] > wp.float64(0.0):
+    if ess < wp.float64(params.resample_threshold) * wp.float64(n_per) or remain > wp.float64(0.0):
         stats[b, ST_RESAMPLE] = wp.float64(1.0)
-        stats[b, ST_RESAMPLES] = stats[b, ST_RESAMPLES] + wp.float64(1.0)
+        stats[b, ST_RESAMPLES] = resamples + wp.float64(1.0)
 
 
 @wp.kernel

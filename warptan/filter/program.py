@@ -232,15 +232,15 @@ class UpdateProgram:
             return
         if not d.is_cpu:
             launch(kmpf.temper_ess_kernel, dim=(b, kmpf.N_TEMPER), inputs=[self._temper_partials],
-                   outputs=[self._temper_ess], device=d)
+                   outputs=[self._temper_ess], block_dim=kmpf.WARP_LANES, device=d)
         launch(kmpf.temper_select_kernel, dim=b,
                   inputs=[n, stage, int(stage == self.max_stages - 1), self.params, out.meta, self._temper_ess,
                           self._unpred_partials], outputs=[self._stats], device=d)
         launch(kmpf.add_loglik_partials_kernel, dim=(b, kmpf.N_CHUNKS),
                   inputs=[n, out.loglik, out.n_valid, out.meta, self._stats, out.nis],
                   outputs=[st.logw, self._chunk_max, self._chunk_counts, self._chunk_min_nis], device=d)
-        launch(kmpf.max_of_partials_kernel, dim=b, inputs=[self._chunk_max, self._chunk_counts, self._chunk_min_nis],
-                  outputs=[self._stats], device=d)
+        launch(kmpf.max_of_partials_kernel, dim=[b], inputs=[self._chunk_max, self._chunk_counts,
+               self._chunk_min_nis], outputs=[self._stats], block_dim=kmpf.WARP_LANES, device=d)
         launch(kmpf.exp_partials_kernel, dim=(b, kmpf.N_CHUNKS),
                   inputs=[n, st.logw, st.dp, out.nis, lam, *self._position_info(out), self._stats],
                   outputs=[self._chunk_sums], device=d)
