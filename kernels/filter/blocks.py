@@ -27,19 +27,28 @@ from warptan.kernels.filter.weights import (
 
 wp.set_module_options({"enable_backward": False})
 
-STAGE_BLOCK_DIM = 256
+STAGE_BLOCK_DIM = 512
 """Threads of the block that runs one filter's tempering stage and its resampling on CUDA (:data:`stage_block_kernel`):
-a particle or two each in the resampling (each ancestor is a binary search of dependent loads; a lane's two gathered
-particles wait in registers for the barrier); the per-chunk pieces take the first ``N_CHUNKS`` lanes and the chunk
-reductions a warp each (:func:`~warptan.kernels.filter.common.chunk_sum`, the candidates' ESS a warp per candidate),
-the same functions as the separate kernels: the same bits. Measured on an H100 (S8 / S7, the update graph's device
-time, ``scripts/step_timeline.py``, two rounds): 256 lanes 172 / 223 µs, 128 lanes 175 / 226 µs, 64 lanes 202 / 250
-µs; 512 lanes do not launch (the kernel needs more than 128 registers a thread)."""
+a particle each in the resampling for N <= 512, two above (each ancestor is a binary search of dependent loads; a
+lane's gathered particles wait in registers for the barrier); the per-chunk pieces take the first ``N_CHUNKS`` lanes
+and the chunk reductions a warp each (:func:`~warptan.kernels.filter.common.chunk_sum`, the candidates' ESS a warp per
+candidate), the same functions as the separate kernels: the same bits. Measured on an H100 (S8 / S7, N = 500, M =
+400): the block's own time (lane-0 clock stamps) 32.3 / 33.2 µs at 256 lanes, 28.9 / 29.6 µs at 512 (the ancestors'
+searches, the gather and the copy halve); the update graph's device time (``scripts/step_timeline.py``, two rounds)
+at 256, 128 and 64 lanes was 172 / 223, 175 / 226 and 202 / 250 µs. 512 lanes need the register cap
+(:data:`STAGE_MAX_REGISTERS`): the compiler's 134 registers a thread do not fit a block of 512."""
+STAGE_MAX_REGISTERS = 128
+"""Registers a thread of :data:`stage_block_kernel` may hold on CUDA (``__maxnreg__``): 65 536 a multiprocessor over
+:data:`STAGE_BLOCK_DIM` = 512 lanes. The bits are those of the uncapped kernel (CUDA digest identical)."""
 RECORD_BLOCK_DIM = 64
 """Threads of the blocks that run one filter's integrity monitor and record on CUDA (:data:`integrity_block_kernel`,
 :data:`record_block_kernel`): one lane per chunk (``N_CHUNKS``); the summary's sum over the chunks is the first warp's,
 as in :data:`summary_kernel`."""
 
+TEMPER_BLOCK_DIM = 32
+"""CUDA block size of :data:`~warptan.kernels.filter.tempering.temper_partials_kernel`: 1 280 threads a filter, each a
+chain of float64 exponentials over its chunk; in blocks of 256 they ran on five multiprocessors (7.2 µs a stage on an
+H100, ncu), in blocks of a warp on forty."""
 MOVE_BLOCK_DIM = 32
 """CUDA block size of :data:`move_pose_kernel`: a particle's move is a long chain (15 normal draws, 40 3×3 products)
 and one filter has a few hundred, so blocks of a warp spread them over 16 multiprocessors instead of two."""
@@ -59,7 +68,7 @@ def put_particle(i: int, d: wp.vec3, lm: vec12, lw: float, p_nom: wp.vec3d, q_no
     quat_out[i] = q
 
 
-@wp.kernel
+@wp.kernel(cuda_max_registers=STAGE_MAX_REGISTERS)
 def stage_block_kernel(
     n_per: int,
     stage: int,

@@ -217,7 +217,8 @@ class UpdateProgram:
         else:  # every candidate in parallel
             launch(kmpf.temper_partials_kernel, dim=(b, kmpf.N_CHUNKS, kmpf.N_TEMPER),
                    inputs=[n, stage, out.loglik, out.n_valid, out.meta, st.logw, self._stats],
-                   outputs=[self._temper_partials, self._unpred_partials], device=d)
+                   outputs=[self._temper_partials, self._unpred_partials], device=d,
+                   spread=kmpf.TEMPER_BLOCK_DIM)
         if self._block_stages:  # CUDA: the stage's other pieces and its resampling in one block per filter
             seeds, sp = self._dev["resample_seeds"], self._spare
             launch(kmpf.stage_block_kernel, dim=[b],
