@@ -208,6 +208,24 @@ def scenario_step_block() -> str:
             + ".\n\n" + "\n".join(lines))
 
 
+def step_spread_block() -> str:
+    """One GPU filter's synchronised step in several processes on one machine (``scenario_step_h100.json`` and the
+    runs of ``scenario_step_spread_h100.json``): the host's share varies from process to process, the device's not."""
+    sources = ["benchmarks/issue32/scenario_step_h100.json", "benchmarks/issue32/scenario_step_spread_h100.json"]
+    first = [r for r in _load(sources[0])["results"] if r["B"] == 1]
+    runs = [first] + [[r for r in run if r["B"] == 1] for run in _load(sources[1])["runs"]]
+    lines = ["| process | scenario filter | step ms (synchronised) | host + upload ms | device ms | pipelined ms |",
+             "|---|---|---|---|---|---|"]
+    for k, run in enumerate(runs, start=1):
+        for r in run:
+            lines.append(f"| {k} | {r['model']} | {r['step_ms']:.3f} | {r['host_ms'] + r['upload_ms']:.3f} | "
+                         f"{r['device_ms']:.3f} | {r['throughput_step_ms']:.3f} |")
+    return ("One filter (B = 1, N = 500, M = 400) of the table above in separate processes, one after the other on "
+            "the same machine: medians of 200 synchronised intervals each; host + upload is the Python of an interval "
+            "before the update's graph is launched (the filter's StepTimer), device the update's device time. "
+            + _provenance(*sources) + "\n\n" + "\n".join(lines))
+
+
 def profile_block(top: int = 10) -> str:
     data = _load("benchmarks/step_profile_h100.json")
     lines = []
@@ -378,7 +396,8 @@ def bound_block(path: str = "results/bound/bound_study.json") -> str:
 
 BLOCKS = {"paper": paper_block, "attitude": attitude_block, "paper30": lambda: paper_block("results/paper30"),
           "closed_loop": closed_loop_block, "map_error": map_error_block, "long_flight": long_flight_block,
-          "step": step_block, "scenario_step": scenario_step_block, "profile": profile_block, "kernels": kernels_block,
+          "step": step_block, "scenario_step": scenario_step_block, "step_spread": step_spread_block,
+          "profile": profile_block, "kernels": kernels_block,
           "threads": threads_block, "numpy": numpy_block, "batch": batch_block, "campaign": campaign_block,
           "world": world_block, "replay_frames": replay_frames_block, "bound": bound_block}
 

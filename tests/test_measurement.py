@@ -297,8 +297,9 @@ def test_nan_samples_are_excluded(device):
 
 def test_staged_cloud_rows_are_the_clouds(device):
     """The staged rows (the ranges uploaded, a kernel writing the rows) are each cloud's point ``r d`` (0 where
-    invalid), direction, range and validity, as NumPy builds them: for a batch sharing one pattern, for clouds with
-    their own directions (``PointCloud.from_points``), and again after the batch changes."""
+    invalid), direction, range and validity, and its meta row (received points, log-likelihood floor), as NumPy builds
+    them: for a batch sharing one pattern, for clouds with their own directions (``PointCloud.from_points``), and again
+    after the batch changes (one filter, with and without a lost point)."""
     from warptan.kernels import likelihood as klik
 
     rng = np.random.default_rng(3)
@@ -310,12 +311,13 @@ def test_staged_cloud_rows_are_the_clouds(device):
     own = [wt.PointCloud.from_points(rng.normal(0.0, 300.0, (pattern.m, 3)) + below) for _ in range(3)]
     own[2].ranges_m[4] = np.nan
     model = wt.SlidingModel(terrain, wt.Likelihood("gaussian", sigma_m=2.0))
-    for clouds in (shared, own, shared[:1]):
+    k_out = model.likelihood.outlier_sigmas
+    for clouds in (shared, own, shared[:1], own[2:]):  # (one filter's count and floor take their own path)
         n = 2 * len(clouds)
         pos = wp.array(np.zeros((n, 3), np.float32), dtype=wp.vec3, device=device)
         quat = wp.array(np.tile([1.0, 0.0, 0.0, 0.0], (n, 1)).astype(np.float32), dtype=wp.vec4, device=device)
         out = model.stage(clouds if len(clouds) > 1 else clouds[0], pos, quat)
-        rows = model._staged.numpy()
+        rows, meta = model._staged.numpy(), out.meta.numpy()
         for k, cloud in enumerate(clouds):
             r = cloud.ranges_m.astype(np.float32)
             ok = np.isfinite(r)
@@ -326,6 +328,8 @@ def test_staged_cloud_rows_are_the_clouds(device):
             np.testing.assert_array_equal(rows[k, :, klik.CR_RANGE], r)
             np.testing.assert_array_equal(rows[k, :, klik.CR_VALID], ok.astype(np.float32))
             assert out.n_received[k] == ok.sum()
+            np.testing.assert_array_equal(meta[k], np.array([ok.sum(), -0.5 * k_out * k_out * max(1, ok.sum())],
+                                                            dtype=np.float32))
 
 
 def test_held_staging_runs_when_released(device):
