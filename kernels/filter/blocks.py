@@ -29,14 +29,15 @@ wp.set_module_options({"enable_backward": False})
 
 STAGE_BLOCK_DIM = 512
 """Threads of the block that runs one filter's tempering stage and its resampling on CUDA (:data:`stage_block_kernel`):
-a particle each in the resampling for N <= 512, two above (each ancestor is a binary search of dependent loads; a
-lane's gathered particles wait in registers for the barrier); the per-chunk pieces take the first ``N_CHUNKS`` lanes
-and the chunk reductions a warp each (:func:`~warptan.kernels.filter.common.chunk_sum`, the candidates' ESS a warp per
-candidate), the same functions as the separate kernels: the same bits. Measured on an H100 (S8 / S7, N = 500, M =
-400): the block's own time (lane-0 clock stamps) 32.3 / 33.2 µs at 256 lanes, 28.9 / 29.6 µs at 512 (the ancestors'
-searches, the gather and the copy halve); the update graph's device time (``scripts/step_timeline.py``, two rounds)
-at 256, 128 and 64 lanes was 172 / 223, 175 / 226 and 202 / 250 µs. 512 lanes need the register cap
-(:data:`STAGE_MAX_REGISTERS`): the compiler's 134 registers a thread do not fit a block of 512."""
+a particle each in the resampling for N <= 512, two up to N = 1 024 (each ancestor is a binary search of dependent
+loads; a lane's gathered particles wait in registers for the barrier), more through the spare arrays; the per-chunk
+pieces take the first ``N_CHUNKS`` lanes and the chunk reductions a warp each
+(:func:`~warptan.kernels.filter.common.chunk_sum`, the candidates' ESS a warp per candidate), the same functions as the
+separate kernels: the same bits. Measured on an H100 (S8 / S7, N = 500, M = 400): the block's own time (lane-0 clock
+stamps) 32.3 / 33.2 µs at 256 lanes, 28.9 / 29.6 µs at 512 (the ancestors' searches, the gather and the copy halve); the
+update graph's device time (``scripts/step_timeline.py``, two rounds) at 256, 128 and 64 lanes was 172 / 223, 175 / 226
+and 202 / 250 µs. 512 lanes need the register cap (:data:`STAGE_MAX_REGISTERS`): the compiler's 134 registers a thread
+do not fit a block of 512."""
 STAGE_MAX_REGISTERS = 128
 """Registers a thread of :data:`stage_block_kernel` may hold on CUDA (``__maxnreg__``): 65 536 a multiprocessor over
 :data:`STAGE_BLOCK_DIM` = 512 lanes. The bits are those of the uncapped kernel (CUDA digest identical)."""
