@@ -1,9 +1,9 @@
 """Device time of each piece of one filter's measurement update on CUDA, warm, as the update's graph runs it: the head
-(interval, moves, poses), the model, a tempering stage with its resampling (one block per filter: candidates'
-partials, exponent, weights, resampling, poses), the tail (integrity, record, slot), and the whole update graph. Each
-piece is captured ``--reps`` times in a row in one graph, replayed ``--repeats`` times between events; the median per
-piece is reported (µs). A piece repeated on its own output does the same work as in an update (stage 0 is always
-active; a resampling copies the particles whether or not it draws).
+(interval, moves, poses), the model (a ray-casting model's two kernels also apart), a tempering stage with its
+resampling (one block per filter: candidates' partials, exponent, weights, resampling, poses), the tail (integrity,
+record, slot), and the whole update graph. Each piece is captured ``--reps`` times in a row in one graph, replayed
+``--repeats`` times between events; the median per piece is reported (µs). A piece repeated on its own output does the
+same work as in an update (stage 0 is always active; a resampling copies the particles whether or not it draws).
 
     python scripts/bench_update_pieces.py --scenario S8 S7 --json pieces.json     (a CUDA device)
 """
@@ -87,6 +87,12 @@ def main(argv=None) -> int:
             "tail (integrity, record, slot)": mpf._launch_tail,
             "whole update (device program)": lambda m=mpf, o=out: m._device_update(o),
         }
+        if hasattr(mpf.model, "_launch_residuals"):  # a ray-casting model: its two kernels apart
+            dev = wp.get_device(args.device)
+            pieces["model: the ray casts"] = lambda m=mpf, o=out, d=dev: m.model._launch_residuals(m._pos, m._quat,
+                                                                                                      o, d)
+            pieces["model: the per-particle reduction"] = lambda m=mpf, o=out, d=dev: m.model._launch_reduce(m._quat,
+                                                                                                            o, d)
         row = {"scenario": sid, "B": 1, "N": mpf.n, "M": int(out.residual_m.shape[1]), "lean": mpf._lean,
                "pieces_us": {name: _time(fn, args.device, args.reps, args.repeats) for name, fn in pieces.items()}}
         rows.append(row)

@@ -533,15 +533,24 @@ class RaycastModel(_PointCloudModel):
         self.caster = caster or RayCaster("dda")
 
     def _launch(self, pos_n, quat_nb, out, device):
+        self._launch_residuals(pos_n, quat_nb, out, device)
+        self._launch_reduce(quat_nb, out, device)
+
+    def _launch_residuals(self, pos_n, quat_nb, out, device):
+        """The rays' casts: each (particle, point)'s range residual, scaled normal and (when gated) vertical."""
         lead = self.caster.launch_args(self.terrain, device)
         res, nrm, vert, cloud, n_per = out.residual_m, out.normal, out.vertical_m, self._staged, self.n_per
-        att = self._attitude_cov(device, self.n_filters)
-        mean, var = self._mode_state(device, res.shape[0], self.n_filters)
         launch_rows(kray.raycast_residual_kernel, res.shape[0],
                     lambda a, b: ([*lead, a or 0, n_per, rows_of(pos_n, a, b), rows_of(quat_nb, a, b), cloud],
                                   [rows_of(res, a, b), rows_of(nrm, a, b), int(self._gates_misses()),
                                    rows_of(vert, a, b)]),
                     device, cols=res.shape[1], row_cost=20)
+
+    def _launch_reduce(self, quat_nb, out, device):
+        """Each particle's log-likelihood and information from its residuals (:meth:`_launch_residuals`)."""
+        res, nrm, vert, cloud, n_per = out.residual_m, out.normal, out.vertical_m, self._staged, self.n_per
+        att = self._attitude_cov(device, self.n_filters)
+        mean, var = self._mode_state(device, res.shape[0], self.n_filters)
         kernel, block = klik.reduce_loglik_kernels[device.is_cuda, self._params.n_modes > 0], _block_dim(device)
         launch_rows(kernel, res.shape[0],
                     lambda a, b: ([a or 0, n_per, rows_of(res, a, b), rows_of(quat_nb, a, b), rows_of(nrm, a, b),
