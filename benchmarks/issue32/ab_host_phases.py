@@ -17,6 +17,7 @@ import warp as wp
 
 sys.path.insert(0, sys.argv[1])  # scripts/: bench_filter_step's scenario setup
 import bench_filter_step as bfs
+from ab_interval_first import alternate  # (this folder)
 
 STEPS, WARM = 500, 100
 VARIANTS = {"base": {}, "noahead": {"_run_ahead": False}}
@@ -82,18 +83,7 @@ for sid in sys.argv[3:]:
     total = STEPS + 200
     scans = [sensor.measure(world, truth.pos_n[(it + 1) * ipm], truth.quat_nb[(it + 1) * ipm], rng)
              for it in range(total)]
-    times = {name: [] for name in VARIANTS}
-    for it in range(STEPS):
-        for name in (VARIANTS if it % 2 else list(VARIANTS)[::-1]):
-            mpf, f, w, _ = filters[name]
-            k = it * ipm
-            wp.synchronize_device("cuda:0")
-            t0 = time.perf_counter()
-            mpf.predict_many(f[k:k + ipm], w[k:k + ipm])
-            mpf.update(scans[it], sync=False)
-            wp.synchronize_device("cuda:0")
-            if it >= WARM:
-                times[name].append(1e6 * (time.perf_counter() - t0))
+    times = alternate(filters, scans, ipm, STEPS, WARM, 1e6)
     est = {name: filters[name][0].estimate().nav.pos_n.tolist() for name in VARIANTS}
     row = {name: {"median_us": statistics.median(v), "p25": float(np.percentile(v, 25)),
                   "p75": float(np.percentile(v, 75))} for name, v in times.items()}
