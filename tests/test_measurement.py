@@ -312,7 +312,7 @@ def test_staged_cloud_rows_are_the_clouds(device):
     own[2].ranges_m[4] = np.nan
     model = wt.SlidingModel(terrain, wt.Likelihood("gaussian", sigma_m=2.0))
     k_out = model.likelihood.outlier_sigmas
-    for clouds in (shared, own, shared[:1], own[2:]):  # (one filter's count and floor take their own path)
+    for clouds in (shared, own, shared[:1], own[2:]):
         n = 2 * len(clouds)
         pos = wp.array(np.zeros((n, 3), np.float32), dtype=wp.vec3, device=device)
         quat = wp.array(np.tile([1.0, 0.0, 0.0, 0.0], (n, 1)).astype(np.float32), dtype=wp.vec4, device=device)

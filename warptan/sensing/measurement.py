@@ -444,8 +444,8 @@ class _PointCloudModel(MeasurementModel):
         sens = 1.0 / down if self.name == "raycast" else np.ones(len(u))
         return xy, sens, _forward(quat)
 
-    def _fill(self, items, meta: wp.array):
-        """The clouds into the staged rows and ``meta``; returns each cloud's finite ranges (B numbers)."""
+    def _fill(self, items, meta: wp.array) -> np.ndarray:
+        """The clouds into the staged rows and ``meta``; returns each cloud's finite ranges."""
         b, m = self._staged.shape
         device = self._staged.device
         # the batch at once: the ranges and the meta rows go up as one copy, a kernel writes the rows and the meta
@@ -457,19 +457,10 @@ class _PointCloudModel(MeasurementModel):
         ranges = self._host.get("ranges")
         if ranges is None or ranges.shape != (b, cols):
             ranges = self._host["ranges"] = np.empty((b, cols), dtype=np.float32)
-        if b == 1:  # one filter: its count and floor as Python numbers (the same float32 values; ~5 µs less a scan)
-            row = ranges[0]
-            row[:m] = items[0].ranges_m
-            count = int(np.count_nonzero(np.isfinite(row[:m])))
-            k_out = self.likelihood.outlier_sigmas
-            row[m + klik.META_RECEIVED] = count
-            row[m + klik.META_FLOOR] = -0.5 * k_out * k_out * max(1, count)
-            n_received = (count,)
-        else:
-            for k, cloud in enumerate(items):
-                ranges[k, :m] = cloud.ranges_m
-            n_received = np.isfinite(ranges[:, :m]).sum(axis=1).astype(np.int64)
-            ranges[:, m:] = self._meta(n_received)
+        for k, cloud in enumerate(items):
+            ranges[k, :m] = cloud.ranges_m
+        n_received = np.isfinite(ranges[:, :m]).sum(axis=1).astype(np.int64)
+        ranges[:, m:] = self._meta(n_received)
         dev_ranges = self._host.get("dev_ranges")
         if dev_ranges is None or dev_ranges.shape != (b, cols) or dev_ranges.device != device:
             dev_ranges = self._host["dev_ranges"] = wp.empty((b, cols), dtype=wp.float32, device=device)
