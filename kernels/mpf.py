@@ -14,8 +14,8 @@ flags in ``stats`` that the later kernels read, so a whole measurement update ru
 can be captured in a graph.
 
 The kernels live by what they do in :mod:`warptan.kernels.filter` (``common``: layouts, parameters and helpers;
-``moves``, ``tempering``, ``weights``, ``resampling``, ``integrity``, ``record``, ``blocks``); this module gathers
-them under one name (``kmpf``).
+``moves``, ``tempering``, ``weights``, ``resampling``, ``integrity``, ``record``, ``readout``, ``blocks``); this module
+gathers them under one name (``kmpf``).
 """
 
 from warptan.kernels.filter.blocks import (
@@ -126,11 +126,17 @@ from warptan.kernels.filter.moves import (
     pose_of_particle,
     time_update_kernel,
 )
+from warptan.kernels.filter.readout import (
+    N_READOUT,
+    RO_COV,
+    RO_NOMINAL,
+    combine_partials_kernel,
+    moment_partials_kernel,
+    readout_kernel,
+)
 from warptan.kernels.filter.record import (
     advance_slot_kernel,
-    combine_partials_kernel,
     covariance_update_kernel,
-    moment_partials_kernel,
     record_summary,
     reset_kernel,
     reset_particle,
@@ -189,23 +195,23 @@ __all__ = [
     'H_SUM_W', 'H_UNPREDICTABLE', 'H_VAR_L', 'IN_MEAN', 'IN_RESPREADS', 'IN_RING', 'IN_SINCE', 'JITTER_NIS',
     'MAX_WINDOW', 'MOM_DP', 'MOM_DPDP', 'MOM_L', 'MOM_LL', 'MOM_W', 'MOVE_BLOCK_DIM', 'NOM_BA', 'NOM_BG', 'NOM_POS',
     'NOM_QUAT', 'NOM_VEL', 'N_CHUNKS', 'N_CHUNK_SUMS', 'N_FEEDBACK', 'N_INTEGRITY', 'N_MOMENTS', 'N_MOMENT_CHUNKS',
-    'N_NOMINAL', 'N_STATS', 'N_SUMMARY', 'N_SUMMARY_SUMS', 'N_TEMPER', 'RANDN_EPS', 'RECORD_BLOCK_DIM',
-    'STAGE_BLOCK_DIM', 'STAGE_MAX_REGISTERS', 'ST_ACTIVE', 'ST_APPLIED', 'ST_BAD', 'ST_CHOL', 'ST_ESS', 'ST_GAMMA',
-    'ST_JITTER', 'ST_LAM', 'ST_LOGNORM', 'ST_MAX', 'ST_MEAN_DP', 'ST_NIS', 'ST_NIS_MIN', 'ST_REMAIN', 'ST_RESAMPLE',
-    'ST_RESAMPLES', 'ST_RESPREAD', 'ST_SKIP', 'ST_STAGES', 'ST_UNPREDICTABLE', 'TEMPER_BLOCK_DIM', 'TEMPER_RATIO',
-    'WARP_LANES', 'UpdateParams', 'add_loglik_partial', 'add_loglik_partials_kernel', 'advance_slot_kernel', 'ancestor',
-    'ancestors_kernel', 'begin_stats', 'begin_update_kernel', 'cdf_chunk', 'cdf_kernel', 'cdf_partial',
-    'cdf_partials_kernel', 'chol3', 'chunk_range', 'chunk_sum', 'chunk_vec', 'combine_partials_kernel',
-    'copy_modes_kernel', 'copy_particle', 'copy_particles_kernel', 'covariance_update_kernel', 'exp_partial',
-    'exp_partials_kernel', 'gather', 'gather_kernel', 'gather_modes_kernel', 'gaussian3', 'gaussian_blocks',
-    'init_particles_kernel', 'integrity_block_kernel', 'integrity_kernel', 'integrity_step', 'kalman_update',
-    'kalman_update_kernel', 'max_of_partials', 'max_of_partials_kernel', 'modes_finalize_kernel',
-    'modes_variance_kernel', 'moment_partials_kernel', 'more_stages_kernel', 'move_particle', 'move_pose_kernel',
-    'normal_pair', 'normalize_weight', 'normalize_weights_kernel', 'pair_products', 'particle_poses_kernel',
-    'pose_of_particle', 'record_block_kernel', 'record_summary', 'reset_kernel', 'reset_particle', 'respread_kernel',
-    'respread_particle', 'search_cdf', 'stage_block_kernel', 'stage_loglik', 'stats_chol', 'summary_kernel',
-    'summary_partial', 'summary_partials_kernel', 'summary_vec', 'sym_from', 'temper_ess_kernel', 'temper_ess_lanes',
-    'temper_ess_of', 'temper_partial', 'temper_partials_kernel', 'temper_search_kernel', 'temper_select',
-    'temper_select_kernel', 'time_update_kernel', 'update_covariance', 'vec12', 'weight_stats', 'weight_stats_kernel',
-    'weighted_cov',
+    'N_NOMINAL', 'N_READOUT', 'N_STATS', 'N_SUMMARY', 'N_SUMMARY_SUMS', 'N_TEMPER', 'RANDN_EPS', 'RECORD_BLOCK_DIM',
+    'RO_COV', 'RO_NOMINAL', 'STAGE_BLOCK_DIM', 'STAGE_MAX_REGISTERS', 'ST_ACTIVE', 'ST_APPLIED', 'ST_BAD', 'ST_CHOL',
+    'ST_ESS', 'ST_GAMMA', 'ST_JITTER', 'ST_LAM', 'ST_LOGNORM', 'ST_MAX', 'ST_MEAN_DP', 'ST_NIS', 'ST_NIS_MIN',
+    'ST_REMAIN', 'ST_RESAMPLE', 'ST_RESAMPLES', 'ST_RESPREAD', 'ST_SKIP', 'ST_STAGES', 'ST_UNPREDICTABLE',
+    'TEMPER_BLOCK_DIM', 'TEMPER_RATIO', 'WARP_LANES', 'UpdateParams', 'add_loglik_partial',
+    'add_loglik_partials_kernel', 'advance_slot_kernel', 'ancestor', 'ancestors_kernel', 'begin_stats',
+    'begin_update_kernel', 'cdf_chunk', 'cdf_kernel', 'cdf_partial', 'cdf_partials_kernel', 'chol3', 'chunk_range',
+    'chunk_sum', 'chunk_vec', 'combine_partials_kernel', 'copy_modes_kernel', 'copy_particle', 'copy_particles_kernel',
+    'covariance_update_kernel', 'exp_partial', 'exp_partials_kernel', 'gather', 'gather_kernel', 'gather_modes_kernel',
+    'gaussian3', 'gaussian_blocks', 'init_particles_kernel', 'integrity_block_kernel', 'integrity_kernel',
+    'integrity_step', 'kalman_update', 'kalman_update_kernel', 'max_of_partials', 'max_of_partials_kernel',
+    'modes_finalize_kernel', 'modes_variance_kernel', 'moment_partials_kernel', 'more_stages_kernel', 'move_particle',
+    'move_pose_kernel', 'normal_pair', 'normalize_weight', 'normalize_weights_kernel', 'pair_products',
+    'particle_poses_kernel', 'pose_of_particle', 'readout_kernel', 'record_block_kernel', 'record_summary',
+    'reset_kernel', 'reset_particle', 'respread_kernel', 'respread_particle', 'search_cdf', 'stage_block_kernel',
+    'stage_loglik', 'stats_chol', 'summary_kernel', 'summary_partial', 'summary_partials_kernel', 'summary_vec',
+    'sym_from', 'temper_ess_kernel', 'temper_ess_lanes', 'temper_ess_of', 'temper_partial', 'temper_partials_kernel',
+    'temper_search_kernel', 'temper_select', 'temper_select_kernel', 'time_update_kernel', 'update_covariance', 'vec12',
+    'weight_stats', 'weight_stats_kernel', 'weighted_cov',
 ]

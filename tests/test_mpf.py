@@ -1142,3 +1142,29 @@ def test_graph_recapture_over_history_growth_and_likelihood_changes(rugged, mode
         runs.append(_drive(truth, mpf, rugged, 300, change))
     np.testing.assert_array_equal(runs[0][0], runs[1][0])
     np.testing.assert_array_equal(runs[0][1], runs[1][1])
+
+
+def test_estimate_reads_the_packed_moments_covariance_and_nominal(rugged, device):
+    """estimate() reads the particles' moments, P and the nominal INS from one packed read-out (one device-to-host copy;
+    on CUDA a graph from its second call on): the same values as moments(), P and nominal(), IMU samples buffered
+    after the update included (both flush), at every call (the graph replays the current values)."""
+    model = wt.make_model("sliding", rugged, Likelihood("gaussian", sigma_m=1.0))
+    truth, mpf = _manual_filter(rugged, model, n_particles=128, device=device, graph=device != "cpu")
+    sensor = wt.PointCloudSensor(wt.ScanPattern.grid(4, 4, 30.0), range_sigma_m=0.5)
+    rng = np.random.default_rng(0)
+    seen = []
+    for k in range(4):
+        mpf.predict_many(truth.f_b[10 * k:10 * k + 10], truth.w_b[10 * k:10 * k + 10])
+        mpf.update(sensor.measure(rugged, truth.pos_n[10 * k + 10], truth.quat_nb[10 * k + 10], rng=rng))
+        mpf.predict_many(truth.f_b[10 * k + 10:10 * k + 13], truth.w_b[10 * k + 10:10 * k + 13])
+        est = mpf.estimate()
+        m = mpf.moments()[0]
+        total = m[kmpf.MOM_W]
+        dp = m[kmpf.MOM_DP:kmpf.MOM_DP + 3] / total
+        nom = mpf.nominal()
+        np.testing.assert_array_equal(est.dp, dp)
+        np.testing.assert_array_equal(est.nav.pos_n, nom.pos_n + dp)
+        spread = m[kmpf.MOM_LL:].reshape(12, 12) / total - np.outer(est.lin, est.lin)
+        np.testing.assert_array_equal(est.cov_lin, mpf.P + 0.5 * (spread + spread.T))
+        seen.append(est.nav.pos_n.copy())
+    assert len({tuple(p) for p in seen}) == 4  # a replayed read-out is not a stale one

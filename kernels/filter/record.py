@@ -1,5 +1,5 @@
-"""The update's record and feedback: summary sums, history, P's measurement update and the closed-loop injection, and
-the moments of an estimate."""
+"""The update's record and feedback: summary sums, history, P's measurement update and the closed-loop injection
+(the moments an estimate reads: :mod:`warptan.kernels.filter.readout`)."""
 
 import warp as wp
 
@@ -28,13 +28,6 @@ from warptan.kernels.filter.common import (
     H_VAR_L,
     IN_MEAN,
     IN_SINCE,
-    MOM_DP,
-    MOM_DPDP,
-    MOM_L,
-    MOM_LL,
-    MOM_W,
-    N_MOMENT_CHUNKS,
-    N_MOMENTS,
     NOM_BA,
     NOM_BG,
     NOM_POS,
@@ -455,44 +448,3 @@ def end_update(slot: wp.array(dtype=wp.int32), more: wp.array(dtype=wp.int32)):
 def advance_slot_kernel(slot: wp.array(dtype=wp.int32), more: wp.array(dtype=wp.int32)):
     """One thread, after every filter's record: :func:`end_update`."""
     end_update(slot, more)
-
-
-@wp.kernel
-def moment_partials_kernel(
-    n_per: int,
-    logw: wp.array(dtype=wp.float32),
-    dp: wp.array(dtype=wp.vec3),
-    lin: wp.array(dtype=vec12),
-    partial_out: wp.array3d(dtype=wp.float64),
-):
-    """Filter b, chunk c: float64 partial sums of w, w dp, w dp dpᵀ, w l, w l lᵀ (weights normalised)."""
-    b, c = wp.tid()
-    size = (n_per + N_MOMENT_CHUNKS - 1) // N_MOMENT_CHUNKS
-    lo = wp.min(c * size, n_per)
-    hi = wp.min(lo + size, n_per)
-    for k in range(N_MOMENTS):
-        partial_out[b, c, k] = wp.float64(0.0)
-    for k in range(lo, hi):
-        i = b * n_per + k
-        w = wp.float64(wp.exp(logw[i]))
-        d = dp[i]
-        lm = lin[i]
-        partial_out[b, c, MOM_W] += w
-        for a in range(3):
-            partial_out[b, c, MOM_DP + a] += w * wp.float64(d[a])
-            for e in range(3):
-                partial_out[b, c, MOM_DPDP + 3 * a + e] += w * wp.float64(d[a]) * wp.float64(d[e])
-        for a in range(12):
-            partial_out[b, c, MOM_L + a] += w * wp.float64(lm[a])
-            for e in range(12):
-                partial_out[b, c, MOM_LL + 12 * a + e] += w * wp.float64(lm[a]) * wp.float64(lm[e])
-
-
-@wp.kernel
-def combine_partials_kernel(partial_in: wp.array3d(dtype=wp.float64), total_out: wp.array2d(dtype=wp.float64)):
-    """One thread per (filter, moment): sum the chunks in order."""
-    b, k = wp.tid()
-    s = wp.float64(0.0)
-    for c in range(partial_in.shape[1]):
-        s += partial_in[b, c, k]
-    total_out[b, k] = s

@@ -94,20 +94,18 @@ from warptan.device import resolve_device
 from warptan.filter.config import RESAMPLERS, FilterConfig
 from warptan.filter.intake import MAX_STEPS_PER_INTERVAL, ImuIntake
 from warptan.filter.program import _STREAM_INIT
+from warptan.filter.readout import Readout
 from warptan.filter.records import (
-    Estimate,
     ParticleState,
     StepTimer,
     UpdateInfo,
     _as_cov,
-    _from_blocks,
     _to_blocks,
     step_seed,
 )
 from warptan.kernels import likelihood as klik
 from warptan.kernels import mpf as kmpf
 from warptan.kernels import nav as knav
-from warptan.nav.frames import quat_exp, quat_mul
 from warptan.nav.imu import ImuGrade, check_rate, imu_grade
 from warptan.nav.ins import NavState, process_noise
 from warptan.parallel import Recorder, launch
@@ -122,7 +120,7 @@ FEW_PARTICLES = 10
 represent the position error; its estimate and bounds are not meaningful."""
 
 
-class MarginalizedParticleFilter(ImuIntake):
+class MarginalizedParticleFilter(ImuIntake, Readout):
     """MPF over the INS error; see the module docstring. One filter, or a batch of B independent filters
     (same model, IMU grade and prior; own nominal INS, seed, measurements) whose particles share one array.
 
@@ -330,6 +328,11 @@ class MarginalizedParticleFilter(ImuIntake):
         self._revisits = None
         self._moments_partial = wp.empty((b, kmpf.N_MOMENT_CHUNKS, kmpf.N_MOMENTS), dtype=wp.float64, device=d)
         self._moments = wp.empty((b, kmpf.N_MOMENTS), dtype=wp.float64, device=d)
+        # what estimate() reads, packed on the device and copied to the host at once (pinned memory on CUDA)
+        self._readout = wp.empty((b, kmpf.N_READOUT), dtype=wp.float64, device=d)
+        self._readout_host = (wp.empty((b, kmpf.N_READOUT), dtype=wp.float64, device="cpu", pinned=True)
+                              if d.is_cuda else self._readout)
+        self._readout_graph = None  # None: not run yet; then (record key, graph) once captured (CUDA graphs)
         self._cdf = wp.empty(nt, dtype=wp.float32, device=d)
         self._ancestors = wp.empty(nt, dtype=wp.int32, device=d)
         self._slot = wp.zeros(1, dtype=wp.int32, device=d)
@@ -463,53 +466,3 @@ class MarginalizedParticleFilter(ImuIntake):
     def n_respreads(self) -> int:
         """Re-spreads so far (all filters)."""
         return int(self.history()[:, :, kmpf.H_RESPREAD].sum())
-
-    # ------------------------------------------------------------------ output
-    @property
-    def P(self) -> np.ndarray:
-        """The shared Kalman covariance (12, 12) of [dv, dth, dba, dbg] ((B, 12, 12) for a batch)."""
-        self.flush()
-        p = _from_blocks(self._nav["cov"].numpy())
-        return p if self.batched else p[0]
-
-    def nominal(self, b: int = 0) -> NavState:
-        """The nominal INS state of filter b (after the buffered IMU samples)."""
-        self.flush()
-        nav = {k: v.numpy()[b] for k, v in self._nav.items() if k != "cov"}
-        return NavState(nav["pos"], nav["vel"], nav["quat"], nav["ba"], nav["bg"])
-
-    def moments(self) -> np.ndarray:
-        """Weighted moments of the particles of each filter (host float64, (B, 169)):
-        [Σw, Σw dp (3), Σw dp dpᵀ (9), Σw l (12), Σw l lᵀ (144)] at offsets :data:`warptan.kernels.mpf.MOM_W` …
-        ``MOM_LL``."""
-        self.flush()
-        d, b = self.device, self.n_filters
-        launch(kmpf.moment_partials_kernel, dim=(b, kmpf.N_MOMENT_CHUNKS),
-                  inputs=[self.n, self.state.logw, self.state.dp, self.state.lin], outputs=[self._moments_partial],
-                  device=d)
-        launch(kmpf.combine_partials_kernel, dim=(b, kmpf.N_MOMENTS), inputs=[self._moments_partial],
-                  outputs=[self._moments], device=d)
-        return self._moments.numpy()
-
-    def estimate(self):
-        """The corrected navigation solution, with the mixture covariance (a list of B for a batch)."""
-        moments = self.moments()
-        P = _from_blocks(self._nav["cov"].numpy())
-        nominal = {k: v.numpy() for k, v in self._nav.items() if k != "cov"}
-        out = []
-        for b, m in enumerate(moments):
-            total = m[kmpf.MOM_W]
-            if not (np.isfinite(m).all() and total > 0):
-                raise FloatingPointError(f"particle moments of filter {b} are not finite (Σw = {total}); this is a bug")
-            dp = m[kmpf.MOM_DP:kmpf.MOM_DP + 3] / total
-            cov_pos = m[kmpf.MOM_DPDP:kmpf.MOM_DPDP + 9].reshape(3, 3) / total - np.outer(dp, dp)
-            cov_pos[2, 2] += self.map_offset_var
-            lin = m[kmpf.MOM_L:kmpf.MOM_L + 12] / total
-            spread = m[kmpf.MOM_LL:kmpf.MOM_LL + 144].reshape(12, 12) / total - np.outer(lin, lin)
-            s = NavState(*(nominal[k][b] for k in ("pos", "vel", "quat", "ba", "bg")))
-            q = quat_mul(s.quat_nb, quat_exp(lin[3:6]))
-            nav = NavState(s.pos_n + dp, s.vel_n + lin[0:3], q / np.linalg.norm(q), s.accel_bias + lin[6:9],
-                           s.gyro_bias + lin[9:12])
-            out.append(Estimate(nav=nav, dp=dp, lin=lin, cov_pos=0.5 * (cov_pos + cov_pos.T),
-                                cov_lin=P[b] + 0.5 * (spread + spread.T)))
-        return out if self.batched else out[0]
