@@ -48,9 +48,11 @@ class Readout:
         """(B, :data:`~warptan.kernels.mpf.N_READOUT`) host float64, what :meth:`estimate` reads: the particles'
         moments, P's blocks and the nominal INS (after the buffered IMU samples), packed by one kernel and copied to
         the host at once; on CUDA into pinned memory, the launches and the copy replayed as one graph from the second
-        call on (they were two launches and seven synchronous copies: 1.03 ms a call on an H100's host, 3× the
-        filter's step, measured with ``.gpu``-style A/B in ``benchmarks/issue32``). The same values as
-        :meth:`moments`, :attr:`P` and :meth:`nominal`."""
+        call on. The same values as :meth:`moments`, :attr:`P` and :meth:`nominal`. They were two launches and seven
+        synchronous copies: on an H100's host (S7, B = 1) an estimate took 1.11 ms, 0.36–0.57 ms now
+        (``estimate_ms`` of ``benchmarks/issue32/scenario_step_h100.json`` at 32fe1d2 and d777296), and the
+        synchronised step after one was 19 µs slower than after none, now 2 µs
+        (``benchmarks/issue32/ab_estimate_before_h100.json``, ``ab_estimate_h100.json``)."""
         self.flush()
         key = self._record_key()
         graph = self._readout_graph
