@@ -109,6 +109,15 @@ def scenario_filter(sid: str, device: str, n: int = 500, scan_side: int = 20, se
     return mpf, f, w, setup
 
 
+def scenario_scans(setup, steps: int, seed: int = 1) -> list:
+    """The scans of :func:`scenario_filter`'s flight at its first ``steps`` measurement times (the sensor's noise from
+    ``seed``)."""
+    ipm, truth, sensor, world = setup["imu_per_meas"], setup["truth"], setup["sensor"], setup["world"]
+    rng = np.random.default_rng(seed)
+    return [sensor.measure(world, truth.pos_n[(it + 1) * ipm], truth.quat_nb[(it + 1) * ipm], rng)
+            for it in range(steps)]
+
+
 def kernel_rate(model, pos, quat, measurement, device, repeats=20) -> float:
     """Point evaluations per second of the model kernel alone (``launch`` on staged poses; the bound)."""
     m = model.stage(measurement, pos, quat).residual_m.shape[1]

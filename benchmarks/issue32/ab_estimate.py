@@ -12,7 +12,6 @@ import statistics
 import sys
 import time
 
-import numpy as np
 import warp as wp
 
 sys.path.insert(0, sys.argv[1])  # scripts/: bench_filter_step's scenario setup
@@ -44,10 +43,7 @@ def main():
     res = {}
     for sid in sys.argv[4:]:
         mpf, f, w, setup = bfs.scenario_filter(sid, "cuda:0")
-        ipm, truth, sensor, world = setup["imu_per_meas"], setup["truth"], setup["sensor"], setup["world"]
-        rng = np.random.default_rng(1)
-        scans = [sensor.measure(world, truth.pos_n[(it + 1) * ipm], truth.quat_nb[(it + 1) * ipm], rng)
-                 for it in range(steps)]
+        ipm, scans = setup["imu_per_meas"], bfs.scenario_scans(setup, steps)
         after = {m: {"predict": [], "update": [], "step": []} for m in MODES}
         cost = {m: [] for m in MODES}
         prev = "none"

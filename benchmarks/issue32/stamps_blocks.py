@@ -90,10 +90,7 @@ def main():
     res = {}
     for sid in sys.argv[4:]:
         mpf, f, w, setup = bfs.scenario_filter(sid, "cuda:0")
-        ipm, truth, sensor, world = setup["imu_per_meas"], setup["truth"], setup["sensor"], setup["world"]
-        rng = np.random.default_rng(1)
-        scans = [sensor.measure(world, truth.pos_n[(it + 1) * ipm], truth.quat_nb[(it + 1) * ipm], rng)
-                 for it in range(steps)]
+        ipm, scans = setup["imu_per_meas"], bfs.scenario_scans(setup, steps)
         rows = {}
         for it in range(steps):
             k = it * ipm

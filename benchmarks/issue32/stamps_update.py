@@ -9,7 +9,6 @@ import json
 import statistics
 import sys
 
-import numpy as np
 import warp as wp
 
 sys.path.insert(0, sys.argv[1])  # scripts/: bench_filter_step's scenario setup
@@ -81,10 +80,7 @@ def main():
                 stamp("model")
                 return r
             model_cls.launch = model_launch
-        ipm, truth, sensor, world = setup["imu_per_meas"], setup["truth"], setup["sensor"], setup["world"]
-        rng = np.random.default_rng(1)
-        scans = [sensor.measure(world, truth.pos_n[(it + 1) * ipm], truth.quat_nb[(it + 1) * ipm], rng)
-                 for it in range(steps)]
+        ipm, scans = setup["imu_per_meas"], bfs.scenario_scans(setup, steps)
         rows = {}
         for it in range(steps):
             k = it * ipm
