@@ -118,6 +118,17 @@ def scenario_scans(setup, steps: int, seed: int = 1) -> list:
             for it in range(steps)]
 
 
+def synchronised_steps(mpf, f, w, setup, steps: int):
+    """Fly ``steps`` intervals of :func:`scenario_filter`'s flight (its IMU samples, then :func:`scenario_scans`),
+    synchronising the device after each; yields each interval's index once it is done."""
+    ipm, scans = setup["imu_per_meas"], scenario_scans(setup, steps)
+    for it in range(steps):
+        mpf.predict_many(f[it * ipm:(it + 1) * ipm], w[it * ipm:(it + 1) * ipm])
+        mpf.update(scans[it], sync=False)
+        wp.synchronize_device(mpf.device)
+        yield it
+
+
 def kernel_rate(model, pos, quat, measurement, device, repeats=20) -> float:
     """Point evaluations per second of the model kernel alone (``launch`` on staged poses; the bound)."""
     m = model.stage(measurement, pos, quat).residual_m.shape[1]

@@ -1145,9 +1145,12 @@ def test_graph_recapture_over_history_growth_and_likelihood_changes(rugged, mode
 
 
 def test_estimate_reads_the_packed_moments_covariance_and_nominal(rugged, device):
-    """estimate() reads the particles' moments, P and the nominal INS from one packed read-out (one device-to-host copy;
-    on CUDA a graph from its second call on): the same values as moments(), P and nominal(), IMU samples buffered
-    after the update included (both flush), at every call (the graph replays the current values)."""
+    """moments(), P, nominal() and estimate() read one packed read-out (one device-to-host copy; on CUDA a graph from
+    its second call on): P's blocks and the nominal INS are the device arrays' values exactly, the moments a float64
+    NumPy reduction of the particles, IMU samples buffered after the update moved in first (a flush), at every call
+    (a replayed read-out is not a stale one)."""
+    from warptan.filter.records import _from_blocks
+
     model = wt.make_model("sliding", rugged, Likelihood("gaussian", sigma_m=1.0))
     truth, mpf = _manual_filter(rugged, model, n_particles=128, device=device, graph=device != "cpu")
     sensor = wt.PointCloudSensor(wt.ScanPattern.grid(4, 4, 30.0), range_sigma_m=0.5)
@@ -1158,13 +1161,20 @@ def test_estimate_reads_the_packed_moments_covariance_and_nominal(rugged, device
         mpf.update(sensor.measure(rugged, truth.pos_n[10 * k + 10], truth.quat_nb[10 * k + 10], rng=rng))
         mpf.predict_many(truth.f_b[10 * k + 10:10 * k + 13], truth.w_b[10 * k + 10:10 * k + 13])
         est = mpf.estimate()
-        m = mpf.moments()[0]
-        total = m[kmpf.MOM_W]
-        dp = m[kmpf.MOM_DP:kmpf.MOM_DP + 3] / total
+        nav = {name: a.numpy() for name, a in mpf._nav.items()}  # (after the estimate's flush)
+        np.testing.assert_array_equal(mpf.P, _from_blocks(nav["cov"])[0])
         nom = mpf.nominal()
-        np.testing.assert_array_equal(est.dp, dp)
-        np.testing.assert_array_equal(est.nav.pos_n, nom.pos_n + dp)
-        spread = m[kmpf.MOM_LL:].reshape(12, 12) / total - np.outer(est.lin, est.lin)
-        np.testing.assert_array_equal(est.cov_lin, mpf.P + 0.5 * (spread + spread.T))
+        for got, name in ((nom.pos_n, "pos"), (nom.vel_n, "vel"), (nom.quat_nb, "quat"), (nom.accel_bias, "ba"),
+                          (nom.gyro_bias, "bg")):
+            np.testing.assert_array_equal(got, nav[name][0])
+        w = np.exp(mpf.state.logw.numpy()).astype(np.float64)  # (the kernel's weights: float32 exponentials)
+        dp, lin = mpf.state.dp.numpy().astype(np.float64), mpf.state.lin.numpy().astype(np.float64)
+        m = mpf.moments()[0]
+        np.testing.assert_allclose(m[kmpf.MOM_W], w.sum(), rtol=1e-6)
+        np.testing.assert_allclose(m[kmpf.MOM_DP:kmpf.MOM_DP + 3], w @ dp, rtol=1e-6, atol=1e-6)
+        np.testing.assert_allclose(m[kmpf.MOM_LL:].reshape(12, 12), (lin * w[:, None]).T @ lin, rtol=1e-6,
+                                   atol=1e-15)
+        np.testing.assert_array_equal(est.dp, m[kmpf.MOM_DP:kmpf.MOM_DP + 3] / m[kmpf.MOM_W])
+        np.testing.assert_array_equal(est.nav.pos_n, nav["pos"][0] + est.dp)
         seen.append(est.nav.pos_n.copy())
     assert len({tuple(p) for p in seen}) == 4  # a replayed read-out is not a stale one

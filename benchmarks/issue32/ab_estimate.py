@@ -1,7 +1,8 @@
 """What a host call between two synchronised filter steps costs the next step, on CUDA (S8 / S7, B = 1, N = 500,
 20 x 20 scan), and what it costs itself: after each step one of ``none``, ``estimate`` (``mpf.estimate()``),
-``moments`` and ``nav_numpy`` (the pieces the estimate was made of before its packed read-out: ``mpf.moments()``, and
-``.numpy()`` of the six nominal-INS / P arrays), ``sleep1ms`` and ``gc`` (``gc.collect()``: a host whose caches were
+``moments`` and ``nav_numpy`` (the pieces the estimate was made of before its packed read-out: ``mpf.moments()``,
+its own two launches and copy up to d777296 and the read-out since, and ``.numpy()`` of the six nominal-INS / P
+arrays), ``sleep1ms`` and ``gc`` (``gc.collect()``: a host whose caches were
 swept), in turn; medians of the next step's predict, update and whole step (µs), and of each call's own time.
 
     python3 benchmarks/issue32/ab_estimate.py scripts OUT.json STEPS S8 S7   (from a folder outside the checkout)

@@ -90,13 +90,8 @@ def main():
     res = {}
     for sid in sys.argv[4:]:
         mpf, f, w, setup = bfs.scenario_filter(sid, "cuda:0")
-        ipm, scans = setup["imu_per_meas"], bfs.scenario_scans(setup, steps)
         rows = {}
-        for it in range(steps):
-            k = it * ipm
-            mpf.predict_many(f[k:k + ipm], w[k:k + ipm])
-            mpf.update(scans[it], sync=False)
-            wp.synchronize_device("cuda:0")
+        for it in bfs.synchronised_steps(mpf, f, w, setup, steps):
             if it >= 30:
                 _intervals(stage_t.numpy(), "stage ", rows)
                 _intervals(record_t.numpy(), "record ", rows)

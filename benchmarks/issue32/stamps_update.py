@@ -80,13 +80,8 @@ def main():
                 stamp("model")
                 return r
             model_cls.launch = model_launch
-        ipm, scans = setup["imu_per_meas"], bfs.scenario_scans(setup, steps)
         rows = {}
-        for it in range(steps):
-            k = it * ipm
-            mpf.predict_many(f[k:k + ipm], w[k:k + ipm])
-            mpf.update(scans[it], sync=False)
-            wp.synchronize_device("cuda:0")
+        for it in bfs.synchronised_steps(mpf, f, w, setup, steps):
             if it < 30:
                 continue
             t, prev = BUF.numpy(), None

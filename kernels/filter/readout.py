@@ -63,13 +63,6 @@ def combined(partial_in: wp.array3d(dtype=wp.float64), b: int, k: int) -> wp.flo
     return s
 
 
-@wp.kernel
-def combine_partials_kernel(partial_in: wp.array3d(dtype=wp.float64), total_out: wp.array2d(dtype=wp.float64)):
-    """One thread per (filter, moment): sum the chunks in order."""
-    b, k = wp.tid()
-    total_out[b, k] = combined(partial_in, b, k)
-
-
 RO_COV = wp.constant(N_MOMENTS)
 """Column of :data:`readout_kernel`'s row where the 16 blocks of P begin (``P_ij[r, c]`` at
 ``RO_COV + 9 (4 i + j) + 3 r + c``: the host's ``(4, 4, 3, 3)`` layout); columns ``[0, N_MOMENTS)`` are the moments
@@ -77,6 +70,7 @@ RO_COV = wp.constant(N_MOMENTS)
 RO_NOMINAL = wp.constant(N_MOMENTS + 144)
 """Column where the nominal INS begins (``N_NOMINAL`` values in the ``NOM_*`` layout)."""
 N_READOUT = wp.constant(N_MOMENTS + 144 + 16)
+"""Columns of a read-out row."""
 
 
 @wp.kernel
@@ -91,8 +85,8 @@ def readout_kernel(
     out: wp.array2d(dtype=wp.float64),
 ):
     """One thread per (filter b, column k) of what an estimate reads, packed into one row for one device-to-host copy:
-    the particles' moments (:data:`combine_partials_kernel`'s sums), P's blocks (:data:`RO_COV`) and the nominal INS
-    (:data:`RO_NOMINAL`)."""
+    the particles' moments (:func:`combined` sums of :data:`moment_partials_kernel`'s chunks), P's blocks
+    (:data:`RO_COV`) and the nominal INS (:data:`RO_NOMINAL`)."""
     b, k = wp.tid()
     if k < RO_COV:
         out[b, k] = combined(partial_in, b, k)

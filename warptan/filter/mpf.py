@@ -327,7 +327,6 @@ class MarginalizedParticleFilter(ImuIntake, Readout):
         self._exponent = wp.ones(b, dtype=wp.float32, device=d)  # per update (RevisitMemory)
         self._revisits = None
         self._moments_partial = wp.empty((b, kmpf.N_MOMENT_CHUNKS, kmpf.N_MOMENTS), dtype=wp.float64, device=d)
-        self._moments = wp.empty((b, kmpf.N_MOMENTS), dtype=wp.float64, device=d)
         # what estimate() reads, packed on the device and copied to the host at once (pinned memory on CUDA)
         self._readout = wp.empty((b, kmpf.N_READOUT), dtype=wp.float64, device=d)
         self._readout_host = (wp.empty((b, kmpf.N_READOUT), dtype=wp.float64, device="cpu", pinned=True)

@@ -21,35 +21,26 @@ class Readout:
     @property
     def P(self) -> np.ndarray:
         """The shared Kalman covariance (12, 12) of [dv, dth, dba, dbg] ((B, 12, 12) for a batch)."""
-        self.flush()
-        p = _from_blocks(self._nav["cov"].numpy())
+        p = _covariances(self._read_out())
         return p if self.batched else p[0]
 
     def nominal(self, b: int = 0) -> NavState:
         """The nominal INS state of filter b (after the buffered IMU samples)."""
-        self.flush()
-        nav = {k: v.numpy()[b] for k, v in self._nav.items() if k != "cov"}
-        return NavState(nav["pos"], nav["vel"], nav["quat"], nav["ba"], nav["bg"])
+        pos, vel, quat, ba, bg = _nominals(self._read_out())
+        return NavState(pos[b], vel[b], quat[b], ba[b], bg[b])
 
     def moments(self) -> np.ndarray:
         """Weighted moments of the particles of each filter (host float64, (B, 169)):
         [Σw, Σw dp (3), Σw dp dpᵀ (9), Σw l (12), Σw l lᵀ (144)] at offsets :data:`warptan.kernels.mpf.MOM_W` …
         ``MOM_LL``."""
-        self.flush()
-        d, b = self.device, self.n_filters
-        launch(kmpf.moment_partials_kernel, dim=(b, kmpf.N_MOMENT_CHUNKS),
-                  inputs=[self.n, self.state.logw, self.state.dp, self.state.lin], outputs=[self._moments_partial],
-                  device=d)
-        launch(kmpf.combine_partials_kernel, dim=(b, kmpf.N_MOMENTS), inputs=[self._moments_partial],
-                  outputs=[self._moments], device=d)
-        return self._moments.numpy()
+        return self._read_out()[:, :kmpf.N_MOMENTS]
 
     def _read_out(self) -> np.ndarray:
-        """(B, :data:`~warptan.kernels.mpf.N_READOUT`) host float64, what :meth:`estimate` reads: the particles'
-        moments, P's blocks and the nominal INS (after the buffered IMU samples), packed by one kernel and copied to
-        the host at once; on CUDA into pinned memory, the launches and the copy replayed as one graph from the second
-        call on. The same values as :meth:`moments`, :attr:`P` and :meth:`nominal`. They were two launches and seven
-        synchronous copies: on an H100's host (S7, B = 1) an estimate took 1.11 ms, 0.36–0.57 ms now
+        """(B, :data:`~warptan.kernels.mpf.N_READOUT`) host float64, what :meth:`moments`, :attr:`P`,
+        :meth:`nominal` and :meth:`estimate` read: the particles' moments, P's blocks and the nominal INS (after the
+        buffered IMU samples), packed by one kernel and copied to the host at once; on CUDA into pinned memory, the
+        launches and the copy replayed as one graph from the second call on. An estimate's reads were two launches
+        and seven synchronous copies: on an H100's host (S7, B = 1) an estimate took 1.11 ms, 0.36–0.57 ms now
         (``estimate_ms`` of ``benchmarks/issue32/scenario_step_h100.json`` at 32fe1d2 and d777296), and the
         synchronised step after one was 19 µs slower than after none, now 2 µs
         (``benchmarks/issue32/ab_estimate_before_h100.json``, ``ab_estimate_h100.json``)."""
@@ -85,12 +76,8 @@ class Readout:
     def estimate(self):
         """The corrected navigation solution, with the mixture covariance (a list of B for a batch)."""
         packed = self._read_out()
-        moments = packed[:, :kmpf.N_MOMENTS]
-        P = _from_blocks(packed[:, kmpf.RO_COV:kmpf.RO_NOMINAL].reshape(-1, 4, 4, 3, 3))
-        nom = packed[:, kmpf.RO_NOMINAL:]  # (the filter's own nominal: the estimate's NavState checks the sum)
-        pos, vel = nom[:, kmpf.NOM_POS:kmpf.NOM_POS + 3], nom[:, kmpf.NOM_VEL:kmpf.NOM_VEL + 3]
-        quat, ba, bg = (nom[:, kmpf.NOM_QUAT:kmpf.NOM_QUAT + 4], nom[:, kmpf.NOM_BA:kmpf.NOM_BA + 3],
-                        nom[:, kmpf.NOM_BG:kmpf.NOM_BG + 3])
+        moments, P = packed[:, :kmpf.N_MOMENTS], _covariances(packed)
+        pos, vel, quat, ba, bg = _nominals(packed)  # (the filter's own: the estimate's NavState checks the sums)
         out = []
         for b, m in enumerate(moments):
             total = m[kmpf.MOM_W]
@@ -106,3 +93,17 @@ class Readout:
             out.append(Estimate(nav=nav, dp=dp, lin=lin, cov_pos=0.5 * (cov_pos + cov_pos.T),
                                 cov_lin=P[b] + 0.5 * (spread + spread.T)))
         return out if self.batched else out[0]
+
+
+def _covariances(packed: np.ndarray) -> np.ndarray:
+    """(B, 12, 12) P of each filter from :meth:`Readout._read_out`'s rows."""
+    return _from_blocks(packed[:, kmpf.RO_COV:kmpf.RO_NOMINAL].reshape(-1, 4, 4, 3, 3))
+
+
+def _nominals(packed: np.ndarray) -> tuple[np.ndarray, ...]:
+    """(B, ·) position, velocity, attitude quaternion, accelerometer and gyro biases of each filter's nominal INS from
+    :meth:`Readout._read_out`'s rows."""
+    nom = packed[:, kmpf.RO_NOMINAL:]
+    return (nom[:, kmpf.NOM_POS:kmpf.NOM_POS + 3], nom[:, kmpf.NOM_VEL:kmpf.NOM_VEL + 3],
+            nom[:, kmpf.NOM_QUAT:kmpf.NOM_QUAT + 4], nom[:, kmpf.NOM_BA:kmpf.NOM_BA + 3],
+            nom[:, kmpf.NOM_BG:kmpf.NOM_BG + 3])
