@@ -221,14 +221,15 @@ def pair_products(d: wp.vec3d) -> wp.vec3d:
 
 @wp.func
 def weighted_cov(s: wp.float64, m1: wp.vec3d, m2: wp.vec3d, m3: wp.vec3d) -> wp.mat33d:
-    """Covariance from Σw, Σw d, Σw d∘d, Σw (d0d1, d0d2, d1d2)."""
-    mean = m1 / s
-    xy = m3[0] / s - mean[0] * mean[1]
-    xz = m3[1] / s - mean[0] * mean[2]
-    yz = m3[2] / s - mean[1] * mean[2]
-    return wp.mat33d(m2[0] / s - mean[0] * mean[0], xy, xz,
-                     xy, m2[1] / s - mean[1] * mean[1], yz,
-                     xz, yz, m2[2] / s - mean[2] * mean[2])
+    """Covariance from Σw, Σw d, Σw d∘d, Σw (d0d1, d0d2, d1d2) (one division: its reciprocal multiplies)."""
+    inv = wp.float64(1.0) / s
+    mean = m1 * inv
+    xy = m3[0] * inv - mean[0] * mean[1]
+    xz = m3[1] * inv - mean[0] * mean[2]
+    yz = m3[2] * inv - mean[1] * mean[2]
+    return wp.mat33d(m2[0] * inv - mean[0] * mean[0], xy, xz,
+                     xy, m2[1] * inv - mean[1] * mean[1], yz,
+                     xz, yz, m2[2] * inv - mean[2] * mean[2])
 
 
 @wp.func

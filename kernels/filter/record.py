@@ -132,6 +132,7 @@ def record_summary(
     if lane != 0:
         return
     s = tot[0]
+    inv = wp.float64(1.0) / s  # (one division: a float64 division is a chain of its own on CUDA)
     applied = st[ST_APPLIED]
     if st[ST_SKIP] != wp.float64(0.0):
         applied = wp.float64(0.0)
@@ -142,9 +143,9 @@ def record_summary(
     for a in range(6):
         feedback[b, FB_LAM + a] = gate * applied * st[ST_LAM + a]
     for a in range(3):
-        feedback[b, FB_MEAN_DP + a] = tot[1 + a] / s
+        feedback[b, FB_MEAN_DP + a] = tot[1 + a] * inv
     for a in range(12):
-        feedback[b, FB_MEAN_L + a] = tot[10 + a] / s
+        feedback[b, FB_MEAN_L + a] = tot[10 + a] * inv
     judged = since >= wp.float64(params.integrity_min_updates)
     ok = nis_avg <= wp.float64(params.integrity_threshold) and st[ST_RESPREAD] == wp.float64(0.0)
     feedback[b, FB_CONVERGED] = wp.where(judged and ok, wp.float64(1.0), wp.float64(0.0))
@@ -159,7 +160,7 @@ def record_summary(
     history[t, b, H_UNPREDICTABLE] = st[ST_UNPREDICTABLE]
     history[t, b, H_SUM_W] = s
     for a in range(3):
-        history[t, b, H_MEAN_DP + a] = tot[1 + a] / s
+        history[t, b, H_MEAN_DP + a] = tot[1 + a] * inv
         history[t, b, H_COV_DP + a] = cov[a, a]
     history[t, b, H_COV_DP + 3] = cov[0, 1]
     history[t, b, H_COV_DP + 4] = cov[0, 2]
@@ -171,9 +172,9 @@ def record_summary(
     history[t, b, H_SKIPPED] = st[ST_SKIP]
     history[t, b, H_APPLIED] = st[ST_APPLIED]
     for a in range(12):
-        mean = tot[10 + a] / s
+        mean = tot[10 + a] * inv
         history[t, b, H_MEAN_L + a] = mean
-        history[t, b, H_VAR_L + a] = wp.max(tot[22 + a] / s - mean * mean, wp.float64(0.0))
+        history[t, b, H_VAR_L + a] = wp.max(tot[22 + a] * inv - mean * mean, wp.float64(0.0))
 
 
 @wp.kernel

@@ -252,12 +252,13 @@ def weight_stats(
     if lane != 0:
         return
     s1 = tot[0]
+    inv = wp.float64(1.0) / s1  # (one division: a float64 division is a chain of its own on CUDA)
     ess = s1 * s1 / tot[1]
     stats[b, ST_ESS] = ess
     stats[b, ST_LOGNORM] = max_lw + wp.log(s1)
     m1 = wp.vec3d(tot[2], tot[3], tot[4])
     for a in range(3):
-        stats[b, ST_MEAN_DP + a] = m1[a] / s1
+        stats[b, ST_MEAN_DP + a] = m1[a] * inv
     cov = weighted_cov(s1, m1, wp.vec3d(tot[5], tot[6], tot[7]), wp.vec3d(tot[8], tot[9], tot[10]))
     lo = chol3(cov + wp.float64(1.0e-6) * wp.identity(n=3, dtype=wp.float64))
     stats[b, ST_CHOL + 0] = lo[0, 0]
@@ -266,9 +267,9 @@ def weight_stats(
     stats[b, ST_CHOL + 3] = lo[2, 0]
     stats[b, ST_CHOL + 4] = lo[2, 1]
     stats[b, ST_CHOL + 5] = lo[2, 2]
-    stats[b, ST_NIS] = tot[11] / s1
+    stats[b, ST_NIS] = tot[11] * inv
     # JITTER_NIS: tr(h² Σ̂ Ī_p) with Σ̂ = L Lᵀ (its horizontal block)
-    ip = wp.vec3d(tot[18], tot[19], tot[20]) / s1
+    ip = wp.vec3d(tot[18], tot[19], tot[20]) * inv
     q = wp.float64(params.bandwidth * params.bandwidth) * (cov[0, 0] * ip[0] + cov[1, 1] * ip[1]
                                                            + wp.float64(2.0) * cov[0, 1] * ip[2])
     jitter = wp.float64(1.0)
@@ -280,7 +281,7 @@ def weight_stats(
         wp.float32(lo[0, 0]), z, z, wp.float32(lo[1, 0]), wp.float32(lo[1, 1]), z,
         wp.float32(lo[2, 0]), wp.float32(lo[2, 1]), wp.float32(lo[2, 2]))
     for a in range(6):
-        stats[b, ST_LAM + a] = tot[12 + a] / s1
+        stats[b, ST_LAM + a] = tot[12 + a] * inv
     if ess < wp.float64(params.resample_threshold) * wp.float64(n_per) or remain > wp.float64(0.0):
         stats[b, ST_RESAMPLE] = wp.float64(1.0)
         stats[b, ST_RESAMPLES] = resamples + wp.float64(1.0)

@@ -302,11 +302,16 @@ class MeasurementModel:
         self._ensure_modes(device, quat_nb, attitude)
         return out
 
-    def _meta(self, n_received: np.ndarray) -> np.ndarray:
-        """(B, 2) float32 rows of ``meta`` (``klik.META_*``): each filter's received points and its log-likelihood
-        floor (what a non-finite log-likelihood scores)."""
+    def _meta(self, n_received: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+        """(B, 2) float32 rows of ``meta`` (``klik.META_*``), written into ``out`` when given: each filter's received
+        points and its log-likelihood floor (what a non-finite log-likelihood scores)."""
         k = self.likelihood.outlier_sigmas
-        meta = np.empty((len(n_received), 2), dtype=np.float32)
+        meta = np.empty((len(n_received), 2), dtype=np.float32) if out is None else out
+        if len(n_received) == 1:  # one filter: Python numbers, the same float64 product (NumPy on 2 values: ~3 µs)
+            n = int(n_received[0])
+            meta[0, klik.META_RECEIVED] = n
+            meta[0, klik.META_FLOOR] = -0.5 * k * k * max(1, n)
+            return meta
         meta[:, klik.META_RECEIVED] = n_received
         meta[:, klik.META_FLOOR] = -0.5 * k * k * np.maximum(1, n_received)
         return meta
@@ -452,15 +457,20 @@ class _PointCloudModel(MeasurementModel):
         # (:func:`cloud_rows_kernel`); the directions of one pattern that every cloud shares (a sensor's scans) go
         # up once
         first = items[0].dirs_s
-        same = all(cloud.dirs_s is first for cloud in items)
+        same = len(items) == 1 or all(cloud.dirs_s is first for cloud in items)
         cols = m + klik.CLOUD_META_COLS
         ranges = self._host.get("ranges")
         if ranges is None or ranges.shape != (b, cols):
             ranges = self._host["ranges"] = np.empty((b, cols), dtype=np.float32)
-        for k, cloud in enumerate(items):
-            ranges[k, :m] = cloud.ranges_m
-        n_received = np.isfinite(ranges[:, :m]).sum(axis=1).astype(np.int64)
-        ranges[:, m:] = self._meta(n_received)
+        if b == 1:  # one filter: one row (the batch's 2-D reductions cost a step ~3 µs more)
+            row = ranges[0, :m]
+            row[:] = items[0].ranges_m
+            n_received = np.array([np.count_nonzero(np.isfinite(row))])
+        else:
+            for k, cloud in enumerate(items):
+                ranges[k, :m] = cloud.ranges_m
+            n_received = np.isfinite(ranges[:, :m]).sum(axis=1).astype(np.int64)
+        self._meta(n_received, ranges[:, m:])
         dev_ranges = self._host.get("dev_ranges")
         if dev_ranges is None or dev_ranges.shape != (b, cols) or dev_ranges.device != device:
             dev_ranges = self._host["dev_ranges"] = wp.empty((b, cols), dtype=wp.float32, device=device)

@@ -162,7 +162,8 @@ def raycast_pattern(terrain, pos_n: wp.array, quat_nb: wp.array, dirs_s: wp.arra
 def check_same_device(**arrays: wp.array) -> wp.Device:
     """Raise a ValueError naming the arrays when they are not all on one device; return that device."""
     devices = {name: a.device for name, a in arrays.items()}
-    if len({str(d) for d in devices.values()}) > 1:
+    first = next(iter(devices.values()))
+    if any(d is not first for d in devices.values()) and len({str(d) for d in devices.values()}) > 1:
         listing = ", ".join(f"{name} on {d}" for name, d in devices.items())
         raise FilterError(f"arrays must be on one device, got {listing}")
-    return next(iter(devices.values()))
+    return first
