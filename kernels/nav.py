@@ -222,6 +222,13 @@ def put_f64(a: wp.array3d(dtype=wp.float64), b: int, i: int, j: int, sh: int, v:
 
 
 @wp.func
+def trailing_update(a: wp.array3d(dtype=wp.float64), b: int, ii: int, kk: int, jj: int, sh: int):
+    """Right-looking Cholesky: column jj's term off element (ii, kk) of the trailing lower triangle (the same operations
+    in the same order as a left-looking column's dot product)."""
+    put_f64(a, b, ii, kk, sh, get_f64(a, b, ii, kk, sh) - get_f64(a, b, ii, jj, sh) * get_f64(a, b, kk, jj, sh))
+
+
+@wp.func
 def scratch_f64(a: wp.array3d(dtype=wp.float64), b: int, o: int, sh: int) -> wp.float64:
     """Float64 ``o`` (row-major) of filter b's 15×15 scratch: the shared slots at :data:`CHOL_AT` when ``sh``, else
     ``chol_scratch``. The Cholesky uses it at the interval's end, the steps before as blocks (:func:`w_get`)."""
@@ -612,30 +619,35 @@ def _nav_interval(tiled: bool):
             p_col_out[b, r] = wp.mat33(p_get(cov, b, r, 1, sh))
             if r == 1:
                 att_cov_out[b] = wp.mat33(p_get(cov, b, 1, 1, sh))
-        for jj in range(15):  # column jj: every lane forms its diagonal, piece ii its row ii
+        for jj in range(15):  # column jj, right-looking: the columns before it already took their terms off
             block_sync()
             dd = get_f64(chol_scratch, b, jj, jj, sh)
-            for m1 in range(jj):
-                dd -= get_f64(chol_scratch, b, jj, m1, sh) * get_f64(chol_scratch, b, jj, m1, sh)
             if dd > wp.float64(1.0e-30):
                 dd = wp.sqrt(dd)
             else:
                 dd = wp.float64(0.0)
-            block_sync()
-            if lane == 0:
-                put_f64(chol_scratch, b, jj, jj, sh, dd)
-            i0, i1 = span(sh, lane, jj + 1, 15)
+            i0, i1 = span(sh, lane, jj + 1, 15)  # piece ii: row ii of the column
             for ii in range(i0, i1):
-                s = get_f64(chol_scratch, b, ii, jj, sh)
-                for m2 in range(jj):
-                    s -= get_f64(chol_scratch, b, ii, m2, sh) * get_f64(chol_scratch, b, jj, m2, sh)
                 if dd > wp.float64(0.0):
-                    put_f64(chol_scratch, b, ii, jj, sh, s / dd)
+                    put_f64(chol_scratch, b, ii, jj, sh, get_f64(chol_scratch, b, ii, jj, sh) / dd)
                 else:
                     put_f64(chol_scratch, b, ii, jj, sh, wp.float64(0.0))
             i0, i1 = span(sh, lane, 0, jj)
             for i2 in range(i0, i1):
                 put_f64(chol_scratch, b, i2, jj, sh, wp.float64(0.0))
+            block_sync()
+            if lane == 0:
+                put_f64(chol_scratch, b, jj, jj, sh, dd)
+            # the column's term off the trailing lower triangle: piece t its element (ii, kk), jj < kk <= ii
+            if sh == 0:  # (the CPU's one thread: the elements in order)
+                for ii in range(jj + 1, 15):
+                    for kk in range(jj + 1, ii + 1):
+                        trailing_update(chol_scratch, b, ii, kk, jj, sh)
+            else:  # lane t: element t of the triangle's rows (at most 105 <= NAV_BLOCK_DIM)
+                nn = 14 - jj
+                if lane < nn * (nn + 1) // 2:
+                    rr = int((wp.sqrt(float(8 * lane + 1)) - 1.0) * 0.5)  # (exact for these small integers)
+                    trailing_update(chol_scratch, b, jj + 1 + rr, jj + 1 + lane - rr * (rr + 1) // 2, jj, sh)
         block_sync()
         i0, i1 = span(sh, lane, 0, 25)
         for idx in range(i0, i1):
