@@ -227,6 +227,35 @@ def step_spread_block() -> str:
             + _provenance(*sources) + "\n\n" + "\n".join(lines))
 
 
+STAGE_PHASES = ("candidates' ESS", "exponent", "log-weights", "maximum", "exponentials", "weight statistics",
+                "normalisation + Kalman update", "CDF partials", "CDF", "ancestors", "gather", "put + poses")
+RECORD_PHASES = ("integrity", "summary partials", "record", "covariance", "end")
+
+
+def stamps_block() -> str:
+    """One GPU filter's update graph by pieces and its stage and record blocks by phases, from the globaltimer stamps of
+    ``benchmarks/issue32/stamps_update.py`` and ``stamps_blocks.py`` (phase k ends at the block's k-th barrier)."""
+    sources = ["benchmarks/issue32/update_stamps_h100.json", "benchmarks/issue32/block_stamps_h100.json"]
+    upd, blk = (_load(p)["results"] for p in sources)
+    sids = list(upd)
+    head = ["| piece | " + " | ".join(f"{s} µs" for s in sids) + " |", "|---|" + "---|" * len(sids)]
+    lines = head + [f"| {k} | " + " | ".join(f"{upd[s][k]['median_us']:.1f}" for s in sids) + " |"
+                    for k in upd[sids[0]]]
+    phases = head[:]
+    for prefix, names in (("stage", STAGE_PHASES), ("record", RECORD_PHASES)):
+        keys = [k for k in blk[sids[0]] if k.startswith(prefix + " ") and "->" in k]
+        for k, name in zip(keys, names, strict=False):
+            phases.append(f"| {prefix} block: {name} | " + " | ".join(f"{blk[s][k]:.2f}" for s in sids) + " |")
+        total = f"{prefix} total"
+        if total in blk[sids[0]]:
+            phases.append(f"| {prefix} block: total | " + " | ".join(f"{blk[s][total]:.2f}" for s in sids) + " |")
+    return ("One filter's update graph (B = 1, N = 500, M = 400, the scenarios' filters): medians over the steps of "
+            "the device time between the GPU's globaltimer stamps written between its pieces (each stamp a graph node "
+            "of its own), then the stage block of an update's last stage and the record block by phases (lane 0's "
+            "stamps after each barrier). " + _provenance(*sources) + "\n\n" + "\n".join(lines) + "\n\n"
+            + "\n".join(phases))
+
+
 def profile_block(top: int = 10) -> str:
     data = _load("benchmarks/step_profile_h100.json")
     lines = []
@@ -398,7 +427,7 @@ def bound_block(path: str = "results/bound/bound_study.json") -> str:
 BLOCKS = {"paper": paper_block, "attitude": attitude_block, "paper30": lambda: paper_block("results/paper30"),
           "closed_loop": closed_loop_block, "map_error": map_error_block, "long_flight": long_flight_block,
           "step": step_block, "scenario_step": scenario_step_block, "step_spread": step_spread_block,
-          "profile": profile_block, "kernels": kernels_block,
+          "profile": profile_block, "stamps": stamps_block, "kernels": kernels_block,
           "threads": threads_block, "numpy": numpy_block, "batch": batch_block, "campaign": campaign_block,
           "world": world_block, "replay_frames": replay_frames_block, "bound": bound_block}
 
