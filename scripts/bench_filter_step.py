@@ -36,6 +36,7 @@ import argparse
 import statistics
 import sys
 import time
+from pathlib import Path
 
 import numpy as np
 import warp as wp
@@ -127,6 +128,14 @@ def synchronised_steps(mpf, f, w, setup, steps: int):
         mpf.update(scans[it], sync=False)
         wp.synchronize_device(mpf.device)
         yield it
+
+
+def write_cuda_results(path: str, argv: list[str], doc: str, results: dict) -> None:
+    """A CUDA benchmark script's JSON (the ``benchmarks/issue32`` scripts): ``meta`` (:func:`~warptan.meta.run_meta` of
+    ``cuda:0``, its command the script's name and ``argv``, ``what`` its docstring's first paragraph) and
+    ``results``."""
+    meta = run_meta(["cuda:0"], command=" ".join([Path(argv[0]).name, *argv[1:]]), what=doc.split("\n\n")[0])
+    write_json(path, {"meta": meta, "results": results})
 
 
 def kernel_rate(model, pos, quat, measurement, device, repeats=20) -> float:

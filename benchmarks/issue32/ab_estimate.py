@@ -19,7 +19,6 @@ sys.path.insert(0, sys.argv[1])  # scripts/: bench_filter_step's scenario setup
 import bench_filter_step as bfs
 
 from warptan.device import quiet_warp
-from warptan.meta import run_meta
 
 MODES = ["none", "estimate", "moments", "nav_numpy", "sleep1ms", "gc"]
 WARM = 50
@@ -69,9 +68,7 @@ def main():
                     "call_us": {m: statistics.median(v) for m, v in cost.items()}}
         print(sid, json.dumps({m: round(d["step"], 1) for m, d in res[sid]["next_step_us"].items()}),
               json.dumps({m: round(v, 1) for m, v in res[sid]["call_us"].items()}))
-    with open(out_path, "w") as fh:
-        json.dump({"meta": run_meta(["cuda:0"], command=" ".join(["ab_estimate.py", *sys.argv[1:]]),
-                                    what=__doc__.split("\n\n")[0]), "results": res}, fh, indent=1)
+    bfs.write_cuda_results(out_path, sys.argv, __doc__, res)
 
 
 if __name__ == "__main__":

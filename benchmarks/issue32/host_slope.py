@@ -18,7 +18,6 @@ sys.path.insert(0, sys.argv[1])  # scripts/: bench_filter_step's scenario setup
 import bench_filter_step as bfs
 
 from warptan.device import quiet_warp
-from warptan.meta import run_meta
 
 CASES = [("a", 0), ("a", 20), ("a", 40), ("b", 20), ("b", 40)]
 WARM = 100
@@ -59,9 +58,7 @@ def main():
                 times[(where, d)].append(1e6 * (time.perf_counter() - t0))
         res[sid] = {f"{where}{d}": statistics.median(v) for (where, d), v in times.items()}
         print(sid, json.dumps({k: round(v, 1) for k, v in res[sid].items()}))
-    with open(out_path, "w") as fh:
-        json.dump({"meta": run_meta(["cuda:0"], command=" ".join(["host_slope.py", *sys.argv[1:]]),
-                                    what=__doc__.split("\n\n")[0]), "results": res}, fh, indent=1)
+    bfs.write_cuda_results(out_path, sys.argv, __doc__, res)
 
 
 if __name__ == "__main__":

@@ -15,7 +15,6 @@ sys.path.insert(0, sys.argv[1])  # scripts/: bench_filter_step's scenario setup
 import bench_filter_step as bfs
 
 from warptan.device import quiet_warp
-from warptan.meta import run_meta
 
 
 def piece_us(fn, device, reps: int = 20, replays: int = 30) -> float:
@@ -54,9 +53,7 @@ def main():
     for sid in sys.argv[3:]:
         res[sid] = split(sid)
         print(sid, json.dumps({k: round(v, 2) for k, v in res[sid].items()}))
-    with open(sys.argv[2], "w") as fh:
-        json.dump({"meta": run_meta(["cuda:0"], command=" ".join(["model_split.py", *sys.argv[1:]]),
-                                    what=__doc__.split("\n\n")[0]), "results": res}, fh, indent=1)
+    bfs.write_cuda_results(sys.argv[2], sys.argv, __doc__, res)
 
 
 if __name__ == "__main__":

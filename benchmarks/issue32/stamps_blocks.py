@@ -23,7 +23,6 @@ import bench_filter_step as bfs
 import warptan.filter.program as prog
 import warptan.kernels.filter.blocks as blocks
 from warptan.device import quiet_warp
-from warptan.meta import run_meta
 
 GTIME = '''
 @wp.func_native('unsigned long long t; asm volatile("mov.u64 %0, %%globaltimer;" : "=l"(t)); return (wp::int64)t;')
@@ -99,9 +98,7 @@ def main():
             record_t.zero_()
         res[sid] = {k: statistics.median(v) for k, v in rows.items()}
         print(sid, json.dumps({k: round(v, 2) for k, v in res[sid].items()}))
-    with open(out_path, "w") as fh:
-        json.dump({"meta": run_meta(["cuda:0"], command=" ".join(["stamps_blocks.py", *sys.argv[1:]]),
-                                    what=__doc__.split("\n\n")[0]), "results": res}, fh, indent=1)
+    bfs.write_cuda_results(out_path, sys.argv, __doc__, res)
 
 
 if __name__ == "__main__":

@@ -16,7 +16,6 @@ import bench_filter_step as bfs
 
 from warptan.device import quiet_warp
 from warptan.filter.program import UpdateProgram
-from warptan.meta import run_meta
 
 
 @wp.func_native('unsigned long long t; asm volatile("mov.u64 %0, %%globaltimer;" : "=l"(t)); return (wp::int64)t;')
@@ -94,9 +93,7 @@ def main():
             rows.setdefault("total start->end", []).append((t[LABELS.index("end")] - t[0]) * 1e-3)
         res[sid] = {k: {"median_us": statistics.median(v), "count": len(v)} for k, v in rows.items()}
         print(sid, json.dumps({k: (round(v["median_us"], 1), v["count"]) for k, v in res[sid].items()}))
-    with open(out_path, "w") as fh:
-        json.dump({"meta": run_meta(["cuda:0"], command=" ".join(["stamps_update.py", *sys.argv[1:]]),
-                                    what=__doc__.split("\n\n")[0]), "results": res}, fh, indent=1)
+    bfs.write_cuda_results(out_path, sys.argv, __doc__, res)
 
 
 if __name__ == "__main__":

@@ -133,11 +133,17 @@ class UpdateParams:
 
 
 @wp.func
-def chunk_range(c: int, n: int):
-    """Particles ``[lo, hi)`` (within a filter of n) of chunk c."""
-    size = (n + N_CHUNKS - 1) // N_CHUNKS
+def chunk_span(c: int, n: int, chunks: int):
+    """Items ``[lo, hi)`` of chunk c of n items split into ``chunks`` chunks of one size (the last ones short)."""
+    size = (n + chunks - 1) // chunks
     lo = wp.min(c * size, n)
     return lo, wp.min(lo + size, n)
+
+
+@wp.func
+def chunk_range(c: int, n: int):
+    """Particles ``[lo, hi)`` (within a filter of n) of chunk c of the weight reductions' ``N_CHUNKS``."""
+    return chunk_span(c, n, N_CHUNKS)
 
 
 stats_vec = wp.types.vector(length=32, dtype=wp.float64)
@@ -220,9 +226,9 @@ def pair_products(d: wp.vec3d) -> wp.vec3d:
 
 
 @wp.func
-def weighted_cov(s: wp.float64, m1: wp.vec3d, m2: wp.vec3d, m3: wp.vec3d) -> wp.mat33d:
-    """Covariance from Σw, Σw d, Σw d∘d, Σw (d0d1, d0d2, d1d2) (one division: its reciprocal multiplies)."""
-    inv = wp.float64(1.0) / s
+def weighted_cov(inv: wp.float64, m1: wp.vec3d, m2: wp.vec3d, m3: wp.vec3d) -> wp.mat33d:
+    """Covariance from 1/Σw (the caller's reciprocal: a float64 division is a chain of its own on CUDA), Σw d, Σw d∘d,
+    Σw (d0d1, d0d2, d1d2)."""
     mean = m1 * inv
     xy = m3[0] * inv - mean[0] * mean[1]
     xz = m3[1] * inv - mean[0] * mean[2]

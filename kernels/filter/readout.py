@@ -17,6 +17,7 @@ from warptan.kernels.filter.common import (
     NOM_POS,
     NOM_QUAT,
     NOM_VEL,
+    chunk_span,
     vec12,
 )
 
@@ -33,9 +34,7 @@ def moment_partials_kernel(
 ):
     """Filter b, chunk c: float64 partial sums of w, w dp, w dp dpᵀ, w l, w l lᵀ (weights normalised)."""
     b, c = wp.tid()
-    size = (n_per + N_MOMENT_CHUNKS - 1) // N_MOMENT_CHUNKS
-    lo = wp.min(c * size, n_per)
-    hi = wp.min(lo + size, n_per)
+    lo, hi = chunk_span(c, n_per, N_MOMENT_CHUNKS)
     for k in range(N_MOMENTS):
         partial_out[b, c, k] = wp.float64(0.0)
     for k in range(lo, hi):

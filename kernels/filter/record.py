@@ -151,7 +151,7 @@ def record_summary(
     feedback[b, FB_CONVERGED] = wp.where(judged and ok, wp.float64(1.0), wp.float64(0.0))
     if t >= history.shape[0]:
         return
-    cov = weighted_cov(s, wp.vec3d(tot[1], tot[2], tot[3]), wp.vec3d(tot[4], tot[5], tot[6]),
+    cov = weighted_cov(inv, wp.vec3d(tot[1], tot[2], tot[3]), wp.vec3d(tot[4], tot[5], tot[6]),
                        wp.vec3d(tot[7], tot[8], tot[9]))
     history[t, b, H_ESS] = st[ST_ESS]
     history[t, b, H_RESAMPLES] = st[ST_RESAMPLES]

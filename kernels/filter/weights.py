@@ -259,7 +259,7 @@ def weight_stats(
     m1 = wp.vec3d(tot[2], tot[3], tot[4])
     for a in range(3):
         stats[b, ST_MEAN_DP + a] = m1[a] * inv
-    cov = weighted_cov(s1, m1, wp.vec3d(tot[5], tot[6], tot[7]), wp.vec3d(tot[8], tot[9], tot[10]))
+    cov = weighted_cov(inv, m1, wp.vec3d(tot[5], tot[6], tot[7]), wp.vec3d(tot[8], tot[9], tot[10]))
     lo = chol3(cov + wp.float64(1.0e-6) * wp.identity(n=3, dtype=wp.float64))
     stats[b, ST_CHOL + 0] = lo[0, 0]
     stats[b, ST_CHOL + 1] = lo[1, 0]
