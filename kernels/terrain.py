@@ -19,6 +19,9 @@ import warp as wp
 
 wp.set_module_options({"enable_backward": False})
 
+BLOCK_CELLS = wp.constant(8)
+"""Cells per side of a :attr:`HeightGrid.block_top` block."""
+
 
 @wp.func
 def is_nan(x: float) -> bool:
@@ -60,6 +63,12 @@ class HeightGrid:
     round past the grid's edge."""
     inv_de: wp.float32
     """``1 / de`` in 1/m."""
+    block_top: wp.array2d(dtype=wp.float32)
+    """Per block of ``BLOCK_CELLS`` × ``BLOCK_CELLS`` cells, the highest post (m) of it and its eight neighbours; +inf
+    where one of those cells has a nodata post (:meth:`warptan.terrain.grid.Terrain.grid`)."""
+    block_reach: wp.float32
+    """``BLOCK_CELLS · min(dn, de)`` in m: a ray whose horizontal reach from an origin is at most this stays within
+    the origin's block and its neighbours."""
 
 
 @wp.func

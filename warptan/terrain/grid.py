@@ -483,8 +483,23 @@ class Terrain:
             g.n0, g.e0, g.dn, g.de = self.n0, self.e0, self.dn, self.de
             g.h_min, g.h_max = self.h_min, self.h_max
             g.inv_dn, g.inv_de = 1.0 / self.dn, 1.0 / self.de
+            g.block_top = wp.array(self.block_top_m().astype(np.float32), dtype=wp.float32, device=entry["device"])
+            g.block_reach = kterrain.BLOCK_CELLS * min(self.dn, self.de)
             entry["grid"] = g
         return entry["grid"]
+
+    def block_top_m(self, block: int = kterrain.BLOCK_CELLS) -> np.ndarray:
+        """Per block of ``block`` × ``block`` cells (the last row and column of blocks may be smaller), the highest
+        post in m of the block and its eight neighbours (+inf where one of their cells is invalid): an upper bound
+        of the surface within ``block`` cells of any point of the block (:func:`warptan.kernels.raycast.
+        local_band_entry`)."""
+        cm = self.cell_max_m
+        nb_i, nb_j = -(-cm.shape[0] // block), -(-cm.shape[1] // block)
+        padded = np.full((nb_i * block, nb_j * block), -np.inf)
+        padded[:cm.shape[0], :cm.shape[1]] = cm
+        tops = padded.reshape(nb_i, block, nb_j, block).max(axis=(1, 3))
+        ring = np.pad(tops, 1, constant_values=-np.inf)
+        return np.max([ring[a:a + nb_i, b:b + nb_j] for a in range(3) for b in range(3)], axis=0)
 
     def mesh_arrays(self) -> tuple[np.ndarray, np.ndarray]:
         """Vertices (rows*cols, 3) NED in m (z = -height; 0 at nodata posts, which no face uses) and faces
