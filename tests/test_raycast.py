@@ -200,3 +200,50 @@ def test_mismatched_devices():
     d = wp.array([wp.vec3(0.0, 0.0, 1.0)], dtype=wp.vec3, device="cuda:0")
     with pytest.raises(ValueError, match="origins_n is on cpu but dirs_n on cuda:0"):
         wt.raycast(_small_terrain(), o, d)
+
+
+def test_residual_forms_agree_bit_for_bit(device):
+    """The per-particle form of the ray residuals (the CPU's: one thread loops over a particle's rays) writes the same
+    bits as the per-ray form, with invalid points, an origin under the ground, rays within a block's reach (the
+    DDA starts at the local band: :func:`warptan.kernels.raycast.local_band_entry`) and rays beyond it; and those
+    ranges match the float64 reference."""
+    import warptan.kernels.raycast as kray
+    from warptan.kernels.likelihood import CLOUD_ROW_LEN, cloud_row
+
+    terrain = wt.Terrain.synthetic("rugged", size_m=3000.0, spacing=30.0, seed=9)
+    rng = np.random.default_rng(4)
+    n, m = 12, 40
+    pos = np.stack([rng.uniform(-600, 600, n), rng.uniform(-600, 600, n), np.full(n, -(terrain.h_max + 20))], 1)
+    pos[3, 2] = -(terrain.height_at(pos[3, 0], pos[3, 1]) - 5.0)  # underground: every ray NaN
+    pos[5, 2] = -(terrain.h_max + 2500.0)  # high: the reach exceeds a block's, the whole band is marched
+    quat = wt.frames.euler_to_quat(rng.uniform(-0.2, 0.2, n), rng.uniform(-0.2, 0.2, n), rng.uniform(-3, 3, n))
+    dirs = np.stack([rng.uniform(-0.4, 0.4, m), rng.uniform(-0.4, 0.4, m), np.ones(m)], 1)
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    cloud = np.zeros((1, m, CLOUD_ROW_LEN), np.float32)
+    cloud[0, :, 3:6], cloud[0, :, 6], cloud[0, :, 7] = dirs, 800.0, 1.0
+    cloud[0, ::7, 7] = 0.0  # invalid points
+    cloud[0, :, :3] = dirs * 800.0
+    grid = terrain.grid(device)
+    args = [grid, wp.uint64(0), kray.BACKEND_DDA, 15.0, 12, 0, n, wp.array(pos.astype(np.float32), dtype=wp.vec3,
+            device=device), wp.array(quat.astype(np.float32), dtype=wp.vec4, device=device),
+            wp.array(cloud, dtype=cloud_row, device=device)]
+    outs = []
+    for kernel, dim in ((kray.raycast_residual_kernel, (n, m)), (kray.raycast_residual_rows_kernel, n)):
+        res = wp.zeros((n, m), dtype=wp.float32, device=device)
+        nrm = wp.zeros((n, m), dtype=wp.vec3, device=device)
+        vert = wp.zeros((n, m), dtype=wp.float32, device=device)
+        wp.launch(kernel, dim=dim, inputs=args, outputs=[res, nrm, 1, vert], device=device)
+        outs.append([a.numpy() for a in (res, nrm, vert)])
+    for a, b in zip(*outs, strict=True):
+        np.testing.assert_array_equal(a, b)
+    res = outs[0][0]
+    assert np.isnan(res[3]).all() and np.isnan(res[:, ::7]).all()
+    ok = np.ones((n, m), bool)
+    ok[3], ok[:, ::7] = False, False
+    dirs_n = np.einsum("nij,mj->nmi", wt.frames.quat_to_mat(quat), dirs)
+    ref = _reference_f64(terrain, np.repeat(pos, m, axis=0), dirs_n.reshape(-1, 3)).reshape(n, m)
+    assert (np.isnan(res[ok]) == np.isnan(ref[ok])).all() and np.isfinite(res[ok]).mean() > 0.9
+    hit = ok & np.isfinite(ref)
+    np.testing.assert_allclose((800.0 - res)[hit], ref[hit], atol=0.01)
+    reach = np.hypot(dirs_n[..., 0], dirs_n[..., 1]) * (-pos[:, 2:3] - terrain.h_min) / dirs_n[..., 2]
+    assert (reach[5] > grid.block_reach).mean() > 0.8 and (reach[ok] < grid.block_reach).mean() > 0.3

@@ -482,3 +482,20 @@ def test_the_slope_correlation_length_of_sinusoidal_ridges():
     north = np.arange(400) * 30.0
     ridges = Terrain.from_grid(np.tile(50.0 * np.sin(2 * np.pi * north / 2000.0)[:, None], (1, 300)), 30.0)
     assert ridges.slope_correlation_m == pytest.approx(2000.0 * np.arccos(1 / np.e) / (2 * np.pi), abs=31.0)
+
+
+def test_block_top_bounds_the_cells_within_reach():
+    """``block_top_m``: per block, the highest post of the block and its neighbours (brute force), +inf next to a
+    nodata post, on a grid whose cells do not fill the last blocks."""
+    rng = np.random.default_rng(2)
+    heights = rng.uniform(0.0, 500.0, (43, 30))
+    heights[5, 27] = np.nan
+    terrain = Terrain.from_grid(heights, spacing=10.0)
+    top = terrain.block_top_m(block=4)
+    cm = terrain.cell_max_m
+    assert top.shape == (11, 8)
+    for bi in range(11):
+        for bj in range(8):
+            want = cm[max(0, 4 * bi - 4):4 * bi + 8, max(0, 4 * bj - 4):4 * bj + 8].max()
+            assert top[bi, bj] == want
+    assert np.isinf(top[0, 5:]).all() and np.isfinite(top[3:, :5]).all()
