@@ -150,15 +150,9 @@ def local_band_entry(grid: HeightGrid, o: wp.vec3, d: wp.vec3, t_in: float, t_en
 
 
 @wp.func
-def cast_dda(grid: HeightGrid, o: wp.vec3, d: wp.vec3) -> float:
-    """Range (m) of the first surface hit along unit ``d`` by 2-D DDA over the cells; NaN = no hit (``o`` has passed
-    :func:`origin_blocked`)."""
-    band = band_interval(grid, o, d)
-    t = band[0]
-    t_end = band[1]
-    if t > t_end:
-        return wp.nan
-    t = local_band_entry(grid, o, d, t, t_end)
+def dda_march(grid: HeightGrid, o: wp.vec3, d: wp.vec3, t_start: float, t_end: float) -> float:
+    """The 2-D DDA of :func:`cast_dda` over the ray's ``[t_start, t_end]`` (within the terrain's height band)."""
+    t = t_start
     rows = grid.heights.shape[0]
     cols = grid.heights.shape[1]
     u = (o[0] + t * d[0] - grid.n0) / grid.dn
@@ -216,9 +210,21 @@ def cast_dda(grid: HeightGrid, o: wp.vec3, d: wp.vec3) -> float:
 
 
 @wp.func
+def cast_dda(grid: HeightGrid, o: wp.vec3, d: wp.vec3) -> float:
+    """Range (m) of the first surface hit along unit ``d`` by 2-D DDA over the cells; NaN = no hit."""
+    if origin_blocked(grid, o):
+        return wp.nan
+    band = band_interval(grid, o, d)
+    if band[0] > band[1]:
+        return wp.nan
+    return dda_march(grid, o, d, band[0], band[1])
+
+
+@wp.func
 def cast_bisection(grid: HeightGrid, o: wp.vec3, d: wp.vec3, step_m: float, n_bisect: int) -> float:
-    """Range (m) by marching ``step_m`` horizontally to the first sample on/below the surface, then bisection (``o``
-    has passed :func:`origin_blocked`)."""
+    """Range (m) by marching ``step_m`` horizontally to the first sample on/below the surface, then bisection."""
+    if origin_blocked(grid, o):
+        return wp.nan
     band = band_interval(grid, o, d)
     t_prev = band[0]
     t_end = wp.min(band[1], grid_exit(grid, o, d))
@@ -256,8 +262,9 @@ def cast_bisection(grid: HeightGrid, o: wp.vec3, d: wp.vec3, step_m: float, n_bi
 
 @wp.func
 def cast_mesh(grid: HeightGrid, mesh: wp.uint64, o: wp.vec3, d: wp.vec3) -> float:
-    """Range (m) of the first front-face hit on the triangle mesh (``wp.mesh_query_ray``); NaN = no hit (``o`` has
-    passed :func:`origin_blocked`)."""
+    """Range (m) of the first front-face hit on the triangle mesh (``wp.mesh_query_ray``); NaN = no hit."""
+    if origin_blocked(grid, o):
+        return wp.nan
     band = band_interval(grid, o, d)
     if band[0] > band[1]:
         return wp.nan
@@ -268,26 +275,16 @@ def cast_mesh(grid: HeightGrid, mesh: wp.uint64, o: wp.vec3, d: wp.vec3) -> floa
 
 
 @wp.func
-def cast_unblocked(
+def cast_ray(
     grid: HeightGrid, mesh: wp.uint64, backend: int, o: wp.vec3, d_raw: wp.vec3, step_m: float, n_bisect: int
 ) -> float:
-    """:func:`cast_ray` from an origin that has passed :func:`origin_blocked` (a particle's rays share the check)."""
+    """Dispatch one ray to a backend (``BACKEND_*``); ``d_raw`` is normalised first."""
     d = wp.normalize(d_raw)
     if backend == BACKEND_MESH:
         return cast_mesh(grid, mesh, o, d)
     if backend == BACKEND_DDA:
         return cast_dda(grid, o, d)
     return cast_bisection(grid, o, d, step_m, n_bisect)
-
-
-@wp.func
-def cast_ray(
-    grid: HeightGrid, mesh: wp.uint64, backend: int, o: wp.vec3, d_raw: wp.vec3, step_m: float, n_bisect: int
-) -> float:
-    """Dispatch one ray to a backend (``BACKEND_*``); ``d_raw`` is normalised first."""
-    if origin_blocked(grid, o):
-        return wp.nan
-    return cast_unblocked(grid, mesh, backend, o, d_raw, step_m, n_bisect)
 
 
 @wp.kernel
@@ -324,49 +321,6 @@ def raycast_pattern_kernel(
     range_out[i, j] = cast_ray(grid, mesh, backend, pos_n[i], d, step_m, n_bisect)
 
 
-@wp.func
-def ray_residual(
-    grid: HeightGrid,
-    mesh: wp.uint64,
-    backend: int,
-    step_m: float,
-    n_bisect: int,
-    i: int,
-    j: int,
-    row: cloud_row,
-    mat: wp.mat33,
-    p: wp.vec3,
-    blocked: bool,
-    residual_out: wp.array2d(dtype=wp.float32),
-    normal_out: wp.array2d(dtype=wp.vec3),
-    want_vertical: int,
-    vertical_out: wp.array2d(dtype=wp.float32),
-):
-    """Particle i's (pose ``p``, ``mat``; ``blocked``: :func:`origin_blocked` of ``p``) point j, ``row``: what
-    :data:`raycast_residual_kernel` writes."""
-    normal_out[i, j] = wp.vec3()
-    if row[CR_VALID] == 0.0:
-        residual_out[i, j] = wp.nan
-        if want_vertical != 0:
-            vertical_out[i, j] = wp.nan
-    else:
-        d = mat * row_dir(row)
-        t = float(wp.nan)
-        if not blocked:
-            t = cast_unblocked(grid, mesh, backend, p, d, step_m, n_bisect)
-        residual_out[i, j] = row[CR_RANGE] - t
-        if want_vertical != 0:
-            q = p + row[CR_RANGE] * d
-            vertical_out[i, j] = -q[2] - grid_surface(grid, q[0], q[1])
-        if not is_nan(t):
-            hit = p + t * d
-            grad = grid_gradient(grid, 1, hit[0], hit[1])
-            nrm = wp.vec3(grad[0], grad[1], 1.0)
-            den = wp.dot(nrm, d)
-            if is_finite(den) and wp.abs(den) > 1.0e-3:
-                normal_out[i, j] = nrm / den
-
-
 @wp.kernel(cuda_max_registers=RESIDUAL_MAX_REGISTERS)
 def raycast_residual_kernel(
     grid: HeightGrid,
@@ -397,10 +351,46 @@ def raycast_residual_kernel(
     (:func:`warptan.kernels.likelihood.acc_gated`); otherwise ``vertical_out`` is not written (nothing reads it).
     """
     i, j = wp.tid()
+    row = cloud[(row0 + i) // n_per, j]
+    normal_out[i, j] = wp.vec3()
+    if row[CR_VALID] == 0.0:
+        residual_out[i, j] = wp.nan
+        if want_vertical != 0:
+            vertical_out[i, j] = wp.nan
+        return
+    mat = quat_to_mat_wxyz(quat_nb[i])
+    d_s = row_dir(row)
+    d = mat * d_s
     p = pos_n[i]
-    ray_residual(grid, mesh, backend, step_m, n_bisect, i, j, cloud[(row0 + i) // n_per, j],
-                 quat_to_mat_wxyz(quat_nb[i]), p, origin_blocked(grid, p), residual_out, normal_out, want_vertical,
-                 vertical_out)
+    t = cast_ray(grid, mesh, backend, p, d, step_m, n_bisect)
+    residual_out[i, j] = row[CR_RANGE] - t
+    if want_vertical != 0:
+        q = p + row[CR_RANGE] * d
+        vertical_out[i, j] = -q[2] - grid_surface(grid, q[0], q[1])
+    if not is_nan(t):
+        hit = p + t * d
+        grad = grid_gradient(grid, 1, hit[0], hit[1])
+        nrm = wp.vec3(grad[0], grad[1], 1.0)
+        den = wp.dot(nrm, d)
+        if is_finite(den) and wp.abs(den) > 1.0e-3:
+            normal_out[i, j] = nrm / den
+
+
+@wp.func
+def cast_unblocked_local(
+    grid: HeightGrid, mesh: wp.uint64, backend: int, o: wp.vec3, d_raw: wp.vec3, step_m: float, n_bisect: int
+) -> float:
+    """:func:`cast_ray` from an origin that has passed :func:`origin_blocked` (a particle's rays share the check), a
+    DDA ray from its local band (:func:`local_band_entry`): the same range."""
+    d = wp.normalize(d_raw)
+    if backend == BACKEND_DDA:
+        band = band_interval(grid, o, d)
+        if band[0] > band[1]:
+            return wp.nan
+        return dda_march(grid, o, d, local_band_entry(grid, o, d, band[0], band[1]), band[1])
+    if backend == BACKEND_MESH:
+        return cast_mesh(grid, mesh, o, d)
+    return cast_bisection(grid, o, d, step_m, n_bisect)
 
 
 @wp.kernel
@@ -420,14 +410,36 @@ def raycast_residual_rows_kernel(
     want_vertical: int,
     vertical_out: wp.array2d(dtype=wp.float32),
 ):
-    """:data:`raycast_residual_kernel` as one thread per particle i looping over its points (the CPU's form): the
-    particle's rotation and origin check made once, not once per ray (S7, N = 500, 10 × 10 rays, one CPU thread:
-    5.9 → 4.6 ms, fastest of 15). The same arithmetic per ray: the same bits."""
+    """:data:`raycast_residual_kernel` as one thread per particle i looping over its points, the CPU's form: the
+    particle's rotation and origin check made once, not once per ray, and DDA rays cast from their local band
+    (:func:`cast_unblocked_local`). The same ranges, normals and bits on the CPU (S7, N = 500, 10 × 10 rays, one CPU
+    thread: 5.9 → 4.4 ms). The per-ray form's body stays as it was: on CUDA the same code moved into a shared
+    function changed the compiled arithmetic (an H100's step digests of the ray-cast filters differed)."""
     i = wp.tid()
     b = (row0 + i) // n_per
     p = pos_n[i]
     mat = quat_to_mat_wxyz(quat_nb[i])
     blocked = origin_blocked(grid, p)
     for j in range(cloud.shape[1]):
-        ray_residual(grid, mesh, backend, step_m, n_bisect, i, j, cloud[b, j], mat, p, blocked, residual_out,
-                     normal_out, want_vertical, vertical_out)
+        row = cloud[b, j]
+        normal_out[i, j] = wp.vec3()
+        if row[CR_VALID] == 0.0:
+            residual_out[i, j] = wp.nan
+            if want_vertical != 0:
+                vertical_out[i, j] = wp.nan
+            continue
+        d = mat * row_dir(row)
+        t = float(wp.nan)
+        if not blocked:
+            t = cast_unblocked_local(grid, mesh, backend, p, d, step_m, n_bisect)
+        residual_out[i, j] = row[CR_RANGE] - t
+        if want_vertical != 0:
+            q = p + row[CR_RANGE] * d
+            vertical_out[i, j] = -q[2] - grid_surface(grid, q[0], q[1])
+        if not is_nan(t):
+            hit = p + t * d
+            grad = grid_gradient(grid, 1, hit[0], hit[1])
+            nrm = wp.vec3(grad[0], grad[1], 1.0)
+            den = wp.dot(nrm, d)
+            if is_finite(den) and wp.abs(den) > 1.0e-3:
+                normal_out[i, j] = nrm / den

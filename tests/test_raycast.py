@@ -204,9 +204,9 @@ def test_mismatched_devices():
 
 def test_residual_forms_agree_bit_for_bit(device):
     """The per-particle form of the ray residuals (the CPU's: one thread loops over a particle's rays) writes the same
-    bits as the per-ray form, with invalid points, an origin under the ground, rays within a block's reach (the
-    DDA starts at the local band: :func:`warptan.kernels.raycast.local_band_entry`) and rays beyond it; and those
-    ranges match the float64 reference."""
+    bits as the per-ray form on the CPU (the same values elsewhere), with invalid points, an origin under the ground,
+    rays within a block's reach (the DDA starts at the local band: :func:`warptan.kernels.raycast.local_band_entry`)
+    and rays beyond it; and those ranges match the float64 reference."""
     import warptan.kernels.raycast as kray
     from warptan.kernels.likelihood import CLOUD_ROW_LEN, cloud_row
 
@@ -234,8 +234,11 @@ def test_residual_forms_agree_bit_for_bit(device):
         vert = wp.zeros((n, m), dtype=wp.float32, device=device)
         wp.launch(kernel, dim=dim, inputs=args, outputs=[res, nrm, 1, vert], device=device)
         outs.append([a.numpy() for a in (res, nrm, vert)])
-    for a, b in zip(*outs, strict=True):
-        np.testing.assert_array_equal(a, b)
+    for a, b in zip(*outs, strict=True):  # the CPU runs the per-particle form; CUDA's compiler may contract otherwise
+        if wt.resolve_device(device).is_cpu:
+            np.testing.assert_array_equal(a, b)
+        else:
+            np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-3)
     res = outs[0][0]
     assert np.isnan(res[3]).all() and np.isnan(res[:, ::7]).all()
     ok = np.ones((n, m), bool)
