@@ -12,7 +12,9 @@ here, so ``t`` is a range in metres. Every backend returns NaN (no hit), never a
 
 ``dda``: the exact traversal of the grid cells under the ray (2-D DDA, Amanatides & Woo), the ray first
 clipped to the terrain's min–max height band, cells whose highest post is below the ray skipped, and an
-exact intersection with the two triangles of every other cell (front faces only).
+exact intersection with the two triangles of every other cell (front faces only). The CPU's per-particle form of the
+filter's ray casts (:data:`raycast_residual_rows_kernel`) starts a ray lower, where it comes down to the highest post
+within its reach (:func:`local_band_entry`): the same cells are tested, the same ranges found.
 ``bisection``: the paper's CPU variant: march in horizontal steps of ``step_m`` (≤ half a post by
 default) until the first sample on or below the surface, then ``n_bisect`` halvings of the last step.
 It finds the first surface unless a feature is thinner than a step.
