@@ -135,13 +135,14 @@ def cell_hit(grid: HeightGrid, i: int, j: int, o: wp.vec3, d: wp.vec3) -> float:
 def local_band_entry(grid: HeightGrid, o: wp.vec3, d: wp.vec3, t_in: float, t_end: float) -> float:
     """Where a descending ray (unit ``d``, origin ``o`` on the grid) comes down to the highest surface within its
     reach, no earlier than ``t_in``: when its horizontal reach to the band's bottom (``t_end``) is at most
-    :attr:`HeightGrid.block_reach`, every cell it crosses lies in the origin's block or a neighbour, whose
+    ``BLOCK_CELLS`` cells, every cell it crosses lies in the origin's block or a neighbour, whose
     :attr:`HeightGrid.block_top` bounds their posts; above it :func:`cast_dda` would only skip cells (their highest
     post below the ray). The global band's top lies hundreds of metres above a scan's ground on a rugged tile (S7: 983
     m against ~500 m within 2 km of the track). Else (farther reach, a level ray, nodata within reach) ``t_in``."""
     if d[2] <= 0.0:
         return t_in
-    if (d[0] * d[0] + d[1] * d[1]) * t_end * t_end > grid.block_reach * grid.block_reach:
+    reach = float(BLOCK_CELLS) * wp.min(grid.dn, grid.de)
+    if (d[0] * d[0] + d[1] * d[1]) * t_end * t_end > reach * reach:
         return t_in
     i = wp.min(int((o[0] - grid.n0) / grid.dn), grid.heights.shape[0] - 2)
     j = wp.min(int((o[1] - grid.e0) / grid.de), grid.heights.shape[1] - 2)

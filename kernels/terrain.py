@@ -66,9 +66,6 @@ class HeightGrid:
     block_top: wp.array2d(dtype=wp.float32)
     """Per block of ``BLOCK_CELLS`` × ``BLOCK_CELLS`` cells, the highest post (m) of it and its eight neighbours; +inf
     where one of those cells has a nodata post (:meth:`warptan.terrain.grid.Terrain.grid`)."""
-    block_reach: wp.float32
-    """``BLOCK_CELLS · min(dn, de)`` in m: a ray whose horizontal reach from an origin is at most this stays within
-    the origin's block and its neighbours."""
 
 
 @wp.func

@@ -249,4 +249,5 @@ def test_residual_forms_agree_bit_for_bit(device):
     hit = ok & np.isfinite(ref)
     np.testing.assert_allclose((800.0 - res)[hit], ref[hit], atol=0.01)
     reach = np.hypot(dirs_n[..., 0], dirs_n[..., 1]) * (-pos[:, 2:3] - terrain.h_min) / dirs_n[..., 2]
-    assert (reach[5] > grid.block_reach).mean() > 0.8 and (reach[ok] < grid.block_reach).mean() > 0.3
+    block_reach = kray.BLOCK_CELLS * min(terrain.dn, terrain.de)
+    assert (reach[5] > block_reach).mean() > 0.8 and (reach[ok] < block_reach).mean() > 0.3

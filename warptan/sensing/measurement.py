@@ -542,13 +542,13 @@ class RaycastModel(_PointCloudModel):
         lead = self.caster.launch_args(self.terrain, device)
         res, nrm, vert, cloud, n_per = out.residual_m, out.normal, out.vertical_m, self._staged, self.n_per
         # CUDA: one thread per ray; the CPU: one per particle, its rotation and origin check made once
-        kernel, cols = ((kray.raycast_residual_kernel, res.shape[1]) if device.is_cuda
-                        else (kray.raycast_residual_rows_kernel, None))
+        kernel, cols, cost = ((kray.raycast_residual_kernel, res.shape[1], 20) if device.is_cuda
+                              else (kray.raycast_residual_rows_kernel, None, 20 * res.shape[1]))
         launch_rows(kernel, res.shape[0],
                     lambda a, b: ([*lead, a or 0, n_per, rows_of(pos_n, a, b), rows_of(quat_nb, a, b), cloud],
                                   [rows_of(res, a, b), rows_of(nrm, a, b), int(self._gates_misses()),
                                    rows_of(vert, a, b)]),
-                    device, cols=cols, row_cost=20 * res.shape[1])
+                    device, cols=cols, row_cost=cost)
 
     def _launch_reduce(self, quat_nb, out, device):
         """Each particle's log-likelihood and information from its residuals (:meth:`_launch_residuals`)."""

@@ -484,7 +484,6 @@ class Terrain:
             g.h_min, g.h_max = self.h_min, self.h_max
             g.inv_dn, g.inv_de = 1.0 / self.dn, 1.0 / self.de
             g.block_top = wp.array(self.block_top_m().astype(np.float32), dtype=wp.float32, device=entry["device"])
-            g.block_reach = kterrain.BLOCK_CELLS * min(self.dn, self.de)
             entry["grid"] = g
         return entry["grid"]
 
