@@ -566,9 +566,9 @@ def test_graph_holds_the_scan_staging(rugged, batch, shared):
 @pytest.mark.parametrize(("model_name", "stated"), [("sliding", False), ("sliding", True), ("altimeter", False)],
                          ids=["sliding", "sliding-stated-map-error", "altimeter"])
 def test_block_forms_equal_the_separate_kernels(device, rugged, monkeypatch, model_name, stated):
-    """The fused forms of an update give bit-identical runs to its pieces launched one by one (the CPU default),
-    eagerly and replayed from a graph: a tempering stage with its resampling as one block per filter
-    (``stage_block_kernel``: the CUDA default) and the lean update (``move_pose_kernel``,
+    """The fused forms of an update give bit-identical runs to its pieces launched one by one, eagerly and replayed
+    from a graph: a tempering stage with its resampling as one block per filter (``stage_block_kernel``: the default;
+    on the CPU it searches the candidates itself) and the lean update (the CUDA default: ``move_pose_kernel``,
     ``integrity_block_kernel``, ``record_block_kernel``, nested stage conditionals). On the CPU a block is one thread
     doing every piece in order, on CUDA its lanes share them between barriers. A stated map error adds the map-error
     modes between the integrity monitor and the record."""

@@ -3,7 +3,7 @@ resampling, the update's head and tail."""
 
 import warp as wp
 
-from warptan.kernels.block import block_sync
+from warptan.kernels.block import block_sync, on_cuda
 from warptan.kernels.filter.common import N_CHUNKS, N_TEMPER, ST_REMAIN, ST_RESPREAD, WARP_LANES, UpdateParams, vec12
 from warptan.kernels.filter.integrity import integrity_step, respread_particle
 from warptan.kernels.filter.moves import move_particle, nominal_pose, pose_at, pose_of_particle
@@ -15,7 +15,7 @@ from warptan.kernels.filter.record import (
     update_covariance_lanes,
 )
 from warptan.kernels.filter.resampling import ancestor, cdf_chunk, cdf_partial, copy_particle, gather, gathered
-from warptan.kernels.filter.tempering import begin_stats, temper_ess_lanes, temper_select
+from warptan.kernels.filter.tempering import begin_stats, temper_ess_lanes, temper_search, temper_select
 from warptan.kernels.filter.weights import (
     add_loglik_partial,
     exp_partial,
@@ -113,9 +113,10 @@ def stage_block_kernel(
 ):
     """One tempering stage of filter b after :data:`temper_partials_kernel`, and its resampling, in one CUDA block
     (``wp.launch_tiled``, :data:`STAGE_BLOCK_DIM` lanes), the block's lanes sharing each piece's threads with a barrier
-    between pieces:
+    between pieces; on the CPU, where a block is one thread, the whole stage in one launch, the candidates searched
+    in order in the block (:func:`~warptan.kernels.filter.tempering.temper_search`, no partials launched before):
 
-    * the stage: :data:`temper_ess_kernel`, :data:`temper_select_kernel`,
+    * the stage: :data:`temper_ess_kernel` (CPU: :data:`temper_search_kernel`), :data:`temper_select_kernel`,
       :data:`add_loglik_partials_kernel`, :data:`max_of_partials_kernel`, :data:`exp_partials_kernel`,
       :data:`weight_stats_kernel`, :data:`normalize_weights_kernel` and (``kalman``) :data:`kalman_update_kernel`;
     * the resampling (the filters whose statistics say so; the others keep their particles):
@@ -132,8 +133,11 @@ def stage_block_kernel(
     ``scripts/bench_update_pieces.py``)."""
     b, lane = wp.tid()
     bd = wp.block_dim()
-    for g in range(lane // WARP_LANES, N_TEMPER, wp.max(bd // WARP_LANES, 1)):  # (a warp per candidate)
-        temper_ess_lanes(b, g, lane % WARP_LANES, partials, ess)
+    if on_cuda() == 0:  # the CPU (a block is one thread): the candidates in order until one is taken, no launch
+        temper_search(b, n_per, stage, params, loglik, n_valid, meta, logw, stats, partials, unpred, ess)
+    else:
+        for g in range(lane // WARP_LANES, N_TEMPER, wp.max(bd // WARP_LANES, 1)):  # (a warp per candidate)
+            temper_ess_lanes(b, g, lane % WARP_LANES, partials, ess)
     block_sync()
     if lane == 0:
         temper_select(b, n_per, stage, last_stage, params, meta, ess, unpred, stats)

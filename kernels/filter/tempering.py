@@ -171,6 +171,37 @@ def temper_ess_kernel(partial_in: wp.array4d(dtype=wp.float64), ess_out: wp.arra
     temper_ess_lanes(b, g, lane, partial_in, ess_out)
 
 
+@wp.func
+def temper_search(
+    b: int,
+    n_per: int,
+    stage: int,
+    params: UpdateParams,
+    loglik: wp.array(dtype=wp.float32),
+    n_valid: wp.array(dtype=wp.int32),
+    meta: wp.array2d(dtype=wp.float32),
+    logw: wp.array(dtype=wp.float32),
+    stats: wp.array2d(dtype=wp.float64),
+    partial_out: wp.array4d(dtype=wp.float64),
+    unpred_out: wp.array2d(dtype=wp.float64),
+    ess_out: wp.array2d(dtype=wp.float64),
+):
+    """Filter b's candidates in order, largest exponent first (the CPU's form of :data:`temper_partials_kernel` +
+    :data:`temper_ess_kernel`), each scored over every chunk exactly as there, stopping at the first one
+    :data:`temper_select_kernel` takes (ESS ≥ ``temper_ess · n``; after the first when tempering is off). The
+    selection reads no candidate after that one, so the result is the same bits for a fraction of the work: usually
+    one candidate of 20 (the whole exponent keeps the ESS). Nothing for a filter with no exponent left."""
+    if stage > 0 and stats[b, ST_REMAIN] <= wp.float64(0.0):
+        return
+    target = wp.float64(params.temper_ess) * wp.float64(n_per)
+    for g in range(N_TEMPER):
+        for c in range(N_CHUNKS):
+            temper_partial(b, c, g, n_per, stage, loglik, n_valid, meta, logw, stats, partial_out, unpred_out)
+        temper_ess_of(b, g, partial_out, ess_out)
+        if params.temper_ess <= 0.0 or ess_out[b, g] >= target:
+            break
+
+
 @wp.kernel
 def temper_search_kernel(
     n_per: int,
@@ -185,21 +216,9 @@ def temper_search_kernel(
     unpred_out: wp.array2d(dtype=wp.float64),
     ess_out: wp.array2d(dtype=wp.float64),
 ):
-    """One thread per filter (the CPU's form of :data:`temper_partials_kernel` + :data:`temper_ess_kernel`): the
-    candidates in order, largest exponent first, each scored over every chunk exactly as there, stopping at the first
-    one :data:`temper_select_kernel` takes (ESS ≥ ``temper_ess · n``; after the first when tempering is off). The
-    selection reads no candidate after that one, so the result is the same bits for a fraction of the work: usually
-    one candidate of 20 (the whole exponent keeps the ESS)."""
+    """One thread per filter: :func:`temper_search`."""
     b = wp.tid()
-    if stage > 0 and stats[b, ST_REMAIN] <= wp.float64(0.0):
-        return
-    target = wp.float64(params.temper_ess) * wp.float64(n_per)
-    for g in range(N_TEMPER):
-        for c in range(N_CHUNKS):
-            temper_partial(b, c, g, n_per, stage, loglik, n_valid, meta, logw, stats, partial_out, unpred_out)
-        temper_ess_of(b, g, partial_out, ess_out)
-        if params.temper_ess <= 0.0 or ess_out[b, g] >= target:
-            break
+    temper_search(b, n_per, stage, params, loglik, n_valid, meta, logw, stats, partial_out, unpred_out, ess_out)
 
 
 @wp.func

@@ -232,7 +232,7 @@ class MarginalizedParticleFilter(ImuIntake, Readout):
         self._no_info: tuple[wp.array, wp.array] | None = None
         self._no_pos_info: wp.array | None = None
         self.graph = self.device.is_cuda if graph is None else bool(graph)
-        self._block_stages = self.device.is_cuda  # a stage / a resampling as one block per filter (same bits)
+        self._block_stages = True  # a stage and its resampling as one block per filter (same bits; program.py)
         # the update's head and tail fused, the stages' conditionals nested (same bits; the CPU runs it in
         # tests/test_mpf.py): on CUDA, where it measured faster (H100, S8 one filter: device 0.309 -> 0.273 ms)
         self._lean = self.device.is_cuda

@@ -44,16 +44,18 @@ filters (independent seeds, same model) shares every launch. Measured on an H100
 ``benchmarks/filter_step_device_h100.json``): sliding 0.77 ms, dda 0.95 ms per synchronised step, 0.52 / 0.70 ms
 pipelined; with the nav interval on the host and P's update read back per update it was 2.16 / 1.67 ms.
 
-On CUDA a tempering stage's per-filter pieces after the candidates' partials (ESS, selection, log-likelihood
-partials, maximum, exp partials, weight statistics, normalisation, Kalman update) run as one block per filter
-(:data:`warptan.kernels.mpf.stage_block_kernel`) together with the stage's resampling, the particles' poses and
-the next stage's flag: the same functions on the same values with barriers between them, the same bits as the
-separate kernels (a graph node costs ~2 µs whatever its work: 16 nodes a stage became 2). The CPU keeps the
-separate kernels (whose particle loops split over cores). ``_lean`` (CUDA, where it measured faster; slower on a
-2-core CPU) fuses the head (moves, poses, statistics reset) and the tail (integrity + re-spread; record + P's update +
-reset) likewise, nests the stages' conditionals and queues the head (the interval, the particles' moves
-and poses: a graph of its own) as soon as the measurement passed the model's ``check``, so that the device runs it
-while the host stages the scan; the same bits on the CPU (``tests/test_mpf.py``).
+On CUDA a tempering stage's per-filter pieces after the candidates' partials (ESS, selection, log-likelihood partials,
+maximum, exp partials, weight statistics, normalisation, Kalman update) run as one block per filter
+(:data:`warptan.kernels.mpf.stage_block_kernel`) together with the stage's resampling, the particles' poses and the next
+stage's flag: the same functions on the same values with barriers between them, the same bits as the separate kernels (a
+graph node costs ~2 µs whatever its work: 16 nodes a stage became 2). The CPU runs the same block kernel as one thread
+per filter, which searches the candidates in order itself (no partials launched): one launch a stage instead of 13, the
+same bits (S8 / S7, N = 500, 10 × 10 rays, updates alternated in one process on this 2-core VM: 2.81 → 2.71 / 4.67 →
+4.57 ms per update; none of the separate launches was split over cores). ``_lean`` (CUDA, where it measured faster;
+slower on a 2-core CPU) fuses the head (moves, poses, statistics reset) and the tail (integrity + re-spread; record +
+P's update + reset) likewise, nests the stages' conditionals and queues the head (the interval, the particles' moves and
+poses: a graph of its own) as soon as the measurement passed the model's ``check``, so that the device runs it while the
+host stages the scan; the same bits on the CPU (``tests/test_mpf.py``).
 """
 
 from __future__ import annotations
@@ -210,10 +212,11 @@ class UpdateProgram:
         """One tempering stage: choose the exponent, weight, normalise and decide to resample (device)."""
         d, b, n, st = self.device, self.n_filters, self.n, self.state
         lam, info = self._attitude_info(out)
-        if d.is_cpu and not self._block_stages:  # candidates in order until one is taken (same bits, usually 1 of 20)
-            launch(kmpf.temper_search_kernel, dim=b,
-                   inputs=[n, stage, self.params, out.loglik, out.n_valid, out.meta, st.logw, self._stats],
-                   outputs=[self._temper_partials, self._unpred_partials, self._temper_ess], device=d)
+        if d.is_cpu:  # candidates in order until one is taken (same bits, usually 1 of 20; the block form's own)
+            if not self._block_stages:
+                launch(kmpf.temper_search_kernel, dim=b,
+                       inputs=[n, stage, self.params, out.loglik, out.n_valid, out.meta, st.logw, self._stats],
+                       outputs=[self._temper_partials, self._unpred_partials, self._temper_ess], device=d)
         else:  # every candidate in parallel
             launch(kmpf.temper_partials_kernel, dim=(b, kmpf.N_CHUNKS, kmpf.N_TEMPER),
                    inputs=[n, stage, out.loglik, out.n_valid, out.meta, st.logw, self._stats],
@@ -359,7 +362,8 @@ class UpdateProgram:
             if read_flags:
                 if not (self._stats.numpy()[:, kmpf.ST_REMAIN] > 0).any():
                     break
-                self._piece(("poses", stage), self._launch_poses)
+                if not self._block_stages:  # (the block form's resampling wrote them)
+                    self._piece(("poses", stage), self._launch_poses)
                 self._launch_model(("model", stage))
                 self._piece(("weigh", stage), self._launch_stage, out, stage)
                 self._resample_if(stage=stage, read_flags=True)
