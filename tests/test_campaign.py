@@ -217,8 +217,9 @@ def test_ray_gpu_tasks_run_on_the_gpu_ray_assigned(tmp_path):
     """With ``--device cuda`` each task asks Ray for one GPU and runs on the Warp device of the GPU Ray assigned
     (workers see every GPU and are reused). A cluster told it has two GPUs (this CPU machine's stand-in): tasks that
     run at the same time were given different devices, and only those two. The stand-in task records the device it
-    was given and runs the batch on the CPU; its time on the GPU counts from the task's start (counted from its batch's start, the
-    batch being short, two tasks whose workers started apart did not overlap in a clean-clone run)."""
+    was given and runs the batch on the CPU; its time on the GPU counts from the task's start (counted from its
+    batch's start, the batch being short, two tasks whose workers started apart did not overlap in a clean-clone
+    run)."""
     ray = pytest.importorskip("ray", reason="the Ray engine needs the cluster extra")
 
     def task(spec, device, cpu_threads=None):

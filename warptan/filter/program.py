@@ -212,12 +212,12 @@ class UpdateProgram:
         """One tempering stage: choose the exponent, weight, normalise and decide to resample (device)."""
         d, b, n, st = self.device, self.n_filters, self.n, self.state
         lam, info = self._attitude_info(out)
-        if d.is_cpu:  # candidates in order until one is taken (same bits, usually 1 of 20; the block form's own)
-            if not self._block_stages:
-                launch(kmpf.temper_search_kernel, dim=b,
-                       inputs=[n, stage, self.params, out.loglik, out.n_valid, out.meta, st.logw, self._stats],
-                       outputs=[self._temper_partials, self._unpred_partials, self._temper_ess], device=d)
-        else:  # every candidate in parallel
+        if d.is_cpu and not self._block_stages:  # candidates in order until one is taken (same bits, usually 1 of
+            # 20; the CPU's block form searches them itself)
+            launch(kmpf.temper_search_kernel, dim=b,
+                   inputs=[n, stage, self.params, out.loglik, out.n_valid, out.meta, st.logw, self._stats],
+                   outputs=[self._temper_partials, self._unpred_partials, self._temper_ess], device=d)
+        elif not d.is_cpu:  # every candidate in parallel
             launch(kmpf.temper_partials_kernel, dim=(b, kmpf.N_CHUNKS, kmpf.N_TEMPER),
                    inputs=[n, stage, out.loglik, out.n_valid, out.meta, st.logw, self._stats],
                    outputs=[self._temper_partials, self._unpred_partials], device=d,
