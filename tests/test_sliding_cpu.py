@@ -1,0 +1,126 @@
+"""The CPU's sliding kernel with the points as SIMD lanes (kernels/sliding_cpu.py) against the Warp kernel it stands
+in for (kernels/sliding.py, one thread per particle): the same residuals bit for bit, the same counts and last
+residual, the sums within float32 reassociation, on every branch of the per-point path."""
+
+import numpy as np
+import pytest
+import warp as wp
+
+import warptan as wt
+from warptan.kernels import likelihood as klik
+from warptan.kernels import sliding as kslide
+from warptan.kernels import sliding_cpu as kslide_cpu
+from warptan.nav.frames import euler_to_quat
+
+DEVICE = "cpu"
+
+
+def _terrain():
+    """Rugged 30 m map with a nodata hole (the points that land in it, or off the map, are not predictable)."""
+    t = wt.Terrain.synthetic("rugged", size_m=3000.0, spacing=30.0, seed=4)
+    heights = t.heights_m.copy()
+    heights[40:46, 50:58] = np.nan
+    return wt.Terrain.from_grid(heights, spacing=30.0, origin=(t.bounds_ne[0], t.bounds_ne[2]))
+
+
+def _cloud(terrain, truth, quat, m: int, rng):
+    """Scans of ``m`` random rays measured at each ``truth`` pose (0.5 m range noise), as the staged rows ``[c, d,
+    range, valid]``; a ray off the map and one in seven more are not received (zero point, NaN range)."""
+    dirs = np.column_stack([rng.uniform(-0.7, 0.7, m), rng.uniform(-0.7, 0.7, m), np.ones(m)])
+    sensor = wt.PointCloudSensor(wt.ScanPattern(dirs), range_sigma_m=0.5)
+    rows = np.zeros((len(truth), m, 8), np.float32)
+    for f, (p, q) in enumerate(zip(truth, quat, strict=True)):
+        c = sensor.measure(terrain, p, q, rng=rng)
+        valid = c.valid & (rng.random(m) > 1.0 / 7.0)
+        rows[f, :, :3] = np.where(valid[:, None], c.points_s, 0.0)
+        rows[f, :, 3:6] = sensor.pattern.dirs_s
+        rows[f, :, 6] = np.where(valid, c.ranges_m, np.nan)
+        rows[f, :, 7] = valid
+    return wp.array(rows, dtype=klik.cloud_row, device=DEVICE)
+
+
+def _params(lik: int, sigma: float, sigma_range: float, sigma_map: float, sigma_err: float):
+    p = klik.LikParams()
+    p.err_kind, p.lik, p.r_err, p.sigma, p.nu, p.k_out = klik.ERR_MEAN_ABS, lik, 4.0, sigma, 5.0, 3.0
+    p.att_scale, p.pos_precision = 1.0, 1.0e-4
+    p.sigma_range, p.sigma_map, p.n_modes, p.sigma_err = sigma_range, sigma_map, 0, sigma_err
+    return p
+
+
+def _run(kernel, terrain, surface, params, pos, quat, cloud, att):
+    n, m, b = pos.shape[0], cloud.shape[1], cloud.shape[0]
+    z = wp.zeros(1, dtype=klik.modes_vec, device=DEVICE)
+    outs = [wp.full((n, m), 7.0, dtype=wp.float32, device=DEVICE)] + [
+        wp.zeros(n, dtype=t, device=DEVICE) for t in (wp.float32, wp.float32, wp.float32, wp.int32, wp.mat33, wp.vec3,
+                                                       klik.modes_vec)]
+    wp.launch(kernel, dim=n, inputs=[0, n // b, terrain.grid(DEVICE), surface, pos, quat, cloud, att, params, z,
+                                     wp.zeros(n, dtype=klik.modes_vec, device=DEVICE), z], outputs=outs, device=DEVICE)
+    return [o.numpy() for o in outs[:7]]
+
+
+@pytest.mark.parametrize("surface", [0, 1])
+@pytest.mark.parametrize(("lik", "sigma", "sigma_range", "sigma_map", "sigma_err"), [
+    (klik.LIK_GAUSS, 1.0, 0.5, 0.8, 0.0),  # the map is not the world: gross misses scored apart
+    (klik.LIK_GAUSS, 0.05, 4.0, 0.0, 0.0),  # every point's σ far from the likelihood's: -log(σ_j/σ) folded often
+    (klik.LIK_GAUSS, 2.0, 0.0, 0.0, 0.0),  # a noiseless sensor: the likelihood's own σ
+    (klik.LIK_STUDENT, 1.0, 0.5, 0.3, 2.0),  # a stated map error (without its modes)
+    (klik.LIK_PAPER, 1.0, 0.5, 0.8, 0.0),  # no information sums
+])
+def test_simd_sliding_equals_the_warp_kernel(surface, lik, sigma, sigma_range, sigma_map, sigma_err):
+    """Two filters of 24 particles, 37 points a scan (the last group of lanes part-filled), particles scattered
+    30 m about each filter's truth and two of them over the map's edge; residuals identical, sums to float32
+    rounding."""
+    rng = np.random.default_rng(surface + 10 * lik)
+    terrain = _terrain()
+    n0, n1, e0, e1 = terrain.bounds_ne
+    b, n_per, m = 2, 24, 37
+    ground = float(np.nanmax(terrain.heights_m))
+    truth = np.column_stack([rng.uniform(n0 + 700, n1 - 700, b), rng.uniform(e0 + 700, e1 - 700, b),
+                             np.full(b, -(ground + 400.0))])
+    truth_q = euler_to_quat(rng.normal(0, 0.1, b), rng.normal(0, 0.1, b), rng.uniform(-3, 3, b))
+    pos = np.repeat(truth, n_per, axis=0) + rng.normal(0.0, [30.0, 30.0, 3.0], (b * n_per, 3))
+    pos[3, 0] = n1 - 20.0  # over the map's edge: most of its points off the map
+    pos[30, 1] = e0 + 10.0
+    quat = np.repeat(truth_q, n_per, axis=0)
+    att = wp.array(np.tile(np.diag([1e-4, 1e-4, 4e-4]).astype(np.float32), (b, 1, 1)), dtype=wp.mat33, device=DEVICE)
+    args = (terrain, surface, _params(lik, sigma, sigma_range, sigma_map, sigma_err),
+            wp.array(pos.astype(np.float32), dtype=wp.vec3, device=DEVICE),
+            wp.array(quat.astype(np.float32), dtype=wp.vec4, device=DEVICE), _cloud(terrain, truth, truth_q, m, rng),
+            att)
+    ref = _run(kslide.sliding_loglik_kernels[False, False], *args)
+    got = _run(kslide_cpu.sliding_loglik_cpu_kernel, *args)
+    res_ref, res = ref[0], got[0]
+    np.testing.assert_array_equal(res.view(np.uint32), res_ref.view(np.uint32))  # NaN where not predictable
+    assert np.isnan(res_ref).any() and np.isfinite(res_ref).any()
+    np.testing.assert_array_equal(got[4], ref[4])  # points used
+    for name, k in (("error", 1), ("loglik", 2), ("nis", 3), ("lam", 5), ("info", 6)):
+        scale = np.nanmax(np.abs(ref[k]))
+        np.testing.assert_allclose(got[k], ref[k], rtol=1e-4, atol=1e-5 * scale, err_msg=name)  # NaN where NaN
+        assert np.isfinite(got[k]).all() or name == "error", name  # the error of a particle with no point: NaN
+    if lik == klik.LIK_PAPER:
+        assert not got[5].any() and not got[6].any()
+    else:
+        assert np.abs(got[5]).max() > 0.0
+
+
+def test_a_sliding_model_on_the_cpu_runs_the_simd_kernel(monkeypatch):
+    """Without map-error modes the CPU's sliding model launches the SIMD kernel; with them, the Warp kernel."""
+    launched = []
+    import warptan.sensing.measurement as meas
+
+    real = meas.launch_rows
+    monkeypatch.setattr(meas, "launch_rows", lambda kernel, *a, **k: launched.append(kernel.key) or real(kernel, *a,
+                                                                                                          **k))
+    terrain = wt.Terrain.synthetic("rugged", size_m=3000.0, spacing=30.0, seed=4)
+    pos = np.array([[0.5 * (terrain.bounds_ne[0] + terrain.bounds_ne[1]),
+                     0.5 * (terrain.bounds_ne[2] + terrain.bounds_ne[3]), -(np.nanmax(terrain.heights_m) + 400.0)]])
+    q = euler_to_quat(0.0, 0.0, 0.4)[None]
+    cloud = wt.PointCloudSensor(wt.ScanPattern.grid(5, 5, 20.0), range_sigma_m=0.0).measure(terrain, pos[0], q[0])
+    poses = (wp.array(pos.astype(np.float32), dtype=wp.vec3, device=DEVICE),
+             wp.array(q.astype(np.float32), dtype=wp.vec4, device=DEVICE))
+    wt.SlidingModel(terrain, wt.Likelihood("gaussian"), surface=True).evaluate(*poses, cloud)
+    assert launched[-1] == kslide_cpu.sliding_loglik_cpu_kernel.key
+    stated = wt.Likelihood("gaussian", map_error_sigma_m=3.0, map_error_corr_m=300.0, track_step_m=50.0)
+    out = wt.SlidingModel(terrain, stated, surface=True).evaluate(*poses, cloud)
+    assert launched[-1] != kslide_cpu.sliding_loglik_cpu_kernel.key
+    assert np.isfinite(out.loglik.numpy()).all()
