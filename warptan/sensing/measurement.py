@@ -40,8 +40,8 @@ from warptan.checks import FilterError
 from warptan.device import Uploads
 from warptan.kernels import likelihood as klik
 from warptan.kernels import raycast as kray
+from warptan.kernels import simd as ksimd
 from warptan.kernels import sliding as kslide
-from warptan.kernels import sliding_cpu as kslide_cpu
 from warptan.parallel import launch, launch_rows, rows_of
 from warptan.sensing.likelihood import LIKELIHOODS, POSITION_PRIOR_PRECISION, Likelihood
 from warptan.sensing.sensors import AltimeterReading, PointCloud
@@ -557,6 +557,8 @@ class RaycastModel(_PointCloudModel):
         att = self._attitude_cov(device, self.n_filters)
         mean, var = self._mode_state(device, res.shape[0], self.n_filters)
         kernel, block = klik.reduce_loglik_kernels[device.is_cuda, self._params.n_modes > 0], _block_dim(device)
+        if device.is_cpu and self._params.n_modes == 0:  # the points as SIMD lanes (same per-point values)
+            kernel = ksimd.reduce_loglik_simd_kernel
         launch_rows(kernel, res.shape[0],
                     lambda a, b: ([a or 0, n_per, rows_of(res, a, b), rows_of(quat_nb, a, b), rows_of(nrm, a, b),
                                    rows_of(vert, a, b), cloud, att, self._params, self._modes, rows_of(mean, a, b),
@@ -598,7 +600,7 @@ class SlidingModel(_PointCloudModel):
         mean, var = self._mode_state(device, pos_n.shape[0], self.n_filters)
         kernel, block = kslide.sliding_loglik_kernels[device.is_cuda, self._params.n_modes > 0], _block_dim(device)
         if device.is_cpu and self._params.n_modes == 0:  # the points as SIMD lanes (same per-point values)
-            kernel = kslide_cpu.sliding_loglik_cpu_kernel
+            kernel = ksimd.sliding_loglik_simd_kernel
         launch_rows(kernel, pos_n.shape[0],
                     lambda a, b: ([a or 0, n_per, grid, surface, rows_of(pos_n, a, b), rows_of(quat_nb, a, b), cloud,
                                    att, self._params, self._modes, rows_of(mean, a, b), var],

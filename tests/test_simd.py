@@ -1,6 +1,6 @@
-"""The CPU's sliding kernel with the points as SIMD lanes (kernels/sliding_cpu.py) against the Warp kernel it stands
-in for (kernels/sliding.py, one thread per particle): the same residuals bit for bit, the same counts and last
-residual, the sums within float32 reassociation, on every branch of the per-point path."""
+"""The CPU's kernels with the points as SIMD lanes (kernels/simd.py) against the Warp kernels they stand in for
+(kernels/sliding.py, kernels/likelihood.py: one thread per particle, point by point): the same residuals bit for bit,
+the same counts, the sums within float32 reassociation, on every branch of the per-point path."""
 
 import numpy as np
 import pytest
@@ -8,8 +8,8 @@ import warp as wp
 
 import warptan as wt
 from warptan.kernels import likelihood as klik
+from warptan.kernels import simd as ksimd
 from warptan.kernels import sliding as kslide
-from warptan.kernels import sliding_cpu as kslide_cpu
 from warptan.nav.frames import euler_to_quat
 
 DEVICE = "cpu"
@@ -47,25 +47,49 @@ def _params(lik: int, sigma: float, sigma_range: float, sigma_map: float, sigma_
     return p
 
 
+def _outputs(n: int):
+    """error, loglik, nis, points used, Λ, b, mode posteriors."""
+    return [wp.zeros(n, dtype=t, device=DEVICE) for t in (wp.float32, wp.float32, wp.float32, wp.int32, wp.mat33,
+                                                          wp.vec3, klik.modes_vec)]
+
+
+def _modes(n: int):
+    z = wp.zeros(1, dtype=klik.modes_vec, device=DEVICE)
+    return [z, wp.zeros(n, dtype=klik.modes_vec, device=DEVICE), z]
+
+
 def _run(kernel, terrain, surface, params, pos, quat, cloud, att):
     n, m, b = pos.shape[0], cloud.shape[1], cloud.shape[0]
-    z = wp.zeros(1, dtype=klik.modes_vec, device=DEVICE)
-    outs = [wp.full((n, m), 7.0, dtype=wp.float32, device=DEVICE)] + [
-        wp.zeros(n, dtype=t, device=DEVICE) for t in (wp.float32, wp.float32, wp.float32, wp.int32, wp.mat33, wp.vec3,
-                                                       klik.modes_vec)]
-    wp.launch(kernel, dim=n, inputs=[0, n // b, terrain.grid(DEVICE), surface, pos, quat, cloud, att, params, z,
-                                     wp.zeros(n, dtype=klik.modes_vec, device=DEVICE), z], outputs=outs, device=DEVICE)
+    outs = [wp.full((n, m), 7.0, dtype=wp.float32, device=DEVICE), *_outputs(n)]
+    wp.launch(kernel, dim=n, inputs=[0, n // b, terrain.grid(DEVICE), surface, pos, quat, cloud, att, params,
+                                     *_modes(n)], outputs=outs, device=DEVICE)
     return [o.numpy() for o in outs[:7]]
 
 
-@pytest.mark.parametrize("surface", [0, 1])
-@pytest.mark.parametrize(("lik", "sigma", "sigma_range", "sigma_map", "sigma_err"), [
+def _assert_sums_equal(got, ref, lik):
+    """Counts exactly; error, log-likelihood, NIS, Λ and b to float32 reassociation (NaN where NaN)."""
+    np.testing.assert_array_equal(got[3], ref[3])  # points used
+    for name, k in (("error", 0), ("loglik", 1), ("nis", 2), ("lam", 4), ("info", 5)):
+        scale = np.nanmax(np.abs(ref[k]))
+        np.testing.assert_allclose(got[k], ref[k], rtol=1e-4, atol=1e-5 * scale, err_msg=name)
+        assert np.isfinite(got[k]).all() or name == "error", name  # the error of a particle with no point: NaN
+    if lik == klik.LIK_PAPER:
+        assert not got[4].any() and not got[5].any()
+    else:
+        assert np.abs(got[4]).max() > 0.0
+
+
+CASES = [
     (klik.LIK_GAUSS, 1.0, 0.5, 0.8, 0.0),  # the map is not the world: gross misses scored apart
     (klik.LIK_GAUSS, 0.05, 4.0, 0.0, 0.0),  # every point's σ far from the likelihood's: -log(σ_j/σ) folded often
     (klik.LIK_GAUSS, 2.0, 0.0, 0.0, 0.0),  # a noiseless sensor: the likelihood's own σ
     (klik.LIK_STUDENT, 1.0, 0.5, 0.3, 2.0),  # a stated map error (without its modes)
     (klik.LIK_PAPER, 1.0, 0.5, 0.8, 0.0),  # no information sums
-])
+]
+
+
+@pytest.mark.parametrize("surface", [0, 1])
+@pytest.mark.parametrize(("lik", "sigma", "sigma_range", "sigma_map", "sigma_err"), CASES)
 def test_simd_sliding_equals_the_warp_kernel(surface, lik, sigma, sigma_range, sigma_map, sigma_err):
     """Two filters of 24 particles, 37 points a scan (the last group of lanes part-filled), particles scattered
     30 m about each filter's truth and two of them over the map's edge; residuals identical, sums to float32
@@ -88,23 +112,50 @@ def test_simd_sliding_equals_the_warp_kernel(surface, lik, sigma, sigma_range, s
             wp.array(quat.astype(np.float32), dtype=wp.vec4, device=DEVICE), _cloud(terrain, truth, truth_q, m, rng),
             att)
     ref = _run(kslide.sliding_loglik_kernels[False, False], *args)
-    got = _run(kslide_cpu.sliding_loglik_cpu_kernel, *args)
-    res_ref, res = ref[0], got[0]
-    np.testing.assert_array_equal(res.view(np.uint32), res_ref.view(np.uint32))  # NaN where not predictable
-    assert np.isnan(res_ref).any() and np.isfinite(res_ref).any()
-    np.testing.assert_array_equal(got[4], ref[4])  # points used
-    for name, k in (("error", 1), ("loglik", 2), ("nis", 3), ("lam", 5), ("info", 6)):
-        scale = np.nanmax(np.abs(ref[k]))
-        np.testing.assert_allclose(got[k], ref[k], rtol=1e-4, atol=1e-5 * scale, err_msg=name)  # NaN where NaN
-        assert np.isfinite(got[k]).all() or name == "error", name  # the error of a particle with no point: NaN
-    if lik == klik.LIK_PAPER:
-        assert not got[5].any() and not got[6].any()
-    else:
-        assert np.abs(got[5]).max() > 0.0
+    got = _run(ksimd.sliding_loglik_simd_kernel, *args)
+    np.testing.assert_array_equal(got[0].view(np.uint32), ref[0].view(np.uint32))  # residuals, NaN where NaN
+    assert np.isnan(ref[0]).any() and np.isfinite(ref[0]).any()
+    _assert_sums_equal(got[1:], ref[1:], lik)
 
 
-def test_a_sliding_model_on_the_cpu_runs_the_simd_kernel(monkeypatch):
-    """Without map-error modes the CPU's sliding model launches the SIMD kernel; with them, the Warp kernel."""
+@pytest.mark.parametrize(("lik", "sigma", "sigma_range", "sigma_map", "sigma_err"), CASES)
+def test_simd_ray_reduction_equals_the_warp_kernel(lik, sigma, sigma_range, sigma_map, sigma_err):
+    """The ray-casting model's reduction over real DDA casts (residuals, scaled normals, heights above the map) of 48
+    particles 30 m about the truth, two over the map's edge, 37 random rays a scan, one in seven not received."""
+    rng = np.random.default_rng(100 + 10 * lik)
+    terrain = _terrain()
+    n0, n1, e0, e1 = terrain.bounds_ne
+    m, n = 37, 48
+    ground = float(np.nanmax(terrain.heights_m))
+    truth = np.array([0.5 * (n0 + n1), 0.5 * (e0 + e1), -(ground + 400.0)])
+    truth_q = euler_to_quat(0.1, -0.05, 0.7)
+    pos = truth + rng.normal(0.0, [30.0, 30.0, 3.0], (n, 3))
+    pos[3, 0] = n1 - 20.0
+    pos[30, 1] = e0 + 10.0
+    dirs = np.column_stack([rng.uniform(-0.7, 0.7, m), rng.uniform(-0.7, 0.7, m), np.ones(m)])
+    sensor = wt.PointCloudSensor(wt.ScanPattern(dirs), range_sigma_m=0.5)
+    cloud = sensor.measure(terrain, truth, truth_q, rng=rng)
+    cloud.ranges_m[rng.random(m) < 1.0 / 7.0] = np.nan
+    model = wt.RaycastModel(terrain, wt.Likelihood("gaussian", sensor_sigma_m=0.5, map_sigma_m=0.8),
+                            caster=wt.RayCaster("dda"))  # gross misses gated: the casts write the heights above
+    quat = wp.array(np.tile(truth_q, (n, 1)).astype(np.float32), dtype=wp.vec4, device=DEVICE)
+    cast = model.evaluate(wp.array(pos.astype(np.float32), dtype=wp.vec3, device=DEVICE), quat, cloud)
+    assert np.isnan(cast.residual_m.numpy()).any() and np.isfinite(cast.vertical_m.numpy()).any()
+    att = wp.array(np.diag([1e-4, 1e-4, 4e-4]).astype(np.float32)[None], dtype=wp.mat33, device=DEVICE)
+    params = _params(lik, sigma, sigma_range, sigma_map, sigma_err)
+    params.err_kind = klik.ERR_AXES
+    got, ref = [], []
+    for kernel, into in ((klik.reduce_loglik_kernels[False, False], ref), (ksimd.reduce_loglik_simd_kernel, got)):
+        outs = _outputs(n)
+        wp.launch(kernel, dim=n, inputs=[0, n, cast.residual_m, quat, cast.normal, cast.vertical_m, model._staged,
+                                         att, params, *_modes(n)], outputs=outs, device=DEVICE)
+        into.extend(o.numpy() for o in outs[:6])
+    _assert_sums_equal(got, ref, lik)
+
+
+def test_the_cpu_models_run_the_simd_kernels(monkeypatch):
+    """Without map-error modes the CPU's sliding model launches the SIMD kernel; with them, the Warp kernel (the
+    ray-casting model's reduction likewise)."""
     launched = []
     import warptan.sensing.measurement as meas
 
@@ -119,8 +170,12 @@ def test_a_sliding_model_on_the_cpu_runs_the_simd_kernel(monkeypatch):
     poses = (wp.array(pos.astype(np.float32), dtype=wp.vec3, device=DEVICE),
              wp.array(q.astype(np.float32), dtype=wp.vec4, device=DEVICE))
     wt.SlidingModel(terrain, wt.Likelihood("gaussian"), surface=True).evaluate(*poses, cloud)
-    assert launched[-1] == kslide_cpu.sliding_loglik_cpu_kernel.key
+    assert launched[-1] == ksimd.sliding_loglik_simd_kernel.key
     stated = wt.Likelihood("gaussian", map_error_sigma_m=3.0, map_error_corr_m=300.0, track_step_m=50.0)
     out = wt.SlidingModel(terrain, stated, surface=True).evaluate(*poses, cloud)
-    assert launched[-1] != kslide_cpu.sliding_loglik_cpu_kernel.key
+    assert launched[-1] != ksimd.sliding_loglik_simd_kernel.key
     assert np.isfinite(out.loglik.numpy()).all()
+    wt.RaycastModel(terrain, wt.Likelihood("gaussian")).evaluate(*poses, cloud)
+    assert launched[-1] == ksimd.reduce_loglik_simd_kernel.key
+    wt.RaycastModel(terrain, stated).evaluate(*poses, cloud)
+    assert launched[-1] == klik.reduce_loglik_kernels[False, True].key
