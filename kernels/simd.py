@@ -26,6 +26,15 @@ import warp as wp
 from warptan.kernels.frames import quat_to_mat_wxyz
 from warptan.kernels.likelihood import (
     ACC_LEN,
+    CR_DIR,
+    CR_POINT,
+    CR_RANGE,
+    CR_VALID,
+    LIK_PAPER,
+    LIK_STUDENT,
+    RAY_MAP_GAIN_MAX,
+    VAR_RATIO_FOLD_MAX,
+    VAR_RATIO_FOLD_MIN,
     LikParams,
     acc_store,
     acc_unpack,
@@ -60,10 +69,10 @@ _HEAD = r"""
 
     const int lik = params.lik;
     const float k2 = params.k_out * params.k_out, var0 = params.sigma * params.sigma, nu = params.nu;
-    const bool not_world = lik != 0 && (params.sigma_err > 0.0f || params.sigma_map > 0.0f);
+    const bool not_world = lik != LIK_PAPER_ && (params.sigma_err > 0.0f || params.sigma_map > 0.0f);
     const float sr2 = params.sigma_range * params.sigma_range, sm2 = params.sigma_map * params.sigma_map;
     const float se2 = params.sigma_err * params.sigma_err;
-    const float info_on = lik != 0 ? 1.0f : 0.0f;
+    const float info_on = lik != LIK_PAPER_ ? 1.0f : 0.0f;
     const float* crow = (const float*)((const char*)cloud.data + size_t(b) * cloud.strides[0]);
     const int cstep = static_cast<int>(cloud.strides[1] / sizeof(float));
     const int m = cloud.shape[1];
@@ -79,7 +88,7 @@ _LOOP = r"""
             const int j = j0 + l;
             const int jc = j < m ? j : m - 1;  // the tail's spare lanes read the last point
             const float* row = crow + jc * cstep;
-            const bool valid = (j < m) & (row[7] != 0.0f);
+            const bool valid = (j < m) & (row[CR_VALID_] != 0.0f);
             POINT_
             resbuf[l] = res;
             const bool ok = res == res;
@@ -92,7 +101,7 @@ _LOOP = r"""
             const float z2 = r * r * iv;
             zbuf[l] = z2;
             const float wi = iv * info_on;
-            const float w = lik == 2 ? wi * (nu + 1.0f) / (nu + z2) : wi;  // the Student-t's weight on the information
+            const float w = lik == LIK_STUDENT_ ? wi * (nu + 1.0f) / (nu + z2) : wi;  // the Student-t's weight
             const float h0u = use ? hj0 : 0.0f, h1u = use ? hj1 : 0.0f, h2u = use ? hj2 : 0.0f;
             const float g0u = use ? gj0 : 0.0f, g1u = use ? gj1 : 0.0f, g2u = use ? gj2 : 0.0f;
             const float zq = gated ? (zg * params.sigma / params.sigma) * (zg * params.sigma / params.sigma) : 0.0f;
@@ -105,7 +114,7 @@ _LOOP = r"""
             s[3][l] += ra * aw0; s[4][l] += ra * aw1; s[5][l] += ra * aw2;
             s[8][l] += wp::min(z2, k2);
             s[39][l] += z2;
-            s[36][l] += lik == 2 ? 0.0f : -0.5f * zq;
+            s[36][l] += lik == LIK_STUDENT_ ? 0.0f : -0.5f * zq;
             s[37][l] += gated ? zg * zg : 0.0f;
             ratio[l] *= (use && var != var0) ? var / var0 : 1.0f;
             lastj[l] = use ? static_cast<float>(j) : lastj[l];
@@ -124,14 +133,14 @@ _LOOP = r"""
         }
         const int n_lanes = m - j0 < L ? m - j0 : L;
         STORE_RESIDUALS_
-        if (lik == 2) {  // the Student-t's log-densities (point_loglik_z2); the Gaussian's -z²/2 are summed below
+        if (lik == LIK_STUDENT_) {  // the Student-t's log-densities (point_loglik_z2); the Gaussian's -z²/2 below
             for (int l = 0; l < L; ++l) {
                 if (usebuf[l]) s[7][l] += -0.5f * (nu + 1.0f) * wp::log(1.0f + zbuf[l] / nu);
                 if (missbuf[l]) s[36][l] += -0.5f * (nu + 1.0f) * wp::log(1.0f + zgbuf[l] / nu);
             }
         }
         for (int l = 0; l < L; ++l) {  // fold -log(σ_j / σ) into the log-density before the product leaves float32
-            if (!(ratio[l] > 1.0e-12f && ratio[l] < 1.0e12f)) {
+            if (!(ratio[l] > VAR_RATIO_FOLD_MIN_ && ratio[l] < VAR_RATIO_FOLD_MAX_)) {
                 s[7][l] -= 0.5f * wp::log(ratio[l]);
                 ratio[l] = 1.0f;
             }
@@ -144,7 +153,7 @@ _LOOP = r"""
         out[7] -= 0.5f * wp::log(ratio[l]);
         if (lastj[l] > last_j) { last_j = lastj[l]; out[6] = lastv[l]; }
     }
-    if (lik != 2) out[7] += -0.5f * out[39];
+    if (lik != LIK_STUDENT_) out[7] += -0.5f * out[39];
     return out;
 """
 
@@ -165,7 +174,7 @@ _SLIDING_HEAD = r"""
     const size_t rs1 = residual_out.strides[1];
 """
 _SLIDING_POINT = r"""
-            const float c0 = row[0], c1 = row[1], c2 = row[2];
+            const float c0 = row[CR_POINT_], c1 = row[CR_POINT_ + 1], c2 = row[CR_POINT_ + 2];
             const float w0 = px + (m00 * c0 + m01 * c1 + m02 * c2);
             const float w1 = py + (m10 * c0 + m11 * c1 + m12 * c2);
             const float w2 = pz + (m20 * c0 + m21 * c1 + m22 * c2);
@@ -198,7 +207,8 @@ _SLIDING_POINT = r"""
             const float n0 = m00 * g0 + m10 * g1 + m20;
             const float n1 = m01 * g0 + m11 * g1 + m21;
             const float n2 = m02 * g0 + m12 * g1 + m22;
-            const float geo = wp::max(wp::abs(n0 * row[3] + n1 * row[4] + n2 * row[5]), 0.25f);
+            const float slope_dot = n0 * row[CR_DIR_] + n1 * row[CR_DIR_ + 1] + n2 * row[CR_DIR_ + 2];
+            const float geo = wp::max(wp::abs(slope_dot), 0.25f);
             const float var = noiseless ? var0 : gabs * gabs * (sr2 * geo * geo + sm2);
             const bool miss = not_world && res * res > k2 * (var + se2);
             const float zg = params.k_out;
@@ -227,17 +237,17 @@ _RAY_POINT = r"""
             const float res = valid ? res_row[jc * res_step] : NANF;
             const float* nrm = nrm_row + jc * nrm_step;
             const float sn0 = nrm[0], sn1 = nrm[1], sn2 = nrm[2];
-            const float d0 = row[3], d1 = row[4], d2 = row[5];
+            const float d0 = row[CR_DIR_], d1 = row[CR_DIR_ + 1], d2 = row[CR_DIR_ + 2];
             const float u_down = m20 * d0 + m21 * d1 + m22 * d2;
             const float n0 = m00 * sn0 + m10 * sn1 + m20 * sn2;
             const float n1 = m01 * sn0 + m11 * sn1 + m21 * sn2;
             const float n2 = m02 * sn0 + m12 * sn1 + m22 * sn2;
-            const float tr = row[6] - res;
+            const float tr = row[CR_RANGE_] - res;
             const float hj0 = tr * (n1 * d2 - n2 * d1);
             const float hj1 = tr * (n2 * d0 - n0 * d2);
             const float hj2 = tr * (n0 * d1 - n1 * d0);
             const float gj0 = -sn0, gj1 = -sn1, gj2 = -sn2;
-            const float gs = sn2 != 0.0f ? wp::min(wp::abs(sn2), 1000.0f) : 1000.0f;
+            const float gs = sn2 != 0.0f ? wp::min(wp::abs(sn2), RAY_MAP_GAIN_MAX_) : RAY_MAP_GAIN_MAX_;
             const float gain = 1.0f / wp::max(u_down, 0.1f);
             const float excess = gs - gain;
             const float var_m = sr2 + sm2 * gs * gs;
@@ -252,6 +262,12 @@ _RAY_POINT = r"""
 """
 
 
+_CONSTANTS = {  # the Python constants the C++ reads (as NAME_), so that both change together
+    "SIMD_LANES": SIMD_LANES, "ACC_LEN": ACC_LEN, "LIK_PAPER": LIK_PAPER, "LIK_STUDENT": LIK_STUDENT,
+    "CR_POINT": CR_POINT, "CR_DIR": CR_DIR, "CR_RANGE": CR_RANGE, "CR_VALID": CR_VALID,
+    "VAR_RATIO_FOLD_MIN": float(VAR_RATIO_FOLD_MIN), "VAR_RATIO_FOLD_MAX": float(VAR_RATIO_FOLD_MAX),
+    "RAY_MAP_GAIN_MAX": float(RAY_MAP_GAIN_MAX),
+}
 _STORE = "for (int l = 0; l < n_lanes; ++l) *(float*)(rrow + size_t(j0 + l) * rs1) = resbuf[l];"
 
 
@@ -268,7 +284,9 @@ def _snippet(head: str, point: str, store: str) -> str:
                               " ".join(f"out[{k}] += s{k}[l];" for k in sums))
     snippet = re.sub(r"\bs\[(\d+)\]\[l\]", r"s\1[l]", snippet)
     assert re.search(r"\bs\[", snippet) is None
-    return snippet.replace("SIMD_LANES_", str(SIMD_LANES)).replace("ACC_LEN_", str(ACC_LEN))
+    for name, value in _CONSTANTS.items():
+        snippet = snippet.replace(name + "_", f"{value!r}f" if isinstance(value, float) else str(value))
+    return snippet
 
 
 @wp.func_native(_snippet(_SLIDING_HEAD, _SLIDING_POINT, _STORE))
