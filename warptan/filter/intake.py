@@ -48,8 +48,7 @@ class ImuIntake(UpdateProgram):
         if f.ndim not in (2, 3) or f.shape != shape or w.shape != shape or (b > 1 and f.ndim != 3):
             want = "(K, 3)" if b == 1 else f"(K, {b}, 3)"
             raise FilterError(f"IMU samples must be {want} arrays, got {f.shape} and {w.shape}")
-        self._buffer(f.reshape(-1, b, 3), w.reshape(-1, b, 3), self._steps(dt, f.shape[0]), t_enter)
-        self._advance()
+        self._buffer(f.reshape(-1, b, 3), w.reshape(-1, b, 3), self._steps(dt, f.shape[0]), t_enter, advance=True)
 
     def _steps(self, dt, k: int) -> np.ndarray:
         """(K,) step lengths in s: ``dt`` (a number or K of them) or the nominal step; each in (0, MAX_STEP_S]."""
@@ -69,15 +68,39 @@ class ImuIntake(UpdateProgram):
                               "(a longer gap is lost data, not a step)")
         return steps
 
-    def _buffer(self, f: np.ndarray, w: np.ndarray, steps: np.ndarray, t_enter: float) -> None:
+    def _buffer(self, f: np.ndarray, w: np.ndarray, steps: np.ndarray, t_enter: float, advance: bool = False) -> None:
         """Buffer (K, B, 3) samples with their (K,) steps: checked as one block; a block with a sample that is not
         finite or beyond the grade's range is refused or held sample by sample (``bad_imu``); the buffer flushes
-        itself when full."""
+        itself when full. ``advance``: then :meth:`_advance` (``predict_many``), before the bookkeeping that nothing
+        on the device waits for (the last good sample, the timer): on CUDA the graph that runs the samples is issued
+        as early as the host can, since the update's device work waits for it."""
+        k, n = self._k, f.shape[0]
         # one test for the usual block (a NaN fails it too: NaN <= x is False); the sample-wise test only after it
         plausible = (np.abs(f).max(initial=0.0) <= self.grade.accel_range
                      and np.abs(w).max(initial=0.0) <= self.grade.gyro_range)
-        bad = None if plausible else ~((np.abs(f) <= self.grade.accel_range).all(axis=2)
-                                       & (np.abs(w) <= self.grade.gyro_range).all(axis=2))
+        if plausible and 0 < n <= MAX_STEPS_PER_INTERVAL - k:  # the usual block: it fits, one write of each column
+            imu = self._imu_rows[self._set]
+            imu[k:k + n, :, 0] = f
+            imu[k:k + n, :, 1] = w
+            imu[k:k + n, :, 2, 0] = steps[:, None]
+            self._k = k + n
+            self.n_imu_steps += n
+        else:
+            self._buffer_each(f, w, steps, None if plausible else self._bad_samples(f, w))
+        if advance:
+            self._advance()
+        if n:
+            self._last_imu[:] = self._imu_rows[self._set][self._k - 1, :, :2]
+        if self.timer is not None:
+            self.timer._predict_s += time.perf_counter() - t_enter
+
+    def _bad_samples(self, f: np.ndarray, w: np.ndarray) -> np.ndarray:
+        """(K, B) samples not finite or beyond the grade's range."""
+        return ~((np.abs(f) <= self.grade.accel_range).all(axis=2) & (np.abs(w) <= self.grade.gyro_range).all(axis=2))
+
+    def _buffer_each(self, f: np.ndarray, w: np.ndarray, steps: np.ndarray, bad: np.ndarray | None) -> None:
+        """:meth:`_buffer`'s general case: samples held or refused one by one (``bad``), the buffer flushed when full
+        (the particles moved through what it holds) and filled on."""
         if bad is not None:
             f, w = f.copy(), w.copy()
             for k in range(f.shape[0]):
@@ -89,17 +112,13 @@ class ImuIntake(UpdateProgram):
             if self._k == MAX_STEPS_PER_INTERVAL:
                 self.flush()
             take = min(n - k0, MAX_STEPS_PER_INTERVAL - self._k)
-            imu = self._imu_np[self._set]
-            imu[:, self._k:self._k + take, 0] = f[k0:k0 + take].swapaxes(0, 1)
-            imu[:, self._k:self._k + take, 1] = w[k0:k0 + take].swapaxes(0, 1)
-            imu[:, self._k:self._k + take, 2, 0] = steps[k0:k0 + take]
+            imu = self._imu_rows[self._set]
+            imu[self._k:self._k + take, :, 0] = f[k0:k0 + take]
+            imu[self._k:self._k + take, :, 1] = w[k0:k0 + take]
+            imu[self._k:self._k + take, :, 2, 0] = steps[k0:k0 + take, None]
             self._k += take
             self.n_imu_steps += take
             k0 += take
-        if n:
-            self._last_imu[:, 0], self._last_imu[:, 1] = f[-1], w[-1]
-        if self.timer is not None:
-            self.timer._predict_s += time.perf_counter() - t_enter
 
     def _hold(self, f: np.ndarray, w: np.ndarray, bad: np.ndarray, sample: int) -> None:
         """Sample ``sample`` (B, 3), bad in the filters ``bad``: replaced in place by the last good one (``bad_imu =

@@ -278,6 +278,7 @@ class MarginalizedParticleFilter(ImuIntake, Readout):
                            for _ in range(n_sets)]
         self._imu_np = [x.numpy() for x in self._imu_host]
         self._ints_np = [x.numpy() for x in self._ints_host]
+        self._imu_rows = [x.transpose(1, 0, 2, 3) for x in self._imu_np]  # (sample, filter, [f, w, dt], 3) views
         self._events = [wp.Event(device=d) for _ in range(n_sets)] if d.is_cuda else []
         self._staging_buffers = [{} for _ in range(n_sets)]  # the scan's pinned buffers per set (_stage_scan)
         self._set = 0
@@ -373,7 +374,7 @@ class MarginalizedParticleFilter(ImuIntake, Readout):
         # lean (CUDA): the update's head (the interval, the particles' moves and poses) goes to the device once the
         # measurement is checked, and runs while the host stages the scan (not under map-error modes, whose scan
         # geometry reads the last interval's attitude)
-        self._early = self._head_first()
+        self._early = self._head_first(map_modes)
         if self._early:
             self.model.check(measurement)  # a measurement refused here moves nothing
             self._stage_interval()
@@ -399,7 +400,6 @@ class MarginalizedParticleFilter(ImuIntake, Readout):
         self._ensure_history()
         if not self._early:
             self._stage_interval()
-        self.last_n_received = np.array(out.n_received)
         self.n_updates += 1
         timer, events = self.timer, None
         if timer is not None and self.device.is_cuda:
@@ -415,6 +415,7 @@ class MarginalizedParticleFilter(ImuIntake, Readout):
             else:  # CPU: the launches ran as they were issued
                 timer._add(t_queue - t_staged, t_staged - t_enter, t_queued - t_queue)
         self._next_set()
+        self.last_n_received = np.array(out.n_received)  # (after the device work is queued: nothing there reads it)
         return self._info(out) if sync else None
 
     def _info(self, out):

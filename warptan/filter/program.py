@@ -133,12 +133,13 @@ class UpdateProgram:
             return 0
         return 2 if self._k == 0 and self._ahead == self._interval_k else 1
 
-    def _head_first(self) -> bool:
+    def _head_first(self, map_modes: bool | None = None) -> bool:
         """The lean update queues its head before the scan is staged (and, with graphs, :meth:`predict_many` runs
-        the interval's samples ahead): not under map-error modes, whose scan geometry reads the last interval's
-        attitude, nor for a model without ``check``."""
-        likelihood = getattr(self.model, "likelihood", None)
-        return (self._lean and self._interval_first and not getattr(likelihood, "models_map_error", False)
+        the interval's samples ahead): not under map-error modes (``map_modes``, when the caller read it already),
+        whose scan geometry reads the last interval's attitude, nor for a model without ``check``."""
+        if map_modes is None:
+            map_modes = getattr(getattr(self.model, "likelihood", None), "models_map_error", False)
+        return (self._lean and self._interval_first and not map_modes
                 and callable(getattr(self.model, "check", None)))
 
     def _stage_scan(self, measurement, attitude) -> tuple:

@@ -142,6 +142,8 @@ class MeasurementModel:
         self._out: ModelOutput | None = None
         self._key = None
         self._host: dict[str, np.ndarray] = {}
+        self._checked: tuple | None = None  # (measurement, its items, M): what check() validated, for stage()
+        self._poses_ok: tuple = ()  # (pos_n, quat_nb, device): the pose arrays _check_poses last accepted
         self._uploads = Uploads()  # the scan's host-to-device copies (pinned on CUDA: they do not hold the host)
         self._att_cov: wp.array | None = None
         self._zero_att: wp.array | None = None
@@ -233,7 +235,7 @@ class MeasurementModel:
         return p
 
     def _buffers(self, device, n: int, b: int, m: int) -> ModelOutput:
-        key = (str(device), n, b, m)
+        key = (device, n, b, m)
         if key != self._key:
             self._key = key
             self._out = ModelOutput(
@@ -284,19 +286,25 @@ class MeasurementModel:
     def check(self, measurement) -> None:
         """Raise a FilterError for a measurement (or a batch's list) that :meth:`stage` would refuse, touching
         nothing: the filter checks a measurement before its interval moves anything, then stages it while the device
-        integrates the interval."""
-        self._m_of(_as_batch(measurement, self.reading_type, self.name))
+        integrates the interval (the next :meth:`stage` of the same object takes the items checked here)."""
+        items = _as_batch(measurement, self.reading_type, self.name)
+        self._checked = (measurement, items, self._m_of(items))
 
     def stage(self, measurement, pos_n: wp.array, quat_nb: wp.array, attitude=None) -> ModelOutput:
         """Copy the measurement(s) into this model's device buffers for particles of shape ``pos_n``. ``attitude``:
         the platform's attitude quaternion (4,) for the map-error modes' geometry (a stated map error only; default
         the first particle's ``quat_nb``, which must then hold the poses already)."""
-        items = _as_batch(measurement, self.reading_type, self.name)
+        checked, self._checked = self._checked, None
+        if checked is not None and checked[0] is measurement:  # (just checked by the filter's update)
+            items, m = checked[1], checked[2]
+        else:
+            items = _as_batch(measurement, self.reading_type, self.name)
+            m = self._m_of(items)
         device = self._check_poses(pos_n, quat_nb)
         n, b = pos_n.shape[0], len(items)
         if n % b:
             raise FilterError(f"{n} particles cannot be split evenly over {b} filters")
-        out = self._buffers(device, n, b, self._m_of(items))
+        out = self._buffers(device, n, b, m)
         out.n_received[:] = self._fill(items, out.meta)
         self.n_per = n // b
         self.n_filters = b
@@ -335,7 +343,7 @@ class MeasurementModel:
         columns are zero)."""
         m = self._staged.shape[1] if self._staged.ndim == 2 else 1
         rows = m + klik.MODE_EXTRA_ROWS
-        fresh = self._modes is None or self._modes.device != device or self._modes.shape[0] != rows
+        fresh = self._modes is None or self._modes.device is not device or self._modes.shape[0] != rows
         if fresh:
             self._modes = wp.zeros(rows, dtype=klik.modes_vec, device=device)
             self._modes_host = None
@@ -409,13 +417,16 @@ class MeasurementModel:
         self._launch(pos_n, quat_nb, self._out, self._out.loglik.device)
         return self._out
 
-    @staticmethod
-    def _check_poses(pos_n: wp.array, quat_nb: wp.array):
+    def _check_poses(self, pos_n: wp.array, quat_nb: wp.array):
+        ok = self._poses_ok
+        if ok and ok[0] is pos_n and ok[1] is quat_nb:  # (a filter stages with the same arrays every update)
+            return ok[2]
         device = check_same_device(pos_n=pos_n, quat_nb=quat_nb)
         if pos_n.dtype != wp.vec3 or quat_nb.dtype != wp.vec4:
             raise FilterError(f"poses must be vec3 positions and vec4 quaternions, got {pos_n.dtype}, {quat_nb.dtype}")
         if pos_n.shape != quat_nb.shape:
             raise FilterError(f"pos_n has shape {pos_n.shape} but quat_nb {quat_nb.shape}")
+        self._poses_ok = (pos_n, quat_nb, device)
         return device
 
 
@@ -473,12 +484,12 @@ class _PointCloudModel(MeasurementModel):
             n_received = np.isfinite(ranges[:, :m]).sum(axis=1).astype(np.int64)
         self._meta(n_received, ranges[:, m:])
         dev_ranges = self._host.get("dev_ranges")
-        if dev_ranges is None or dev_ranges.shape != (b, cols) or dev_ranges.device != device:
+        if dev_ranges is None or dev_ranges.shape != (b, cols) or dev_ranges.device is not device:
             dev_ranges = self._host["dev_ranges"] = wp.empty((b, cols), dtype=wp.float32, device=device)
         self._uploads.put("ranges", dev_ranges, ranges)
         if same:
             kept = self._host.get("dirs")
-            if kept is None or kept[1].device != device or kept[1].shape != (1, m):
+            if kept is None or kept[1].device is not device or kept[1].shape != (1, m):
                 kept = self._host["dirs"] = (first, wp.array(first[None].astype(np.float32), dtype=wp.vec3,
                                                               device=device))
             elif kept[0] is not first:  # another pattern of as many rays (a log's clouds): into the same array
