@@ -332,6 +332,33 @@ def test_staged_cloud_rows_are_the_clouds(device):
                                                             dtype=np.float32))
 
 
+def test_stage_after_check_validates_what_it_stages(device):
+    """``stage`` takes the items ``check`` validated only for that same measurement object, once: another
+    measurement (a wrong type, a batch of unequal clouds) is refused by ``stage`` as without the check; pose arrays
+    are checked again whenever they are not the pair ``stage`` last accepted (a shape or dtype mismatch raises)."""
+    rng = np.random.default_rng(8)
+    terrain = wt.Terrain.synthetic("rugged", size_m=4000.0, spacing=30.0, seed=6)
+    pattern = wt.ScanPattern.grid(4, 3, 25.0)
+    cloud = wt.PointCloud(pattern.dirs_s, rng.uniform(500.0, 900.0, pattern.m))
+    short = wt.PointCloud(pattern.dirs_s[:5], rng.uniform(500.0, 900.0, 5))
+    model = wt.SlidingModel(terrain, wt.Likelihood("gaussian", sigma_m=2.0))
+    pos, quat = _poses(np.zeros((4, 3)), np.tile([1.0, 0.0, 0.0, 0.0], (4, 1)), device)
+    model.check(cloud)
+    with pytest.raises(wt.FilterError, match="needs a PointCloud"):
+        model.stage(wt.AltimeterReading(700.0, 0.0), pos, quat)
+    model.check([cloud, cloud])
+    with pytest.raises(wt.FilterError, match="same number of points"):
+        model.stage([cloud, short], pos, quat)
+    model.check(cloud)
+    assert model.stage(cloud, pos, quat).n_received.tolist() == [pattern.m]
+    assert model.stage(cloud, pos, quat).n_received.tolist() == [pattern.m]  # (without a check before it)
+    pos3, quat3 = _poses(np.zeros((3, 3)), np.tile([1.0, 0.0, 0.0, 0.0], (4, 1)), device)
+    with pytest.raises(wt.FilterError, match="shape"):
+        model.stage(cloud, pos3, quat3)
+    with pytest.raises(wt.FilterError, match="vec3 positions"):
+        model.stage(cloud, quat, quat)
+
+
 def test_held_staging_runs_when_released(device):
     """``hold_device_work``: a scan staged while the model holds leaves the staged rows as they were (its rows' launch,
     and on CUDA its copies, are handed back instead of queued); running what ``release_device_work`` returns, in
