@@ -333,9 +333,9 @@ def test_staged_cloud_rows_are_the_clouds(device):
 
 
 def test_stage_after_check_validates_what_it_stages(device):
-    """``stage`` takes the items ``check`` validated only for that same measurement object, once: another
-    measurement (a wrong type, a batch of unequal clouds) is refused by ``stage`` as without the check; pose arrays
-    are checked again whenever they are not the pair ``stage`` last accepted (a shape or dtype mismatch raises)."""
+    """``stage`` validates what it stages whatever ``check`` saw before (another measurement: a wrong type, a batch of
+    unequal clouds, is refused); pose arrays are checked again whenever they are not the pair ``stage`` last accepted
+    (a shape or dtype mismatch raises)."""
     rng = np.random.default_rng(8)
     terrain = wt.Terrain.synthetic("rugged", size_m=4000.0, spacing=30.0, seed=6)
     pattern = wt.ScanPattern.grid(4, 3, 25.0)

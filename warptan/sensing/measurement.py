@@ -142,7 +142,6 @@ class MeasurementModel:
         self._out: ModelOutput | None = None
         self._key = None
         self._host: dict[str, np.ndarray] = {}
-        self._checked: tuple | None = None  # (measurement, its items, M): what check() validated, for stage()
         self._poses_ok: tuple = ()  # (pos_n, quat_nb, device): the pose arrays _check_poses last accepted
         self._uploads = Uploads()  # the scan's host-to-device copies (pinned on CUDA: they do not hold the host)
         self._att_cov: wp.array | None = None
@@ -286,20 +285,15 @@ class MeasurementModel:
     def check(self, measurement) -> None:
         """Raise a FilterError for a measurement (or a batch's list) that :meth:`stage` would refuse, touching
         nothing: the filter checks a measurement before its interval moves anything, then stages it while the device
-        integrates the interval (the next :meth:`stage` of the same object takes the items checked here)."""
-        items = _as_batch(measurement, self.reading_type, self.name)
-        self._checked = (measurement, items, self._m_of(items))
+        integrates the interval."""
+        self._m_of(_as_batch(measurement, self.reading_type, self.name))
 
     def stage(self, measurement, pos_n: wp.array, quat_nb: wp.array, attitude=None) -> ModelOutput:
         """Copy the measurement(s) into this model's device buffers for particles of shape ``pos_n``. ``attitude``:
         the platform's attitude quaternion (4,) for the map-error modes' geometry (a stated map error only; default
         the first particle's ``quat_nb``, which must then hold the poses already)."""
-        checked, self._checked = self._checked, None
-        if checked is not None and checked[0] is measurement:  # (just checked by the filter's update)
-            items, m = checked[1], checked[2]
-        else:
-            items = _as_batch(measurement, self.reading_type, self.name)
-            m = self._m_of(items)
+        items = _as_batch(measurement, self.reading_type, self.name)
+        m = self._m_of(items)
         device = self._check_poses(pos_n, quat_nb)
         n, b = pos_n.shape[0], len(items)
         if n % b:
