@@ -61,6 +61,7 @@ def premove_update(self, measurement, sync=True):
 def build(sid, variant):
     mpf, f, w, setup = bfs.scenario_filter(sid, "cuda:0")
     if variant == "base":
+        mpf._imu_np = [x.numpy() for x in mpf._imu_host]  # (what 3cd212c's _buffer writes through)
         for name in ("predict_many", "_buffer"):
             setattr(mpf, name, types.MethodType(getattr(old_intake.ImuIntake, name), mpf))
         mpf._advance = types.MethodType(old_program.UpdateProgram._advance, mpf)

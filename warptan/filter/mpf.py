@@ -276,9 +276,8 @@ class MarginalizedParticleFilter(ImuIntake, Readout):
                           for _ in range(n_sets)]
         self._ints_host = [wp.zeros((b, knav.N_INTS), dtype=wp.int32, device=cpu, pinned=d.is_cuda)
                            for _ in range(n_sets)]
-        self._imu_np = [x.numpy() for x in self._imu_host]
         self._ints_np = [x.numpy() for x in self._ints_host]
-        self._imu_rows = [x.transpose(1, 0, 2, 3) for x in self._imu_np]  # (sample, filter, [f, w, dt], 3) views
+        self._imu_rows = [x.numpy().transpose(1, 0, 2, 3) for x in self._imu_host]  # (sample, filter, [f, w, dt], 3)
         self._events = [wp.Event(device=d) for _ in range(n_sets)] if d.is_cuda else []
         self._staging_buffers = [{} for _ in range(n_sets)]  # the scan's pinned buffers per set (_stage_scan)
         self._set = 0
