@@ -3,9 +3,11 @@
 step (``predict_many`` of the interval's samples, then ``update``), medians over traced steps.
 
 Every other step is traced: the filter's methods are wrapped to stamp the host clock (``time.perf_counter``) and to
-record CUDA events at the update's head (``_queue_head``), around the scan's staging (``model.stage``) and around
-the update's graph (``_queue_update``); device times are event times after an event recorded at the step's start on
-an idle device, host times are from that start. The untraced steps between give ``untraced_step`` (what the tracing
+record CUDA events around the run-ahead of the interval's samples (``_advance``, in ``predict_many``: the nav
+interval's graph), around the update's head (``_queue_head``) and around the update's graph (``_queue_update``), and
+host stamps around the measurement's ``check`` and the scan's staging (``model.stage``); device times are event times
+after an event recorded at the step's start on an idle device (an event ``*_end`` is when the device finished what was
+queued before it), host times are from that start. The untraced steps between give ``untraced_step`` (what the tracing
 costs is the difference to ``sync_return``). All values in µs.
 
     python scripts/step_timeline.py --device cuda:0 --scenario S8 S7 --json step_timeline.json
@@ -48,7 +50,7 @@ def timeline(sid: str, device: str, steps: int, n: int, scan_side: int) -> dict:
         marks[name] = (time.perf_counter(), e)
 
     cls, model_cls = type(mpf), type(mpf.model)
-    plain = (cls._queue_head, cls._queue_update, model_cls.stage)
+    plain = (cls._queue_head, cls._queue_update, model_cls.stage, cls._advance, model_cls.check)
 
     def queue_head(self):
         stamp("head_start", True)
@@ -66,12 +68,27 @@ def timeline(sid: str, device: str, steps: int, n: int, scan_side: int) -> dict:
         stamp("stage_end")
         return out
 
+    def advance(self):
+        stamp("advance_start", True)
+        plain[3](self)
+        stamp("advance_end", True)
+
+    def check(self, *args, **kwargs):
+        stamp("check_start")
+        plain[4](self, *args, **kwargs)
+        stamp("check_end")
+
+    traced_fns, plain_fns = (queue_head, queue_update, stage, advance, check), plain
+
+    def use(fns):
+        cls._queue_head, cls._queue_update, model_cls.stage, cls._advance, model_cls.check = fns
+
     rows, untraced = [], []
     try:
         for it in range(warm + steps):
             k = it * ipm
             traced = it >= warm and it % 2 == 0
-            cls._queue_head, cls._queue_update, model_cls.stage = (queue_head, queue_update, stage) if traced else plain
+            use(traced_fns if traced else plain_fns)
             wp.synchronize_device(device)
             marks.clear()
             t0 = time.perf_counter()
@@ -98,7 +115,7 @@ def timeline(sid: str, device: str, steps: int, n: int, scan_side: int) -> dict:
                     row["device_" + name] = 1e-3 * wp.get_event_elapsed_time(e0, e)
             rows.append(row)
     finally:
-        cls._queue_head, cls._queue_update, model_cls.stage = plain
+        use(plain_fns)
     keys = sorted({k for r in rows for k in r})
     med = {k: 1e6 * statistics.median([r[k] for r in rows if k in r]) for k in keys}
     med["untraced_step"] = 1e6 * statistics.median(untraced)
