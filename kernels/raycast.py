@@ -14,7 +14,8 @@ here, so ``t`` is a range in metres. Every backend returns NaN (no hit), never a
 clipped to the terrain's min–max height band, cells whose highest post is below the ray skipped, and an
 exact intersection with the two triangles of every other cell (front faces only). The CPU's per-particle form of the
 filter's ray casts (:data:`raycast_residual_rows_kernel`) starts a ray lower, where it comes down to the highest post
-within its reach (:func:`local_band_entry`): the same cells are tested, the same ranges found.
+within its reach (:func:`local_band_entry`): the same cells are tested, the same ranges found; and its surface normal
+is the slopes of the triangle the DDA hit (:func:`cell_hit`), not the map read again at the hit point.
 ``bisection``: the paper's CPU variant: march in horizontal steps of ``step_m`` (≤ half a post by
 default) until the first sample on or below the surface, then ``n_bisect`` halvings of the last step.
 It finds the first surface unless a feature is thinner than a step.
@@ -40,6 +41,12 @@ RESIDUAL_MAX_REGISTERS = 64
 which left a quarter of an H100's warps resident; at 64 half of them are. S7's model (the residual kernel and the
 per-particle reduction, N = 500, M = 400) took 39.0 µs against 43.1 µs (96 registers: 42.8 µs), the same bits
 (``scripts/bench_update_pieces.py``, ``scripts/step_digest.py``)."""
+
+
+@wp.func
+def no_hit() -> wp.vec3:
+    """What :func:`dda_march` gives for a ray that meets no surface: range NaN, slopes 0."""
+    return wp.vec3(wp.nan, 0.0, 0.0)
 
 
 @wp.func
@@ -97,15 +104,17 @@ def grid_exit(grid: HeightGrid, o: wp.vec3, d: wp.vec3) -> float:
 
 
 @wp.func
-def cell_hit(grid: HeightGrid, i: int, j: int, o: wp.vec3, d: wp.vec3) -> float:
-    """Smallest ``t ≥ 0`` where the ray enters one of the two triangles of cell (i, j) from above; -1 if none."""
+def cell_hit(grid: HeightGrid, i: int, j: int, o: wp.vec3, d: wp.vec3) -> wp.vec3:
+    """``(t, ∂h/∂n, ∂h/∂e)``: the smallest ``t ≥ 0`` where the ray enters one of the two triangles of cell (i, j) from
+    above and that triangle's slopes (the surface gradient there, as :func:`~warptan.kernels.terrain.grid_gradient`
+    computes it); ``t`` = -1 if none."""
     h00 = grid.heights[i, j]
     h10 = grid.heights[i + 1, j]
     h01 = grid.heights[i, j + 1]
     h11 = grid.heights[i + 1, j + 1]
     a = o[0] - (grid.n0 + float(i) * grid.dn)
     b = o[1] - (grid.e0 + float(j) * grid.de)
-    best = float(-1.0)
+    best = wp.vec3(-1.0, 0.0, 0.0)
     # Triangle A, U >= V: h = h00 + U (h10 - h00) + V (h11 - h10); f(t) = z(t) + h(t), above the surface f < 0.
     su = (h10 - h00) * grid.inv_dn
     sv = (h11 - h10) * grid.inv_de
@@ -116,18 +125,18 @@ def cell_hit(grid: HeightGrid, i: int, j: int, o: wp.vec3, d: wp.vec3) -> float:
             uu = (a + t * d[0]) * grid.inv_dn
             vv = (b + t * d[1]) * grid.inv_de
             if vv >= -EDGE_EPS and uu <= 1.0 + EDGE_EPS and uu >= vv - EDGE_EPS:
-                best = t
+                best = wp.vec3(t, su, sv)
     # Triangle B, V >= U: h = h00 + V (h01 - h00) + U (h11 - h01).
     su = (h11 - h01) * grid.inv_dn
     sv = (h01 - h00) * grid.inv_de
     f1 = d[2] + d[0] * su + d[1] * sv
     if f1 > 0.0:
         t = -(o[2] + h00 + a * su + b * sv) / f1
-        if t >= 0.0 and (best < 0.0 or t < best):
+        if t >= 0.0 and (best[0] < 0.0 or t < best[0]):
             uu = (a + t * d[0]) * grid.inv_dn
             vv = (b + t * d[1]) * grid.inv_de
             if uu >= -EDGE_EPS and vv <= 1.0 + EDGE_EPS and vv >= uu - EDGE_EPS:
-                best = t
+                best = wp.vec3(t, su, sv)
     return best
 
 
@@ -153,15 +162,16 @@ def local_band_entry(grid: HeightGrid, o: wp.vec3, d: wp.vec3, t_in: float, t_en
 
 
 @wp.func
-def dda_march(grid: HeightGrid, o: wp.vec3, d: wp.vec3, t_start: float, t_end: float) -> float:
-    """The 2-D DDA of :func:`cast_dda` over the ray's ``[t_start, t_end]`` (within the terrain's height band)."""
+def dda_march(grid: HeightGrid, o: wp.vec3, d: wp.vec3, t_start: float, t_end: float) -> wp.vec3:
+    """The 2-D DDA of :func:`cast_dda` over the ray's ``[t_start, t_end]`` (within the terrain's height band): the
+    hit's :func:`cell_hit` ``(t, ∂h/∂n, ∂h/∂e)``, ``t`` NaN where none (:func:`no_hit`)."""
     t = t_start
     rows = grid.heights.shape[0]
     cols = grid.heights.shape[1]
     u = (o[0] + t * d[0] - grid.n0) / grid.dn
     v = (o[1] + t * d[1] - grid.e0) / grid.de
     if not (u >= 0.0 and u <= float(rows - 1) and v >= 0.0 and v <= float(cols - 1)):
-        return wp.nan  # the ray leaves the map before it comes down to the terrain
+        return no_hit()  # the ray leaves the map before it comes down to the terrain
     i = wp.min(int(wp.floor(u)), rows - 2)
     j = wp.min(int(wp.floor(v)), cols - 2)
     du = d[0] * grid.inv_dn
@@ -193,12 +203,12 @@ def dda_march(grid: HeightGrid, o: wp.vec3, d: wp.vec3, t_start: float, t_end: f
         cmax = grid.cell_max[i, j]
         if -z_low <= cmax + BAND_PAD:
             if cmax > 1.0e37:
-                return wp.nan  # nodata cell inside the height band
+                return no_hit()  # nodata cell inside the height band
             th = cell_hit(grid, i, j, o, d)
-            if th >= 0.0:
+            if th[0] >= 0.0:
                 return th
         if t_cell_end >= t_end:
-            return wp.nan
+            return no_hit()
         if t_next_u < t_next_v:
             i += step_i
             t = t_next_u
@@ -208,8 +218,8 @@ def dda_march(grid: HeightGrid, o: wp.vec3, d: wp.vec3, t_start: float, t_end: f
             t = t_next_v
             t_next_v += t_delta_v
         if i < 0 or i > rows - 2 or j < 0 or j > cols - 2:
-            return wp.nan  # left the map
-    return wp.nan
+            return no_hit()  # left the map
+    return no_hit()
 
 
 @wp.func
@@ -220,7 +230,7 @@ def cast_dda(grid: HeightGrid, o: wp.vec3, d: wp.vec3) -> float:
     band = band_interval(grid, o, d)
     if band[0] > band[1]:
         return wp.nan
-    return dda_march(grid, o, d, band[0], band[1])
+    return dda_march(grid, o, d, band[0], band[1])[0]
 
 
 @wp.func
@@ -382,18 +392,19 @@ def raycast_residual_kernel(
 @wp.func
 def cast_unblocked_local(
     grid: HeightGrid, mesh: wp.uint64, backend: int, o: wp.vec3, d_raw: wp.vec3, step_m: float, n_bisect: int
-) -> float:
+) -> wp.vec3:
     """:func:`cast_ray` from an origin that has passed :func:`origin_blocked` (a particle's rays share the check), a
-    DDA ray from its local band (:func:`local_band_entry`): the same range."""
+    DDA ray from its local band (:func:`local_band_entry`): the same range, as ``(t, ∂h/∂n, ∂h/∂e)`` with the slopes
+    of the triangle the DDA hit (:func:`dda_march`; the other backends give 0: their caller reads the map)."""
     d = wp.normalize(d_raw)
     if backend == BACKEND_DDA:
         band = band_interval(grid, o, d)
         if band[0] > band[1]:
-            return wp.nan
+            return no_hit()
         return dda_march(grid, o, d, local_band_entry(grid, o, d, band[0], band[1]), band[1])
     if backend == BACKEND_MESH:
-        return cast_mesh(grid, mesh, o, d)
-    return cast_bisection(grid, o, d, step_m, n_bisect)
+        return wp.vec3(cast_mesh(grid, mesh, o, d), 0.0, 0.0)
+    return wp.vec3(cast_bisection(grid, o, d, step_m, n_bisect), 0.0, 0.0)
 
 
 @wp.kernel
@@ -415,9 +426,12 @@ def raycast_residual_rows_kernel(
 ):
     """:data:`raycast_residual_kernel` as one thread per particle i looping over its points, the CPU's form: the
     particle's rotation and origin check made once, not once per ray, and DDA rays cast from their local band
-    (:func:`cast_unblocked_local`). The same ranges, normals and bits on the CPU (S7, N = 500, 10 × 10 rays, one CPU
-    thread: 5.9 → 4.4 ms). The per-ray form's body stays as it was: on CUDA the same code moved into a shared
-    function changed the compiled arithmetic (an H100's step digests of the ray-cast filters differed)."""
+    (:func:`cast_unblocked_local`), and a DDA hit's normal from the slopes of the triangle it hit instead of the map
+    read again at the hit point (:func:`~warptan.kernels.terrain.grid_gradient`: the same slopes, but for a hit within
+    ``EDGE_EPS`` of a triangle's edge, which that read may place in the neighbouring triangle). The same ranges and
+    bits otherwise on the CPU (S7, N = 500, 10 × 10 rays, one CPU thread: 5.9 → 4.4 ms; the hit's slopes 4.62 → 3.97
+    ms on captured S7 inputs, session 40). The per-ray form's body stays as it was: on CUDA the same code moved into a
+    shared function changed the compiled arithmetic (an H100's step digests of the ray-cast filters differed)."""
     i = wp.tid()
     b = (row0 + i) // n_per
     p = pos_n[i]
@@ -432,16 +446,19 @@ def raycast_residual_rows_kernel(
                 vertical_out[i, j] = wp.nan
             continue
         d = mat * row_dir(row)
-        t = float(wp.nan)
+        cast = no_hit()
         if not blocked:
-            t = cast_unblocked_local(grid, mesh, backend, p, d, step_m, n_bisect)
+            cast = cast_unblocked_local(grid, mesh, backend, p, d, step_m, n_bisect)
+        t = cast[0]
         residual_out[i, j] = row[CR_RANGE] - t
         if want_vertical != 0:
             q = p + row[CR_RANGE] * d
             vertical_out[i, j] = -q[2] - grid_surface(grid, q[0], q[1])
         if not is_nan(t):
-            hit = p + t * d
-            grad = grid_gradient(grid, 1, hit[0], hit[1])
+            grad = wp.vec2(cast[1], cast[2])  # (the DDA's hit triangle: the map read again cost 24 ns a ray)
+            if backend != BACKEND_DDA:
+                hit = p + t * d
+                grad = grid_gradient(grid, 1, hit[0], hit[1])
             nrm = wp.vec3(grad[0], grad[1], 1.0)
             den = wp.dot(nrm, d)
             if is_finite(den) and wp.abs(den) > 1.0e-3:
