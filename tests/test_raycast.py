@@ -239,7 +239,7 @@ def test_residual_forms_agree_bit_for_bit(device):
     # the per-particle form's normal is its hit triangle's (cell_hit), the per-ray form's the map read at the hit
     # point: they may differ only where the hit lies on a triangle's edge (within EDGE_EPS), where the read can
     # place it in the neighbour
-    differ = (outs[0][1] != outs[1][1]).any(axis=-1) & np.isfinite(outs[0][0])
+    differ = ~np.isclose(outs[0][1], outs[1][1], rtol=1e-4, atol=1e-3).all(axis=-1) & np.isfinite(outs[0][0])
     assert differ.mean() < 0.02
     hit_pts = pos[:, None, :] + (800.0 - outs[0][0])[..., None] * dirs_n
     u = (hit_pts[..., 0] - terrain.n0) / terrain.dn
