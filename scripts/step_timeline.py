@@ -78,7 +78,7 @@ def timeline(sid: str, device: str, steps: int, n: int, scan_side: int) -> dict:
         plain[4](self, *args, **kwargs)
         stamp("check_end")
 
-    traced_fns, plain_fns = (queue_head, queue_update, stage, advance, check), plain
+    wrapped = (queue_head, queue_update, stage, advance, check)
 
     def use(fns):
         cls._queue_head, cls._queue_update, model_cls.stage, cls._advance, model_cls.check = fns
@@ -88,7 +88,7 @@ def timeline(sid: str, device: str, steps: int, n: int, scan_side: int) -> dict:
         for it in range(warm + steps):
             k = it * ipm
             traced = it >= warm and it % 2 == 0
-            use(traced_fns if traced else plain_fns)
+            use(wrapped if traced else plain)
             wp.synchronize_device(device)
             marks.clear()
             t0 = time.perf_counter()
@@ -115,7 +115,7 @@ def timeline(sid: str, device: str, steps: int, n: int, scan_side: int) -> dict:
                     row["device_" + name] = 1e-3 * wp.get_event_elapsed_time(e0, e)
             rows.append(row)
     finally:
-        use(plain_fns)
+        use(plain)
     keys = sorted({k for r in rows for k in r})
     med = {k: 1e6 * statistics.median([r[k] for r in rows if k in r]) for k in keys}
     med["untraced_step"] = 1e6 * statistics.median(untraced)
