@@ -18,7 +18,12 @@ device) and ``device_ms`` (the update's device work: CUDA events around it, or t
 With ``--scenario S8 [S7 ...]`` each row is the filter that scenario flies (its map, surface, likelihood, scan,
 rates, tempering, regularisation and attitude update: :func:`warptan.sim.scenarios.scenario_model`,
 :meth:`~warptan.sim.scenario_config.FilterSpec.config`), measured on its own flight after ``--settle-s`` of it
-(acquisition is not the steady state); ``--n`` and ``--batch`` still apply. Such a row also reports the achieved
+(acquisition is not the steady state); ``--n`` and ``--batch`` still apply. With ``--paced-s T`` a filter of B = 1
+then flies T s more at the flight's own rates, twice, its host sleeping until each piece is due as a real-time loop's
+does (:func:`paced_run`): ``paced_step_ms`` (the interval's samples in one call and the update, synchronised, each
+interval started when due) and ``paced_update_ms`` (each IMU sample predicted when due, the update's latency from the
+scan to the synchronised end), medians and 90th percentiles: back-to-back steps keep the host's caches and the driver
+warm, which a 10 Hz filter's idle gaps do not. Such a row also reports the achieved
 point evaluations per second (B · N · M · tempering stages per update time) beside the bare model kernel's rate on
 the same poses and scan (the bound: ``model.launch`` alone), and, with ``--rtf-s T``, the real-time factor of a
 whole run of the scenario (T s flown by :func:`~warptan.sim.scenarios.run_scenario` with N particles, after a short
@@ -153,7 +158,7 @@ def kernel_rate(model, pos, quat, measurement, device, repeats=20) -> float:
     return pos.shape[0] * m / statistics.median(times)
 
 
-def bench(setup, n, device, repeats, warmup, seed=0, graph=None, batch=1):
+def bench(setup, n, device, repeats, warmup, seed=0, graph=None, batch=1, paced_s=0.0):
     intervals = repeats + warmup
     truth, terrain, imu_per_meas, start = setup["truth"], setup["world"], setup["imu_per_meas"], setup["start"]
     model = setup["model"]
@@ -170,12 +175,13 @@ def bench(setup, n, device, repeats, warmup, seed=0, graph=None, batch=1):
     w = np.repeat(w[:, None], batch, axis=1) if batch > 1 else w
     sensor, (alt, baro) = setup["sensor"], setup["altimeter"]
     altimeter = isinstance(model, wt.AltimeterModel)
-    if len(truth.f_b) < (start + 3 * intervals) * imu_per_meas + 1:
-        raise SystemExit(f"bench_filter_step: error: the flight of {setup['label']} is too short for --settle-s and "
-                         f"{3 * intervals} intervals")
+    n_paced = round(paced_s * truth.rate_hz / imu_per_meas)  # intervals of each paced run
+    if len(truth.f_b) < (start + 3 * intervals + 2 * n_paced) * imu_per_meas + 1:
+        raise SystemExit(f"bench_filter_step: error: the flight of {setup['label']} is too short for --settle-s, "
+                         f"{3 * intervals} intervals and --paced-s")
     t_pred, t_upd, t_step, t_est = [], [], [], []
     measurements = []
-    for it in range(start + 3 * intervals):
+    for it in range(start + 3 * intervals + 2 * n_paced):
         k_meas = (it + 1) * imu_per_meas
         if altimeter:
             meas = [wt.AltimeterReading(alt.measure(terrain, truth.pos_n[k_meas], rng),
@@ -224,9 +230,18 @@ def bench(setup, n, device, repeats, warmup, seed=0, graph=None, batch=1):
         mpf.update(measurements[it], sync=False)
         wp.synchronize_device(device)
     parts = {name: float(np.median(v[warmup:])) for name, v in mpf.timer.times().items()}
-    mpf.timer = None
     med = statistics.median
-    stages = mpf.history()[start + warmup:, :, kmpf.H_STAGES]
+    mpf.timer = None
+    paced = {}
+    if n_paced:
+        rest = measurements[3 * intervals:]
+        step_s, k = paced_run(mpf, f, w, rest[:n_paced], k, imu_per_meas, truth.rate_hz, per_sample=False)
+        update_s, k = paced_run(mpf, f, w, rest[n_paced:], k, imu_per_meas, truth.rate_hz, per_sample=True)
+        paced = {"paced_s": n_paced * imu_per_meas / truth.rate_hz,
+                 "paced_step_ms": 1e3 * med(step_s), "paced_step_p90_ms": 1e3 * float(np.percentile(step_s, 90)),
+                 "paced_update_ms": 1e3 * med(update_s),
+                 "paced_update_p90_ms": 1e3 * float(np.percentile(update_s, 90))}
+    stages = mpf.history()[start + warmup:start + 3 * intervals, :, kmpf.H_STAGES]
     m = 1 if altimeter else sensor.pattern.m
     row = {"model": setup["label"], "likelihood": model.likelihood.kind, "B": batch, "N": n, "graph": mpf.graph,
            "tempering_stages_mean": float(stages.mean()), "tempering_stages_max": int(stages.max()),
@@ -234,7 +249,7 @@ def bench(setup, n, device, repeats, warmup, seed=0, graph=None, batch=1):
            "device": wt.resolve_device(device).alias, "imu_per_meas": imu_per_meas,
            "predict_ms": 1e3 * med(t_pred), "update_ms": 1e3 * med(t_upd), "step_ms": 1e3 * med(t_step),
            "estimate_ms": 1e3 * med(t_est), "throughput_step_ms": throughput_ms, "repeats": repeats,
-           "host_ms": parts["host"], "upload_ms": parts["upload"], "device_ms": parts["device"]}
+           "host_ms": parts["host"], "upload_ms": parts["upload"], "device_ms": parts["device"], **paced}
     if "config" in setup:  # the scenario's own filter: what its points cost against the kernel's bound
         row["scenario"] = setup["config"].id
         row["settle_s"] = start * imu_per_meas / truth.rate_hz
@@ -242,6 +257,36 @@ def bench(setup, n, device, repeats, warmup, seed=0, graph=None, batch=1):
         row["kernel_point_evals_per_s"] = kernel_rate(model, mpf._pos, mpf._quat, measurements[-1], device)
         row["surface"] = "triangles" if getattr(model, "surface", True) else "bilinear"
     return row
+
+
+def paced_run(mpf, f, w, measurements, k: int, imu_per_meas: int, rate_hz: float, per_sample: bool):
+    """Fly ``measurements`` at the flight's own rates, as a real-time loop does: the host sleeps until each IMU sample
+    (``per_sample``: one ``predict_many`` call per sample at 1 / ``rate_hz``, the update's latency timed from its call
+    to the synchronised end) or each measurement is due (else the interval's samples in one call and the update,
+    synchronised: the step of the synchronised loop, but after the interval's idle time; between two such steps the
+    host and device idle as a 10 Hz filter's do, which back-to-back steps never see). Returns (each timed latency in
+    s, the next IMU index)."""
+    dt = 1.0 / rate_hz
+    lat = []
+    due = time.perf_counter()
+    for meas in measurements:
+        if per_sample:
+            for _ in range(imu_per_meas):
+                due += dt
+                time.sleep(max(due - time.perf_counter(), 0.0))
+                mpf.predict_many(f[k:k + 1], w[k:k + 1])
+                k += 1
+            t0 = time.perf_counter()
+        else:
+            due += imu_per_meas * dt
+            time.sleep(max(due - time.perf_counter(), 0.0))
+            t0 = time.perf_counter()
+            mpf.predict_many(f[k:k + imu_per_meas], w[k:k + imu_per_meas])
+            k += imu_per_meas
+        mpf.update(meas, sync=False)
+        wp.synchronize_device(mpf.device)
+        lat.append(time.perf_counter() - t0)
+    return lat, k
 
 
 def real_time_factor(sid, device, n, duration_s, terrain=None, repeats=5, **overrides) -> dict:
@@ -280,6 +325,9 @@ def main(argv=None) -> int:
     parser.add_argument("--terrain", default="synthetic:rugged", help="generic: the terrain")
     parser.add_argument("--likelihood", nargs="+", default=["paper"], choices=["paper", "gaussian", "student_t"],
                         help="generic: the likelihood")
+    parser.add_argument("--paced-s", type=float, default=0.0,
+                        help="B = 1: also fly this long at the flight's own rates, twice (the host sleeping until "
+                             "each interval or each IMU sample is due): paced_step_ms, paced_update_ms (0: none)")
     parser.add_argument("--repeats", type=count_arg, default=20)
     parser.add_argument("--warmup", type=count_arg, default=3)
     parser.add_argument("--json", dest="json_out")
@@ -287,8 +335,8 @@ def main(argv=None) -> int:
     scenarios = args.scenario if args.scenario is not None else ([] if args.models else ["S8", "S7"])
     scan = {} if args.scan_side is None else {"scan_nx": args.scan_side, "scan_ny": args.scan_side}
     terrain = script_inputs("bench_filter_step", args.device, args.terrain)
-    if args.settle_s < 0 or args.rtf_s < 0:
-        parser.error("--settle-s and --rtf-s must be ≥ 0 s")
+    if args.settle_s < 0 or args.rtf_s < 0 or args.paced_s < 0:
+        parser.error("--settle-s, --rtf-s and --paced-s must be ≥ 0 s")
     from warptan.sim.scenario_config import load_config
 
     for sid in scenarios:  # an unknown scenario or a bad file: one line, exit 2, before any work
@@ -321,7 +369,8 @@ def main(argv=None) -> int:
             for b in args.batch:
                 for n in args.n:
                     for g in args.graph:
-                        r = {**bench(setup, n, device, args.repeats, args.warmup, graph=modes[g], batch=b),
+                        r = {**bench(setup, n, device, args.repeats, args.warmup, graph=modes[g], batch=b,
+                                       paced_s=args.paced_s if b == 1 else 0.0),
                              **(rtf if n == args.n[0] and b == 1 else {})}
                         rows.append(r)
                         print(f"{r['device']:7s} {r['model']:12s} {r['likelihood']:8s} {r['graph']!s:5s} {b:>4d} "

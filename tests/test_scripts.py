@@ -101,7 +101,8 @@ def test_bench_filter_step_flies_the_scenarios_filter(tmp_path):
     out = tmp_path / "s.json"
     script = str(ROOT / "scripts" / "bench_filter_step.py")
     proc = subprocess.run([sys.executable, script, "--scenario", "S8", "--n", "64", "--repeats", "2", "--warmup",
-                           "1", "--settle-s", "1", "--rtf-s", "2", "--rtf-repeats", "3", "--json", str(out)],
+                           "1", "--settle-s", "1", "--rtf-s", "2", "--rtf-repeats", "3", "--paced-s", "0.5", "--json",
+                           str(out)],
                           capture_output=True, text=True, timeout=300, cwd=tmp_path)
     assert proc.returncode == 0, proc.stderr
     row = json.loads(out.read_text())["results"][0]
@@ -109,10 +110,49 @@ def test_bench_filter_step_flies_the_scenarios_filter(tmp_path):
     assert row["likelihood"] == "gaussian" and row["surface"] == "triangles" and row["settle_s"] == 1.0
     assert row["point_evals_per_s"] > 0 and row["kernel_point_evals_per_s"] > 0 and row["real_time_factor"] > 0
     assert len(row["rtf_walls_s"]) == 3 and row["rtf_wall_s"] == sorted(row["rtf_walls_s"])[1]
+    assert row["paced_s"] == 0.5 and 0 < row["paced_step_ms"] <= row["paced_step_p90_ms"]
+    assert 0 < row["paced_update_ms"] <= row["paced_update_p90_ms"]
     bad = subprocess.run([sys.executable, script, "--scenario", "S99"], capture_output=True, text=True, timeout=120,
                          cwd=tmp_path)
     errors = [line for line in bad.stderr.splitlines() if line.startswith("bench_filter_step: error:")]
     assert bad.returncode == 2 and len(errors) == 1 and "S99" in errors[0] and not bad.stdout
+
+
+def test_paced_run_keeps_the_flights_clock(monkeypatch):
+    """`bench_filter_step.paced_run` calls the filter as a real-time loop would: one IMU sample per call when due (or
+    the interval's samples in one call), the update after them, and never runs ahead of the flight's clock."""
+    import time
+
+    monkeypatch.syspath_prepend(str(ROOT / "scripts"))
+    import bench_filter_step as bfs
+    import numpy as np
+    import warp as wp
+
+    wp.init()  # (the loop synchronises the filter's device after each update)
+
+    class Fake:
+        device = "cpu"
+
+        def __init__(self):
+            self.calls = []
+
+        def predict_many(self, f, w):
+            self.calls.append(("predict", len(f), time.perf_counter()))
+
+        def update(self, meas, sync=True):
+            self.calls.append(("update", meas, time.perf_counter()))
+
+    f = w = np.zeros((40, 3))
+    for per_sample, n_pred in ((True, 1), (False, 4)):
+        mpf, t0 = Fake(), time.perf_counter()
+        lat, k = bfs.paced_run(mpf, f, w, ["a", "b"], 0, 4, 100.0, per_sample=per_sample)
+        assert k == 8 and len(lat) == 2 and all(x >= 0 for x in lat)
+        kinds = [c[0] for c in mpf.calls]
+        assert kinds == (["predict"] * 4 + ["update"]) * 2 if per_sample else ["predict", "update"] * 2
+        assert all(c[1] == n_pred for c in mpf.calls if c[0] == "predict")
+        assert [c[1] for c in mpf.calls if c[0] == "update"] == ["a", "b"]
+        updates = [c[2] - t0 for c in mpf.calls if c[0] == "update"]
+        assert updates[0] >= 0.04 and updates[1] >= 0.08  # each scan no earlier than its time (4 samples at 100 Hz)
 
 
 @pytest.mark.slow
