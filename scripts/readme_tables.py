@@ -186,24 +186,36 @@ def step_block() -> str:
             + " Commands: " + commands + ".\n\n" + "\n".join(lines))
 
 
+def _paced(r: dict, digits: int) -> str:
+    """A row's paced step and update latency (``bench_filter_step.py --paced-s``), or — where it has none."""
+    if "paced_step_ms" not in r:
+        return "—"
+    return f"{r['paced_step_ms']:.{digits}f} / {r['paced_update_ms']:.{digits}f}"
+
+
 def scenario_step_block() -> str:
     """The filters the scenarios fly (``bench_filter_step.py --scenario``): what one update costs against its model
     kernel alone, and a whole run's real-time factor."""
-    sources = [p for p in ("benchmarks/issue32/scenario_step_cpu.json", "benchmarks/issue32/scenario_step_h100.json")
+    sources = [p for p in ("benchmarks/issue32/scenario_step_cpu_xeon.json", "benchmarks/issue32/scenario_step_h100.json")
                if (ROOT / p).exists()]
     lines = ["| device | scenario filter | likelihood, surface | N | M | update ms | step ms | pipelined ms | "
-             "stages per update | point evaluations per s: achieved / kernel alone | real-time factor |",
-             "|---|---|---|---|---|---|---|---|---|---|---|"]
+             "paced step / update ms | stages per update | point evaluations per s: achieved / kernel alone | "
+             "real-time factor |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for device, r in _bench_rows(sources):
         rtf = f"{r['real_time_factor']:.1f}" if "real_time_factor" in r else "—"
         lines.append(f"| {device} | {r['model']} | {r['likelihood']}, {r['surface']} | {r['B']} × {r['N']} | "
                      f"{r['M']} | {r['update_ms']:.2f} | {r['step_ms']:.2f} | {r['throughput_step_ms']:.2f} | "
-                     f"{r['tempering_stages_mean']:.2f} | {r['point_evals_per_s'] / 1e6:.1f} M / "
+                     f"{_paced(r, 2)} | {r['tempering_stages_mean']:.2f} | {r['point_evals_per_s'] / 1e6:.1f} M / "
                      f"{r['kernel_point_evals_per_s'] / 1e6:.1f} M | {rtf} |")
     commands = "; ".join(f"`{_load(p)['meta']['command']}`" for p in sources)
     return ("The filter each scenario flies (its map surface, likelihood, scan, rates, tempering and attitude update), "
             "measured on its own flight after its first seconds; the real-time factor is flight time over the median "
-            "wall time of whole runs of the scenario (seed 0; one run where the artifact has no rtf_walls_s). "
+            "wall time of whole runs of the scenario (seed 0; one run where the artifact has no rtf_walls_s). Step and "
+            "pipelined times are of intervals run back to back; paced (B = 1): the same filter flown at the flight's "
+            "own rates, the host sleeping until each piece is due, as a real-time loop does: the step (the "
+            "interval's IMU samples in one call, then the update, synchronised) and the update's latency when each "
+            "IMU sample is predicted as it comes (medians). "
             + _provenance(*sources) + " Commands: " + commands
             + ".\n\n" + "\n".join(lines))
 
@@ -215,15 +227,42 @@ def step_spread_block() -> str:
     first = [r for r in _load(sources[0])["results"] if r["B"] == 1]
     runs = [first] + [[r for r in run if r["B"] == 1] for run in _load(sources[1])["runs"]]
     lines = ["| process | scenario filter | step ms (synchronised) | host + upload ms | device ms | pipelined ms | "
-             "estimate ms |", "|---|---|---|---|---|---|---|"]
+             "estimate ms | paced step / update ms |", "|---|---|---|---|---|---|---|---|"]
     for k, run in enumerate(runs, start=1):
         for r in run:
             lines.append(f"| {k} | {r['model']} | {r['step_ms']:.3f} | {r['host_ms'] + r['upload_ms']:.3f} | "
-                         f"{r['device_ms']:.3f} | {r['throughput_step_ms']:.3f} | {r['estimate_ms']:.3f} |")
+                         f"{r['device_ms']:.3f} | {r['throughput_step_ms']:.3f} | {r['estimate_ms']:.3f} | "
+                         f"{_paced(r, 3)} |")
     return ("One filter (B = 1, N = 500, M = 400) of the table above in separate processes, one after the other on "
             "the same machine: medians of 200 synchronised intervals each; host + upload is the Python of an interval "
             "before the update's graph is launched (the filter's StepTimer), device the update's device time, "
-            "estimate one ``estimate()`` after the step (outside the step's clock). "
+            "estimate one ``estimate()`` after the step (outside the step's clock); paced as in the table above. "
+            + _provenance(*sources) + "\n\n" + "\n".join(lines))
+
+
+IDLE_MODES = (("none", "none"), ("busy5ms", "5 ms, host busy-waiting"), ("sleep5ms", "5 ms, host sleeping"),
+              ("gpuspin5ms+sleep", "5 ms, host sleeping, GPU running a kernel"),
+              ("busy100ms", "100 ms, host busy-waiting"), ("sleep100ms", "100 ms, host sleeping"),
+              ("gpuspin100ms+sleep", "100 ms, host sleeping, GPU running a kernel"))
+IDLE_PIECES = ("predict_many", "advance(graph)", "update", "check", "head(graph)", "stage", "queue_update(graph)",
+               "next_set", "sync_wait", "wall")
+
+
+def idle_block() -> str:
+    """One GPU filter's synchronised step after a pause (``benchmarks/issue32/idle_gap.py``) and its host pieces after
+    none or a 100 ms one (``idle_host_pieces.py``)."""
+    sources = ["benchmarks/issue32/idle_gap_h100.json", "benchmarks/issue32/idle_host_pieces_h100.json"]
+    gap, pieces = (_load(p)["results"] for p in sources)
+    lines = ["| pause before the step | step µs (wall) | host µs until ``update`` returns |", "|---|---|---|"]
+    lines += [f"| {label} | {gap[k]['wall_us']:.0f} | {gap[k]['host_us']:.0f} |" for k, label in IDLE_MODES]
+    lines += ["", "| host piece (µs) | no pause | after 100 ms, busy-waiting | after 100 ms, sleeping |",
+              "|---|---|---|---|"]
+    lines += [f"| ``{k}`` | {pieces['none'][k]:.0f} | {pieces['busy100ms'][k]:.0f} | {pieces['sleep100ms'][k]:.0f} |"
+              for k in IDLE_PIECES]
+    return ("One S7 filter on CUDA (B = 1, N = 500, M = 400) stepped synchronised with a pause before each step, the "
+            "pauses alternated step by step (medians of 100 steps each); then the host's pieces of a step "
+            "(``perf_counter`` stamps around the filter's methods; ``advance(graph)`` is the run-ahead graph's launch "
+            "inside ``predict_many``, ``sync_wait`` the wait for the device after ``update`` returned). "
             + _provenance(*sources) + "\n\n" + "\n".join(lines))
 
 
@@ -427,6 +466,7 @@ def bound_block(path: str = "results/bound/bound_study.json") -> str:
 BLOCKS = {"paper": paper_block, "attitude": attitude_block, "paper30": lambda: paper_block("results/paper30"),
           "closed_loop": closed_loop_block, "map_error": map_error_block, "long_flight": long_flight_block,
           "step": step_block, "scenario_step": scenario_step_block, "step_spread": step_spread_block,
+          "idle": idle_block,
           "profile": profile_block, "stamps": stamps_block, "kernels": kernels_block,
           "threads": threads_block, "numpy": numpy_block, "batch": batch_block, "campaign": campaign_block,
           "world": world_block, "replay_frames": replay_frames_block, "bound": bound_block}
