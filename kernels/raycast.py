@@ -15,7 +15,8 @@ clipped to the terrain's min–max height band, cells whose highest post is belo
 exact intersection with the two triangles of every other cell (front faces only). The CPU's per-particle form of the
 filter's ray casts (:data:`raycast_residual_rows_kernel`) starts a ray lower, where it comes down to the highest post
 within its reach (:func:`local_band_entry`): the same cells are tested, the same ranges found; and its surface normal
-is the slopes of the triangle the DDA hit (:func:`cell_hit`), not the map read again at the hit point.
+is the slopes of the triangle the DDA hit (:func:`cell_hit`), not the map read again at the hit point. The CPU's
+filter runs that kernel with its rays cast in SIMD lanes (:mod:`warptan.kernels.simd_ray`, the same ranges and slopes).
 ``bisection``: the paper's CPU variant: march in horizontal steps of ``step_m`` (≤ half a post by
 default) until the first sample on or below the surface, then ``n_bisect`` halvings of the last step.
 It finds the first surface unless a feature is thinner than a step.

@@ -196,8 +196,8 @@ def _paced(r: dict, digits: int) -> str:
 def scenario_step_block() -> str:
     """The filters the scenarios fly (``bench_filter_step.py --scenario``): what one update costs against its model
     kernel alone, and a whole run's real-time factor."""
-    sources = [p for p in ("benchmarks/issue32/scenario_step_cpu_xeon.json", "benchmarks/issue32/scenario_step_h100.json")
-               if (ROOT / p).exists()]
+    sources = [p for p in ("benchmarks/issue32/scenario_step_cpu_xeon.json",
+                           "benchmarks/issue32/scenario_step_h100.json") if (ROOT / p).exists()]
     lines = ["| device | scenario filter | likelihood, surface | N | M | update ms | step ms | pipelined ms | "
              "paced step / update ms | stages per update | point evaluations per s: achieved / kernel alone | "
              "real-time factor |",

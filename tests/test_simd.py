@@ -1,6 +1,7 @@
-"""The CPU's kernels with the points as SIMD lanes (kernels/simd.py) against the Warp kernels they stand in for
-(kernels/sliding.py, kernels/likelihood.py: one thread per particle, point by point): the same residuals bit for bit,
-the same counts, the sums within float32 reassociation, on every branch of the per-point path."""
+"""The CPU's kernels with the points as SIMD lanes (kernels/simd.py, kernels/simd_ray.py) against the Warp kernels they
+stand in for (kernels/sliding.py, kernels/likelihood.py, kernels/raycast.py: one thread per particle, point by point):
+the same residuals (and ray casts) bit for bit, the same counts, the sums within float32 reassociation, on every branch
+of the per-point path."""
 
 import numpy as np
 import pytest
@@ -8,7 +9,9 @@ import warp as wp
 
 import warptan as wt
 from warptan.kernels import likelihood as klik
+from warptan.kernels import raycast as kray
 from warptan.kernels import simd as ksimd
+from warptan.kernels import simd_ray as ksimd_ray
 from warptan.kernels import sliding as kslide
 from warptan.nav.frames import euler_to_quat
 
@@ -153,9 +156,49 @@ def test_simd_ray_reduction_equals_the_warp_kernel(lik, sigma, sigma_range, sigm
     _assert_sums_equal(got, ref, lik)
 
 
+@pytest.mark.parametrize(("m", "want_vertical"), [(37, 1), (100, 0), (ksimd_ray.MAX_ORDERED + 3, 1)])
+def test_simd_ray_casts_equal_the_warp_kernel(m, want_vertical):
+    """The DDA casts in lanes against the per-particle Warp kernel: two filters of 24 particles 30 m about their
+    truths (a scan part-filling its last group of lanes; one beyond the rays it orders), two particles over the map's
+    edge, one below the ground; rays into the nodata hole, off the map, level and upward, one in seven not received:
+    ranges, normals and heights above the map bit for bit."""
+    rng = np.random.default_rng(m)
+    terrain = _terrain()
+    n0, n1, e0, e1 = terrain.bounds_ne
+    b, n_per = 2, 24
+    ground = float(np.nanmax(terrain.heights_m))
+    truth = np.column_stack([rng.uniform(n0 + 900, n1 - 900, b), rng.uniform(e0 + 900, e1 - 900, b),
+                             np.full(b, -(ground + 300.0))])
+    truth_q = euler_to_quat(rng.normal(0, 0.3, b), rng.normal(0, 0.3, b), rng.uniform(-3, 3, b))
+    pos = np.repeat(truth, n_per, axis=0) + rng.normal(0.0, [30.0, 30.0, 3.0], (b * n_per, 3))
+    pos[3, 0] = n1 - 20.0  # over the map's edge
+    pos[30, 1] = e0 + 10.0
+    pos[7, 2] = 50.0  # below the ground: its origin is blocked
+    quat = np.repeat(truth_q, n_per, axis=0)
+    cloud = _cloud(terrain, truth, truth_q, m, rng).numpy()
+    cloud[:, :3, 3:6] = [[0.6, 0.0, 0.8], [0.0, 1.0, 0.0], [0.0, 0.6, -0.8]]  # steep, level, upward
+    grid = terrain.grid(DEVICE)
+    ins = [grid, wp.uint64(0), kray.BACKEND_DDA, 0.0, 0, 0, n_per, wp.array(pos.astype(np.float32), dtype=wp.vec3,
+           device=DEVICE), wp.array(quat.astype(np.float32), dtype=wp.vec4, device=DEVICE),
+           wp.array(cloud, dtype=klik.cloud_row, device=DEVICE)]
+    got = []
+    for kernel in (kray.raycast_residual_rows_kernel, ksimd_ray.raycast_residual_rows_simd_kernel):
+        outs = [wp.full((b * n_per, m), 7.0, dtype=wp.float32, device=DEVICE),
+                wp.full((b * n_per, m), wp.vec3(7.0, 7.0, 7.0), dtype=wp.vec3, device=DEVICE), want_vertical,
+                wp.full((b * n_per, m), 7.0, dtype=wp.float32, device=DEVICE)]
+        wp.launch(kernel, dim=b * n_per, inputs=ins, outputs=outs, device=DEVICE)
+        got.append([outs[0].numpy(), outs[1].numpy(), outs[3].numpy()])
+    (r_ref, n_ref, v_ref), (r_got, n_got, v_got) = got
+    for ref, new in ((r_ref, r_got), (n_ref, n_got), (v_ref, v_got)):
+        np.testing.assert_array_equal(new.view(np.uint32), ref.view(np.uint32))
+    hit = np.isfinite(r_ref)
+    assert hit.mean() > 0.5 and (~hit).any() and np.isnan(r_ref[7]).all() and (n_ref[hit] != 0.0).any()
+    assert (v_ref == 7.0).all() if not want_vertical else np.isfinite(v_ref).any()
+
+
 def test_the_cpu_models_run_the_simd_kernels(monkeypatch):
     """Without map-error modes the CPU's sliding model launches the SIMD kernel; with them, the Warp kernel (the
-    ray-casting model's reduction likewise)."""
+    ray-casting model's reduction likewise); its DDA casts run in lanes, the other backends' per particle."""
     launched = []
     import warptan.sensing.measurement as meas
 
@@ -176,6 +219,8 @@ def test_the_cpu_models_run_the_simd_kernels(monkeypatch):
     assert launched[-1] != ksimd.sliding_loglik_simd_kernel.key
     assert np.isfinite(out.loglik.numpy()).all()
     wt.RaycastModel(terrain, wt.Likelihood("gaussian")).evaluate(*poses, cloud)
-    assert launched[-1] == ksimd.reduce_loglik_simd_kernel.key
+    assert launched[-2:] == [ksimd_ray.raycast_residual_rows_simd_kernel.key, ksimd.reduce_loglik_simd_kernel.key]
+    wt.RaycastModel(terrain, wt.Likelihood("gaussian"), caster=wt.RayCaster("bisection")).evaluate(*poses, cloud)
+    assert launched[-2] == kray.raycast_residual_rows_kernel.key
     wt.RaycastModel(terrain, stated).evaluate(*poses, cloud)
     assert launched[-1] == klik.reduce_loglik_kernels[False, True].key

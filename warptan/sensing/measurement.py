@@ -41,6 +41,7 @@ from warptan.device import Uploads
 from warptan.kernels import likelihood as klik
 from warptan.kernels import raycast as kray
 from warptan.kernels import simd as ksimd
+from warptan.kernels import simd_ray as ksimd_ray
 from warptan.kernels import sliding as kslide
 from warptan.parallel import launch, launch_rows, rows_of
 from warptan.sensing.likelihood import LIKELIHOODS, POSITION_PRIOR_PRECISION, Likelihood
@@ -547,9 +548,12 @@ class RaycastModel(_PointCloudModel):
         """The rays' casts: each (particle, point)'s range residual, scaled normal and (when gated) vertical."""
         lead = self.caster.launch_args(self.terrain, device)
         res, nrm, vert, cloud, n_per = out.residual_m, out.normal, out.vertical_m, self._staged, self.n_per
-        # CUDA: one thread per ray; the CPU: one per particle, its rotation and origin check made once
+        # CUDA: one thread per ray; the CPU: one per particle, its rotation and origin check made once, DDA rays cast
+        # in SIMD lanes (the same ranges and slopes)
         kernel, cols, cost = ((kray.raycast_residual_kernel, res.shape[1], 20) if device.is_cuda
                               else (kray.raycast_residual_rows_kernel, None, 20 * res.shape[1]))
+        if device.is_cpu and self.caster.backend == "dda":
+            kernel = ksimd_ray.raycast_residual_rows_simd_kernel
         launch_rows(kernel, res.shape[0],
                     lambda a, b: ([*lead, a or 0, n_per, rows_of(pos_n, a, b), rows_of(quat_nb, a, b), cloud],
                                   [rows_of(res, a, b), rows_of(nrm, a, b), int(self._gates_misses()),
