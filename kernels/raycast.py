@@ -408,6 +408,36 @@ def cast_unblocked_local(
     return wp.vec3(cast_bisection(grid, o, d, step_m, n_bisect), 0.0, 0.0)
 
 
+@wp.func
+def point_not_received(i: int, j: int, want_vertical: int, residual_out: wp.array2d(dtype=wp.float32),
+                       normal_out: wp.array2d(dtype=wp.vec3), vertical_out: wp.array2d(dtype=wp.float32)):
+    """Point j of particle i, not received: residual (and height above the map) NaN, normal zero."""
+    normal_out[i, j] = wp.vec3()
+    residual_out[i, j] = wp.nan
+    if want_vertical != 0:
+        vertical_out[i, j] = wp.nan
+
+
+@wp.func
+def point_outputs(grid: HeightGrid, p: wp.vec3, d: wp.vec3, row: cloud_row, t: float, slopes: wp.vec2,
+                  want_vertical: int, i: int, j: int, residual_out: wp.array2d(dtype=wp.float32),
+                  normal_out: wp.array2d(dtype=wp.vec3), vertical_out: wp.array2d(dtype=wp.float32)):
+    """Point j of particle i (origin ``p``, ray ``d = R d_s``) from its cast: range ``t`` (NaN: no hit) and the
+    surface's slopes at the hit: the residual, with ``want_vertical`` the received point's height above the map, and
+    the scaled normal (zero without a hit or at a grazing one); :data:`raycast_residual_kernel`'s outputs."""
+    residual_out[i, j] = row[CR_RANGE] - t
+    if want_vertical != 0:
+        q = p + row[CR_RANGE] * d
+        vertical_out[i, j] = -q[2] - grid_surface(grid, q[0], q[1])
+    normal = wp.vec3()
+    if not is_nan(t):
+        nrm = wp.vec3(slopes[0], slopes[1], 1.0)
+        den = wp.dot(nrm, d)
+        if is_finite(den) and wp.abs(den) > 1.0e-3:
+            normal = nrm / den
+    normal_out[i, j] = normal
+
+
 @wp.kernel
 def raycast_residual_rows_kernel(
     grid: HeightGrid,
@@ -440,27 +470,16 @@ def raycast_residual_rows_kernel(
     blocked = origin_blocked(grid, p)
     for j in range(cloud.shape[1]):
         row = cloud[b, j]
-        normal_out[i, j] = wp.vec3()
         if row[CR_VALID] == 0.0:
-            residual_out[i, j] = wp.nan
-            if want_vertical != 0:
-                vertical_out[i, j] = wp.nan
+            point_not_received(i, j, want_vertical, residual_out, normal_out, vertical_out)
             continue
         d = mat * row_dir(row)
         cast = no_hit()
         if not blocked:
             cast = cast_unblocked_local(grid, mesh, backend, p, d, step_m, n_bisect)
         t = cast[0]
-        residual_out[i, j] = row[CR_RANGE] - t
-        if want_vertical != 0:
-            q = p + row[CR_RANGE] * d
-            vertical_out[i, j] = -q[2] - grid_surface(grid, q[0], q[1])
-        if not is_nan(t):
-            grad = wp.vec2(cast[1], cast[2])  # (the DDA's hit triangle: the map read again cost 24 ns a ray)
-            if backend != BACKEND_DDA:
-                hit = p + t * d
-                grad = grid_gradient(grid, 1, hit[0], hit[1])
-            nrm = wp.vec3(grad[0], grad[1], 1.0)
-            den = wp.dot(nrm, d)
-            if is_finite(den) and wp.abs(den) > 1.0e-3:
-                normal_out[i, j] = nrm / den
+        grad = wp.vec2(cast[1], cast[2])  # (the DDA's hit triangle: the map read again cost 24 ns a ray)
+        if backend != BACKEND_DDA and not is_nan(t):
+            hit = p + t * d
+            grad = grid_gradient(grid, 1, hit[0], hit[1])
+        point_outputs(grid, p, d, row, t, grad, want_vertical, i, j, residual_out, normal_out, vertical_out)

@@ -15,10 +15,10 @@ cast rays. The Warp kernel is this one's reference.
 import warp as wp
 
 from warptan.kernels.frames import quat_to_mat_wxyz
-from warptan.kernels.likelihood import CR_DIR, CR_RANGE, CR_VALID, cloud_row, row_dir
-from warptan.kernels.raycast import BAND_PAD, BIG, EDGE_EPS, origin_blocked
+from warptan.kernels.likelihood import CR_DIR, CR_VALID, cloud_row, row_dir
+from warptan.kernels.raycast import BAND_PAD, BIG, EDGE_EPS, origin_blocked, point_not_received, point_outputs
 from warptan.kernels.simd import SIMD_LANES
-from warptan.kernels.terrain import BLOCK_CELLS, HeightGrid, grid_surface, is_finite, is_nan
+from warptan.kernels.terrain import BLOCK_CELLS, HeightGrid
 
 wp.set_module_options({"enable_backward": False})
 
@@ -234,7 +234,8 @@ def raycast_residual_rows_simd_kernel(
 ):
     """:data:`~warptan.kernels.raycast.raycast_residual_rows_kernel` for the ``dda`` backend (``mesh``, ``backend``,
     ``step_m`` and ``n_bisect`` unused), its rays cast in lanes (:func:`dda_casts_simd`, which leaves each range in
-    ``residual_out`` and each slope pair in ``normal_out``), then its own loop over the points."""
+    ``residual_out`` and each slope pair in ``normal_out``), then its outputs point by point (:func:`~warptan.kernels.
+    raycast.point_outputs`)."""
     i = wp.tid()
     b = (row0 + i) // n_per
     p = pos_n[i]
@@ -242,21 +243,9 @@ def raycast_residual_rows_simd_kernel(
     dda_casts_simd(grid, p, mat, int(origin_blocked(grid, p)), cloud, b, i, residual_out, normal_out)
     for j in range(cloud.shape[1]):
         row = cloud[b, j]
-        slopes = normal_out[i, j]
-        normal_out[i, j] = wp.vec3()
         if row[CR_VALID] == 0.0:
-            residual_out[i, j] = wp.nan
-            if want_vertical != 0:
-                vertical_out[i, j] = wp.nan
+            point_not_received(i, j, want_vertical, residual_out, normal_out, vertical_out)
             continue
-        d = mat * row_dir(row)
-        t = residual_out[i, j]
-        residual_out[i, j] = row[CR_RANGE] - t
-        if want_vertical != 0:
-            q = p + row[CR_RANGE] * d
-            vertical_out[i, j] = -q[2] - grid_surface(grid, q[0], q[1])
-        if not is_nan(t):
-            nrm = wp.vec3(slopes[0], slopes[1], 1.0)
-            den = wp.dot(nrm, d)
-            if is_finite(den) and wp.abs(den) > 1.0e-3:
-                normal_out[i, j] = nrm / den
+        slopes = normal_out[i, j]
+        point_outputs(grid, p, mat * row_dir(row), row, residual_out[i, j], wp.vec2(slopes[0], slopes[1]),
+                      want_vertical, i, j, residual_out, normal_out, vertical_out)
