@@ -77,21 +77,16 @@ _DDA = r"""
     int order[MAX_ORDERED_];
     const bool ordered = m <= MAX_ORDERED_;
     if (ordered) {
-        int count[ORDER_BUCKETS_ + 1];
-        for (int q = 0; q <= ORDER_BUCKETS_; ++q) count[q] = 0;
-        for (int j = 0; j < m; ++j) {
+        auto band = [&](int j) {  // h2 in [0, 1] for a unit direction; NaN or more: the last band
             const float* row = crow + j * cstep;
             const float h2 = row[CR_DIR_] * row[CR_DIR_] + row[CR_DIR_ + 1] * row[CR_DIR_ + 1];
-            const int q = h2 < 1.0f ? static_cast<int>(h2 * static_cast<float>(ORDER_BUCKETS_)) : ORDER_BUCKETS_ - 1;
-            count[(q >= 0 ? q : 0) + 1] += 1;
-        }
-        for (int q = 0; q < ORDER_BUCKETS_; ++q) count[q + 1] += count[q];
-        for (int j = 0; j < m; ++j) {
-            const float* row = crow + j * cstep;
-            const float h2 = row[CR_DIR_] * row[CR_DIR_] + row[CR_DIR_ + 1] * row[CR_DIR_ + 1];
-            const int q = h2 < 1.0f ? static_cast<int>(h2 * static_cast<float>(ORDER_BUCKETS_)) : ORDER_BUCKETS_ - 1;
-            order[count[q >= 0 ? q : 0]++] = j;
-        }
+            return h2 < 1.0f ? static_cast<int>(h2 * static_cast<float>(ORDER_BUCKETS_)) : ORDER_BUCKETS_ - 1;
+        };
+        int start[ORDER_BUCKETS_ + 1];
+        for (int q = 0; q <= ORDER_BUCKETS_; ++q) start[q] = 0;
+        for (int j = 0; j < m; ++j) start[band(j) + 1] += 1;
+        for (int q = 0; q < ORDER_BUCKETS_; ++q) start[q + 1] += start[q];
+        for (int j = 0; j < m; ++j) order[start[band(j)]++] = j;
     }
     for (int j0 = 0; j0 < m; j0 += L) {
         float dx[L], dy[L], dz[L], tt[L], tend[L], tnu[L], tnv[L], tdu[L], tdv[L], rt[L], rgn[L], rge[L];

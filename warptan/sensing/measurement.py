@@ -550,10 +550,12 @@ class RaycastModel(_PointCloudModel):
         res, nrm, vert, cloud, n_per = out.residual_m, out.normal, out.vertical_m, self._staged, self.n_per
         # CUDA: one thread per ray; the CPU: one per particle, its rotation and origin check made once, DDA rays cast
         # in SIMD lanes (the same ranges and slopes)
-        kernel, cols, cost = ((kray.raycast_residual_kernel, res.shape[1], 20) if device.is_cuda
-                              else (kray.raycast_residual_rows_kernel, None, 20 * res.shape[1]))
-        if device.is_cpu and self.caster.backend == "dda":
-            kernel = ksimd_ray.raycast_residual_rows_simd_kernel
+        if device.is_cuda:
+            kernel, cols, cost = kray.raycast_residual_kernel, res.shape[1], 20
+        else:
+            kernel = (ksimd_ray.raycast_residual_rows_simd_kernel if self.caster.backend == "dda"
+                      else kray.raycast_residual_rows_kernel)
+            cols, cost = None, 20 * res.shape[1]
         launch_rows(kernel, res.shape[0],
                     lambda a, b: ([*lead, a or 0, n_per, rows_of(pos_n, a, b), rows_of(quat_nb, a, b), cloud],
                                   [rows_of(res, a, b), rows_of(nrm, a, b), int(self._gates_misses()),
