@@ -158,6 +158,8 @@ from warptan.kernels.filter.resampling import (
     gather,
     gather_kernel,
     gather_modes_kernel,
+    MOMENTS_LEN,
+    map_error_moments_kernel,
     modes_finalize_kernel,
     modes_variance_kernel,
 )

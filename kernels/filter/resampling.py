@@ -279,3 +279,61 @@ def modes_variance_kernel(m: int, table: wp.array(dtype=modes_vec), stats: wp.ar
             after = pv[k] / (1.0 + pv[k])
         v[k] = rho[k] * rho[k] * after + (1.0 - rho[k] * rho[k]) * k0[k]
     var[b] = v
+
+
+MOMENTS_LEN = 6
+"""Columns of :func:`map_error_moments_kernel`'s output: Σ w, the weighted mean NIS, the mean ratio of the data-ruled
+modes' second moments to their stated variance, how many modes it averaged, the weighted variance of the
+particles' north and east position errors (m²)."""
+
+
+@wp.kernel
+def map_error_moments_kernel(n_per: int, m: int, table: wp.array(dtype=modes_vec), logw: wp.array(dtype=wp.float32),
+                             dp: wp.array(dtype=wp.vec3), nis: wp.array(dtype=wp.float32),
+                             mean: wp.array(dtype=modes_vec), var: wp.array(dtype=modes_vec),
+                             out: wp.array2d(dtype=wp.float64)):
+    """Filter b's evidence on its stated map error after an update (one thread per filter; the host's
+    :class:`warptan.sensing.likelihood.MapErrorLearner` reads it every few updates). The modes' amplitudes are
+    stored predicted to the next scan (mean ``ρ_i q_i``, variance ``ρ_i² P⁺_i + (1 − ρ_i²) k⁰_i``,
+    :func:`modes_variance_kernel`); their posterior second moment ``E[α_i²] = Σ_j w_j q_ij² + P⁺_i`` over the stated
+    one-scan variance ``k⁰_i`` is 1 on average when the statement is right (the fixed point of an EM step for the
+    error's variance), ``(1 + k_true) / k⁰`` when not. Only modes the scan rules (``k⁰_i ≥ 1``) are averaged: the
+    others stay near their prior whatever the map is. Without a variance yet (negative) the ratio is 0 over 0
+    modes."""
+    b = wp.tid()
+    rho = table[m + MODE_RHO]
+    k0 = table[m + MODE_K0]
+    sw = wp.float64(0.0)
+    s_nis = wp.float64(0.0)
+    s_dp = wp.vec2d()
+    s_dp2 = wp.vec2d()
+    s_q2 = modes_vec()
+    for k in range(n_per):
+        i = b * n_per + k
+        w = wp.float64(wp.exp(logw[i]))
+        sw += w
+        if wp.isfinite(nis[i]):
+            s_nis += w * wp.float64(nis[i])
+        d = wp.vec2d(wp.float64(dp[i][0]), wp.float64(dp[i][1]))
+        s_dp += w * d
+        s_dp2 += w * wp.cw_mul(d, d)
+        s_q2 += float(w) * wp.cw_mul(mean[i], mean[i])
+    inv = wp.float64(1.0) / wp.max(sw, wp.float64(1.0e-300))
+    ratio = wp.float64(0.0)
+    used = int(0)
+    v = var[b]
+    if v[0] >= 0.0:
+        for j in range(MAX_MODES):
+            r2 = rho[j] * rho[j]
+            if k0[j] >= 1.0 and r2 > 0.0:
+                post_var = wp.max((v[j] - (1.0 - r2) * k0[j]) / r2, 0.0)
+                second = float(s_q2[j] * float(inv)) / r2 + post_var
+                ratio += wp.float64(second / k0[j])
+                used += 1
+    mn = s_dp * inv
+    out[b, 0] = sw
+    out[b, 1] = s_nis * inv
+    out[b, 2] = ratio / wp.float64(wp.max(used, 1))
+    out[b, 3] = wp.float64(used)
+    out[b, 4] = s_dp2[0] * inv - mn[0] * mn[0]
+    out[b, 5] = s_dp2[1] * inv - mn[1] * mn[1]

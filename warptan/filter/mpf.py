@@ -109,7 +109,7 @@ from warptan.kernels import nav as knav
 from warptan.nav.imu import ImuGrade, check_rate, imu_grade
 from warptan.nav.ins import NavState, process_noise
 from warptan.parallel import Recorder, launch
-from warptan.sensing.likelihood import RevisitMemory
+from warptan.sensing.likelihood import MapErrorLearner, RevisitMemory
 
 SCHEMES = {name: k for k, name in enumerate(RESAMPLERS)}
 """The kernels' number of each resampling scheme (:data:`warptan.filter.config.RESAMPLERS`)."""
@@ -199,9 +199,19 @@ class MarginalizedParticleFilter(ImuIntake, Readout):
             self.map_offset_var = lk.offset_process(speeds[0])[0]
             q_v = np.array([lk.offset_process(v)[1] for v in speeds])
         self._q_vel_down = q_v * self.dt
+        self._speeds, self._q_pos_base = speeds, self.q_pos
         if getattr(model, "fixes_per_scan", False) and hasattr(lk, "fix_process"):
             self.q_pos = self.q_pos + np.array([lk.fix_process(v) for v in speeds]) * self.dt
         self.q_pos = np.broadcast_to(np.asarray(self.q_pos, dtype=np.float64), (b,)).copy()
+        self.learner = None
+        """The map error's RMS learned in flight (:class:`~warptan.sensing.likelihood.MapErrorLearner`) when the
+        likelihood states an error to learn (``map_error_learn``) and the filter runs one flight (a batch shares one
+        likelihood: its filters keep the statement)."""
+        if getattr(lk, "models_map_error", False) and getattr(lk, "map_error_learn", False) and b == 1:
+            self.learner = MapErrorLearner(lk.map_error_sigma_m)
+        self.map_offset_var_log = [(0, self.map_offset_var)]
+        """(update count, the altitude variance the map offset adds from then on, m²): it changes as the learner
+        restates the error."""
         """(B,) Q^n's diagonal per filter (m² per nominal step): the Kalman part's position noise and the fix wander."""
         self._q_dev = (wp.array(self.q_pos, dtype=wp.float64, device=self.device),
                        wp.array(self._q_vel_down, dtype=wp.float64, device=self.device))
@@ -384,7 +394,7 @@ class MarginalizedParticleFilter(ImuIntake, Readout):
             attitude = self._nav["quat"][:1].numpy()[0]
         out, staged = self._stage_scan(measurement, attitude)
         if attitude is not None:  # ground read again after the modes forgot it: B positions to the host
-            if self._revisits is None or self._revisits.likelihood is not likelihood:
+            if self._revisits is None or self._revisits.likelihood.map_error_corr_m != likelihood.map_error_corr_m:
                 self._revisits = RevisitMemory(likelihood, self.n_filters)
             ground = self._nav["pos"].numpy()[:, :2] + getattr(self.model, "footprint_centre", np.zeros(2))
             self._exponent.assign(self._revisits.exponents(ground).astype(np.float32))
@@ -414,8 +424,50 @@ class MarginalizedParticleFilter(ImuIntake, Readout):
             else:  # CPU: the launches ran as they were issued
                 timer._add(t_queue - t_staged, t_staged - t_enter, t_queued - t_queue)
         self._next_set()
+        if self.learner is not None and self.n_updates % self.learner.every == 0:
+            self._learn_map_error()
         self.last_n_received = np.array(out.n_received)  # (after the device work is queued: nothing there reads it)
         return self._info(out) if sync else None
+
+    def offset_var_per_update(self, n: int) -> np.ndarray:
+        """(n,) the map offset's altitude variance (m²) each of the first ``n`` updates reported (:attr:`map_offset_var`
+        as it was then: the learner may restate it)."""
+        out = np.empty(n)
+        for count, value in self.map_offset_var_log:  # an entry holds from the update after ``count`` on
+            out[count:] = value
+        return out
+
+    def _learn_map_error(self) -> None:
+        """A reading of the map-error evidence for :attr:`learner` (one (1, 6) copy to the host every
+        ``learner.every`` updates) and, when it moved, the error restated: the model's likelihood and mode table, the
+        offset's altitude variance and vertical-velocity noise and the fix wander (in place: captured graphs read
+        them)."""
+        table = self._mode_table()
+        if table is None or self._out is None:
+            return
+        if getattr(self, "_moments_out", None) is None:
+            self._moments_out = wp.zeros((self.n_filters, kmpf.MOMENTS_LEN), dtype=wp.float64, device=self.device)
+        m = table.shape[0] - klik.MODE_EXTRA_ROWS
+        wp.launch(kmpf.map_error_moments_kernel, dim=self.n_filters,
+                  inputs=[self.n, m, table, self.state.logw, self.state.dp, self._out.nis, self._mode_mean,
+                          self._mode_var], outputs=[self._moments_out], device=self.device)
+        sigma = self.learner.read(self._moments_out.numpy()[0])
+        if sigma is None:
+            return
+        self.model.restate_map_error(sigma)
+        lk = self.model.likelihood
+        if self._revisits is not None:
+            self._revisits.likelihood = lk
+        if getattr(self.model, "absorbs_map_offset", False):
+            # the offset under the scan rides on the altitude: no scan sees it, so its variance stays the prior's
+            # (a map 5 m high everywhere looks exact to the modes); its change along the track is the learned level's
+            self._q_vel_down = np.array([lk.offset_process(v)[1] for v in self._speeds]) * self.dt
+        if getattr(self.model, "fixes_per_scan", False):
+            q = self._q_pos_base + np.array([lk.fix_process(v) for v in self._speeds]) * self.dt
+            self.q_pos = np.broadcast_to(np.asarray(q, dtype=np.float64), (self.n_filters,)).copy()
+        self._q_dev[0].assign(self.q_pos)
+        self._q_dev[1].assign(np.asarray(self._q_vel_down, dtype=np.float64))
+        self.map_offset_var_log.append((self.n_updates, self.map_offset_var))
 
     def _info(self, out):
         stats = self._stats.numpy()

@@ -178,6 +178,19 @@ class MeasurementModel:
         self._params = self.params()
         self.generation += 1
 
+    def restate_map_error(self, sigma_m: float) -> None:
+        """Use ``sigma_m`` as the stated map error's RMS from the next scan on, keeping the mode table's basis (its
+        amplitudes are whitened by the point σ, which does not change: the filter's stored amplitudes stay valid;
+        :class:`~warptan.sensing.likelihood.MapErrorLearner`)."""
+        if not self._likelihood.models_map_error:
+            raise FilterError("restate_map_error needs a likelihood with a stated map error")
+        self._likelihood = dataclasses.replace(self._likelihood, map_error_sigma_m=float(sigma_m))
+        n_modes = self._params.n_modes
+        self._params = self.params()
+        self._params.n_modes = n_modes
+        self._modes_geometry = None  # rebuilt at the next stage, its basis change from the table in use
+        self.generation += 1
+
     def bind_attitude_cov(self, att_cov: wp.array | None) -> None:
         """Use ``att_cov`` ((B,) mat33 on the particles' device, rad²: each filter's Kalman covariance of dθ,
         kept current by its owner) to marginalise the per-point Gaussian over the attitude uncertainty; None

@@ -149,14 +149,26 @@ def replay_config(log: FlightLog, model: str | None = None, backend: str | None 
     return scenario
 
 
+def _simulated_on_its_map(ran: Scenario) -> bool:
+    """The log was simulated over its own DEM as the world (no ``[world]``, no other map, noise, bias or coarsening):
+    replayed over that DEM, its map is known to be the world."""
+    from warptan.terrain.world import WorldModel
+
+    t = ran.terrain
+    world = WorldModel.from_config(dataclasses.asdict(ran.world))
+    return not (world.active or t.map_path or t.map_noise_m or t.map_bias_m or t.map_spacing_m)
+
+
 def _likelihood(log: FlightLog, scenario: Scenario, the_map, own: bool = True) -> Likelihood:
     """The log's stored likelihood when the model and likelihood are the ones it was simulated with, else the
     scenarios' calibration (:func:`~warptan.sim.scenarios.scenario_likelihood`) with the scan footprint measured from
     the log: the along-track extent of its directions at their median range. Over a DEM other than the log's own
     (``own`` False; another crop or projection is another grid of posts) the stored map σ also counts the map's
     interpolation error at its posts, as ``likelihood.map_aware`` does for a map whose grid is not the world's
-    (:meth:`~warptan.terrain.grid.Terrain.interpolation_sigma_m`)."""
-    from warptan.sim.scenarios import scenario_likelihood
+    (:meth:`~warptan.terrain.grid.Terrain.interpolation_sigma_m`). The map error is learned in flight
+    (:func:`~warptan.sim.scenarios.learned_statement`) unless the log was simulated over this DEM as its world
+    (:func:`_simulated_on_its_map`): a recorded flight's map is never known to be its world."""
+    from warptan.sim.scenarios import learned_statement, scenario_likelihood
 
     stored, stored_config = log.settings.get("likelihood"), log.settings.get("config")
     lk = scenario.likelihood
@@ -164,10 +176,10 @@ def _likelihood(log: FlightLog, scenario: Scenario, the_map, own: bool = True) -
     if stored is not None and ran is not None and (ran.sensor.model, ran.likelihood.kind) == (scenario.sensor.model,
                                                                                            lk.kind):
         lik = Likelihood(**stored)
-        stated = lk.map_error_rms_m, lk.map_error_corr_m
-        if stated != (lik.map_error_sigma_m, lik.map_error_corr_m):  # told another accuracy than the run was
-            lik = dataclasses.replace(lik, map_error_sigma_m=stated[0], map_error_corr_m=stated[1],
-                                      fix_corr_m=the_map.slope_correlation_m if stated[0] > 0 else 0.0)
+        rms, corr, learn = learned_statement(lk, own and _simulated_on_its_map(ran), max(the_map.dn, the_map.de))
+        if (rms, corr, learn) != (lik.map_error_sigma_m, lik.map_error_corr_m, lik.map_error_learn):
+            lik = dataclasses.replace(lik, map_error_sigma_m=rms, map_error_corr_m=corr, map_error_learn=learn,
+                                      fix_corr_m=the_map.slope_correlation_m if rms > 0 else 0.0)
         if not own and lk.map_aware:
             lik = dataclasses.replace(lik, map_sigma_m=math.hypot(lik.map_sigma_m,
                                                                   the_map.interpolation_sigma_m(lik.map_sigma_m)))

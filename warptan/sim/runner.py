@@ -228,7 +228,8 @@ def collect_runs(mpf: MarginalizedParticleFilter, t_s: np.ndarray, truth: dict |
                                           h[:, kmpf.H_MEAN_L:kmpf.H_MEAN_L + 12],
                                           p_diag[:, b] + h[:, kmpf.H_VAR_L:kmpf.H_VAR_L + 12])
         mean = h[:, kmpf.H_MEAN_DP:kmpf.H_MEAN_DP + 3]
-        var = h[:, kmpf.H_COV_DP:kmpf.H_COV_DP + 3] + np.array([0.0, 0.0, mpf.map_offset_var])
+        var = h[:, kmpf.H_COV_DP:kmpf.H_COV_DP + 3].copy()
+        var[:, 2] += mpf.offset_var_per_update(len(h))
         est = np.vstack([prior[b].nav.pos_n, nominal_hist[:, b, kmpf.NOM_POS:kmpf.NOM_POS + 3] + mean])
         sig = np.vstack([prior[b].sigma3_pos, 3.0 * np.sqrt(np.maximum(var, 0.0))])
         respread = h[:, kmpf.H_RESPREAD] > 0
@@ -246,7 +247,10 @@ def collect_runs(mpf: MarginalizedParticleFilter, t_s: np.ndarray, truth: dict |
             device=mpf.device.alias,
             info={"respreads": int(respread.sum()), "skipped_updates": int((h[:, kmpf.H_SKIPPED] > 0).sum()),
                   **info, "batch": mpf.n_filters, "sigma_m": float(mpf.model.sigma_m),
-                  "injections": int(mpf.n_injections[b])},
+                  "injections": int(mpf.n_injections[b]),
+                  **({} if mpf.learner is None else {"map_error_prior_m": mpf.learner.prior_sigma_m,
+                                                      "map_error_learned_m": mpf.learner.sigma_m,
+                                                      "map_error_readings": mpf.learner.readings})},
         ))
     return runs if batched else runs[0]
 

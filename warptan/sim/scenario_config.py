@@ -98,6 +98,9 @@ class LikelihoodSpec:
     """The DEM's stated correlated error, RMS, m (0: none)."""
     map_error_corr_m: float
     """Its correlation length, m."""
+    map_error_learn: bool | str = "auto"
+    """Learn the error's RMS in flight, the statement (or :data:`~warptan.sim.scenarios.DEFAULT_MAP_ERROR`) its prior:
+    ``"auto"`` whenever the map is not known to be the world (a ``[world]``, another map, a replay), or true / false."""
 
 
 @dataclass(frozen=True)

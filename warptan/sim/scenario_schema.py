@@ -110,6 +110,8 @@ SCHEMA: dict[str, dict[str, tuple[type | tuple, object]]] = {
         "map_aware": (bool, None),
         "map_error_rms_m": (float, _upto(1e3, "m")),
         "map_error_corr_m": (float, _upto(1e6, "m")),
+        "map_error_learn": ((bool, str), lambda v: None if v in (True, False, "auto") else
+                            "must be 'auto' (learn the map's error unless the map is the world), true or false"),
     },
     "filter": {
         "particles": (int, lambda v: None if v >= MIN_PARTICLES else f"must be ≥ {MIN_PARTICLES} (a particle filter "
@@ -147,8 +149,9 @@ SCHEMA: dict[str, dict[str, tuple[type | tuple, object]]] = {
         "seed": (int, None),
     },
 }
-STATED_ACCURACY_DEFAULTS = {"map_error_rms_m": 0.0, "map_error_corr_m": 0.0}
-"""``[likelihood]`` keys a file may leave out: the DEM's stated correlated error (none)."""
+STATED_ACCURACY_DEFAULTS = {"map_error_rms_m": 0.0, "map_error_corr_m": 0.0, "map_error_learn": "auto"}
+"""``[likelihood]`` keys a file may leave out: the DEM's stated correlated error (none) and whether the filter learns
+it in flight (``"auto"``: whenever the map is not known to be the world)."""
 WORLD_DEFAULTS = {f.name: f.default for f in dataclasses.fields(WorldModel)}
 """A scenario without a ``[world]`` table (or without some of its keys) flies these: the world is the map."""
 
@@ -191,6 +194,7 @@ OVERRIDES = {
     "map_aware": ("likelihood", "map_aware"),
     "map_error_rms_m": ("likelihood", "map_error_rms_m"),
     "map_error_corr_m": ("likelihood", "map_error_corr_m"),
+    "map_error_learn": ("likelihood", "map_error_learn"),
     "world_relief_rms_m": ("world", "relief_rms_m"),
     "world_relief_slope": ("world", "relief_slope"),
     "world_error_rms_m": ("world", "error_rms_m"),

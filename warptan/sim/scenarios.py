@@ -190,7 +190,29 @@ class ScenarioResult:
                 "sigma_over_rmse_pos": (pos_sigma / self.rmse_converged).tolist(),
                 "sigma_over_rmse_attitude": (att_sigma / att_rmse).tolist(),
                 "injections": int(r.info.get("injections", 0)),
+                "map_error_learned_m": r.info.get("map_error_learned_m"),
             }
+
+
+DEFAULT_MAP_ERROR = (5.0, 500.0)
+"""The prior of a map error learned in flight when nothing is stated: RMS and correlation length, m. The RMS is
+about SRTM's measured absolute error (5.6–9.0 m LE90 by continent, :mod:`warptan.terrain.world`) and Copernicus
+GLO-30's < 4 m specification; the learner may take it to twice that (:class:`~warptan.sensing.likelihood.
+MapErrorLearner`) or down to centimetres. The length is on the short side of the hundreds of metres to kilometres
+reported for these products: a statement of a longer correlation than the map's makes the filter overconfident, a
+shorter one only costs accuracy."""
+
+
+def learned_statement(lk, map_is_world: bool, post_m: float) -> tuple[float, float, bool]:
+    """``(RMS, correlation length, learn)`` of the map error the likelihood states, from a ``[likelihood]`` table
+    ``lk``: learning on (``map_error_learn``: true, or ``"auto"`` unless the map is known to be the world), the
+    statement, or without one :data:`DEFAULT_MAP_ERROR` (its length at least two posts, ``post_m``), is the prior;
+    off, the statement as given (none: 0, 0)."""
+    rms, corr, learn = float(lk.map_error_rms_m), float(lk.map_error_corr_m), lk.map_error_learn
+    on = learn is True or (learn == "auto" and not map_is_world)
+    if on and lk.kind != "paper" and rms <= 0:
+        rms, corr = DEFAULT_MAP_ERROR[0], max(DEFAULT_MAP_ERROR[1], 2.0 * post_m)
+    return rms, corr, bool(on and rms > 0 and lk.kind != "paper")
 
 
 def scenario_likelihood(scenario: Scenario, the_map: Terrain, truth: Terrain | None = None,
@@ -210,7 +232,10 @@ def scenario_likelihood(scenario: Scenario, the_map: Terrain, truth: Terrain | N
     from its roughness (:meth:`~warptan.terrain.grid.Terrain.interpolation_sigma_m`; 30 m tile at 60/90/180 m posts:
     2.8/5.1/12.1 m estimated, 2.3/4.8/12.9 m measured against the 30 m triangles). A map on the world's own
     posts has no interpolation error beyond the bilinear-vs-triangles mismatch every sliding model counts.
-    ``footprint_m`` replaces the scenario's footprint (a recorded flight's, measured from its scans)."""
+    ``footprint_m`` replaces the scenario's footprint (a recorded flight's, measured from its scans).
+
+    The map error is learned in flight (:func:`learned_statement`) unless the map is known to be the world: ``truth``
+    given and the map the world itself (a recorded flight, ``truth`` None, never knows)."""
     lk, s = scenario.likelihood, scenario.sensor
     noise_m = s.range_sigma_m
     if s.model == "altimeter":  # the residual a - (h_baro - h(p)) carries both sensors' noise
@@ -225,11 +250,12 @@ def scenario_likelihood(scenario: Scenario, the_map: Terrain, truth: Terrain | N
     map_sigma = scenario.terrain.map_noise_m
     if lk.map_aware and truth is not None and scenario.terrain.grid_differs(truth):
         map_sigma = math.hypot(map_sigma, the_map.interpolation_sigma_m(map_sigma))
+    rms, corr, learn = learned_statement(lk, truth is the_map, max(the_map.dn, the_map.de))
     return Likelihood(lk.kind, r_err=lk.r_err_m2, sigma_m=None if lk.sigma_m == "auto" else lk.sigma_m,
                       nu=lk.nu, sensor_sigma_m=noise_m, map_sigma_m=map_sigma,
                       map_correlation=n_corr, footprint_correlation=n_fp,
-                      map_error_sigma_m=lk.map_error_rms_m, map_error_corr_m=lk.map_error_corr_m,
-                      track_step_m=step_m, fix_corr_m=the_map.slope_correlation_m if lk.map_error_rms_m > 0 else 0.0)
+                      map_error_sigma_m=rms, map_error_corr_m=corr, map_error_learn=learn,
+                      track_step_m=step_m, fix_corr_m=the_map.slope_correlation_m if rms > 0 else 0.0)
 
 
 def prepare(name_or_path, seed: int = 0, terrain=None, *, seeds=None, device=None, batched: bool = False,
