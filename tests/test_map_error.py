@@ -593,3 +593,53 @@ def test_ground_read_again_after_the_modes_forgot_it_weighs_less():
     assert all(independent.exponents(np.asarray(x)) == 1.0 for x in orbit)
     with pytest.raises(wt.FilterError, match="revisit_correlation"):
         wt.Likelihood("gaussian", revisit_correlation=1.0)
+
+
+def test_the_learner_moves_the_rms_towards_what_the_modes_say_and_only_when_converged():
+    """MapErrorLearner: readings whose modes' ratio is 1/4 (a map better than stated) bring σ_e down towards its floor,
+    ratio 2 raises it to at most twice the prior; a filter spread over 100 m, one whose NIS says it is lost, or a
+    reading without modes moves nothing; a nonsense prior is an error."""
+    from warptan.checks import FilterError
+    from warptan.sensing.likelihood import MapErrorLearner
+
+    def reading(ratio, spread=1.0, nis=1.0, used=4):
+        return np.array([1.0, nis, ratio, used, spread**2 / 2, spread**2 / 2])
+
+    down = MapErrorLearner(4.0)
+    for _ in range(300):
+        down.read(reading(0.25))
+    assert down.sigma_m == pytest.approx(down.floor_m)
+    up = MapErrorLearner(4.0)
+    applied = [v for v in (up.read(reading(2.0)) for _ in range(300)) if v is not None]
+    assert up.sigma_m == pytest.approx(8.0) and applied and all(np.diff(applied) > 0)
+    still = MapErrorLearner(4.0)
+    for r in (reading(0.25, spread=100.0), reading(0.25, nis=9.0), reading(0.25, used=0), reading(float("nan"))):
+        assert still.read(r) is None
+    assert still.sigma_m == 4.0 and still.readings == 0
+    for bad in (0.0, -1.0, float("nan")):
+        with pytest.raises(FilterError, match="map-error prior"):
+            MapErrorLearner(bad)
+
+
+def test_a_map_better_than_stated_is_learned_to_be_so():
+    """S8 over its own map told 4 m / 1 km with the learner on (90 s): the learned RMS ends under a metre and
+    the run stays within a metre at ≥ 90 % coverage."""
+    from warptan.sim.scenarios import run_scenario
+
+    r = run_scenario("S8", 0, map_error_rms_m=4.0, map_error_corr_m=1000.0, map_error_learn=True, duration_s=90.0)
+    assert r.run.info["map_error_learned_m"] < 1.0 and r.run.info["map_error_readings"] > 10
+    assert np.hypot(*r.rmse_converged[:2]) < 1.0 and r.run.coverage(30.0).min() >= 0.9
+
+
+def test_a_statement_that_is_nonsense_is_one_clear_error_before_any_work():
+    """A correlation length shorter than a post, a negative or NaN RMS, an unknown learning mode: refused by the
+    scenario's checks (prepare) with the field named."""
+    from warptan.sim.scenario_schema import ScenarioError
+    from warptan.sim.scenarios import prepare
+
+    with pytest.raises(ScenarioError, match="map_error_corr_m = 30 m is shorter than one post"):
+        prepare("S8", map_error_rms_m=5.0, map_error_corr_m=30.0)
+    for bad in ({"map_error_rms_m": -1.0, "map_error_corr_m": 500.0}, {"map_error_rms_m": float("nan")},
+                {"map_error_learn": "sometimes"}):
+        with pytest.raises(ScenarioError, match="map_error"):
+            prepare("S8", **bad)

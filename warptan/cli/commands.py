@@ -166,7 +166,7 @@ def _run(args) -> int:
                  "world_bias_m": args.world_bias_m, "world_clutter_height_m": args.world_clutter_m,
                  "world_clutter_fraction": args.world_clutter_fraction, "world_refine": args.world_refine,
                  "world_seed": args.world_seed, "map_error_rms_m": args.map_error_m,
-                 "map_error_corr_m": args.map_error_corr_m}
+                 "map_error_corr_m": args.map_error_corr_m, "map_error_learn": _learn_arg(args.map_error_learn)}
     plans = {name: prepare(name, terrain=terrain, seeds=range(seeds), device=args.device, batched=args.batch,
                            **overrides) for name in names}
     ids = [scenario.id for scenario, _, _ in plans.values()]
@@ -351,14 +351,17 @@ def _replay(args) -> int:
             raise ValueError("--map-error-m and --map-error-corr-m go together (the DEM's stated accuracy: RMS and "
                               "correlation length of its vertical error, m)")
         stated = (args.map_error_m, args.map_error_corr_m or 0.0)
-    scenario = replay_config(log, args.model, args.backend, args.particles, args.likelihood, stated)  # checks them
+    learn = _learn_arg(args.map_error_learn)
+    scenario = replay_config(log, args.model, args.backend, args.particles, args.likelihood, stated,
+                             map_error_learn=learn)  # checks them
     replay_terrain(log, scenario, args.terrain)  # loads (and caches) the DEM before the progress bar
     n_meas = len(log.alt_t if scenario.sensor.model == "altimeter" else log.scan_t)
     with progress_bar(n_meas, "update", disable=args.quiet) as bar:
         bar.set_description(f"replay {log.name}")
         result = replay(log, args.terrain, model=args.model, backend=args.backend, particles=args.particles,
                         likelihood=args.likelihood, seed=args.seed, device=args.device,
-                        progress=lambda k, n: bar.update(1), allow_gaps=args.allow_gaps, map_error=stated)
+                        progress=lambda k, n: bar.update(1), allow_gaps=args.allow_gaps, map_error=stated,
+                        map_error_learn=learn)
     dropped = result.run.info.get("dropped_measurements", 0)
     if dropped:
         print(f"warptan: note: {dropped} measurement(s) outside the IMU's time span were not used")
@@ -375,6 +378,11 @@ def _replay(args) -> int:
     return _report_skipped([result])
 
 
+def _learn_arg(value: str | None):
+    """``--map-error-learn``'s value as ``likelihood.map_error_learn`` (None: the scenario's)."""
+    return {"on": True, "off": False}.get(value, value)
+
+
 def _stated_accuracy(parser, description: str) -> None:
     """``--map-error-m`` and ``--map-error-corr-m``: the DEM's stated accuracy (likelihood.map_error_rms_m and
     map_error_corr_m)."""
@@ -383,6 +391,9 @@ def _stated_accuracy(parser, description: str) -> None:
                        help="RMS of the map's correlated vertical error, m (likelihood.map_error_rms_m)")
     group.add_argument("--map-error-corr-m", type=number_arg(0.0, False), default=None,
                        help="its correlation length, m (likelihood.map_error_corr_m)")
+    group.add_argument("--map-error-learn", choices=("auto", "on", "off"), default=None,
+                       help="learn the error's RMS in flight, the statement (or 5 m / 500 m) its prior: auto (the "
+                            "default) whenever the map is not known to be the world (likelihood.map_error_learn)")
 
 
 def _bag_folder(path: str) -> str | None:

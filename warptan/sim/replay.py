@@ -101,7 +101,7 @@ def _measurements(log: FlightLog, model_name: str, idx: np.ndarray) -> list:
 # ---------------------------------------------------------------------- replay
 def replay_config(log: FlightLog, model: str | None = None, backend: str | None = None,
                   particles: int | None = None, likelihood: str | None = None,
-                  map_error: tuple[float, float] | None = None) -> Scenario:
+                  map_error: tuple[float, float] | None = None, map_error_learn: bool | str | None = None) -> Scenario:
     """The scenario of a replay: the one the log was simulated with (settings), else S8's filter and likelihood
     settings with the log's IMU grade, sensor and rates; the keywords override (``map_error``: the DEM's stated
     accuracy, ``(RMS, correlation length)`` in m: ``likelihood.map_error_rms_m`` and ``map_error_corr_m``)."""
@@ -129,6 +129,10 @@ def replay_config(log: FlightLog, model: str | None = None, backend: str | None 
             raise FilterError(f"the DEM's stated accuracy must be an RMS ≥ 0 m and, with an RMS, a correlation length "
                               f"> 0 m; got RMS {rms!r} m, correlation length {corr!r} m")
         scenario = scenario.replace(likelihood={"map_error_rms_m": rms, "map_error_corr_m": corr})
+    if map_error_learn is not None:
+        if map_error_learn not in (True, False, "auto"):
+            raise FilterError(f"map_error_learn must be 'auto', True or False, got {map_error_learn!r}")
+        scenario = scenario.replace(likelihood={"map_error_learn": map_error_learn})
     if model is not None:
         if model not in ("sliding", "raycast", "altimeter"):
             raise FilterError(f"unknown model {model!r}; choose sliding, raycast or altimeter")
@@ -303,7 +307,8 @@ def same_posts(log: FlightLog, terrain) -> bool:
 
 def replay(log: FlightLog, terrain=None, *, model: str | None = None, backend: str | None = None,
            particles: int | None = None, likelihood: str | None = None, seed: int | None = None, device="cpu",
-           progress=None, allow_gaps: bool = False, map_error: tuple[float, float] | None = None):
+           progress=None, allow_gaps: bool = False, map_error: tuple[float, float] | None = None,
+           map_error_learn: bool | str | None = None):
     """Filter a recorded flight; returns a :class:`~warptan.sim.scenarios.ScenarioResult` (errors NaN without truth).
 
     Args:
@@ -318,6 +323,8 @@ def replay(log: FlightLog, terrain=None, *, model: str | None = None, backend: s
         map_error: The DEM's stated accuracy, ``(RMS, correlation length)`` of its correlated vertical error in m (a
             published figure: SRTM, Copernicus, DTED; :meth:`~warptan.sensing.likelihood.Likelihood.error_modes`);
             default the log's settings, else none.
+        map_error_learn: Learn the error's RMS in flight, the statement (or the default) its prior: ``"auto"`` (the
+            default) unless the log was simulated over this DEM as its world, True or False.
 
     The log is placed in the DEM's frame first (:func:`place_log`: a geodetic frame converted, any DEM that covers
     the flight); a DEM that does not contain the flight, nodata under the track, or a frame the DEM cannot be
@@ -326,7 +333,7 @@ def replay(log: FlightLog, terrain=None, *, model: str | None = None, backend: s
     from warptan.sim.scenarios import ScenarioResult, map_terrain, scenario_model
 
     log.validate(f"flight log {log.name}")
-    scenario = replay_config(log, model, backend, particles, likelihood, map_error)
+    scenario = replay_config(log, model, backend, particles, likelihood, map_error, map_error_learn)
     truth_terrain = replay_terrain(log, scenario, terrain)
     own = own_terrain(log, terrain)
     log, placed = place_log(log, truth_terrain, own)

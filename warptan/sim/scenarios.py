@@ -209,6 +209,10 @@ def learned_statement(lk, map_is_world: bool, post_m: float) -> tuple[float, flo
     statement, or without one :data:`DEFAULT_MAP_ERROR` (its length at least two posts, ``post_m``), is the prior;
     off, the statement as given (none: 0, 0)."""
     rms, corr, learn = float(lk.map_error_rms_m), float(lk.map_error_corr_m), lk.map_error_learn
+    if rms > 0 and corr < post_m:
+        raise ScenarioError(f"likelihood.map_error_corr_m = {corr:g} m is shorter than one post of the map "
+                            f"({post_m:.4g} m): an error correlated over less than a post is noise per post (state the "
+                            "map's σ with terrain.map_noise_m), or give a correlation length ≥ the post spacing")
     on = learn is True or (learn == "auto" and not map_is_world)
     if on and lk.kind != "paper" and rms <= 0:
         rms, corr = DEFAULT_MAP_ERROR[0], max(DEFAULT_MAP_ERROR[1], 2.0 * post_m)
@@ -276,6 +280,7 @@ def prepare(name_or_path, seed: int = 0, terrain=None, *, seeds=None, device=Non
     truth_terrain = world_terrain(resolve_terrain(scenario, terrain), scenario, base + seeds[0])
     flight = build_flight(scenario, truth_terrain)
     the_map = map_terrain(truth_terrain, scenario, base + seeds[0])
+    learned_statement(scenario.likelihood, the_map is truth_terrain, max(the_map.dn, the_map.de))  # checks it
     if the_map is not truth_terrain:  # the map must cover the flight as the world must
         problem = track_problem(the_map, flight.pos_n[:, :2], scenario.flight.margin_m, f"map {the_map.name}")
         if problem:
