@@ -170,7 +170,8 @@ def _points_minus_plain(model, out, cloud, plain_res, pos):
     z = np.where(ok, res, 0.0) / sig
     sigma = model.params().sigma
     points = np.where(ok, -0.5 * z**2 - np.log(sig / sigma), 0.0).sum(axis=1)
-    points = points - 0.5 * np.nansum(_gated_scores(model, cloud, pos, gated) ** 2, axis=1) * _gated_scale(model, gated, ok)
+    gated_sq = np.nansum(_gated_scores(model, cloud, pos, gated) ** 2, axis=1)
+    points = points - 0.5 * gated_sq * _gated_scale(model, gated, ok)
     fine = np.isfinite(plain_res)
     plain = np.where(fine, -0.5 * (np.where(fine, plain_res, 0.0) / sigma) ** 2, 0.0).sum(axis=1)
     return z, points - plain
@@ -423,7 +424,8 @@ def test_s8_over_a_world_with_a_map_error_is_honest_told_or_not():
 @pytest.mark.parametrize("name", ["sliding", "raycast"])
 def test_a_statement_over_a_map_better_than_stated_keeps_the_likelihood_falling_with_distance(name, device):
     """Map = world, told 4 m / 1 km while the point's own σ is 0.5 m: a particle further below or above the true pose
-    never scores higher (all gross misses score alike, 20 and 40 m), whether its points pass the gate (5 m) or all are gross misses (20, 40 m). Before
+    never scores higher (all gross misses score alike, 20 and 40 m), whether its points pass the gate (5 m) or all are
+    gross misses (20, 40 m). Before
     :func:`warptan.kernels.likelihood.gated_scale` the particles 20 and 40 m off outscored the one 5 m off (−800 vs
     −6 162 nats) and the filter's altitude ran to −120 m."""
     dem = wt.Terrain.load("rugged")
@@ -443,8 +445,9 @@ def test_a_statement_over_a_map_better_than_stated_keeps_the_likelihood_falling_
 
 
 def test_a_statement_over_a_map_better_than_stated_does_not_diverge():
-    """S8 (2 seeds) and S7 (1 seed) flown over their own map (map = world) but told 4 m / 1 km (60 s): the horizontal RMSE
-    stays within a few metres (61.6 m and 118 m before the gross misses' scale) and 3σ covers ≥ 90 % on each axis."""
+    """S8 (2 seeds) and S7 (1 seed) flown over their own map (map = world) but told 4 m / 1 km (60 s): the horizontal
+    RMSE stays within a few metres (61.6 m and 118 m before the gross misses' scale), 3σ covering ≥ 90 % on each
+    axis."""
     from warptan.sim.scenarios import run_scenario_batch
 
     for sid, seeds in (("S8", [0, 1]), ("S7", [0])):
