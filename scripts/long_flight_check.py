@@ -45,7 +45,7 @@ def main(argv=None) -> int:
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--terrain", default=None,
                         help="truth = map DEM (a path or name); 600 s at 100 m/s needs more than the package's ±22 km "
-                             "crop, e.g. ../shared/data/dem/thuringia_hilly_srtm3_n50e010.tif")
+                             "crop, e.g. tests/data/dem/thuringia_hilly_srtm3_n50e010.tif")
     args = parser.parse_args(argv)
     out_path = Path(args.out)
     command = f"python scripts/long_flight_check.py {out_path} --seeds {args.seeds} --device {args.device}"

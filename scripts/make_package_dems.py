@@ -7,7 +7,7 @@ margin in any heading: ±22 km for the rugged tile (S5/S6 orbit beside the highe
 of the centre), ±12 km for the flat one; the 30 m tile (19 × 36 km) is shipped whole. Provenance:
 ``warptan/data/dem/README.md``.
 
-    python scripts/make_package_dems.py --source ../shared/data/dem
+    python scripts/make_package_dems.py --source tests/data/dem
 """
 
 from __future__ import annotations
@@ -49,7 +49,7 @@ def window_for(src, half_m: float | None) -> Window:
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--source", default="../shared/data/dem", help="folder of the source tiles")
+    parser.add_argument("--source", default="tests/data/dem", help="folder of the source tiles")
     parser.add_argument("--out", default=str(Path(__file__).resolve().parents[1] / "warptan" / "data" / "dem"))
     args = parser.parse_args(argv)
     out = Path(args.out)

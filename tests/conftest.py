@@ -14,8 +14,9 @@ import warp as wp
 wp.config.quiet = True
 wp.config.log_level = max(wp.config.log_level, wp.LOG_WARNING)
 
-# The shared real DEMs live beside the checkout; WARPTAN_DEM_DIR points elsewhere (e.g. on a GPU machine).
-DEM_DIR = Path(os.environ.get("WARPTAN_DEM_DIR") or Path(__file__).resolve().parents[2] / "shared" / "data" / "dem")
+# The real DEM tiles the tests fly ship in tests/data/dem (public-domain data, provenance in its README.md);
+# WARPTAN_DEM_DIR points elsewhere.
+DEM_DIR = Path(os.environ.get("WARPTAN_DEM_DIR") or Path(__file__).resolve().parent / "data" / "dem")
 THURINGIA = DEM_DIR / "thuringia_hilly_srtm3_n50e010.tif"
 GANGES = DEM_DIR / "ganges_plain_flat_srtm3_n28e078.tif"
 BOSPHORUS = DEM_DIR / "bosphorus_istanbul_dted0.tif"
@@ -43,9 +44,10 @@ def pytest_generate_tests(metafunc):
 
 
 def dem_path(path: Path) -> str:
-    """The path of a shared DEM, or a visible skip when ../shared/data/dem is absent."""
+    """The path of a real DEM tile of tests/data/dem (or WARPTAN_DEM_DIR); a missing one is an error, not a skip."""
     if not path.exists():
-        pytest.skip(f"real DEM not available: {path}")
+        raise FileNotFoundError(f"real DEM tile missing: {path} (tests/data/dem ships it; WARPTAN_DEM_DIR = "
+                                f"{os.environ.get('WARPTAN_DEM_DIR')!r})")
     return str(path)
 
 

@@ -44,7 +44,7 @@ def test_fresh_virtualenv_install(tmp_path):
             "warptan.kernels.__file__; "
             "spec = importlib.util.find_spec('kernels'); "
             "assert spec is None or 'warptan' not in (spec.origin or ''), spec; "
-            # the scenarios' real terrains come with the package (issue 13): no ../shared, no environment variable
+            # the scenarios' real terrains come with the package (issue 13): no file outside it, no environment variable
             "from warptan.sim.scenarios import prepare; cfg, truth, flight = prepare('S8'); "
             "assert truth.name == 'rugged:thuringia_hilly_srtm3_crop44km.tif', truth.name; "
             "assert 'site-packages' in truth.description, truth.description; print(warptan.kernels.__file__)")

@@ -226,7 +226,7 @@ def test_likelihood_sigma_auto_or_number():
 
 # ---------------------------------------------------------------------- world ≠ map (issue 13)
 def test_scenarios_fly_the_package_terrains(monkeypatch):
-    """Without ../shared or WARPTAN_DEM_DIR the scenarios fly the real tiles shipped with the package; the
+    """Without a DEM directory (WARPTAN_DEM_DIR) the scenarios fly the real tiles shipped with the package; the
     30 m tile is one switch away for S1–S9."""
     monkeypatch.delenv("WARPTAN_DEM_DIR", raising=False)
     monkeypatch.chdir("/")

@@ -370,7 +370,7 @@ def test_trimesh_export(tmp_path):
     ("rugged30", (643, 643), (1197, 1197), (310.0, 2300.0)),
 ])
 def test_named_terrains_ship_with_the_package(monkeypatch, name, rows, cols, h_range):
-    """rugged / flat / rugged30 load from the package (no ../shared, no environment variable), keep their
+    """rugged / flat / rugged30 load from the package (no file outside the package, no environment variable), keep their
     georeference and name themselves the same on every machine."""
     from warptan.terrain.grid import NAMED_TERRAINS, named_terrain_file
 

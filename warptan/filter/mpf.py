@@ -203,18 +203,16 @@ class MarginalizedParticleFilter(ImuIntake, Readout):
         if getattr(model, "fixes_per_scan", False) and hasattr(lk, "fix_process"):
             self.q_pos = self.q_pos + np.array([lk.fix_process(v) for v in speeds]) * self.dt
         self.q_pos = np.broadcast_to(np.asarray(self.q_pos, dtype=np.float64), (b,)).copy()
+        """(B,) Q^n's diagonal per filter (m² per nominal step): the Kalman part's position noise and the fix wander."""
+        self._q_dev = (wp.array(self.q_pos, dtype=wp.float64, device=self.device),
+                       wp.array(self._q_vel_down, dtype=wp.float64, device=self.device))
         self.learner = None
         """The map error's RMS learned in flight (:class:`~warptan.sensing.likelihood.MapErrorLearner`) when the
         likelihood states an error to learn (``map_error_learn``) and the filter runs one flight (a batch shares one
         likelihood: its filters keep the statement)."""
         if getattr(lk, "models_map_error", False) and getattr(lk, "map_error_learn", False) and b == 1:
             self.learner = MapErrorLearner(lk.map_error_sigma_m)
-        self.map_offset_var_log = [(0, self.map_offset_var)]
-        """(update count, the altitude variance the map offset adds from then on, m²): it changes as the learner
-        restates the error."""
-        """(B,) Q^n's diagonal per filter (m² per nominal step): the Kalman part's position noise and the fix wander."""
-        self._q_dev = (wp.array(self.q_pos, dtype=wp.float64, device=self.device),
-                       wp.array(self._q_vel_down, dtype=wp.float64, device=self.device))
+            self._moments_out = wp.zeros((b, kmpf.MOMENTS_LEN), dtype=wp.float64, device=self.device)
         self.max_stages = int(c.max_stages)
         self.bandwidth = float(c.regularize) * (4.0 / (self.n * 5.0)) ** (1.0 / 7.0)
         """Regularisation bandwidth h (Silverman's rule for d = 3 times ``regularize``)."""
@@ -429,28 +427,18 @@ class MarginalizedParticleFilter(ImuIntake, Readout):
         self.last_n_received = np.array(out.n_received)  # (after the device work is queued: nothing there reads it)
         return self._info(out) if sync else None
 
-    def offset_var_per_update(self, n: int) -> np.ndarray:
-        """(n,) the map offset's altitude variance (m²) each of the first ``n`` updates reported (:attr:`map_offset_var`
-        as it was then: the learner may restate it)."""
-        out = np.empty(n)
-        for count, value in self.map_offset_var_log:  # an entry holds from the update after ``count`` on
-            out[count:] = value
-        return out
-
     def _learn_map_error(self) -> None:
         """A reading of the map-error evidence for :attr:`learner` (one (1, 6) copy to the host every
-        ``learner.every`` updates) and, when it moved, the error restated: the model's likelihood and mode table, the
-        offset's altitude variance and vertical-velocity noise and the fix wander (in place: captured graphs read
-        them)."""
+        ``learner.every`` updates: on CUDA it waits for the update) and, when it moved, the error restated: the
+        model's likelihood and mode table, the offset's vertical-velocity noise and the fix wander (in place: captured
+        graphs read them; the offset's altitude variance keeps the prior's level)."""
         table = self._mode_table()
         if table is None or self._out is None:
             return
-        if getattr(self, "_moments_out", None) is None:
-            self._moments_out = wp.zeros((self.n_filters, kmpf.MOMENTS_LEN), dtype=wp.float64, device=self.device)
         m = table.shape[0] - klik.MODE_EXTRA_ROWS
-        wp.launch(kmpf.map_error_moments_kernel, dim=self.n_filters,
-                  inputs=[self.n, m, table, self.state.logw, self.state.dp, self._out.nis, self._mode_mean,
-                          self._mode_var], outputs=[self._moments_out], device=self.device)
+        launch(kmpf.map_error_moments_kernel, dim=self.n_filters,
+               inputs=[self.n, m, table, self.state.logw, self.state.dp, self._out.nis, self._mode_mean,
+                       self._mode_var], outputs=[self._moments_out], device=self.device)
         sigma = self.learner.read(self._moments_out.numpy()[0])
         if sigma is None:
             return
@@ -467,7 +455,6 @@ class MarginalizedParticleFilter(ImuIntake, Readout):
             self.q_pos = np.broadcast_to(np.asarray(q, dtype=np.float64), (self.n_filters,)).copy()
         self._q_dev[0].assign(self.q_pos)
         self._q_dev[1].assign(np.asarray(self._q_vel_down, dtype=np.float64))
-        self.map_offset_var_log.append((self.n_updates, self.map_offset_var))
 
     def _info(self, out):
         stats = self._stats.numpy()

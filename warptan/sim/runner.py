@@ -228,8 +228,7 @@ def collect_runs(mpf: MarginalizedParticleFilter, t_s: np.ndarray, truth: dict |
                                           h[:, kmpf.H_MEAN_L:kmpf.H_MEAN_L + 12],
                                           p_diag[:, b] + h[:, kmpf.H_VAR_L:kmpf.H_VAR_L + 12])
         mean = h[:, kmpf.H_MEAN_DP:kmpf.H_MEAN_DP + 3]
-        var = h[:, kmpf.H_COV_DP:kmpf.H_COV_DP + 3].copy()
-        var[:, 2] += mpf.offset_var_per_update(len(h))
+        var = h[:, kmpf.H_COV_DP:kmpf.H_COV_DP + 3] + np.array([0.0, 0.0, mpf.map_offset_var])
         est = np.vstack([prior[b].nav.pos_n, nominal_hist[:, b, kmpf.NOM_POS:kmpf.NOM_POS + 3] + mean])
         sig = np.vstack([prior[b].sigma3_pos, 3.0 * np.sqrt(np.maximum(var, 0.0))])
         respread = h[:, kmpf.H_RESPREAD] > 0
