@@ -6,7 +6,8 @@ Families (each its own generator settings of :class:`warptan.terrain.world.World
 ``world_seed = 2000 + seed``): ``long`` 5 m correlated over 1 km with the map's sub-post relief extrapolated; ``short``
 2 m over 300 m; ``biased`` 10 m over 3 km and a 5 m bias; ``smoothed`` 3 m of relief under the map's posts only (a
 smoothed product); ``clutter`` 3 m over 1 km and 8 m canopy over 20 % of the ground. Seeds run one by one (the learner
-runs in a filter of one flight). Rows are appended to OUT/study.json as they finish (``--resume`` skips them);
+runs in a filter of one flight) over ``--worlds`` realisations of each family (seed k flies world ``2000 + k * worlds //
+seeds``). Rows are appended to OUT/study.json as they finish (``--resume`` skips them);
 OUT/study.md is written from the JSON.
 
     python scripts/learn_study.py --seeds 20 --scenarios S8 S7 --modes learn off told --out results/learned
@@ -45,9 +46,10 @@ def mode_keywords(mode: str, family: dict) -> dict:
     return {}
 
 
-def run_row(sid: str, family: str, mode: str, seeds: int, duration_s: float, device: str) -> dict:
+def run_row(sid: str, family: str, mode: str, seeds: int, worlds: int, duration_s: float, device: str) -> dict:
     kw = {**FAMILIES[family], **mode_keywords(mode, FAMILIES[family]), "duration_s": duration_s}
-    runs = [run_scenario(sid, seed, device=device, world_seed=2000 + seed, **kw) for seed in range(seeds)]
+    runs = [run_scenario(sid, seed, device=device, world_seed=2000 + seed * worlds // seeds, **kw)
+            for seed in range(seeds)]
     horiz = np.array([np.hypot(*r.rmse_converged[:2]) for r in runs])
     conv = runs[0].config.filter.converged_after_s
     err = np.concatenate([r.run.error[r.run.t_s >= conv] for r in runs])
@@ -55,7 +57,8 @@ def run_row(sid: str, family: str, mode: str, seeds: int, duration_s: float, dev
     rmse = np.sqrt(np.mean(err**2, axis=0))
     mean, half = ci95(horiz)
     learned = [r.run.info.get("map_error_learned_m") for r in runs]
-    return {"scenario": sid, "family": family, "mode": mode, "seeds": seeds, "duration_s": duration_s,
+    return {"scenario": sid, "family": family, "mode": mode, "seeds": seeds, "worlds": worlds,
+            "duration_s": duration_s,
             "keywords": {k: v for k, v in kw.items() if k != "duration_s"},
             "horizontal_rmse_m": float(mean), "horizontal_rmse_ci95_m": float(half), "per_seed_m": horiz.tolist(),
             "coverage_3sigma": np.mean(np.abs(err) <= sig3, axis=0).tolist(),
@@ -67,12 +70,13 @@ def run_row(sid: str, family: str, mode: str, seeds: int, duration_s: float, dev
 
 def write_md(rows: list[dict], path: Path) -> None:
     lines = ["# Honest without being told: the map's error learned in flight", "",
-             "Per row: 20 seeds (one world realisation each), 120 s, nothing stated (learn: the default; off: the "
-             "learner off) or told the world's error as a prior (told). Horizontal RMSE after convergence, mean ± 95 % "
-             "interval over seeds; 3σ coverage pooled over seeds and epochs after convergence; σ/RMSE the mean "
-             "reported σ over the RMSE per axis; learned: the learned RMS at the end of the flight, mean (min–max) "
-             "over seeds. Command: `python scripts/learn_study.py --seeds 20 --scenarios S8 S7 --modes learn off told "
-             "--out results/learned`.", "",
+             "Per row: 20 seeds over 4 world realisations of the family (5 seeds each), 120 s, nothing stated "
+             "(learn: the default; off: the learner off) or told the world's error as a prior (told). Horizontal "
+             "RMSE after convergence, mean ± 95 % interval over seeds; 3σ coverage pooled over seeds and epochs after "
+             "convergence; σ/RMSE the mean reported σ over the RMSE per axis; learned: the learned RMS at the end of "
+             "the flight, mean (min–max) over seeds. Commands: `python scripts/learn_study.py --seeds 20 --scenarios "
+             "S8 --modes learn off --out results/learned`, then `--scenarios S8 --modes told` and `--scenarios S7 "
+             "--modes learn` (CPU).", "",
              "| scenario | family | map − world RMS (m) | mode | horizontal RMSE (m) | 3σ coverage N / E / D | "
              "σ/RMSE N / E / D | learned RMS (m) | re-spreads |", "|---|---|---|---|---|---|---|---|---|"]
     for r in sorted(rows, key=lambda r: (r["scenario"], r["family"], r["mode"])):
@@ -92,6 +96,7 @@ def main(argv=None) -> int:
     p.add_argument("--families", nargs="+", default=list(FAMILIES), choices=list(FAMILIES))
     p.add_argument("--modes", nargs="+", default=list(MODES), choices=list(MODES))
     p.add_argument("--seeds", type=int, default=20)
+    p.add_argument("--worlds", type=int, default=4)
     p.add_argument("--duration-s", type=float, default=120.0)
     p.add_argument("--device", default="cpu")
     p.add_argument("--out", type=Path, required=True)
@@ -106,7 +111,7 @@ def main(argv=None) -> int:
             for mode in args.modes:
                 if (sid, family, mode, args.seeds) in done:
                     continue
-                rows.append(run_row(sid, family, mode, args.seeds, args.duration_s, args.device))
+                rows.append(run_row(sid, family, mode, args.seeds, args.worlds, args.duration_s, args.device))
                 path.write_text(json.dumps(rows, indent=1))
                 write_md(rows, args.out / "study.md")
                 print(f"{sid} {family} {mode}: {rows[-1]['horizontal_rmse_m']:.2f} m, "

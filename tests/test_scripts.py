@@ -5,6 +5,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -188,3 +189,23 @@ def test_reproduce_paper_checks_its_output_before_the_work(tmp_path):
                           capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr
     assert (out / "paper" / "results.json").exists() and "| S8 |" in (out / "likelihoods.md").read_text()
+
+
+@pytest.mark.slow
+def test_learn_study_runs_resumes_and_reports(tmp_path):
+    """`learn_study.py` on a tiny plan (2 seeds, one family, 35 s): a row per mode, the learned RMS only where the
+    learner ran; a resume adds only the missing row; the Markdown table names every row."""
+    script, out = str(ROOT / "scripts" / "learn_study.py"), tmp_path / "l"
+    base = [sys.executable, script, "--seeds", "2", "--worlds", "1", "--duration-s", "35", "--scenarios", "S8",
+            "--families", "short", "--out", str(out)]
+    proc = subprocess.run([*base, "--modes", "learn"], capture_output=True, text=True, timeout=600, cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    proc = subprocess.run([*base, "--modes", "learn", "off", "--resume"], capture_output=True, text=True, timeout=600,
+                          cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    rows = json.loads((out / "study.json").read_text())
+    assert sorted(r["mode"] for r in rows) == ["learn", "off"]
+    learned = {r["mode"]: r["learned_m"] for r in rows}
+    assert learned["off"] is None and len(learned["learn"]) == 2 and all(v > 0 for v in learned["learn"])
+    assert all(np.isfinite(r["horizontal_rmse_m"]) and r["worlds"] == 1 for r in rows)
+    assert (out / "study.md").read_text().count("| S8 | short |") == 2
