@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -68,6 +69,19 @@ def run_row(sid: str, family: str, mode: str, seeds: int, worlds: int, duration_
             "respreads": int(sum(r.run.respread.sum() for r in runs)), "meta": run_meta((device,))}
 
 
+def merged_meta(rows: list[dict]) -> dict:
+    """The artifact's meta of rows run on several machines: the first row's, with every row's devices, the GPU's
+    name and driver where one ran, every commit and this merge's command."""
+    meta = dict(rows[0]["meta"])
+    meta["devices"] = {k: v for r in rows for k, v in r["meta"]["devices"].items()}
+    gpu = next((r["meta"]["gpu"] for r in rows if "gpu" in r["meta"]), None)
+    if gpu is not None:
+        meta["gpu"] = gpu
+    meta["git_commits"] = sorted({str(r["meta"]["git_commit"]) for r in rows})
+    meta["command"] = " ".join(sys.argv)
+    return meta
+
+
 def write_md(rows: list[dict], path: Path) -> None:
     lines = ["# Honest without being told: the map's error learned in flight", "",
              "Per row: 20 seeds over 4 world realisations of the family (5 seeds each), 120 s, nothing stated "
@@ -78,7 +92,7 @@ def write_md(rows: list[dict], path: Path) -> None:
              "S8 --modes learn off --out results/learned`, then `--scenarios S8 --modes told` and `--scenarios S7 "
              "--modes learn` (CPU).", "",
              "| scenario | family | map − world RMS (m) | mode | horizontal RMSE (m) | 3σ coverage N / E / D | "
-             "σ/RMSE N / E / D | learned RMS (m) | re-spreads |", "|---|---|---|---|---|---|---|---|---|"]
+             "σ/RMSE N / E / D | learned RMS (m) | re-spreads | device |", "|---|---|---|---|---|---|---|---|---|---|"]
     for r in sorted(rows, key=lambda r: (r["scenario"], r["family"], r["mode"])):
         cov = " / ".join(f"{100 * c:.0f}%" for c in r["coverage_3sigma"])
         sr = " / ".join(f"{v:.2f}" for v in r["sigma_over_rmse"])
@@ -86,7 +100,7 @@ def write_md(rows: list[dict], path: Path) -> None:
                                             f"{max(r['learned_m']):.2f})")
         lines.append(f"| {r['scenario']} | {r['family']} | {r['world_rms_m']:.2f} | {r['mode']} | "
                      f"{r['horizontal_rmse_m']:.2f} ± {r['horizontal_rmse_ci95_m']:.2f} | {cov} | {sr} | {lm} | "
-                     f"{r['respreads']} |")
+                     f"{r['respreads']} | {', '.join(r['meta']['devices'].values())} |")
     path.write_text("\n".join(lines) + "\n")
 
 
@@ -101,10 +115,22 @@ def main(argv=None) -> int:
     p.add_argument("--device", default="cpu")
     p.add_argument("--out", type=Path, required=True)
     p.add_argument("--resume", action="store_true")
+    p.add_argument("--merge", nargs="+", type=Path, default=None,
+                   help="write OUT from these study.json files instead of running (a later file's row replaces an "
+                        "earlier one of the same scenario, family and mode)")
     args = p.parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
     path = args.out / "study.json"
-    rows = json.loads(path.read_text()) if args.resume and path.exists() else []
+    if args.merge:
+        merged = {}
+        for source in args.merge:
+            for r in json.loads(source.read_text())["rows"]:
+                merged[(r["scenario"], r["family"], r["mode"])] = r
+        rows = list(merged.values())
+        path.write_text(json.dumps({"meta": merged_meta(rows), "rows": rows}, indent=1))
+        write_md(rows, args.out / "study.md")
+        return 0
+    rows = json.loads(path.read_text())["rows"] if args.resume and path.exists() else []
     done = {(r["scenario"], r["family"], r["mode"], r["seeds"]) for r in rows}
     for sid in args.scenarios:
         for family in args.families:
@@ -112,7 +138,7 @@ def main(argv=None) -> int:
                 if (sid, family, mode, args.seeds) in done:
                     continue
                 rows.append(run_row(sid, family, mode, args.seeds, args.worlds, args.duration_s, args.device))
-                path.write_text(json.dumps(rows, indent=1))
+                path.write_text(json.dumps({"meta": run_meta((args.device,)), "rows": rows}, indent=1))
                 write_md(rows, args.out / "study.md")
                 print(f"{sid} {family} {mode}: {rows[-1]['horizontal_rmse_m']:.2f} m, "
                       f"coverage {rows[-1]['coverage_3sigma']}", flush=True)

@@ -421,6 +421,34 @@ def world_block(path: str = "results/world/study.json") -> str:
     return "\n".join(lines)
 
 
+def learned_block(path: str = "results/learned/study.json") -> str:
+    """The map's error learned in flight: per scenario and world family, the learner on, off, and told the truth."""
+    data = _load(path)
+    rows = data["rows"]
+    order = ("learn", "off", "told")
+    names = {"learn": "told nothing, learned (default)", "off": "told nothing, learner off",
+             "told": "told the world's error (a prior)"}
+    keys = sorted({(r["scenario"], r["family"]) for r in rows}, key=lambda k: (_sid_key(k[0]), k[1]))
+    lines = ["20 seeds over 4 world realisations per row, 120 s; converged horizontal RMSE (m, mean ± 95 % interval), "
+             "3σ coverage N / E / D and, for the learner, the learned RMS (m, mean over seeds); a dash: not run. "
+             "Families and devices: `results/learned/study.md`. " + _provenance(path), "",
+             "| scenario | family (map − world RMS) | " + " | ".join(names[m] for m in order) + " |",
+             "|---|---|" + "---|" * len(order)]
+    for sid, family in keys:
+        cells, world = [], ""
+        for mode in order:
+            r = next((r for r in rows if (r["scenario"], r["family"], r["mode"]) == (sid, family, mode)), None)
+            if r is None:
+                cells.append("–")
+                continue
+            world = f"{r['world_rms_m']:.1f} m"
+            learned = f", σ_e {sum(r['learned_m']) / len(r['learned_m']):.2f} m" if r["learned_m"] else ""
+            cells.append(f"{r['horizontal_rmse_m']:.2f}±{r['horizontal_rmse_ci95_m']:.2f} "
+                         f"({_pct(r['coverage_3sigma'])}{learned})")
+        lines.append(f"| {sid} | {family} ({world}) | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
 def replay_frames_block(path: str = "results/replay_frames.json") -> str:
     """Flights tied to the Earth over many seeds: in memory, replayed over the own DEM, through geodetic CSV tables,
     over another cut of the DEM and over a UTM copy."""
@@ -469,7 +497,7 @@ BLOCKS = {"paper": paper_block, "attitude": attitude_block, "paper30": lambda: p
           "idle": idle_block,
           "profile": profile_block, "stamps": stamps_block, "kernels": kernels_block,
           "threads": threads_block, "numpy": numpy_block, "batch": batch_block, "campaign": campaign_block,
-          "world": world_block, "replay_frames": replay_frames_block, "bound": bound_block}
+          "world": world_block, "learned": learned_block, "replay_frames": replay_frames_block, "bound": bound_block}
 
 _BLOCK = re.compile(r"<!-- generated:(\w+) -->\n.*?<!-- /generated:\1 -->", re.S)
 _FENCE = re.compile(r"```.*?```", re.S)

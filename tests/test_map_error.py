@@ -425,6 +425,11 @@ def test_the_command_line_states_the_accuracy(capsys, tmp_path):
 
     run = json.loads((out / "results.json").read_text())["runs"][0]
     assert run["world"]["model"]["error_rms_m"] == 5.0 and "error 5 m / 1000 m" in run["terrain"]
+    assert cli.main(["run", "S8", "--map-error-m", "5", "--map-error-corr-m", "30", "--check"]) == 2
+    assert "map_error_corr_m = 30 m is shorter than one post" in capsys.readouterr().err
+    with pytest.raises(SystemExit):  # argparse: not one of auto, on, off
+        cli.main(["run", "S8", "--map-error-learn", "sometimes", "--check"])
+    assert cli.main(["run", "S8", "--map-error-learn", "off", "--check"]) == 0
 
 
 def test_the_filter_reports_the_offset_it_carries():

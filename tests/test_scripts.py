@@ -203,7 +203,7 @@ def test_learn_study_runs_resumes_and_reports(tmp_path):
     proc = subprocess.run([*base, "--modes", "learn", "off", "--resume"], capture_output=True, text=True, timeout=600,
                           cwd=tmp_path)
     assert proc.returncode == 0, proc.stderr
-    rows = json.loads((out / "study.json").read_text())
+    rows = json.loads((out / "study.json").read_text())["rows"]
     assert sorted(r["mode"] for r in rows) == ["learn", "off"]
     learned = {r["mode"]: r["learned_m"] for r in rows}
     assert learned["off"] is None and len(learned["learn"]) == 2 and all(v > 0 for v in learned["learn"])
