@@ -365,7 +365,7 @@ class UpdateProgram:
                     break
                 if not self._block_stages:  # (the block form's resampling wrote them)
                     self._piece(("poses", stage), self._launch_poses)
-                self._launch_model(("model", stage))
+                self._launch_later_model(("model", stage))
                 self._piece(("weigh", stage), self._launch_stage, out, stage)
                 self._resample_if(stage=stage, read_flags=True)
             elif self._lean:
@@ -416,6 +416,22 @@ class UpdateProgram:
         else:
             self.model.launch(self._pos, self._quat)
 
+    def _launch_later_model(self, key) -> None:
+        """The model at a later tempering stage (``key``: its recorded piece, None: launched anew). It evaluates
+        every filter of a batch; those already done keep their map-error mode posteriors from before it
+        (:func:`~warptan.kernels.mpf.keep_done_modes_kernel`), as each would alone."""
+        held = self._mode_spare[1] if self._mode_table() is not None and self.n_filters > 1 else None
+        post = self._out.mode_post
+        if held is not None:
+            launch(kmpf.hold_modes_kernel, dim=held.shape[0], inputs=[post], outputs=[held], device=self.device)
+        if key is None:
+            self.model.launch(self._pos, self._quat)
+        else:
+            self._launch_model(key)
+        if held is not None:
+            launch(kmpf.keep_done_modes_kernel, dim=held.shape[0], inputs=[self.n, self._stats, held],
+                   outputs=[post], device=self.device)
+
     def _launch_weigh(self, out, stage: int) -> None:
         if not self._lean:  # (lean: the head reset the statistics)
             launch(kmpf.begin_update_kernel, dim=self.n_filters, inputs=[self._exponent], outputs=[self._stats],
@@ -427,7 +443,7 @@ class UpdateProgram:
         wrote) and model at the moved particles, weights, resampling."""
         if not self._block_stages:
             self._launch_poses()
-        self.model.launch(self._pos, self._quat)
+        self._launch_later_model(None)
         self._launch_stage(out, stage)
         self._launch_resample(stage)
 
