@@ -33,40 +33,64 @@ FAMILIES = {
     "smoothed": {"world_relief_rms_m": 3.0, "world_relief_slope": 3.0},
     "clutter": {"world_error_rms_m": 3.0, "world_error_corr_m": 1000.0, "world_clutter_height_m": 8.0,
                 "world_clutter_fraction": 0.2},
+    "exact": {},
 }
-MODES = ("learn", "off", "told")
+"""World generator settings per family; ``exact``: the map is the world (a statement there is over-stated)."""
+MISSTATED = {"rms-half": (0.5, 1.0), "rms-double": (2.0, 1.0), "corr-third": (1.0, 1.0 / 3.0),
+             "corr-triple": (1.0, 3.0)}
+"""Misstated modes: (factor on the RMS, factor on the correlation length) of the family's own error."""
+MODES = ("learn", "off", "told", *MISSTATED)
+EXACT_STATEMENT = (5.0, 1000.0)
+"""What ``told`` states over the ``exact`` family (a map better than stated)."""
 
 
-def mode_keywords(mode: str, family: dict) -> dict:
-    """The likelihood's keywords of a mode over a family (``told``: the family's own error, else 3 m / 300 m)."""
+def mode_keywords(mode: str, family: str) -> dict:
+    """The likelihood's keywords of a mode over a family: ``off`` the learner off, ``told`` the family's own error
+    (``smoothed``: 3 m / 300 m; ``exact``: :data:`EXACT_STATEMENT`) as the learner's prior, a :data:`MISSTATED` mode
+    that statement scaled."""
     if mode == "off":
         return {"map_error_learn": False}
-    if mode == "told":
-        return {"map_error_rms_m": family.get("world_error_rms_m", 3.0),
-                "map_error_corr_m": family.get("world_error_corr_m", 300.0)}
-    return {}
+    if mode == "learn":
+        return {}
+    kw = FAMILIES[family]
+    rms, corr = EXACT_STATEMENT if family == "exact" else (kw.get("world_error_rms_m", 3.0),
+                                                           kw.get("world_error_corr_m", 300.0))
+    f_rms, f_corr = MISSTATED.get(mode, (1.0, 1.0))
+    return {"map_error_rms_m": rms * f_rms, "map_error_corr_m": corr * f_corr}
 
 
-def run_row(sid: str, family: str, mode: str, seeds: int, worlds: int, duration_s: float, device: str) -> dict:
-    kw = {**FAMILIES[family], **mode_keywords(mode, FAMILIES[family]), "duration_s": duration_s}
-    runs = [run_scenario(sid, seed, device=device, world_seed=2000 + seed * worlds // seeds, **kw)
-            for seed in range(seeds)]
-    horiz = np.array([np.hypot(*r.rmse_converged[:2]) for r in runs])
-    conv = runs[0].config.filter.converged_after_s
-    err = np.concatenate([r.run.error[r.run.t_s >= conv] for r in runs])
-    sig3 = np.concatenate([r.run.sigma3_pos[r.run.t_s >= conv] for r in runs])
+def fly(job: tuple) -> dict:
+    """One seed of a row (a worker's task): its converged horizontal RMSE, errors and 3σ after convergence, learned
+    RMS, the map-minus-world RMS and its re-spreads."""
+    sid, seed, world_seed, kw, device = job
+    r = run_scenario(sid, seed, device=device, world_seed=world_seed, bound=False, **kw)
+    conv = r.run.t_s >= r.config.filter.converged_after_s
+    parts = getattr(r.truth_terrain, "parts", None) or {}
+    return {"horiz": float(np.hypot(*r.rmse_converged[:2])), "err": r.run.error[conv], "sig3": r.run.sigma3_pos[conv],
+            "learned": r.run.info.get("map_error_learned_m"),
+            "world_rms": float(parts.get("map_minus_world_rms_m", 0.0)), "respreads": int(r.run.respread.sum())}
+
+
+def run_row(sid: str, family: str, mode: str, seeds: int, worlds: int, duration_s: float, device: str,
+            pool=None) -> dict:
+    kw = {**FAMILIES[family], **mode_keywords(mode, family), "duration_s": duration_s}
+    jobs = [(sid, seed, 2000 + seed * worlds // seeds, kw, device) for seed in range(seeds)]
+    runs = list(pool.map(fly, jobs)) if pool is not None else [fly(j) for j in jobs]
+    horiz = np.array([r["horiz"] for r in runs])
+    err = np.concatenate([r["err"] for r in runs])
+    sig3 = np.concatenate([r["sig3"] for r in runs])
     rmse = np.sqrt(np.mean(err**2, axis=0))
     mean, half = ci95(horiz)
-    learned = [r.run.info.get("map_error_learned_m") for r in runs]
+    learned = [r["learned"] for r in runs]
     return {"scenario": sid, "family": family, "mode": mode, "seeds": seeds, "worlds": worlds,
             "duration_s": duration_s,
             "keywords": {k: v for k, v in kw.items() if k != "duration_s"},
             "horizontal_rmse_m": float(mean), "horizontal_rmse_ci95_m": float(half), "per_seed_m": horiz.tolist(),
             "coverage_3sigma": np.mean(np.abs(err) <= sig3, axis=0).tolist(),
             "sigma_over_rmse": (np.mean(sig3, axis=0) / 3.0 / rmse).tolist(),
-            "world_rms_m": float(np.mean([r.truth_terrain.parts["map_minus_world_rms_m"] for r in runs])),
+            "world_rms_m": float(np.mean([r["world_rms"] for r in runs])),
             "learned_m": None if learned[0] is None else [float(v) for v in learned],
-            "respreads": int(sum(r.run.respread.sum() for r in runs)), "meta": run_meta((device,))}
+            "respreads": int(sum(r["respreads"] for r in runs)), "meta": run_meta((device,))}
 
 
 def merged_meta(rows: list[dict]) -> dict:
@@ -115,6 +139,7 @@ def main(argv=None) -> int:
     p.add_argument("--device", default="cpu")
     p.add_argument("--out", type=Path, required=True)
     p.add_argument("--resume", action="store_true")
+    p.add_argument("--jobs", type=int, default=1, help="seeds flown side by side in this many worker processes")
     p.add_argument("--merge", nargs="+", type=Path, default=None,
                    help="write OUT from these study.json files instead of running (a later file's row replaces an "
                         "earlier one of the same scenario, family and mode)")
@@ -132,12 +157,18 @@ def main(argv=None) -> int:
         return 0
     rows = json.loads(path.read_text())["rows"] if args.resume and path.exists() else []
     done = {(r["scenario"], r["family"], r["mode"], r["seeds"]) for r in rows}
+    pool = None
+    if args.jobs > 1:
+        import multiprocessing
+        from concurrent.futures import ProcessPoolExecutor
+
+        pool = ProcessPoolExecutor(args.jobs, mp_context=multiprocessing.get_context("spawn"))
     for sid in args.scenarios:
         for family in args.families:
             for mode in args.modes:
-                if (sid, family, mode, args.seeds) in done:
+                if (sid, family, mode, args.seeds) in done or (family == "exact" and mode == "off"):
                     continue
-                rows.append(run_row(sid, family, mode, args.seeds, args.worlds, args.duration_s, args.device))
+                rows.append(run_row(sid, family, mode, args.seeds, args.worlds, args.duration_s, args.device, pool))
                 path.write_text(json.dumps({"meta": run_meta((args.device,)), "rows": rows}, indent=1))
                 write_md(rows, args.out / "study.md")
                 print(f"{sid} {family} {mode}: {rows[-1]['horizontal_rmse_m']:.2f} m, "

@@ -393,7 +393,8 @@ def _stated_accuracy(parser, description: str) -> None:
                        help="its correlation length, m (likelihood.map_error_corr_m)")
     group.add_argument("--map-error-learn", choices=("auto", "on", "off"), default=None,
                        help="learn the error's RMS in flight, the statement (or 5 m / 500 m) its prior: auto (the "
-                            "default) whenever the map is not known to be the world (likelihood.map_error_learn)")
+                            "default) whenever the map is not known to be the world or an error is stated "
+                            "(likelihood.map_error_learn)")
 
 
 def _bag_folder(path: str) -> str | None:

@@ -205,15 +205,16 @@ shorter one only costs accuracy."""
 
 def learned_statement(lk, map_is_world: bool, post_m: float) -> tuple[float, float, bool]:
     """``(RMS, correlation length, learn)`` of the map error the likelihood states, from a ``[likelihood]`` table
-    ``lk``: learning on (``map_error_learn``: true, or ``"auto"`` unless the map is known to be the world), the
-    statement, or without one :data:`DEFAULT_MAP_ERROR` (its length at least two posts, ``post_m``), is the prior;
-    off, the statement as given (none: 0, 0)."""
+    ``lk``: learning on (``map_error_learn``: true, or ``"auto"`` unless the map is known to be the world and nothing
+    is stated: a statement is always a prior, never a fixed truth), the statement, or without one
+    :data:`DEFAULT_MAP_ERROR` (its length at least two posts, ``post_m``), is the prior; off, the statement as given
+    (none: 0, 0)."""
     rms, corr, learn = float(lk.map_error_rms_m), float(lk.map_error_corr_m), lk.map_error_learn
     if rms > 0 and corr < post_m:
         raise ScenarioError(f"likelihood.map_error_corr_m = {corr:g} m is shorter than one post of the map "
                             f"({post_m:.4g} m): an error correlated over less than a post is noise per post (state the "
                             "map's σ with terrain.map_noise_m), or give a correlation length ≥ the post spacing")
-    on = learn is True or (learn == "auto" and not map_is_world)
+    on = learn is True or (learn == "auto" and (not map_is_world or rms > 0))
     if on and lk.kind != "paper" and rms <= 0:
         rms, corr = DEFAULT_MAP_ERROR[0], max(DEFAULT_MAP_ERROR[1], 2.0 * post_m)
     return rms, corr, bool(on and rms > 0 and lk.kind != "paper")
@@ -238,8 +239,8 @@ def scenario_likelihood(scenario: Scenario, the_map: Terrain, truth: Terrain | N
     posts has no interpolation error beyond the bilinear-vs-triangles mismatch every sliding model counts.
     ``footprint_m`` replaces the scenario's footprint (a recorded flight's, measured from its scans).
 
-    The map error is learned in flight (:func:`learned_statement`) unless the map is known to be the world: ``truth``
-    given and the map the world itself (a recorded flight, ``truth`` None, never knows)."""
+    The map error is learned in flight (:func:`learned_statement`) unless the map is known to be the world (``truth``
+    given and the map the world itself; a recorded flight, ``truth`` None, never knows) and no error is stated."""
     lk, s = scenario.likelihood, scenario.sensor
     noise_m = s.range_sigma_m
     if s.model == "altimeter":  # the residual a - (h_baro - h(p)) carries both sensors' noise
@@ -295,7 +296,7 @@ def per_seed_maps(scenario: Scenario) -> bool:
     return scenario.terrain.per_seed or scenario.world.per_seed
 
 
-def run_scenario(name_or_path, seed: int = 0, device="cpu", progress=None, export_logs=None,
+def run_scenario(name_or_path, seed: int = 0, device="cpu", progress=None, export_logs=None, bound: bool = True,
                  **overrides) -> ScenarioResult:
     """Run one scenario with one seed.
 
@@ -309,8 +310,10 @@ def run_scenario(name_or_path, seed: int = 0, device="cpu", progress=None, expor
             ``sigma_m=``, ``imu_grade=``.
         export_logs: A list to append the run's :class:`~warptan.io.flightlog.FlightLog` to (see
             :func:`run_scenario_batch`).
+        bound: Compute the flight's posterior Cramér–Rao bound (``pcrb_sigma_m``; False: None, which saves its
+            host work, about a third of a CPU run of S8 over a world).
     """
-    return run_scenario_batch(name_or_path, [seed], device, progress, export_logs, **overrides)[0]
+    return run_scenario_batch(name_or_path, [seed], device, progress, export_logs, bound=bound, **overrides)[0]
 
 
 def scenario_model(scenario: Scenario, the_map: Terrain, likelihood: Likelihood):
@@ -333,7 +336,7 @@ def terrain_spec(scenario: Scenario, terrain=None) -> str:
     return scenario.terrain.dem
 
 
-def run_scenario_batch(name_or_path, seeds, device="cpu", progress=None, export_logs=None,
+def run_scenario_batch(name_or_path, seeds, device="cpu", progress=None, export_logs=None, bound: bool = True,
                        **overrides) -> list[ScenarioResult]:
     """Run one scenario with several seeds as one batched filter (every run's particles in one array, one
     launch per kernel for all of them); each result is the same as :func:`run_scenario` with that seed on the
@@ -342,7 +345,8 @@ def run_scenario_batch(name_or_path, seeds, device="cpu", progress=None, export_
     filter's noise (S8, world 1003, seeds 15–16, 15 s: up to 1.1 m). A scenario whose map has per-seed error cannot
     be batched (its runs use different maps).
     ``export_logs``: a list to which each seed's flight is appended as a :class:`~warptan.io.flightlog.FlightLog`
-    (what the filter received, truth, prior and settings: ``warptan replay`` of it gives the same run)."""
+    (what the filter received, truth, prior and settings: ``warptan replay`` of it gives the same run).
+    ``bound``: as :func:`run_scenario`'s."""
     import time
 
     terrain = overrides.pop("terrain", None)
@@ -374,7 +378,7 @@ def run_scenario_batch(name_or_path, seeds, device="cpu", progress=None, export_
 
         export_logs.extend(logs_from_record(record, flight, scenario.to_dict(), likelihood, total_seeds, seeds,
                                             terrain_spec(scenario, terrain), truth_terrain))
-    bound = scenario_bound(scenario, flight, the_map, runs[0].t_s)
+    bound = scenario_bound(scenario, flight, the_map, runs[0].t_s) if bound else None
     return [ScenarioResult(scenario=scenario.id, seed=seed, device=run.device, terrain=truth_terrain.name,
                            config=scenario, run=run, wall_s=wall, truth_terrain=truth_terrain, map=the_map.name,
                            map_sigma_m=likelihood.map_sigma_m, pcrb_sigma_m=bound)
