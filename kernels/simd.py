@@ -32,15 +32,20 @@ from warptan.kernels.likelihood import (
     CR_VALID,
     LIK_PAPER,
     LIK_STUDENT,
+    MAX_MODES,
     RAY_MAP_GAIN_MAX,
     VAR_RATIO_FOLD_MAX,
     VAR_RATIO_FOLD_MIN,
     LikParams,
+    acc_set_modes,
     acc_store,
     acc_unpack,
     acc_vec,
     cloud_row,
+    mode_post,
     modes_init,
+    modes_sums_vec,
+    modes_unpack,
     modes_vec,
 )
 from warptan.kernels.terrain import HeightGrid
@@ -104,6 +109,7 @@ _LOOP = r"""
             const float w = lik == LIK_STUDENT_ ? wi * (nu + 1.0f) / (nu + z2) : wi;  // the Student-t's weight
             const float h0u = use ? hj0 : 0.0f, h1u = use ? hj1 : 0.0f, h2u = use ? hj2 : 0.0f;
             const float g0u = use ? gj0 : 0.0f, g1u = use ? gj1 : 0.0f, g2u = use ? gj2 : 0.0f;
+            MODES_LANE_
             const float zq = gated ? (zg * params.sigma / params.sigma) * (zg * params.sigma / params.sigma) : 0.0f;
             zgbuf[l] = zq;
             s[0][l] += valid ? 1.0f : 0.0f;
@@ -133,6 +139,7 @@ _LOOP = r"""
         }
         const int n_lanes = m - j0 < L ? m - j0 : L;
         STORE_RESIDUALS_
+        MODES_ACCUM_
         if (lik == LIK_STUDENT_) {  // the Student-t's log-densities (point_loglik_z2); the Gaussian's -z²/2 below
             for (int l = 0; l < L; ++l) {
                 if (usebuf[l]) s[7][l] += -0.5f * (nu + 1.0f) * wp::log(1.0f + zbuf[l] / nu);
@@ -154,6 +161,7 @@ _LOOP = r"""
         if (lastj[l] > last_j) { last_j = lastj[l]; out[6] = lastv[l]; }
     }
     if (lik != LIK_STUDENT_) out[7] += -0.5f * out[39];
+    MODES_STORE_
     return out;
 """
 
@@ -262,21 +270,73 @@ _RAY_POINT = r"""
 """
 
 
+# The map-error modes' projections (kernels/likelihood.py: acc_modes, with a stated map error): a point the particle
+# uses (predictable, not a gross miss) adds its table row u_j times its whitened residual r_j/σ_j and Jacobians H_j/σ_j,
+# G_j/σ_j to 7 × MAX_MODES sums. The lanes keep the whitened values; after each group of lanes the points are added
+# in order, each one's row as a vector over the modes (the same products in the same order as acc_modes). The sums
+# leave through ``modes_out[t]`` in modes_pack's layout.
+_MODES_HEAD = r"""
+    constexpr int MM = MAX_MODES_;
+    float mp[MM], mh0s[MM], mh1s[MM], mh2s[MM], mg0s[MM], mg1s[MM], mg2s[MM];
+    for (int i = 0; i < MM; ++i) {
+        mp[i] = 0.0f; mh0s[i] = 0.0f; mh1s[i] = 0.0f; mh2s[i] = 0.0f; mg0s[i] = 0.0f; mg1s[i] = 0.0f; mg2s[i] = 0.0f;
+    }
+    float mz[L], mh0[L], mh1[L], mh2[L], mg0[L], mg1[L], mg2[L];
+    const char* ubase = (const char*)modes.data;
+    const size_t ustride = modes.strides[0];
+"""
+_MODES_LANE = r"""
+            const float isd = use ? 1.0f / wp::sqrt(var) : 0.0f;
+            mz[l] = r * isd;
+            mh0[l] = h0u * isd; mh1[l] = h1u * isd; mh2[l] = h2u * isd;
+            mg0[l] = g0u * isd; mg1[l] = g1u * isd; mg2[l] = g2u * isd;
+"""
+_MODES_ACCUM = r"""
+        if (lik != LIK_PAPER_) {
+            for (int l = 0; l < n_lanes; ++l) {
+                if (!usebuf[l]) continue;
+                const float* u = (const float*)(ubase + size_t(j0 + l) * ustride);
+                const float z = mz[l], a0 = mh0[l], a1 = mh1[l], a2 = mh2[l], e0 = mg0[l], e1 = mg1[l], e2 = mg2[l];
+                #pragma clang loop vectorize(enable)
+                for (int i = 0; i < MM; ++i) {
+                    const float ui = u[i];
+                    mp[i] += ui * z;
+                    mh0s[i] += ui * a0; mh1s[i] += ui * a1; mh2s[i] += ui * a2;
+                    mg0s[i] += ui * e0; mg1s[i] += ui * e1; mg2s[i] += ui * e2;
+                }
+            }
+        }
+"""
+_MODES_STORE = r"""
+    float* mo = (float*)((char*)modes_out.data + size_t(t) * modes_out.strides[0]);
+    for (int i = 0; i < MM; ++i) {
+        mo[i] = mp[i];
+        mo[MM + 3 * i] = mh0s[i]; mo[MM + 3 * i + 1] = mh1s[i]; mo[MM + 3 * i + 2] = mh2s[i];
+        mo[4 * MM + 3 * i] = mg0s[i]; mo[4 * MM + 3 * i + 1] = mg1s[i]; mo[4 * MM + 3 * i + 2] = mg2s[i];
+    }
+"""
+
+
 _CONSTANTS = {  # the Python constants the C++ reads (as NAME_), so that both change together
     "SIMD_LANES": SIMD_LANES, "ACC_LEN": ACC_LEN, "LIK_PAPER": LIK_PAPER, "LIK_STUDENT": LIK_STUDENT,
     "CR_POINT": CR_POINT, "CR_DIR": CR_DIR, "CR_RANGE": CR_RANGE, "CR_VALID": CR_VALID,
     "VAR_RATIO_FOLD_MIN": float(VAR_RATIO_FOLD_MIN), "VAR_RATIO_FOLD_MAX": float(VAR_RATIO_FOLD_MAX),
-    "RAY_MAP_GAIN_MAX": float(RAY_MAP_GAIN_MAX),
+    "RAY_MAP_GAIN_MAX": float(RAY_MAP_GAIN_MAX), "MAX_MODES": MAX_MODES,
 }
 _STORE = "for (int l = 0; l < n_lanes; ++l) *(float*)(rrow + size_t(j0 + l) * rs1) = resbuf[l];"
 
 
-def _snippet(head: str, point: str, store: str) -> str:
+def _snippet(head: str, point: str, store: str, modes: bool = False) -> str:
     """A kernel's point loop (the common head, ``head``, the loop with its model's ``point``; ``store`` writes the
-    residuals), each sum ``s[k]`` its own array of lanes, ``s<k>[L]``: with one 2-D array of all the sums the compiler
-    kept the loop scalar (LLVM's vectoriser could not bound the accesses against the cloud's loads)."""
+    residuals; ``modes``: the map-error modes' sums too), each sum ``s[k]`` its own array of lanes, ``s<k>[L]``: with
+    one 2-D array of all the sums the compiler kept the loop scalar (LLVM's vectoriser could not bound the accesses
+    against the cloud's loads)."""
     sums = range(ACC_LEN)
-    snippet = _HEAD + head + _LOOP.replace("POINT_", point.strip()).replace("STORE_RESIDUALS_", store)
+    loop = _LOOP.replace("POINT_", point.strip()).replace("STORE_RESIDUALS_", store)
+    loop = loop.replace("MODES_LANE_", _MODES_LANE.strip() if modes else "")
+    loop = loop.replace("MODES_ACCUM_", _MODES_ACCUM.strip() if modes else "")
+    loop = loop.replace("MODES_STORE_", _MODES_STORE.strip() if modes else "")
+    snippet = _HEAD + (_MODES_HEAD if modes else "") + head + loop
     snippet = snippet.replace("    float s[NS][L];\n", "    float " + ", ".join(f"s{k}[L]" for k in sums) + ";\n")
     snippet = snippet.replace("for (int k = 0; k < NS; ++k) for (int l = 0; l < L; ++l) s[k][l] = 0.0f;",
                               "for (int l = 0; l < L; ++l) { " + " ".join(f"s{k}[l] = 0.0f;" for k in sums) + " }")
@@ -304,6 +364,24 @@ def ray_sums_simd(residual: wp.array2d(dtype=wp.float32), normal: wp.array2d(dty
                   t: int, params: LikParams) -> acc_vec:
     """Particle ``t`` (attitude ``mat``) of filter ``b``: the running sums of its cast rays (``residual[t, :]``,
     ``normal[t, :]``, ``vertical[t, :]``) as :func:`warptan.kernels.likelihood.acc_pack` packs them."""
+    ...
+
+
+@wp.func_native(_snippet(_SLIDING_HEAD, _SLIDING_POINT, _STORE, modes=True))
+def sliding_sums_modes_simd(grid: HeightGrid, surface: int, pos: wp.vec3, mat: wp.mat33,
+                            cloud: wp.array2d(dtype=cloud_row), b: int, t: int, params: LikParams,
+                            residual_out: wp.array2d(dtype=wp.float32), modes: wp.array(dtype=modes_vec),
+                            modes_out: wp.array(dtype=modes_sums_vec)) -> acc_vec:
+    """:func:`sliding_sums_simd` with the map-error modes' sums (the table ``modes``) into ``modes_out[t]``."""
+    ...
+
+
+@wp.func_native(_snippet(_RAY_HEAD, _RAY_POINT, "", modes=True))
+def ray_sums_modes_simd(residual: wp.array2d(dtype=wp.float32), normal: wp.array2d(dtype=wp.vec3),
+                        vertical: wp.array2d(dtype=wp.float32), mat: wp.mat33, cloud: wp.array2d(dtype=cloud_row),
+                        b: int, t: int, params: LikParams, modes: wp.array(dtype=modes_vec),
+                        modes_out: wp.array(dtype=modes_sums_vec)) -> acc_vec:
+    """:func:`ray_sums_simd` with the map-error modes' sums (the table ``modes``) into ``modes_out[t]``."""
     ...
 
 
@@ -370,3 +448,75 @@ def reduce_loglik_simd_kernel(
     mat = quat_to_mat_wxyz(quat_nb[t])
     acc = acc_unpack(ray_sums_simd(residual, normal, vertical, mat, cloud, b, t, params))
     acc_store(t, acc, modes_init(), params, att_cov[b], err_out, loglik_out, nis_out, n_valid_out, lam_out, info_out)
+
+
+@wp.kernel
+def sliding_loglik_modes_simd_kernel(
+    row0: int,
+    n_per: int,
+    grid: HeightGrid,
+    surface: int,
+    pos_n: wp.array(dtype=wp.vec3),
+    quat_nb: wp.array(dtype=wp.vec4),
+    cloud: wp.array2d(dtype=cloud_row),
+    att_cov: wp.array(dtype=wp.mat33),
+    params: LikParams,
+    modes: wp.array(dtype=modes_vec),
+    mode_mean: wp.array(dtype=modes_vec),
+    mode_var: wp.array(dtype=modes_vec),
+    mode_sums: wp.array(dtype=modes_sums_vec),
+    residual_out: wp.array2d(dtype=wp.float32),
+    err_out: wp.array(dtype=wp.float32),
+    loglik_out: wp.array(dtype=wp.float32),
+    nis_out: wp.array(dtype=wp.float32),
+    n_valid_out: wp.array(dtype=wp.int32),
+    lam_out: wp.array(dtype=wp.mat33),
+    info_out: wp.array(dtype=wp.vec3),
+    post_out: wp.array(dtype=modes_vec),
+):
+    """The sliding model with map-error modes (a stated map error), one thread per particle on the CPU: the outputs
+    of :data:`warptan.kernels.sliding.sliding_loglik_kernels` ``[False, True]``; ``mode_sums`` holds each particle's
+    mode sums between the point loop and the modes' update (scratch, one row per particle)."""
+    t = wp.tid()
+    b = (row0 + t) // n_per
+    mat = quat_to_mat_wxyz(quat_nb[t])
+    acc = acc_unpack(sliding_sums_modes_simd(grid, surface, pos_n[t], mat, cloud, b, t, params, residual_out, modes,
+                                             mode_sums))
+    macc = acc_set_modes(modes_unpack(mode_sums[t]), modes, cloud.shape[1], mode_mean[t], mode_var[b])
+    post_out[t] = mode_post(macc, modes, cloud.shape[1])
+    acc_store(t, acc, macc, params, att_cov[b], err_out, loglik_out, nis_out, n_valid_out, lam_out, info_out)
+
+
+@wp.kernel
+def reduce_loglik_modes_simd_kernel(
+    row0: int,
+    n_per: int,
+    residual: wp.array2d(dtype=wp.float32),
+    quat_nb: wp.array(dtype=wp.vec4),
+    normal: wp.array2d(dtype=wp.vec3),
+    vertical: wp.array2d(dtype=wp.float32),
+    cloud: wp.array2d(dtype=cloud_row),
+    att_cov: wp.array(dtype=wp.mat33),
+    params: LikParams,
+    modes: wp.array(dtype=modes_vec),
+    mode_mean: wp.array(dtype=modes_vec),
+    mode_var: wp.array(dtype=modes_vec),
+    mode_sums: wp.array(dtype=modes_sums_vec),
+    err_out: wp.array(dtype=wp.float32),
+    loglik_out: wp.array(dtype=wp.float32),
+    nis_out: wp.array(dtype=wp.float32),
+    n_valid_out: wp.array(dtype=wp.int32),
+    lam_out: wp.array(dtype=wp.mat33),
+    info_out: wp.array(dtype=wp.vec3),
+    post_out: wp.array(dtype=modes_vec),
+):
+    """The ray-casting model's reduction with map-error modes, one thread per particle on the CPU: the outputs of
+    :data:`warptan.kernels.likelihood.reduce_loglik_kernels` ``[False, True]``; ``mode_sums`` as in
+    :func:`sliding_loglik_modes_simd_kernel`."""
+    t = wp.tid()
+    b = (row0 + t) // n_per
+    mat = quat_to_mat_wxyz(quat_nb[t])
+    acc = acc_unpack(ray_sums_modes_simd(residual, normal, vertical, mat, cloud, b, t, params, modes, mode_sums))
+    macc = acc_set_modes(modes_unpack(mode_sums[t]), modes, residual.shape[1], mode_mean[t], mode_var[b])
+    post_out[t] = mode_post(macc, modes, residual.shape[1])
+    acc_store(t, acc, macc, params, att_cov[b], err_out, loglik_out, nis_out, n_valid_out, lam_out, info_out)

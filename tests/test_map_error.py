@@ -651,3 +651,14 @@ def test_a_statement_that_is_nonsense_is_one_clear_error_before_any_work():
                 {"map_error_learn": "sometimes"}):
         with pytest.raises(ScenarioError, match="map_error"):
             prepare("S8", **bad)
+
+
+def test_a_restated_rms_rescales_the_mode_table_as_if_built_for_it():
+    """The learner's restatement keeps the modes: the table built for 5 m and rescaled to 3 m
+    (:meth:`warptan.Likelihood.rescale_error_modes`) is the table built for 3 m (modes, k⁰, c⁰, ρ, cᵃ; T = I)."""
+    rng = np.random.default_rng(0)
+    xy, a = rng.uniform(-300, 300, (60, 2)), 1 + rng.uniform(0, 0.3, 60)
+    tables = [wt.Likelihood("gaussian", map_error_sigma_m=s, map_error_corr_m=500.0, track_step_m=10.0)
+              .error_modes(xy, a, 0.7, (1.0, 0.0), True)[0] for s in (5.0, 3.0)]
+    rescaled = wt.Likelihood.rescale_error_modes(tables[0], 60, (3.0 / 5.0) ** 2)
+    np.testing.assert_allclose(rescaled, tables[1], rtol=1e-5, atol=1e-5)

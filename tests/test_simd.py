@@ -197,7 +197,7 @@ def test_simd_ray_casts_equal_the_warp_kernel(m, want_vertical):
 
 
 def test_the_cpu_models_run_the_simd_kernels(monkeypatch):
-    """Without map-error modes the CPU's sliding model launches the SIMD kernel; with them, the Warp kernel (the
+    """The CPU's sliding model launches the SIMD kernel, with map-error modes its form with the modes' sums (the
     ray-casting model's reduction likewise); its DDA casts run in lanes, the other backends' per particle."""
     launched = []
     import warptan.sensing.measurement as meas
@@ -216,11 +216,99 @@ def test_the_cpu_models_run_the_simd_kernels(monkeypatch):
     assert launched[-1] == ksimd.sliding_loglik_simd_kernel.key
     stated = wt.Likelihood("gaussian", map_error_sigma_m=3.0, map_error_corr_m=300.0, track_step_m=50.0)
     out = wt.SlidingModel(terrain, stated, surface=True).evaluate(*poses, cloud)
-    assert launched[-1] != ksimd.sliding_loglik_simd_kernel.key
+    assert launched[-1] == ksimd.sliding_loglik_modes_simd_kernel.key
     assert np.isfinite(out.loglik.numpy()).all()
     wt.RaycastModel(terrain, wt.Likelihood("gaussian")).evaluate(*poses, cloud)
     assert launched[-2:] == [ksimd_ray.raycast_residual_rows_simd_kernel.key, ksimd.reduce_loglik_simd_kernel.key]
     wt.RaycastModel(terrain, wt.Likelihood("gaussian"), caster=wt.RayCaster("bisection")).evaluate(*poses, cloud)
     assert launched[-2] == kray.raycast_residual_rows_kernel.key
     wt.RaycastModel(terrain, stated).evaluate(*poses, cloud)
-    assert launched[-1] == klik.reduce_loglik_kernels[False, True].key
+    assert launched[-1] == ksimd.reduce_loglik_modes_simd_kernel.key
+
+
+def _mode_state(params, m: int, n: int, b: int, rng):
+    """A stated map error's mode table for ``m`` scattered ground points (:meth:`warptan.Likelihood.error_modes`),
+    each particle's prior amplitudes and each filter's variances: (table, mean, var) on the CPU; ``params`` takes
+    the modes."""
+    lik = wt.Likelihood("gaussian", map_error_sigma_m=4.0, map_error_corr_m=300.0, track_step_m=20.0)
+    table, info = lik.error_modes(rng.uniform(-250.0, 250.0, (m, 2)), 1.0 + rng.uniform(0.0, 0.3, m), 0.7,
+                                  (1.0, 0.0), absorb_offset=True)
+    assert info["n_modes"] == klik.MAX_MODES
+    params.n_modes = klik.MAX_MODES
+    mean = rng.normal(0.0, 1.0, (n, klik.MAX_MODES)).astype(np.float32)
+    var = np.abs(rng.normal(1.0, 0.5, (b, klik.MAX_MODES))).astype(np.float32)
+    return (wp.array(table, dtype=klik.modes_vec, device=DEVICE), wp.array(mean, dtype=klik.modes_vec, device=DEVICE),
+            wp.array(var, dtype=klik.modes_vec, device=DEVICE))
+
+
+def _assert_modes_equal(got, ref, lik):
+    """The sums as :func:`_assert_sums_equal`, the modes' posteriors to float32 reassociation."""
+    _assert_sums_equal(got[:6], ref[:6], lik)
+    np.testing.assert_allclose(got[6], ref[6], rtol=1e-4, atol=1e-4 * np.abs(ref[6]).max(), err_msg="mode_post")
+    assert np.abs(ref[6]).max() > 0.0
+
+
+@pytest.mark.parametrize("lik", [klik.LIK_GAUSS, klik.LIK_STUDENT])
+def test_simd_sliding_with_modes_equals_the_warp_kernel(lik):
+    """A stated map error (16 modes): the SIMD kernel with the modes' sums gives the Warp kernel's residuals bit for
+    bit, its sums, information and mode posteriors to float32 rounding (2 filters of 24 particles, 37 points, two
+    particles over the map's edge)."""
+    rng = np.random.default_rng(7 + lik)
+    terrain = _terrain()
+    n0, n1, e0, e1 = terrain.bounds_ne
+    b, n_per, m = 2, 24, 37
+    n = b * n_per
+    ground = float(np.nanmax(terrain.heights_m))
+    truth = np.column_stack([rng.uniform(n0 + 700, n1 - 700, b), rng.uniform(e0 + 700, e1 - 700, b),
+                             np.full(b, -(ground + 400.0))])
+    truth_q = euler_to_quat(rng.normal(0, 0.1, b), rng.normal(0, 0.1, b), rng.uniform(-3, 3, b))
+    pos = np.repeat(truth, n_per, axis=0) + rng.normal(0.0, [30.0, 30.0, 3.0], (n, 3))
+    pos[3, 0] = n1 - 20.0
+    pos[30, 1] = e0 + 10.0
+    params = _params(lik, 1.0, 0.5, 0.3, 4.0)
+    table, mean, var = _mode_state(params, m, n, b, rng)
+    att = wp.array(np.tile(np.diag([1e-4, 1e-4, 4e-4]).astype(np.float32), (b, 1, 1)), dtype=wp.mat33, device=DEVICE)
+    cloud = _cloud(terrain, truth, truth_q, m, rng)
+    head = [terrain.grid(DEVICE), 1, wp.array(pos.astype(np.float32), dtype=wp.vec3, device=DEVICE),
+            wp.array(np.repeat(truth_q, n_per, axis=0).astype(np.float32), dtype=wp.vec4, device=DEVICE), cloud, att,
+            params, table, mean, var]
+    runs = []
+    for kernel, extra in ((kslide.sliding_loglik_kernels[False, True], []),
+                          (ksimd.sliding_loglik_modes_simd_kernel, [wp.empty(n, dtype=klik.modes_sums_vec)])):
+        outs = [wp.full((n, m), 7.0, dtype=wp.float32, device=DEVICE), *_outputs(n)]
+        wp.launch(kernel, dim=n, inputs=[0, n_per, *head, *extra], outputs=outs, device=DEVICE)
+        runs.append([o.numpy() for o in outs])
+    ref, got = runs
+    np.testing.assert_array_equal(got[0].view(np.uint32), ref[0].view(np.uint32))
+    _assert_modes_equal(got[1:], ref[1:], lik)
+
+
+def test_simd_ray_reduction_with_modes_equals_the_warp_kernel():
+    """The ray-casting model's reduction with 16 map-error modes over real DDA casts: the SIMD kernel's sums,
+    information and mode posteriors equal the Warp kernel's to float32 rounding."""
+    rng = np.random.default_rng(11)
+    terrain = _terrain()
+    n0, n1, e0, e1 = terrain.bounds_ne
+    m, n = 37, 48
+    ground = float(np.nanmax(terrain.heights_m))
+    truth = np.array([0.5 * (n0 + n1), 0.5 * (e0 + e1), -(ground + 400.0)])
+    truth_q = euler_to_quat(0.1, -0.05, 0.7)
+    pos = truth + rng.normal(0.0, [30.0, 30.0, 3.0], (n, 3))
+    dirs = np.column_stack([rng.uniform(-0.7, 0.7, m), rng.uniform(-0.7, 0.7, m), np.ones(m)])
+    cloud = wt.PointCloudSensor(wt.ScanPattern(dirs), range_sigma_m=0.5).measure(terrain, truth, truth_q, rng=rng)
+    model = wt.RaycastModel(terrain, wt.Likelihood("gaussian", sensor_sigma_m=0.5, map_sigma_m=0.8),
+                            caster=wt.RayCaster("dda"))
+    quat = wp.array(np.tile(truth_q, (n, 1)).astype(np.float32), dtype=wp.vec4, device=DEVICE)
+    cast = model.evaluate(wp.array(pos.astype(np.float32), dtype=wp.vec3, device=DEVICE), quat, cloud)
+    att = wp.array(np.diag([1e-4, 1e-4, 4e-4]).astype(np.float32)[None], dtype=wp.mat33, device=DEVICE)
+    params = _params(klik.LIK_GAUSS, 1.0, 0.5, 0.3, 4.0)
+    params.err_kind = klik.ERR_AXES
+    table, mean, var = _mode_state(params, m, n, 1, rng)
+    runs = []
+    for kernel, extra in ((klik.reduce_loglik_kernels[False, True], []),
+                          (ksimd.reduce_loglik_modes_simd_kernel, [wp.empty(n, dtype=klik.modes_sums_vec)])):
+        outs = _outputs(n)
+        wp.launch(kernel, dim=n, inputs=[0, n, cast.residual_m, quat, cast.normal, cast.vertical_m, model._staged,
+                                         att, params, table, mean, var, *extra], outputs=outs, device=DEVICE)
+        runs.append([o.numpy() for o in outs])
+    _assert_modes_equal(runs[1], runs[0], klik.LIK_GAUSS)

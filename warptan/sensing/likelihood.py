@@ -218,6 +218,23 @@ class Likelihood:
                        "k0": k_one.tolist(), "rho": rho.tolist(),
                        "remainder": float(1.0 - lam_k.sum() / max(lam.sum(), 1e-300)), "offset_var": offset_var}
 
+    @staticmethod
+    def rescale_error_modes(table: np.ndarray, m: int, factor: float) -> np.ndarray:
+        """A mode table of :meth:`error_modes` (``m`` points) for a map-error variance ``factor`` times the one it was
+        built for: the same modes, correlations ``ρ_i`` and sharing ``κ_i = (1 + ρ_i) / (1 − ρ_i)``, the one-scan
+        variances ``k⁰_i`` scaled, the weights ``c⁰_i`` and ``cᵃ_i`` from them, no basis change (``T = I``)."""
+        from warptan.kernels.likelihood import MAX_MODES, MODE_C0, MODE_CA, MODE_K0, MODE_RHO, MODE_T
+
+        out = table.copy()
+        k = table[m + MODE_K0].astype(np.float64) * float(factor)
+        rho = np.clip(table[m + MODE_RHO].astype(np.float64), 0.0, 1.0 - 1e-12)
+        sharing = (1.0 + rho) / (1.0 - rho)
+        out[m + MODE_K0] = k.astype(np.float32)
+        out[m + MODE_C0] = (k / (1.0 + k)).astype(np.float32)
+        out[m + MODE_CA] = (sharing * k / (1.0 + sharing * k)).astype(np.float32)
+        out[m + MODE_T:] = np.eye(MAX_MODES, dtype=np.float32)
+        return out
+
     def offset_process(self, speed_mps: float) -> tuple[float, float]:
         """What the filter adds for a map-error offset its particles' altitude carries (``absorb_offset`` of
         :meth:`error_modes`): ``(var_b, q_v)``, the offset's variance (m², added to the reported altitude

@@ -181,14 +181,22 @@ class MeasurementModel:
     def restate_map_error(self, sigma_m: float) -> None:
         """Use ``sigma_m`` as the stated map error's RMS from the next scan on, keeping the mode table's basis (its
         amplitudes are whitened by the point σ, which does not change: the filter's stored amplitudes stay valid;
-        :class:`~warptan.sensing.likelihood.MapErrorLearner`)."""
+        :class:`~warptan.sensing.likelihood.MapErrorLearner`). The modes and their correlations along the track do
+        not depend on the RMS: the table in use is rescaled (:meth:`~warptan.sensing.likelihood.Likelihood.
+        rescale_error_modes`), not rebuilt."""
         if not self._likelihood.models_map_error:
             raise FilterError("restate_map_error needs a likelihood with a stated map error")
+        old = self._likelihood.map_error_sigma_m
         self._likelihood = dataclasses.replace(self._likelihood, map_error_sigma_m=float(sigma_m))
         n_modes = self._params.n_modes
         self._params = self.params()
         self._params.n_modes = n_modes
-        self._modes_geometry = None  # rebuilt at the next stage, its basis change from the table in use
+        host = self._modes_host
+        if host is not None and self._modes_geometry is not None:  # the same modes, their variances scaled
+            m = host.shape[0] - klik.MODE_EXTRA_ROWS
+            self._modes_host = host = self.likelihood.rescale_error_modes(host, m, (float(sigma_m) / old) ** 2)
+            self._modes.assign(host)
+            self.modes_info = {**self.modes_info, "k0": host[m + klik.MODE_K0].tolist()}
         self.generation += 1
 
     def bind_attitude_cov(self, att_cov: wp.array | None) -> None:
@@ -453,6 +461,16 @@ class _PointCloudModel(MeasurementModel):
     def _staging_buffer(device, b, m):
         return wp.empty((b, m), dtype=klik.cloud_row, device=device)
 
+    def _simd_mode_sums(self, device, n: int) -> wp.array | None:
+        """The CPU's scratch rows of the map-error modes' sums (one per particle) for the SIMD kernels with modes
+        (:mod:`warptan.kernels.simd`); None without modes or on CUDA."""
+        if not device.is_cpu or self._params.n_modes == 0:
+            return None
+        sums = getattr(self, "_mode_sums", None)
+        if sums is None or sums.shape[0] < n or sums.device is not device:
+            sums = self._mode_sums = wp.empty(n, dtype=klik.modes_sums_vec, device=device)
+        return sums
+
     def _scan_geometry(self, quat: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         from warptan.nav.frames import quat_to_mat
 
@@ -581,12 +599,13 @@ class RaycastModel(_PointCloudModel):
         att = self._attitude_cov(device, self.n_filters)
         mean, var = self._mode_state(device, res.shape[0], self.n_filters)
         kernel, block = klik.reduce_loglik_kernels[device.is_cuda, self._params.n_modes > 0], _block_dim(device)
-        if device.is_cpu and self._params.n_modes == 0:  # the points as SIMD lanes (same per-point values)
-            kernel = ksimd.reduce_loglik_simd_kernel
+        sums = self._simd_mode_sums(device, res.shape[0])
+        if device.is_cpu:  # the points as SIMD lanes (same per-point values)
+            kernel = ksimd.reduce_loglik_simd_kernel if sums is None else ksimd.reduce_loglik_modes_simd_kernel
         launch_rows(kernel, res.shape[0],
                     lambda a, b: ([a or 0, n_per, rows_of(res, a, b), rows_of(quat_nb, a, b), rows_of(nrm, a, b),
                                    rows_of(vert, a, b), cloud, att, self._params, self._modes, rows_of(mean, a, b),
-                                   var],
+                                   var, *([] if sums is None else [rows_of(sums, a, b)])],
                                   [rows_of(out.error_m, a, b), rows_of(out.loglik, a, b), rows_of(out.nis, a, b),
                                    rows_of(out.n_valid, a, b), rows_of(out.lam, a, b), rows_of(out.info, a, b),
                                    rows_of(out.mode_post, a, b)]),
@@ -623,11 +642,13 @@ class SlidingModel(_PointCloudModel):
         att = self._attitude_cov(device, self.n_filters)
         mean, var = self._mode_state(device, pos_n.shape[0], self.n_filters)
         kernel, block = kslide.sliding_loglik_kernels[device.is_cuda, self._params.n_modes > 0], _block_dim(device)
-        if device.is_cpu and self._params.n_modes == 0:  # the points as SIMD lanes (same per-point values)
-            kernel = ksimd.sliding_loglik_simd_kernel
+        sums = self._simd_mode_sums(device, pos_n.shape[0])
+        if device.is_cpu:  # the points as SIMD lanes (same per-point values)
+            kernel = ksimd.sliding_loglik_simd_kernel if sums is None else ksimd.sliding_loglik_modes_simd_kernel
         launch_rows(kernel, pos_n.shape[0],
                     lambda a, b: ([a or 0, n_per, grid, surface, rows_of(pos_n, a, b), rows_of(quat_nb, a, b), cloud,
-                                   att, self._params, self._modes, rows_of(mean, a, b), var],
+                                   att, self._params, self._modes, rows_of(mean, a, b), var,
+                                   *([] if sums is None else [rows_of(sums, a, b)])],
                                   [rows_of(out.residual_m, a, b), rows_of(out.error_m, a, b), rows_of(out.loglik, a, b),
                                    rows_of(out.nis, a, b), rows_of(out.n_valid, a, b), rows_of(out.lam, a, b),
                                    rows_of(out.info, a, b), rows_of(out.mode_post, a, b)]),
