@@ -120,6 +120,39 @@ FEW_PARTICLES = 10
 represent the position error; its estimate and bounds are not meaningful."""
 
 
+class HostEcho:
+    """Device arrays copied to the host behind the device's work, for host decisions that may lag (CUDA): each
+    :meth:`queue` copies them into one of two pinned buffers in turn and records an event; :meth:`read` returns the
+    copy queued before the last one (waiting for its event, long past in a pipelined filter), so the host never
+    waits for the work it just queued. Before two copies, and on the CPU (where the arrays are current and reading
+    them costs nothing), it reads the arrays themselves."""
+
+    def __init__(self, arrays: list[wp.array]):
+        self.arrays = arrays
+        self.device = arrays[0].device
+        self._queued = 0
+        if self.device.is_cuda:
+            self._host = [[wp.empty(a.shape, dtype=a.dtype, device="cpu", pinned=True) for a in arrays]
+                          for _ in range(2)]
+            self._events = [wp.Event(self.device), wp.Event(self.device)]
+
+    def queue(self) -> None:
+        if not self.device.is_cuda:
+            return
+        slot = self._queued % 2
+        for host, a in zip(self._host[slot], self.arrays, strict=True):
+            wp.copy(host, a)
+        wp.get_stream(self.device).record_event(self._events[slot])
+        self._queued += 1
+
+    def read(self) -> list[np.ndarray]:
+        if not self.device.is_cuda or self._queued < 2:
+            return [a.numpy() for a in self.arrays]
+        slot = self._queued % 2  # the copy before the last one
+        wp.synchronize_event(self._events[slot])
+        return [h.numpy().copy() for h in self._host[slot]]
+
+
 class MarginalizedParticleFilter(ImuIntake, Readout):
     """MPF over the INS error; see the module docstring. One filter, or a batch of B independent filters
     (same model, IMU grade and prior; own nominal INS, seed, measurements) whose particles share one array.
@@ -213,6 +246,8 @@ class MarginalizedParticleFilter(ImuIntake, Readout):
         if getattr(lk, "models_map_error", False) and getattr(lk, "map_error_learn", False) and b == 1:
             self.learner = MapErrorLearner(lk.map_error_sigma_m)
             self._moments_out = wp.zeros((b, kmpf.MOMENTS_LEN), dtype=wp.float64, device=self.device)
+            self._moments_echo = HostEcho([self._moments_out])
+        self._platform_echo = None  # (the nominal's attitude and position for the map-error modes' scan geometry)
         self.max_stages = int(c.max_stages)
         self.bandwidth = float(c.regularize) * (4.0 / (self.n * 5.0)) ** (1.0 / 7.0)
         """Regularisation bandwidth h (Silverman's rule for d = 3 times ``regularize``)."""
@@ -387,14 +422,18 @@ class MarginalizedParticleFilter(ImuIntake, Readout):
             self._stage_interval()
             self._queue_head()
         elif map_modes:
-            # the map-error modes' scan geometry needs the platform's attitude: the nominal of the last interval
-            # (one device-to-host copy of 4 numbers; 0.1 s old at 10 Hz, what the geometry's tolerance allows)
-            attitude = self._nav["quat"][:1].numpy()[0]
+            # the map-error modes' scan geometry needs the platform's attitude and the revisit memory its ground: the
+            # nominal as the update before last left it (copied to the host behind the device's work, HostEcho: 0.2 s
+            # old at 10 Hz, within the geometry's tolerance; on the CPU, and before two updates, the last interval's)
+            if self._platform_echo is None:
+                self._platform_echo = HostEcho([self._nav["quat"], self._nav["pos"]])
+            quat, pos = self._platform_echo.read()
+            attitude = quat[0]
         out, staged = self._stage_scan(measurement, attitude)
-        if attitude is not None:  # ground read again after the modes forgot it: B positions to the host
+        if attitude is not None:  # ground read again after the modes forgot it
             if self._revisits is None or self._revisits.likelihood.map_error_corr_m != likelihood.map_error_corr_m:
                 self._revisits = RevisitMemory(likelihood, self.n_filters)
-            ground = self._nav["pos"].numpy()[:, :2] + getattr(self.model, "footprint_centre", np.zeros(2))
+            ground = pos[:, :2] + getattr(self.model, "footprint_centre", np.zeros(2))
             self._exponent.assign(self._revisits.exponents(ground).astype(np.float32))
         t_staged = time.perf_counter()
         if hasattr(self.model, "bind_attitude_cov"):
@@ -422,6 +461,8 @@ class MarginalizedParticleFilter(ImuIntake, Readout):
             else:  # CPU: the launches ran as they were issued
                 timer._add(t_queue - t_staged, t_staged - t_enter, t_queued - t_queue)
         self._next_set()
+        if self._platform_echo is not None:
+            self._platform_echo.queue()
         if self.learner is not None and self.n_updates % self.learner.every == 0:
             self._learn_map_error()
         self.last_n_received = np.array(out.n_received)  # (after the device work is queued: nothing there reads it)
@@ -429,7 +470,8 @@ class MarginalizedParticleFilter(ImuIntake, Readout):
 
     def _learn_map_error(self) -> None:
         """A reading of the map-error evidence for :attr:`learner` (one (1, 6) copy to the host every
-        ``learner.every`` updates: on CUDA it waits for the update) and, when it moved, the error restated: the
+        ``learner.every`` updates; on CUDA the reading queued ``2 every`` updates before, :class:`HostEcho`: the host
+        never waits for the device) and, when it moved, the error restated: the
         model's likelihood and mode table, the offset's vertical-velocity noise and the fix wander (in place: captured
         graphs read them; the offset's altitude variance keeps the prior's level)."""
         table = self._mode_table()
@@ -439,7 +481,9 @@ class MarginalizedParticleFilter(ImuIntake, Readout):
         launch(kmpf.map_error_moments_kernel, dim=self.n_filters,
                inputs=[self.n, m, table, self.state.logw, self.state.dp, self._out.nis, self._mode_mean,
                        self._mode_var], outputs=[self._moments_out], device=self.device)
-        sigma = self.learner.read(self._moments_out.numpy()[0])
+        self._moments_echo.queue()
+        (moments,) = self._moments_echo.read()
+        sigma = self.learner.read(moments[0])
         if sigma is None:
             return
         self.model.restate_map_error(sigma)
