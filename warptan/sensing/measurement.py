@@ -149,6 +149,7 @@ class MeasurementModel:
         self._zero_att: wp.array | None = None
         self._modes: wp.array | None = None
         self._modes_host: np.ndarray | None = None
+        self._modes_skip = 0
         self.footprint_centre = np.zeros(2)
         """Mean horizontal offset (m, navigation frame) of the scan's nominal ground points from the aircraft (the
         last scan under a stated map error; :class:`~warptan.sensing.likelihood.RevisitMemory` reads it)."""
@@ -341,6 +342,9 @@ class MeasurementModel:
         meta[:, klik.META_FLOOR] = -0.5 * k * k * np.maximum(1, n_received)
         return meta
 
+    MODES_CHECK_EVERY = 5
+    """Scans between two looks at the map-error modes' geometry while it holds (its host work, ~0.5 ms, is most of a
+    GPU update's host time; 0.5 s of flight at 10 Hz turns a 3°/s turn by 1.5°, far inside :data:`MODES_REBUILD`)."""
     MODES_REBUILD = 0.25
     """The map-error mode table is rebuilt when a scan's nominal ground geometry moved by more than this fraction
     of the footprint's size since it was built (a turn, a climb). Measured on this code (3σ coverage N/E/D,
@@ -368,6 +372,9 @@ class MeasurementModel:
             self.generation += 1
         if not self.likelihood.models_map_error:
             return
+        if not fresh and self._modes_skip > 0:  # the geometry looked at again every MODES_CHECK_EVERY scans
+            self._modes_skip -= 1
+            return
         quat = np.asarray(attitude if attitude is not None else quat_nb[:1].numpy()[0], dtype=np.float64).reshape(4)
         xy, sens, along = self._scan_geometry(quat)
         self.footprint_centre = xy.mean(axis=0)  # where the scan reads the map, from the aircraft (m)
@@ -378,6 +385,8 @@ class MeasurementModel:
             if not np.array_equal(host[m + klik.MODE_T:], np.eye(klik.MAX_MODES)):  # the basis change applied once
                 host[m + klik.MODE_T:] = np.eye(klik.MAX_MODES, dtype=np.float32)
                 self._modes.assign(host)
+            else:
+                self._modes_skip = self.MODES_CHECK_EVERY - 1
             return
         table, info = self.likelihood.error_modes(xy, sens, self.sigma_m, along, self.absorbs_map_offset)
         # T = U_newᵀ U_old carries the stored amplitudes into the new modes; a first table (or one for a new
