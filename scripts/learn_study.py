@@ -108,13 +108,14 @@ def merged_meta(rows: list[dict]) -> dict:
 
 def write_md(rows: list[dict], path: Path) -> None:
     lines = ["# Honest without being told: the map's error learned in flight", "",
-             "Per row: 20 seeds over 4 world realisations of the family (5 seeds each), 120 s, nothing stated "
-             "(learn: the default; off: the learner off) or told the world's error as a prior (told). Horizontal "
-             "RMSE after convergence, mean ± 95 % interval over seeds; 3σ coverage pooled over seeds and epochs after "
+             "Per row: 20 seeds over 4 world realisations of the family (5 seeds each), 120 s. Modes: `learn` nothing "
+             "stated (the default: the learner starts from 5 m / 500 m), `off` nothing stated with the learner off "
+             "(the filter as it was), `told` the world's own error stated (a prior; over `exact`, where the map is the "
+             "world, 5 m / 1 km: a map better than stated), `rms-half` / `rms-double` / `corr-third` / `corr-triple` "
+             "that statement with its RMS × 0.5 / × 2 or its correlation length × 1/3 / × 3. Horizontal RMSE after "
+             "convergence, mean ± 95 % interval over seeds; 3σ coverage pooled over seeds and epochs after "
              "convergence; σ/RMSE the mean reported σ over the RMSE per axis; learned: the learned RMS at the end of "
-             "the flight, mean (min–max) over seeds. Commands: `python scripts/learn_study.py --seeds 20 --scenarios "
-             "S8 --modes learn off --out results/learned`, then `--scenarios S8 --modes told` and `--scenarios S7 "
-             "--modes learn` (CPU).", "",
+             "the flight, mean (min–max) over seeds. Commands and machines: `PROVENANCE.md`.", "",
              "| scenario | family | map − world RMS (m) | mode | horizontal RMSE (m) | 3σ coverage N / E / D | "
              "σ/RMSE N / E / D | learned RMS (m) | re-spreads | device |", "|---|---|---|---|---|---|---|---|---|---|"]
     for r in sorted(rows, key=lambda r: (r["scenario"], r["family"], r["mode"])):

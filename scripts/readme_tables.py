@@ -446,6 +446,23 @@ def learned_block(path: str = "results/learned/study.json") -> str:
             cells.append(f"{r['horizontal_rmse_m']:.2f}±{r['horizontal_rmse_ci95_m']:.2f} "
                          f"({_pct(r['coverage_3sigma'])}{learned})")
         lines.append(f"| {sid} | {family} ({world}) | " + " | ".join(cells) + " |")
+    misstated = ("learn", "told", "rms-half", "rms-double", "corr-third", "corr-triple")
+    keys = sorted({(r["scenario"], r["family"]) for r in rows if r["mode"] in misstated[2:]},
+                  key=lambda k: (_sid_key(k[0]), k[1]))
+    if keys:
+        lines += ["", "Misstated: the family's own error stated with its RMS × 0.5 or × 2, or its correlation length "
+                  "× 1/3 or × 3 (each a prior the learner starts from); over the `exact` family (the map is the world) "
+                  "the statement is 5 m / 1 km (told) and its scaled forms, beside nothing stated.", "",
+                  "| scenario | family | nothing stated | told | RMS × 0.5 | RMS × 2 | correlation × 1/3 | "
+                  "correlation × 3 |",
+                  "|---|---|" + "---|" * len(misstated)]
+        for sid, family in keys:
+            cells = []
+            for mode in misstated:
+                r = next((r for r in rows if (r["scenario"], r["family"], r["mode"]) == (sid, family, mode)), None)
+                cells.append("–" if r is None else f"{r['horizontal_rmse_m']:.2f}±{r['horizontal_rmse_ci95_m']:.2f} "
+                             f"({_pct(r['coverage_3sigma'])})")
+            lines.append(f"| {sid} | {family} | " + " | ".join(cells) + " |")
     return "\n".join(lines)
 
 

@@ -56,16 +56,18 @@ def _outputs(n: int):
                                                           wp.vec3, klik.modes_vec)]
 
 
-def _modes(n: int):
+def _modes(n: int, simd: bool = False):
+    """The mode arrays of a launch without modes (and the SIMD kernels' unused scratch row)."""
     z = wp.zeros(1, dtype=klik.modes_vec, device=DEVICE)
-    return [z, wp.zeros(n, dtype=klik.modes_vec, device=DEVICE), z]
+    scratch = [wp.zeros(1, dtype=klik.modes_sums_vec, device=DEVICE)] if simd else []
+    return [z, wp.zeros(n, dtype=klik.modes_vec, device=DEVICE), z, *scratch]
 
 
-def _run(kernel, terrain, surface, params, pos, quat, cloud, att):
+def _run(kernel, terrain, surface, params, pos, quat, cloud, att, simd=False):
     n, m, b = pos.shape[0], cloud.shape[1], cloud.shape[0]
     outs = [wp.full((n, m), 7.0, dtype=wp.float32, device=DEVICE), *_outputs(n)]
     wp.launch(kernel, dim=n, inputs=[0, n // b, terrain.grid(DEVICE), surface, pos, quat, cloud, att, params,
-                                     *_modes(n)], outputs=outs, device=DEVICE)
+                                     *_modes(n, simd)], outputs=outs, device=DEVICE)
     return [o.numpy() for o in outs[:7]]
 
 
@@ -115,7 +117,7 @@ def test_simd_sliding_equals_the_warp_kernel(surface, lik, sigma, sigma_range, s
             wp.array(quat.astype(np.float32), dtype=wp.vec4, device=DEVICE), _cloud(terrain, truth, truth_q, m, rng),
             att)
     ref = _run(kslide.sliding_loglik_kernels[False, False], *args)
-    got = _run(ksimd.sliding_loglik_simd_kernel, *args)
+    got = _run(ksimd.sliding_loglik_simd_kernels[False], *args, simd=True)
     np.testing.assert_array_equal(got[0].view(np.uint32), ref[0].view(np.uint32))  # residuals, NaN where NaN
     assert np.isnan(ref[0]).any() and np.isfinite(ref[0]).any()
     _assert_sums_equal(got[1:], ref[1:], lik)
@@ -148,10 +150,11 @@ def test_simd_ray_reduction_equals_the_warp_kernel(lik, sigma, sigma_range, sigm
     params = _params(lik, sigma, sigma_range, sigma_map, sigma_err)
     params.err_kind = klik.ERR_AXES
     got, ref = [], []
-    for kernel, into in ((klik.reduce_loglik_kernels[False, False], ref), (ksimd.reduce_loglik_simd_kernel, got)):
+    for kernel, into, simd in ((klik.reduce_loglik_kernels[False, False], ref, False),
+                               (ksimd.reduce_loglik_simd_kernels[False], got, True)):
         outs = _outputs(n)
         wp.launch(kernel, dim=n, inputs=[0, n, cast.residual_m, quat, cast.normal, cast.vertical_m, model._staged,
-                                         att, params, *_modes(n)], outputs=outs, device=DEVICE)
+                                         att, params, *_modes(n, simd)], outputs=outs, device=DEVICE)
         into.extend(o.numpy() for o in outs[:6])
     _assert_sums_equal(got, ref, lik)
 
@@ -213,17 +216,18 @@ def test_the_cpu_models_run_the_simd_kernels(monkeypatch):
     poses = (wp.array(pos.astype(np.float32), dtype=wp.vec3, device=DEVICE),
              wp.array(q.astype(np.float32), dtype=wp.vec4, device=DEVICE))
     wt.SlidingModel(terrain, wt.Likelihood("gaussian"), surface=True).evaluate(*poses, cloud)
-    assert launched[-1] == ksimd.sliding_loglik_simd_kernel.key
+    assert launched[-1] == ksimd.sliding_loglik_simd_kernels[False].key
     stated = wt.Likelihood("gaussian", map_error_sigma_m=3.0, map_error_corr_m=300.0, track_step_m=50.0)
     out = wt.SlidingModel(terrain, stated, surface=True).evaluate(*poses, cloud)
-    assert launched[-1] == ksimd.sliding_loglik_modes_simd_kernel.key
+    assert launched[-1] == ksimd.sliding_loglik_simd_kernels[True].key
     assert np.isfinite(out.loglik.numpy()).all()
     wt.RaycastModel(terrain, wt.Likelihood("gaussian")).evaluate(*poses, cloud)
-    assert launched[-2:] == [ksimd_ray.raycast_residual_rows_simd_kernel.key, ksimd.reduce_loglik_simd_kernel.key]
+    assert launched[-2:] == [ksimd_ray.raycast_residual_rows_simd_kernel.key,
+                             ksimd.reduce_loglik_simd_kernels[False].key]
     wt.RaycastModel(terrain, wt.Likelihood("gaussian"), caster=wt.RayCaster("bisection")).evaluate(*poses, cloud)
     assert launched[-2] == kray.raycast_residual_rows_kernel.key
     wt.RaycastModel(terrain, stated).evaluate(*poses, cloud)
-    assert launched[-1] == ksimd.reduce_loglik_modes_simd_kernel.key
+    assert launched[-1] == ksimd.reduce_loglik_simd_kernels[True].key
 
 
 def _mode_state(params, m: int, n: int, b: int, rng):
@@ -274,7 +278,7 @@ def test_simd_sliding_with_modes_equals_the_warp_kernel(lik):
             params, table, mean, var]
     runs = []
     for kernel, extra in ((kslide.sliding_loglik_kernels[False, True], []),
-                          (ksimd.sliding_loglik_modes_simd_kernel, [wp.empty(n, dtype=klik.modes_sums_vec)])):
+                          (ksimd.sliding_loglik_simd_kernels[True], [wp.empty(n, dtype=klik.modes_sums_vec)])):
         outs = [wp.full((n, m), 7.0, dtype=wp.float32, device=DEVICE), *_outputs(n)]
         wp.launch(kernel, dim=n, inputs=[0, n_per, *head, *extra], outputs=outs, device=DEVICE)
         runs.append([o.numpy() for o in outs])
@@ -306,7 +310,7 @@ def test_simd_ray_reduction_with_modes_equals_the_warp_kernel():
     table, mean, var = _mode_state(params, m, n, 1, rng)
     runs = []
     for kernel, extra in ((klik.reduce_loglik_kernels[False, True], []),
-                          (ksimd.reduce_loglik_modes_simd_kernel, [wp.empty(n, dtype=klik.modes_sums_vec)])):
+                          (ksimd.reduce_loglik_simd_kernels[True], [wp.empty(n, dtype=klik.modes_sums_vec)])):
         outs = _outputs(n)
         wp.launch(kernel, dim=n, inputs=[0, n, cast.residual_m, quat, cast.normal, cast.vertical_m, model._staged,
                                          att, params, table, mean, var, *extra], outputs=outs, device=DEVICE)

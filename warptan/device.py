@@ -1,7 +1,9 @@
-"""Device resolution: a device is chosen once (``None`` = Warp's default) and then follows the data."""
+"""Device resolution: a device is chosen once (``None`` = Warp's default) and then follows the data; host-device
+copies that do not hold the host (pinned staging, :class:`HostEcho`)."""
 
 from __future__ import annotations
 
+import numpy as np
 import warp as wp
 
 
@@ -99,3 +101,36 @@ def quiet_warp() -> None:
     """Silence Warp's start-up banner and per-module load messages (for the CLI, scripts and tests)."""
     wp.config.quiet = True
     wp.config.log_level = max(wp.config.log_level, wp.LOG_WARNING)
+
+
+class HostEcho:
+    """Device arrays copied to the host behind the device's work, for host decisions that may lag (CUDA): each
+    :meth:`queue` copies them into one of two pinned buffers in turn and records an event; :meth:`read` returns the
+    copy queued before the last one (waiting for its event, long past in a pipelined filter), so the host never
+    waits for the work it just queued. Before two copies, and on the CPU (where the arrays are current and reading
+    them costs nothing), it reads the arrays themselves."""
+
+    def __init__(self, arrays: list[wp.array]):
+        self.arrays = arrays
+        self.device = arrays[0].device
+        self._queued = 0
+        if self.device.is_cuda:
+            self._host = [[wp.empty(a.shape, dtype=a.dtype, device="cpu", pinned=True) for a in arrays]
+                          for _ in range(2)]
+            self._events = [wp.Event(self.device), wp.Event(self.device)]
+
+    def queue(self) -> None:
+        if not self.device.is_cuda:
+            return
+        slot = self._queued % 2
+        for host, a in zip(self._host[slot], self.arrays, strict=True):
+            wp.copy(host, a)
+        wp.get_stream(self.device).record_event(self._events[slot])
+        self._queued += 1
+
+    def read(self) -> list[np.ndarray]:
+        if not self.device.is_cuda or self._queued < 2:
+            return [a.numpy() for a in self.arrays]
+        slot = self._queued % 2  # the copy before the last one
+        wp.synchronize_event(self._events[slot])
+        return [h.numpy().copy() for h in self._host[slot]]

@@ -1,3 +1,6 @@
+# Over 500 lines on purpose: the update's device program is one ordered sequence (move, tempering stages, model,
+# resampling, modes, integrity, record) issued in three forms (eager, recorded for replay on the CPU, captured in CUDA
+# graphs with conditional stages) that must stay the same launches in the same order.
 """The device program of a measurement update: :class:`UpdateProgram`, the base of
 :class:`~warptan.filter.mpf.MarginalizedParticleFilter` that launches it (it holds no state of its own: the filter's
 constructor makes the arrays it launches on).

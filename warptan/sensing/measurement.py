@@ -470,15 +470,19 @@ class _PointCloudModel(MeasurementModel):
     def _staging_buffer(device, b, m):
         return wp.empty((b, m), dtype=klik.cloud_row, device=device)
 
-    def _simd_mode_sums(self, device, n: int) -> wp.array | None:
-        """The CPU's scratch rows of the map-error modes' sums (one per particle) for the SIMD kernels with modes
-        (:mod:`warptan.kernels.simd`); None without modes or on CUDA."""
-        if not device.is_cpu or self._params.n_modes == 0:
-            return None
+    def _simd_mode_sums(self, device, n: int):
+        """``rows(a, b)``: the extra argument of the CPU's SIMD kernels (:mod:`warptan.kernels.simd`) for the
+        particles ``a:b``, their scratch rows of the map-error modes' sums (one element, unused, without modes);
+        none for the CUDA kernels."""
+        if not device.is_cpu:
+            return lambda a, b: []
+        need = n if self._params.n_modes > 0 else 1
         sums = getattr(self, "_mode_sums", None)
-        if sums is None or sums.shape[0] < n or sums.device is not device:
-            sums = self._mode_sums = wp.empty(n, dtype=klik.modes_sums_vec, device=device)
-        return sums
+        if sums is None or sums.shape[0] < need or sums.device is not device:
+            sums = self._mode_sums = wp.empty(need, dtype=klik.modes_sums_vec, device=device)
+        if self._params.n_modes == 0:
+            return lambda a, b: [sums]
+        return lambda a, b: [rows_of(sums, a, b)]
 
     def _scan_geometry(self, quat: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         from warptan.nav.frames import quat_to_mat
@@ -610,11 +614,11 @@ class RaycastModel(_PointCloudModel):
         kernel, block = klik.reduce_loglik_kernels[device.is_cuda, self._params.n_modes > 0], _block_dim(device)
         sums = self._simd_mode_sums(device, res.shape[0])
         if device.is_cpu:  # the points as SIMD lanes (same per-point values)
-            kernel = ksimd.reduce_loglik_simd_kernel if sums is None else ksimd.reduce_loglik_modes_simd_kernel
+            kernel = ksimd.reduce_loglik_simd_kernels[self._params.n_modes > 0]
         launch_rows(kernel, res.shape[0],
                     lambda a, b: ([a or 0, n_per, rows_of(res, a, b), rows_of(quat_nb, a, b), rows_of(nrm, a, b),
                                    rows_of(vert, a, b), cloud, att, self._params, self._modes, rows_of(mean, a, b),
-                                   var, *([] if sums is None else [rows_of(sums, a, b)])],
+                                   var, *sums(a, b)],
                                   [rows_of(out.error_m, a, b), rows_of(out.loglik, a, b), rows_of(out.nis, a, b),
                                    rows_of(out.n_valid, a, b), rows_of(out.lam, a, b), rows_of(out.info, a, b),
                                    rows_of(out.mode_post, a, b)]),
@@ -653,11 +657,10 @@ class SlidingModel(_PointCloudModel):
         kernel, block = kslide.sliding_loglik_kernels[device.is_cuda, self._params.n_modes > 0], _block_dim(device)
         sums = self._simd_mode_sums(device, pos_n.shape[0])
         if device.is_cpu:  # the points as SIMD lanes (same per-point values)
-            kernel = ksimd.sliding_loglik_simd_kernel if sums is None else ksimd.sliding_loglik_modes_simd_kernel
+            kernel = ksimd.sliding_loglik_simd_kernels[self._params.n_modes > 0]
         launch_rows(kernel, pos_n.shape[0],
                     lambda a, b: ([a or 0, n_per, grid, surface, rows_of(pos_n, a, b), rows_of(quat_nb, a, b), cloud,
-                                   att, self._params, self._modes, rows_of(mean, a, b), var,
-                                   *([] if sums is None else [rows_of(sums, a, b)])],
+                                   att, self._params, self._modes, rows_of(mean, a, b), var, *sums(a, b)],
                                   [rows_of(out.residual_m, a, b), rows_of(out.error_m, a, b), rows_of(out.loglik, a, b),
                                    rows_of(out.nis, a, b), rows_of(out.n_valid, a, b), rows_of(out.lam, a, b),
                                    rows_of(out.info, a, b), rows_of(out.mode_post, a, b)]),
