@@ -123,11 +123,10 @@ def test_simd_sliding_equals_the_warp_kernel(surface, lik, sigma, sigma_range, s
     _assert_sums_equal(got[1:], ref[1:], lik)
 
 
-@pytest.mark.parametrize(("lik", "sigma", "sigma_range", "sigma_map", "sigma_err"), CASES)
-def test_simd_ray_reduction_equals_the_warp_kernel(lik, sigma, sigma_range, sigma_map, sigma_err):
-    """The ray-casting model's reduction over real DDA casts (residuals, scaled normals, heights above the map) of 48
-    particles 30 m about the truth, two over the map's edge, 37 random rays a scan, one in seven not received."""
-    rng = np.random.default_rng(100 + 10 * lik)
+def _ray_casts(rng):
+    """Real DDA casts (residuals, scaled normals, heights above the map) of 48 particles 30 m about the truth, two
+    over the map's edge, 37 random rays a scan, one in seven not received: (model, casts, attitudes, attitude
+    covariance)."""
     terrain = _terrain()
     n0, n1, e0, e1 = terrain.bounds_ne
     m, n = 37, 48
@@ -147,16 +146,28 @@ def test_simd_ray_reduction_equals_the_warp_kernel(lik, sigma, sigma_range, sigm
     cast = model.evaluate(wp.array(pos.astype(np.float32), dtype=wp.vec3, device=DEVICE), quat, cloud)
     assert np.isnan(cast.residual_m.numpy()).any() and np.isfinite(cast.vertical_m.numpy()).any()
     att = wp.array(np.diag([1e-4, 1e-4, 4e-4]).astype(np.float32)[None], dtype=wp.mat33, device=DEVICE)
+    return model, cast, quat, att
+
+
+def _reduce(kernel, model, cast, quat, att, params, mode_args):
+    n = quat.shape[0]
+    outs = _outputs(n)
+    wp.launch(kernel, dim=n, inputs=[0, n, cast.residual_m, quat, cast.normal, cast.vertical_m, model._staged, att,
+                                     params, *mode_args], outputs=outs, device=DEVICE)
+    return [o.numpy() for o in outs]
+
+
+@pytest.mark.parametrize(("lik", "sigma", "sigma_range", "sigma_map", "sigma_err"), CASES)
+def test_simd_ray_reduction_equals_the_warp_kernel(lik, sigma, sigma_range, sigma_map, sigma_err):
+    """The ray-casting model's reduction over real DDA casts (:func:`_ray_casts`): the SIMD kernel's sums equal the
+    Warp kernel's."""
+    model, cast, quat, att = _ray_casts(np.random.default_rng(100 + 10 * lik))
     params = _params(lik, sigma, sigma_range, sigma_map, sigma_err)
     params.err_kind = klik.ERR_AXES
-    got, ref = [], []
-    for kernel, into, simd in ((klik.reduce_loglik_kernels[False, False], ref, False),
-                               (ksimd.reduce_loglik_simd_kernels[False], got, True)):
-        outs = _outputs(n)
-        wp.launch(kernel, dim=n, inputs=[0, n, cast.residual_m, quat, cast.normal, cast.vertical_m, model._staged,
-                                         att, params, *_modes(n, simd)], outputs=outs, device=DEVICE)
-        into.extend(o.numpy() for o in outs[:6])
-    _assert_sums_equal(got, ref, lik)
+    n = quat.shape[0]
+    ref = _reduce(klik.reduce_loglik_kernels[False, False], model, cast, quat, att, params, _modes(n))
+    got = _reduce(ksimd.reduce_loglik_simd_kernels[False], model, cast, quat, att, params, _modes(n, simd=True))
+    _assert_sums_equal(got[:6], ref[:6], lik)
 
 
 @pytest.mark.parametrize(("m", "want_vertical"), [(37, 1), (100, 0), (ksimd_ray.MAX_ORDERED + 3, 1)])
@@ -288,31 +299,15 @@ def test_simd_sliding_with_modes_equals_the_warp_kernel(lik):
 
 
 def test_simd_ray_reduction_with_modes_equals_the_warp_kernel():
-    """The ray-casting model's reduction with 16 map-error modes over real DDA casts: the SIMD kernel's sums,
-    information and mode posteriors equal the Warp kernel's to float32 rounding."""
+    """The ray-casting model's reduction with 16 map-error modes over real DDA casts (:func:`_ray_casts`): the SIMD
+    kernel's sums, information and mode posteriors equal the Warp kernel's to float32 rounding."""
     rng = np.random.default_rng(11)
-    terrain = _terrain()
-    n0, n1, e0, e1 = terrain.bounds_ne
-    m, n = 37, 48
-    ground = float(np.nanmax(terrain.heights_m))
-    truth = np.array([0.5 * (n0 + n1), 0.5 * (e0 + e1), -(ground + 400.0)])
-    truth_q = euler_to_quat(0.1, -0.05, 0.7)
-    pos = truth + rng.normal(0.0, [30.0, 30.0, 3.0], (n, 3))
-    dirs = np.column_stack([rng.uniform(-0.7, 0.7, m), rng.uniform(-0.7, 0.7, m), np.ones(m)])
-    cloud = wt.PointCloudSensor(wt.ScanPattern(dirs), range_sigma_m=0.5).measure(terrain, truth, truth_q, rng=rng)
-    model = wt.RaycastModel(terrain, wt.Likelihood("gaussian", sensor_sigma_m=0.5, map_sigma_m=0.8),
-                            caster=wt.RayCaster("dda"))
-    quat = wp.array(np.tile(truth_q, (n, 1)).astype(np.float32), dtype=wp.vec4, device=DEVICE)
-    cast = model.evaluate(wp.array(pos.astype(np.float32), dtype=wp.vec3, device=DEVICE), quat, cloud)
-    att = wp.array(np.diag([1e-4, 1e-4, 4e-4]).astype(np.float32)[None], dtype=wp.mat33, device=DEVICE)
+    model, cast, quat, att = _ray_casts(rng)
     params = _params(klik.LIK_GAUSS, 1.0, 0.5, 0.3, 4.0)
     params.err_kind = klik.ERR_AXES
-    table, mean, var = _mode_state(params, m, n, 1, rng)
-    runs = []
-    for kernel, extra in ((klik.reduce_loglik_kernels[False, True], []),
-                          (ksimd.reduce_loglik_simd_kernels[True], [wp.empty(n, dtype=klik.modes_sums_vec)])):
-        outs = _outputs(n)
-        wp.launch(kernel, dim=n, inputs=[0, n, cast.residual_m, quat, cast.normal, cast.vertical_m, model._staged,
-                                         att, params, table, mean, var, *extra], outputs=outs, device=DEVICE)
-        runs.append([o.numpy() for o in outs])
-    _assert_modes_equal(runs[1], runs[0], klik.LIK_GAUSS)
+    n = quat.shape[0]
+    table, mean, var = _mode_state(params, cast.residual_m.shape[1], n, 1, rng)
+    ref = _reduce(klik.reduce_loglik_kernels[False, True], model, cast, quat, att, params, [table, mean, var])
+    got = _reduce(ksimd.reduce_loglik_simd_kernels[True], model, cast, quat, att, params,
+                  [table, mean, var, wp.empty(n, dtype=klik.modes_sums_vec)])
+    _assert_modes_equal(got, ref, klik.LIK_GAUSS)
