@@ -238,19 +238,12 @@ def copy_modes_kernel(mean_in: wp.array(dtype=modes_vec), post_in: wp.array(dtyp
 def keep_done_modes_kernel(n_per: int, stats: wp.array2d(dtype=wp.float64), held: wp.array(dtype=modes_vec),
                            post: wp.array(dtype=modes_vec)):
     """After a tempering stage's model launch: the filters of a batch that were done before it (no exponent left)
-    take back the mode posteriors ``held`` from before it. The launch evaluates every filter's particles, and a done
+    take back the mode posteriors ``held`` copied before it. The launch evaluates every filter's particles, and a done
     filter's regularised particles would otherwise carry a posterior evaluated at their jittered poses rather than
     their ancestors' (what the filter run alone keeps): a batch must give each filter's bits as alone."""
     i = wp.tid()
     if stats[i // n_per, ST_REMAIN] <= wp.float64(0.0):
         post[i] = held[i]
-
-
-@wp.kernel
-def hold_modes_kernel(post: wp.array(dtype=modes_vec), held_out: wp.array(dtype=modes_vec)):
-    """The mode posteriors before a later tempering stage's model launch (:func:`keep_done_modes_kernel`)."""
-    i = wp.tid()
-    held_out[i] = post[i]
 
 
 @wp.kernel

@@ -426,7 +426,7 @@ class UpdateProgram:
         held = self._mode_spare[1] if self._mode_table() is not None and self.n_filters > 1 else None
         post = self._out.mode_post
         if held is not None:
-            launch(kmpf.hold_modes_kernel, dim=held.shape[0], inputs=[post], outputs=[held], device=self.device)
+            wp.copy(held, post)
         if key is None:
             self.model.launch(self._pos, self._quat)
         else:
