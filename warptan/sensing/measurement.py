@@ -150,6 +150,7 @@ class MeasurementModel:
         self._modes: wp.array | None = None
         self._modes_host: np.ndarray | None = None
         self._modes_skip = 0
+        self._mode_sums: wp.array | None = None  # the CPU's SIMD kernels' scratch rows (_simd_mode_sums)
         self.footprint_centre = np.zeros(2)
         """Mean horizontal offset (m, navigation frame) of the scan's nominal ground points from the aircraft (the
         last scan under a stated map error; :class:`~warptan.sensing.likelihood.RevisitMemory` reads it)."""
@@ -477,7 +478,7 @@ class _PointCloudModel(MeasurementModel):
         if not device.is_cpu:
             return lambda a, b: []
         need = n if self._params.n_modes > 0 else 1
-        sums = getattr(self, "_mode_sums", None)
+        sums = self._mode_sums
         if sums is None or sums.shape[0] < need or sums.device is not device:
             sums = self._mode_sums = wp.empty(need, dtype=klik.modes_sums_vec, device=device)
         if self._params.n_modes == 0:
