@@ -476,6 +476,11 @@ def test_the_command_line_states_the_accuracy(capsys, tmp_path):
     with pytest.raises(SystemExit):  # argparse: not one of auto, on, off
         cli.main(["run", "S8", "--map-error-learn", "sometimes", "--check"])
     assert cli.main(["run", "S8", "--map-error-learn", "off", "--check"]) == 0
+    with pytest.raises(SystemExit):  # argparse: a factor below 1
+        cli.main(["run", "S8", "--map-error-confidence", "0.5", "--check"])
+    assert cli.main(["run", "S8", "--map-error-confidence", "12", "--check"]) == 2
+    assert "likelihood.map_error_confidence" in capsys.readouterr().err
+    assert cli.main(["run", "S8", "--map-error-confidence", "3", "--check"]) == 0
 
 
 def test_the_filter_reports_the_offset_it_carries():
@@ -640,17 +645,53 @@ def test_a_map_better_than_stated_is_learned_to_be_so():
 
 
 def test_a_statement_that_is_nonsense_is_one_clear_error_before_any_work():
-    """A correlation length shorter than a post, a negative or NaN RMS, an unknown learning mode: refused by the
-    scenario's checks (prepare) with the field named."""
+    """A correlation length shorter than a post, a negative or NaN RMS, an unknown learning mode, a confidence
+    factor outside [1, 10]: refused by the scenario's checks (prepare) with the field named."""
     from warptan.sim.scenario_schema import ScenarioError
     from warptan.sim.scenarios import prepare
 
     with pytest.raises(ScenarioError, match="map_error_corr_m = 30 m is shorter than one post"):
         prepare("S8", map_error_rms_m=5.0, map_error_corr_m=30.0)
     for bad in ({"map_error_rms_m": -1.0, "map_error_corr_m": 500.0}, {"map_error_rms_m": float("nan")},
-                {"map_error_learn": "sometimes"}):
+                {"map_error_learn": "sometimes"}, {"map_error_confidence": 0.5}, {"map_error_confidence": 11.0},
+                {"map_error_confidence": float("nan")}):
         with pytest.raises(ScenarioError, match="map_error"):
             prepare("S8", **bad)
+
+
+def test_a_restatement_changes_the_table_in_place_and_nothing_a_recording_holds(scan, device):
+    """The learner's restatement rescales the device table in place and keeps the kernels' struct (its
+    ``sigma_err`` the statement's) and the model's generation: recorded launches and captured graphs stay valid (a
+    restatement costs no re-capture), and the next evaluation weighs with the restated table."""
+    dem, cloud, pos, q = scan
+    poses = (wp.array(pos, dtype=wp.vec3, device=device), wp.array(np.tile(q, (len(pos), 1)), dtype=wp.vec4,
+                                                                     device=device))
+    model = wt.make_model("raycast", dem, wt.Likelihood("gaussian", sensor_sigma_m=0.5, **STATED))
+    before = model.evaluate(*poses, cloud).loglik.numpy().copy()
+    table, generation = model.mode_table, model.generation
+    m = table.shape[0] - klik.MODE_EXTRA_ROWS
+    k0 = table.numpy()[m + klik.MODE_K0].copy()
+    model.restate_map_error(2.5)
+    assert model.generation == generation and model.mode_table is table and model._params.sigma_err == 5.0
+    np.testing.assert_allclose(table.numpy()[m + klik.MODE_K0], k0 / 4.0, rtol=1e-6)
+    assert model.likelihood.map_error_sigma_m == 2.5
+    assert not np.array_equal(model.evaluate(*poses, cloud).loglik.numpy(), before)
+
+
+def test_the_statement_s_confidence_bounds_the_learner_and_the_offset_it_cannot_see():
+    """``map_error_confidence`` F: a statement that is a prior reports the map's offset under the scan (which no
+    residual sees) at F σ_e, its change along the track at σ_e; the learner's ceiling is F σ_e; without learning the
+    statement is exact; a factor outside [1, 10] or NaN is an error naming it."""
+    from warptan.checks import FilterError
+
+    told = wt.Likelihood("gaussian", sensor_sigma_m=0.5, **STATED)
+    prior = dataclasses.replace(told, map_error_learn=True, map_error_confidence=3.0)
+    assert told.offset_process(100.0)[0] == 25.0 and prior.offset_process(100.0)[0] == pytest.approx(225.0)
+    assert prior.offset_process(100.0)[1] == told.offset_process(100.0)[1]
+    assert dataclasses.replace(prior, map_error_confidence=1.0).offset_process(100.0)[0] == 25.0
+    for bad in (0.5, 10.5, float("nan")):
+        with pytest.raises(FilterError, match="map_error_confidence"):
+            dataclasses.replace(told, map_error_confidence=bad)
 
 
 def test_a_restated_rms_rescales_the_mode_table_as_if_built_for_it():

@@ -166,7 +166,8 @@ def _run(args) -> int:
                  "world_bias_m": args.world_bias_m, "world_clutter_height_m": args.world_clutter_m,
                  "world_clutter_fraction": args.world_clutter_fraction, "world_refine": args.world_refine,
                  "world_seed": args.world_seed, "map_error_rms_m": args.map_error_m,
-                 "map_error_corr_m": args.map_error_corr_m, "map_error_learn": _learn_arg(args.map_error_learn)}
+                 "map_error_corr_m": args.map_error_corr_m, "map_error_learn": _learn_arg(args.map_error_learn),
+                 "map_error_confidence": args.map_error_confidence}
     plans = {name: prepare(name, terrain=terrain, seeds=range(seeds), device=args.device, batched=args.batch,
                            **overrides) for name in names}
     ids = [scenario.id for scenario, _, _ in plans.values()]
@@ -353,7 +354,7 @@ def _replay(args) -> int:
         stated = (args.map_error_m, args.map_error_corr_m or 0.0)
     learn = _learn_arg(args.map_error_learn)
     scenario = replay_config(log, args.model, args.backend, args.particles, args.likelihood, stated,
-                             map_error_learn=learn)  # checks them
+                             map_error_learn=learn, map_error_confidence=args.map_error_confidence)  # checks them
     replay_terrain(log, scenario, args.terrain)  # loads (and caches) the DEM before the progress bar
     n_meas = len(log.alt_t if scenario.sensor.model == "altimeter" else log.scan_t)
     with progress_bar(n_meas, "update", disable=args.quiet) as bar:
@@ -361,7 +362,7 @@ def _replay(args) -> int:
         result = replay(log, args.terrain, model=args.model, backend=args.backend, particles=args.particles,
                         likelihood=args.likelihood, seed=args.seed, device=args.device,
                         progress=lambda k, n: bar.update(1), allow_gaps=args.allow_gaps, map_error=stated,
-                        map_error_learn=learn)
+                        map_error_learn=learn, map_error_confidence=args.map_error_confidence)
     dropped = result.run.info.get("dropped_measurements", 0)
     if dropped:
         print(f"warptan: note: {dropped} measurement(s) outside the IMU's time span were not used")
@@ -395,6 +396,10 @@ def _stated_accuracy(parser, description: str) -> None:
                        help="learn the error's RMS in flight, the statement (or 5 m / 500 m) its prior: auto (the "
                             "default) whenever the map is not known to be the world or an error is stated "
                             "(likelihood.map_error_learn)")
+    group.add_argument("--map-error-confidence", type=number_arg(1.0, False), default=None, metavar="F",
+                       help="the factor (1-10) the stated (or default) RMS is right within, default 2: the learned "
+                            "RMS stays under F times it and the altitude's σ counts F times it for the map's offset, "
+                            "which no scan sees (likelihood.map_error_confidence)")
 
 
 def _bag_folder(path: str) -> str | None:

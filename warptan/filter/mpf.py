@@ -211,7 +211,7 @@ class MarginalizedParticleFilter(ImuIntake, Readout):
         likelihood states an error to learn (``map_error_learn``) and the filter runs one flight (a batch shares one
         likelihood: its filters keep the statement)."""
         if getattr(lk, "models_map_error", False) and getattr(lk, "map_error_learn", False) and b == 1:
-            self.learner = MapErrorLearner(lk.map_error_sigma_m)
+            self.learner = MapErrorLearner(lk.map_error_sigma_m, ceiling=lk.map_error_confidence)
             self._moments_out = wp.zeros((b, kmpf.MOMENTS_LEN), dtype=wp.float64, device=self.device)
             self._moments_echo = HostEcho([self._moments_out])
         self._platform_echo = None  # (the nominal's attitude and position for the map-error modes' scan geometry)

@@ -17,6 +17,9 @@ POSITION_PRIOR_PRECISION = 1.0e-4
 (:attr:`Likelihood.project_position`): negligible against a scan's position information, it only keeps Λ_pp
 invertible where the ground says nothing horizontally."""
 
+MAX_CONFIDENCE = 10.0
+"""The widest factor a map-error statement may be right within (:attr:`Likelihood.map_error_confidence`)."""
+
 LIKELIHOODS = {"paper": klik.LIK_PAPER, "gaussian": klik.LIK_GAUSS, "student_t": klik.LIK_STUDENT}
 
 
@@ -52,6 +55,11 @@ class Likelihood:
             the position fix the map error causes changes (:meth:`fix_process`); 0: the error's own length.
         map_error_learn: The stated ``map_error_sigma_m`` is a prior that the filter corrects in flight from its own
             residuals (:class:`MapErrorLearner`; a filter of one run, not a batch).
+        map_error_confidence: The factor ``F`` (1–10) within which the stated (or default) RMS is right, when it is
+            a prior (``map_error_learn``): the learner may raise σ_e to at most ``F`` times it (lower, freely), and
+            the offset of the map under the scan, which no scan can see (the particles' altitude carries it:
+            :meth:`offset_process`), is reported at the statement's upper end, ``F σ_e``. 1: the RMS is an upper
+            bound known exactly. Without learning the statement is taken as exact and ``F`` is not used.
         revisit_correlation: Correlation ρ ∈ [0, 1) of the position fixes of two passes over the same ground under
             a stated map error (:class:`RevisitMemory`): the share of a pass's fix that is the map's error, which
             a pass over the same ground reads again; 0: passes independent.
@@ -84,6 +92,7 @@ class Likelihood:
     fix_corr_m: float = 0.0
     revisit_correlation: float = 0.9
     map_error_learn: bool = False
+    map_error_confidence: float = 2.0
 
     def __post_init__(self):
         if self.kind not in LIKELIHOODS:
@@ -106,6 +115,9 @@ class Likelihood:
             value = getattr(self, name)
             if not (np.isfinite(value) and value >= 0):
                 raise FilterError(f"likelihood {name} must be a number ≥ 0, got {value!r}")
+        if not (np.isfinite(self.map_error_confidence) and 1.0 <= self.map_error_confidence <= MAX_CONFIDENCE):
+            raise FilterError(f"likelihood map_error_confidence must be a factor in [1, {MAX_CONFIDENCE:g}] (the "
+                              f"stated RMS is right within it), got {self.map_error_confidence!r}")
         if not (np.isfinite(self.revisit_correlation) and 0.0 <= self.revisit_correlation < 1.0):
             raise FilterError(f"likelihood revisit_correlation must be in [0, 1), got {self.revisit_correlation!r}")
         if self.map_error_sigma_m > 0 and self.map_error_corr_m <= 0:
@@ -247,12 +259,18 @@ class Likelihood:
         4σ_b²/3``, matches the offset's structure function ``2σ_b²(1 − e⁻¹) = 1.26 σ_b²`` there). ``σ_b = σ_e``
         bounds the offset of any footprint (its average over the footprint varies less) and ``L`` bounds the
         offset's correlation length from below (the footprint's average is smoother): both on the safe side.
-        ``(0, 0)`` without a stated map error."""
+        ``(0, 0)`` without a stated map error.
+
+        A statement that is a prior (``map_error_learn``) reports ``var_b = (F σ_e)²``, ``F`` its
+        ``map_error_confidence``: no residual sees the offset (a map 10 m high everywhere looks exact to every scan),
+        so the learner cannot tell its level, and the statement's upper end is what the altitude's σ can honestly
+        claim. ``q_v`` uses σ_e itself (the offset's change along the track is the learned error's)."""
         if not self.models_map_error:
             return 0.0, 0.0
-        var_b = self.map_error_sigma_m**2
+        var_e = self.map_error_sigma_m**2
+        var_b = var_e * (self.map_error_confidence**2 if self.map_error_learn else 1.0)
         v = max(float(speed_mps), 0.0)
-        return var_b, 4.0 * var_b * v**3 / self.map_error_corr_m**3
+        return var_b, 4.0 * var_e * v**3 / self.map_error_corr_m**3
 
     def fix_process(self, speed_mps: float) -> float:
         """The position noise density (m²/s) the Kalman part adds to ``Q^n`` under a stated map error: the
@@ -380,8 +398,10 @@ class MapErrorLearner:
     **Guard against a wrong lock confirming itself.** A filter locked in the wrong place explains its misfit with
     large mode amplitudes, which would raise ``σ_e`` and make the misfit look normal. So the learner reads only a
     converged filter (the particles' horizontal σ within ``max(converged_m, 3 σ_e)``), never while its integrity NIS
-    (weighted over the particles) exceeds ``nis_max``, and ``σ_e`` stays within ``[floor_m, ceiling · prior]``: the
-    statement bounds how much worse the map may be learned to be, never how much better.
+    (weighted over the particles) exceeds ``nis_max``, and ``σ_e`` stays within ``[floor_m, ceiling · prior]``
+    (``ceiling``: the statement's ``map_error_confidence``): the statement bounds how much worse the map may be
+    learned to be, never how much better. The offset under the scan is not learned at all (no residual sees it): the
+    altitude's σ counts the statement's upper end for it (:meth:`Likelihood.offset_process`).
 
     The filter (:class:`warptan.filter.mpf.MarginalizedParticleFilter`) runs one when its likelihood has
     ``map_error_learn``; ``scripts/learn_study.py`` measures it over six families of worlds. Not learned: the

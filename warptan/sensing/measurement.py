@@ -185,21 +185,21 @@ class MeasurementModel:
         amplitudes are whitened by the point σ, which does not change: the filter's stored amplitudes stay valid;
         :class:`~warptan.sensing.likelihood.MapErrorLearner`). The modes and their correlations along the track do
         not depend on the RMS: the table in use is rescaled (:meth:`~warptan.sensing.likelihood.Likelihood.
-        rescale_error_modes`), not rebuilt."""
+        rescale_error_modes`), not rebuilt.
+
+        The kernels' struct keeps the statement's RMS (``sigma_err``: the gross-miss gate's scale and the ray casts'
+        geometry term, :meth:`params`) and the table's values change in place, so recorded launches and captured
+        graphs stay valid: a restatement costs no re-capture on CUDA."""
         if not self._likelihood.models_map_error:
             raise FilterError("restate_map_error needs a likelihood with a stated map error")
         old = self._likelihood.map_error_sigma_m
         self._likelihood = dataclasses.replace(self._likelihood, map_error_sigma_m=float(sigma_m))
-        n_modes = self._params.n_modes
-        self._params = self.params()
-        self._params.n_modes = n_modes
         host = self._modes_host
         if host is not None and self._modes_geometry is not None:  # the same modes, their variances scaled
             m = host.shape[0] - klik.MODE_EXTRA_ROWS
             self._modes_host = host = self.likelihood.rescale_error_modes(host, m, (float(sigma_m) / old) ** 2)
             self._modes.assign(host)
             self.modes_info = {**self.modes_info, "k0": host[m + klik.MODE_K0].tolist()}
-        self.generation += 1
 
     def bind_attitude_cov(self, att_cov: wp.array | None) -> None:
         """Use ``att_cov`` ((B,) mat33 on the particles' device, rad²: each filter's Kalman covariance of dθ,
@@ -249,7 +249,7 @@ class MeasurementModel:
         p.att_scale = (self.sigma_m / lk.sigma_att(self.surface_mismatch_m())) ** 2
         p.pos_precision = POSITION_PRIOR_PRECISION if lk.project_position else -1.0
         p.n_modes = 0  # set by _ensure_modes when the first scan is staged
-        p.sigma_err = float(lk.map_error_sigma_m) if lk.models_map_error else 0.0
+        p.sigma_err = float(lk.map_error_sigma_m) if lk.models_map_error else 0.0  # (a restatement keeps it)
         if lk.sigma_m is None:
             p.sigma_range = float(lk.sensor_sigma_m)
             p.sigma_map = math.sqrt(max(self.sigma_m**2 - lk.sensor_sigma_m**2, 0.0))

@@ -32,7 +32,7 @@ from warptan.nav.frames import quat_to_mat
 from warptan.nav.geoframe import corners, frame_change
 from warptan.nav.imu import imu_grade
 from warptan.nav.ins import Ins, NavState
-from warptan.sensing.likelihood import Likelihood
+from warptan.sensing.likelihood import MAX_CONFIDENCE, Likelihood
 from warptan.sensing.sensors import AltimeterReading, PointCloud
 from warptan.sim.runner import collect_runs
 from warptan.sim.scenario_config import Scenario
@@ -101,10 +101,12 @@ def _measurements(log: FlightLog, model_name: str, idx: np.ndarray) -> list:
 # ---------------------------------------------------------------------- replay
 def replay_config(log: FlightLog, model: str | None = None, backend: str | None = None,
                   particles: int | None = None, likelihood: str | None = None,
-                  map_error: tuple[float, float] | None = None, map_error_learn: bool | str | None = None) -> Scenario:
+                  map_error: tuple[float, float] | None = None, map_error_learn: bool | str | None = None,
+                  map_error_confidence: float | None = None) -> Scenario:
     """The scenario of a replay: the one the log was simulated with (settings), else S8's filter and likelihood
     settings with the log's IMU grade, sensor and rates; the keywords override (``map_error``: the DEM's stated
-    accuracy, ``(RMS, correlation length)`` in m: ``likelihood.map_error_rms_m`` and ``map_error_corr_m``)."""
+    accuracy, ``(RMS, correlation length)`` in m: ``likelihood.map_error_rms_m`` and ``map_error_corr_m``;
+    ``map_error_confidence``: the factor its RMS is right within)."""
     from warptan.sim.scenario_config import load_config
 
     stored = log.settings.get("config")
@@ -133,6 +135,12 @@ def replay_config(log: FlightLog, model: str | None = None, backend: str | None 
         if map_error_learn not in (True, False, "auto"):
             raise FilterError(f"map_error_learn must be 'auto', True or False, got {map_error_learn!r}")
         scenario = scenario.replace(likelihood={"map_error_learn": map_error_learn})
+    if map_error_confidence is not None:
+        f = float(map_error_confidence)
+        if not (math.isfinite(f) and 1.0 <= f <= MAX_CONFIDENCE):
+            raise FilterError(f"map_error_confidence must be a factor in [1, {MAX_CONFIDENCE:g}] (the stated RMS is "
+                              f"right within it), got {map_error_confidence!r}")
+        scenario = scenario.replace(likelihood={"map_error_confidence": f})
     if model is not None:
         if model not in ("sliding", "raycast", "altimeter"):
             raise FilterError(f"unknown model {model!r}; choose sliding, raycast or altimeter")
@@ -181,8 +189,10 @@ def _likelihood(log: FlightLog, scenario: Scenario, the_map, own: bool = True) -
                                                                                            lk.kind):
         lik = Likelihood(**stored)
         rms, corr, learn = learned_statement(lk, own and _simulated_on_its_map(ran), max(the_map.dn, the_map.de))
-        if (rms, corr, learn) != (lik.map_error_sigma_m, lik.map_error_corr_m, lik.map_error_learn):
+        if (rms, corr, learn, lk.map_error_confidence) != (lik.map_error_sigma_m, lik.map_error_corr_m,
+                                                           lik.map_error_learn, lik.map_error_confidence):
             lik = dataclasses.replace(lik, map_error_sigma_m=rms, map_error_corr_m=corr, map_error_learn=learn,
+                                      map_error_confidence=lk.map_error_confidence,
                                       fix_corr_m=the_map.slope_correlation_m if rms > 0 else 0.0)
         if not own and lk.map_aware:
             lik = dataclasses.replace(lik, map_sigma_m=math.hypot(lik.map_sigma_m,
@@ -308,7 +318,7 @@ def same_posts(log: FlightLog, terrain) -> bool:
 def replay(log: FlightLog, terrain=None, *, model: str | None = None, backend: str | None = None,
            particles: int | None = None, likelihood: str | None = None, seed: int | None = None, device="cpu",
            progress=None, allow_gaps: bool = False, map_error: tuple[float, float] | None = None,
-           map_error_learn: bool | str | None = None):
+           map_error_learn: bool | str | None = None, map_error_confidence: float | None = None):
     """Filter a recorded flight; returns a :class:`~warptan.sim.scenarios.ScenarioResult` (errors NaN without truth).
 
     Args:
@@ -325,6 +335,8 @@ def replay(log: FlightLog, terrain=None, *, model: str | None = None, backend: s
             default the log's settings, else none.
         map_error_learn: Learn the error's RMS in flight, the statement (or the default) its prior: ``"auto"`` (the
             default) unless the log was simulated over this DEM as its world, True or False.
+        map_error_confidence: The factor (1–10) the stated (or default) RMS is right within (default the log's,
+            else 2; :attr:`~warptan.sensing.likelihood.Likelihood.map_error_confidence`).
 
     The log is placed in the DEM's frame first (:func:`place_log`: a geodetic frame converted, any DEM that covers
     the flight); a DEM that does not contain the flight, nodata under the track, or a frame the DEM cannot be
@@ -333,7 +345,8 @@ def replay(log: FlightLog, terrain=None, *, model: str | None = None, backend: s
     from warptan.sim.scenarios import ScenarioResult, map_terrain, scenario_model
 
     log.validate(f"flight log {log.name}")
-    scenario = replay_config(log, model, backend, particles, likelihood, map_error, map_error_learn)
+    scenario = replay_config(log, model, backend, particles, likelihood, map_error, map_error_learn,
+                             map_error_confidence)
     truth_terrain = replay_terrain(log, scenario, terrain)
     own = own_terrain(log, terrain)
     log, placed = place_log(log, truth_terrain, own)

@@ -101,6 +101,10 @@ class LikelihoodSpec:
     map_error_learn: bool | str = "auto"
     """Learn the error's RMS in flight, the statement (or :data:`~warptan.sim.scenarios.DEFAULT_MAP_ERROR`) its prior:
     ``"auto"`` whenever the map is not known to be the world (a ``[world]``, another map, a replay), or true / false."""
+    map_error_confidence: float = 2.0
+    """The factor (1–10) the statement's RMS is right within, when it is a prior: the learner's ceiling and the
+    reported altitude σ's share of the map's offset (:attr:`warptan.sensing.likelihood.Likelihood.
+    map_error_confidence`)."""
 
 
 @dataclass(frozen=True)

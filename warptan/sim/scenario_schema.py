@@ -11,7 +11,7 @@ import math
 from warptan.filter.config import MIN_PARTICLES, RESAMPLERS
 from warptan.nav.flightplan import ALTITUDE_RULES, PATTERNS, PLACEMENTS
 from warptan.nav.imu import IMU_GRADES
-from warptan.sensing.likelihood import LIKELIHOODS
+from warptan.sensing.likelihood import LIKELIHOODS, MAX_CONFIDENCE
 from warptan.sensing.measurement import MODELS
 from warptan.terrain.grid import NAMED_TERRAINS
 from warptan.terrain.raycast import BACKENDS
@@ -112,6 +112,8 @@ SCHEMA: dict[str, dict[str, tuple[type | tuple, object]]] = {
         "map_error_corr_m": (float, _upto(1e6, "m")),
         "map_error_learn": ((bool, str), lambda v: None if v in (True, False, "auto") else
                             "must be 'auto' (learn the map's error unless the map is the world), true or false"),
+        "map_error_confidence": (float, lambda v: None if 1.0 <= v <= MAX_CONFIDENCE else
+                                 f"must be a factor in [1, {MAX_CONFIDENCE:g}]: the stated RMS is right within it"),
     },
     "filter": {
         "particles": (int, lambda v: None if v >= MIN_PARTICLES else f"must be ≥ {MIN_PARTICLES} (a particle filter "
@@ -149,9 +151,10 @@ SCHEMA: dict[str, dict[str, tuple[type | tuple, object]]] = {
         "seed": (int, None),
     },
 }
-STATED_ACCURACY_DEFAULTS = {"map_error_rms_m": 0.0, "map_error_corr_m": 0.0, "map_error_learn": "auto"}
-"""``[likelihood]`` keys a file may leave out: the DEM's stated correlated error (none) and whether the filter learns
-it in flight (``"auto"``: whenever the map is not known to be the world)."""
+STATED_ACCURACY_DEFAULTS = {"map_error_rms_m": 0.0, "map_error_corr_m": 0.0, "map_error_learn": "auto",
+                            "map_error_confidence": 2.0}
+"""``[likelihood]`` keys a file may leave out: the DEM's stated correlated error (none), whether the filter learns
+it in flight (``"auto"``: whenever the map is not known to be the world) and the factor its RMS is right within."""
 WORLD_DEFAULTS = {f.name: f.default for f in dataclasses.fields(WorldModel)}
 """A scenario without a ``[world]`` table (or without some of its keys) flies these: the world is the map."""
 
@@ -195,6 +198,7 @@ OVERRIDES = {
     "map_error_rms_m": ("likelihood", "map_error_rms_m"),
     "map_error_corr_m": ("likelihood", "map_error_corr_m"),
     "map_error_learn": ("likelihood", "map_error_learn"),
+    "map_error_confidence": ("likelihood", "map_error_confidence"),
     "world_relief_rms_m": ("world", "relief_rms_m"),
     "world_relief_slope": ("world", "relief_slope"),
     "world_error_rms_m": ("world", "error_rms_m"),

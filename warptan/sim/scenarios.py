@@ -260,7 +260,8 @@ def scenario_likelihood(scenario: Scenario, the_map: Terrain, truth: Terrain | N
                       nu=lk.nu, sensor_sigma_m=noise_m, map_sigma_m=map_sigma,
                       map_correlation=n_corr, footprint_correlation=n_fp,
                       map_error_sigma_m=rms, map_error_corr_m=corr, map_error_learn=learn,
-                      track_step_m=step_m, fix_corr_m=the_map.slope_correlation_m if rms > 0 else 0.0)
+                      map_error_confidence=lk.map_error_confidence, track_step_m=step_m,
+                      fix_corr_m=the_map.slope_correlation_m if rms > 0 else 0.0)
 
 
 def prepare(name_or_path, seed: int = 0, terrain=None, *, seeds=None, device=None, batched: bool = False,
