@@ -90,7 +90,7 @@ import numpy as np
 import warp as wp
 
 from warptan.checks import FilterError, FilterWarning
-from warptan.device import HostEcho, resolve_device
+from warptan.device import HostEcho, Uploads, resolve_device
 from warptan.filter.config import RESAMPLERS, FilterConfig
 from warptan.filter.intake import MAX_STEPS_PER_INTERVAL, ImuIntake
 from warptan.filter.program import _STREAM_INIT
@@ -335,6 +335,7 @@ class MarginalizedParticleFilter(ImuIntake, Readout):
         self._cdf_sums = wp.empty((b, kmpf.N_CHUNKS), dtype=wp.float64, device=d)
         self._stats = wp.zeros((b, kmpf.N_STATS), dtype=wp.float64, device=d)
         self._exponent = wp.ones(b, dtype=wp.float32, device=d)  # per update (RevisitMemory)
+        self._uploads = Uploads()  # (the exponent's copy: pinned on CUDA, behind the device's work)
         self._revisits = None
         self._moments_partial = wp.empty((b, kmpf.N_MOMENT_CHUNKS, kmpf.N_MOMENTS), dtype=wp.float64, device=d)
         # what estimate() reads, packed on the device and copied to the host at once (pinned memory on CUDA)
@@ -381,27 +382,27 @@ class MarginalizedParticleFilter(ImuIntake, Readout):
         likelihood = getattr(self.model, "likelihood", None)
         map_modes = getattr(likelihood, "models_map_error", False)
         # lean (CUDA): the update's head (the interval, the particles' moves and poses) goes to the device once the
-        # measurement is checked, and runs while the host stages the scan (not under map-error modes, whose scan
-        # geometry reads the last interval's attitude)
-        self._early = self._head_first(map_modes)
+        # measurement is checked, and runs while the host stages the scan
+        self._early = self._head_first()
         if self._early:
             self.model.check(measurement)  # a measurement refused here moves nothing
-            self._stage_interval()
-            self._queue_head()
-        elif map_modes:
+        if map_modes:
             # the map-error modes' scan geometry needs the platform's attitude and the revisit memory its ground: the
             # nominal as the update before last left it (copied to the host behind the device's work, HostEcho: 0.2 s
-            # old at 10 Hz, within the geometry's tolerance; on the CPU, and before two updates, the last interval's)
+            # old at 10 Hz, within the geometry's tolerance; on the CPU, and before two updates, the last interval's),
+            # so neither waits for the head
             if self._platform_echo is None:
                 self._platform_echo = HostEcho([self._nav["quat"], self._nav["pos"]])
             quat, pos = self._platform_echo.read()
             attitude = quat[0]
+            if self._early:  # the head reads the exponent
+                self._read_again(likelihood, pos)
+        if self._early:
+            self._stage_interval()
+            self._queue_head()
         out, staged = self._stage_scan(measurement, attitude)
-        if attitude is not None:  # ground read again after the modes forgot it
-            if self._revisits is None or self._revisits.likelihood.map_error_corr_m != likelihood.map_error_corr_m:
-                self._revisits = RevisitMemory(likelihood, self.n_filters)
-            ground = pos[:, :2] + getattr(self.model, "footprint_centre", np.zeros(2))
-            self._exponent.assign(self._revisits.exponents(ground).astype(np.float32))
+        if map_modes and not self._early:
+            self._read_again(likelihood, pos)
         t_staged = time.perf_counter()
         if hasattr(self.model, "bind_attitude_cov"):
             self.model.bind_attitude_cov(self._dev["att_cov"])
@@ -466,6 +467,14 @@ class MarginalizedParticleFilter(ImuIntake, Readout):
             self.q_pos = np.broadcast_to(np.asarray(q, dtype=np.float64), (self.n_filters,)).copy()
         self._q_dev[0].assign(self.q_pos)
         self._q_dev[1].assign(np.asarray(self._q_vel_down, dtype=np.float64))
+
+    def _read_again(self, likelihood, pos: np.ndarray) -> None:
+        """The update's exponent over ground read again after the modes forgot it (:class:`RevisitMemory`), at the
+        scan's footprint (the model's last) under the platform's position ``pos`` (B, 3)."""
+        if self._revisits is None or self._revisits.likelihood.map_error_corr_m != likelihood.map_error_corr_m:
+            self._revisits = RevisitMemory(likelihood, self.n_filters)
+        ground = pos[:, :2] + getattr(self.model, "footprint_centre", np.zeros(2))
+        self._uploads.put("exponent", self._exponent, self._revisits.exponents(ground))
 
     def _info(self, out):
         stats = self._stats.numpy()

@@ -136,14 +136,11 @@ class UpdateProgram:
             return 0
         return 2 if self._k == 0 and self._ahead == self._interval_k else 1
 
-    def _head_first(self, map_modes: bool | None = None) -> bool:
+    def _head_first(self) -> bool:
         """The lean update queues its head before the scan is staged (and, with graphs, :meth:`predict_many` runs
-        the interval's samples ahead): not under map-error modes (``map_modes``, when the caller read it already),
-        whose scan geometry reads the last interval's attitude, nor for a model without ``check``."""
-        if map_modes is None:
-            map_modes = getattr(getattr(self.model, "likelihood", None), "models_map_error", False)
-        return (self._lean and self._interval_first and not map_modes
-                and callable(getattr(self.model, "check", None)))
+        the interval's samples ahead), not for a model without ``check``. (Under map-error modes the scan geometry
+        and the revisit memory read the platform's pose from a copy behind the device's work, not the interval.)"""
+        return self._lean and self._interval_first and callable(getattr(self.model, "check", None))
 
     def _stage_scan(self, measurement, attitude) -> tuple:
         """The model's ``stage`` of the scan (validating first: nothing moves), and the device work it held. With
