@@ -336,6 +336,7 @@ class MarginalizedParticleFilter(ImuIntake, Readout):
         self._stats = wp.zeros((b, kmpf.N_STATS), dtype=wp.float64, device=d)
         self._exponent = wp.ones(b, dtype=wp.float32, device=d)  # per update (RevisitMemory)
         self._uploads = Uploads()  # (the exponent's copy: pinned on CUDA, behind the device's work)
+        self._exponent_host: np.ndarray | None = None  # (its value on the device: copied again only when it changes)
         self._revisits = None
         self._moments_partial = wp.empty((b, kmpf.N_MOMENT_CHUNKS, kmpf.N_MOMENTS), dtype=wp.float64, device=d)
         # what estimate() reads, packed on the device and copied to the host at once (pinned memory on CUDA)
@@ -474,7 +475,10 @@ class MarginalizedParticleFilter(ImuIntake, Readout):
         if self._revisits is None or self._revisits.likelihood.map_error_corr_m != likelihood.map_error_corr_m:
             self._revisits = RevisitMemory(likelihood, self.n_filters)
         ground = pos[:, :2] + getattr(self.model, "footprint_centre", np.zeros(2))
-        self._uploads.put("exponent", self._exponent, self._revisits.exponents(ground))
+        exponent = self._revisits.exponents(ground).astype(np.float32)
+        if self._exponent_host is None or not np.array_equal(exponent, self._exponent_host):  # (1 on fresh ground)
+            self._uploads.put("exponent", self._exponent, exponent)
+            self._exponent_host = exponent
 
     def _info(self, out):
         stats = self._stats.numpy()
