@@ -128,6 +128,11 @@ class HostEcho:
         wp.get_stream(self.device).record_event(self._events[slot])
         self._queued += 1
 
+    @property
+    def lag(self) -> int:
+        """How many queues before the last one the copy :meth:`read` returns was queued (0 or 1)."""
+        return 1 if self.device.is_cuda and self._queued >= 2 else 0
+
     def read(self) -> list[np.ndarray]:
         if not self.device.is_cuda or self._queued < 2:
             return [a.numpy() for a in self.arrays]

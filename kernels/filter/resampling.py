@@ -350,3 +350,48 @@ def map_error_moments_kernel(n_per: int, m: int, table: wp.array(dtype=modes_vec
     out[b, 3] = wp.float64(used)
     out[b, 4] = s_dp2[0] * inv - mn[0] * mn[0]
     out[b, 5] = s_dp2[1] * inv - mn[1] * mn[1]
+
+
+PROJ_LEN = MAX_MODES + 1
+"""Columns of :func:`mode_projection_kernel`'s output: each mode's Σ w p_i², then Σ w."""
+
+
+@wp.kernel
+def loglik_max_kernel(n_per: int, loglik: wp.array(dtype=wp.float32), out: wp.array(dtype=wp.float32)):
+    """Filter b's largest finite log-likelihood of the last evaluation (the reference of
+    :func:`mode_projection_kernel`'s weights; −inf when none)."""
+    b = wp.tid()
+    best = float(-wp.inf)
+    for k in range(n_per):
+        v = loglik[b * n_per + k]
+        if wp.isfinite(v):
+            best = wp.max(best, v)
+    out[b] = best
+
+
+@wp.kernel
+def mode_projection_kernel(n_per: int, m: int, table: wp.array(dtype=modes_vec),
+                           residual: wp.array2d(dtype=wp.float32), loglik: wp.array(dtype=wp.float32),
+                           ref: wp.array(dtype=wp.float32), sigma: float, gate: float,
+                           out: wp.array2d(dtype=wp.float64)):
+    """Particle t's raw projections of its last residuals on the scan's map-error modes, ``p_i = Σ_j u_ji r_j / σ``
+    (a point not received, not hit, or beyond ``gate`` whitened: none), weighted by its likelihood ``exp(ℓ_t −
+    max ℓ)`` into filter b's ``Σ w p_i²`` (``out[b, i]``) and ``Σ w`` (``out[b, MAX_MODES]``), zeroed by the caller.
+    Unlike the modes' posterior moments (:func:`map_error_moments_kernel`) these do not lean on the statement's
+    variances: the evidence on the error's correlation length
+    (:meth:`warptan.sensing.likelihood.MapErrorLearner.read`)."""
+    t = wp.tid()
+    b = t // n_per
+    lt = loglik[t]
+    if not wp.isfinite(lt) or not wp.isfinite(ref[b]):
+        return
+    w = wp.exp(wp.float64(lt - ref[b]))
+    p = modes_vec()
+    inv = 1.0 / sigma
+    for j in range(m):
+        z = residual[t, j] * inv
+        if wp.isfinite(z) and wp.abs(z) <= gate:
+            p += table[j] * z
+    for i in range(MAX_MODES):
+        wp.atomic_add(out, b, i, w * wp.float64(p[i] * p[i]))
+    wp.atomic_add(out, b, MAX_MODES, w)

@@ -83,6 +83,7 @@ skipped — no information, so it cannot drag the estimate towards the map — a
 
 from __future__ import annotations
 
+import math
 import time
 import warnings
 
@@ -211,9 +212,16 @@ class MarginalizedParticleFilter(ImuIntake, Readout):
         likelihood states an error to learn (``map_error_learn``) and the filter runs one flight (a batch shares one
         likelihood: its filters keep the statement)."""
         if getattr(lk, "models_map_error", False) and getattr(lk, "map_error_learn", False) and b == 1:
-            self.learner = MapErrorLearner(lk.map_error_sigma_m, ceiling=lk.map_error_confidence)
+            terrain = getattr(model, "terrain", None)
+            post = max(float(getattr(terrain, "dn", 0.0)), float(getattr(terrain, "de", 0.0)))
+            length = lk.map_error_corr_m if callable(getattr(model, "mode_spectrum", None)) else None
+            self.learner = MapErrorLearner(lk.map_error_sigma_m, ceiling=lk.map_error_confidence, prior_corr_m=length,
+                                           min_corr_m=2.0 * post)
             self._moments_out = wp.zeros((b, kmpf.MOMENTS_LEN), dtype=wp.float64, device=self.device)
-            self._moments_echo = HostEcho([self._moments_out])
+            self._proj_out = wp.zeros((b, kmpf.PROJ_LEN), dtype=wp.float64, device=self.device)
+            self._proj_ref = wp.zeros(b, dtype=wp.float32, device=self.device)
+            self._moments_echo = HostEcho([self._moments_out, self._proj_out])
+            self._spectra: list = []  # the mode spectrum of the table each queued reading read (the last two)
         self._platform_echo = None  # (the nominal's attitude and position for the map-error modes' scan geometry)
         self.max_stages = int(c.max_stages)
         self.bandwidth = float(c.regularize) * (4.0 / (self.n * 5.0)) ** (1.0 / 7.0)
@@ -450,15 +458,28 @@ class MarginalizedParticleFilter(ImuIntake, Readout):
         launch(kmpf.map_error_moments_kernel, dim=self.n_filters,
                inputs=[self.n, m, table, self.state.logw, self.state.dp, self._out.nis, self._mode_mean,
                        self._mode_var], outputs=[self._moments_out], device=self.device)
+        spectrum = None
+        if self.learner.log_len is not None:  # the raw projections on the modes: the length's evidence
+            lk = self.model.likelihood
+            gate = lk.outlier_sigmas * math.sqrt(1.0 + (lk.map_error_sigma_m / self.model.sigma_m) ** 2)
+            self._proj_out.zero_()
+            launch(kmpf.loglik_max_kernel, dim=self.n_filters, inputs=[self.n, self._out.loglik],
+                   outputs=[self._proj_ref], device=self.device)
+            launch(kmpf.mode_projection_kernel, dim=self.n_filters * self.n,
+                   inputs=[self.n, m, table, self._out.residual_m, self._out.loglik, self._proj_ref,
+                           float(self.model.sigma_m), float(gate)], outputs=[self._proj_out], device=self.device)
+            spectrum = self.model.mode_spectrum(self.learner.LENGTH_FACTORS)
         self._moments_echo.queue()
-        (moments,) = self._moments_echo.read()
-        sigma = self.learner.read(moments[0])
-        if sigma is None:
+        self._spectra = [*self._spectra, spectrum][-2:]
+        moments, projections = self._moments_echo.read()
+        spectrum = self._spectra[-1 - self._moments_echo.lag]
+        restated = self.learner.read(moments[0], projections[0], spectrum)
+        if restated is None:
             return
-        self.model.restate_map_error(sigma)
+        self.model.restate_map_error(*restated)
         lk = self.model.likelihood
-        if self._revisits is not None:
-            self._revisits.likelihood = lk
+        if self._revisits is not None and self._revisits.likelihood.map_error_corr_m == lk.map_error_corr_m:
+            self._revisits.likelihood = lk  # (a new length: a new memory at the next update)
         if getattr(self.model, "absorbs_map_offset", False):
             # the offset under the scan rides on the altitude: no scan sees it, so its variance stays the prior's
             # (a map 5 m high everywhere looks exact to the modes); its change along the track is the learned level's

@@ -230,6 +230,25 @@ class Likelihood:
                        "k0": k_one.tolist(), "rho": rho.tolist(),
                        "remainder": float(1.0 - lam_k.sum() / max(lam.sum(), 1e-300)), "offset_var": offset_var}
 
+    def mode_spectrum(self, xy: np.ndarray, sensitivity: np.ndarray, modes: np.ndarray, sigma_m: float,
+                      lengths: np.ndarray, absorb_offset: bool = False) -> np.ndarray:
+        """Each mode's one-scan variance per unit error variance (m⁻²) were the error correlated over each of
+        ``lengths``: ``(len(lengths), n)``, ``u_iᵀ P A R(L) A P u_i / σ²`` for the modes ``u_i`` (``modes``, M × n,
+        of a table of :meth:`error_modes` for these ``xy``, ``sensitivity``, ``sigma_m`` and ``absorb_offset``,
+        whose projection ``P`` of the offset it applies too). At the table's own length it is ``λ_i / σ²`` (``k⁰_i /
+        σ_e²``). :class:`MapErrorLearner` weighs the correlation length with it: an error shorter than stated puts
+        more of its variance into the higher modes."""
+        xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
+        a = np.asarray(sensitivity, dtype=np.float64).reshape(-1)
+        u = np.asarray(modes, dtype=np.float64)
+        if absorb_offset:
+            o = a / max(float(np.linalg.norm(a)), 1e-300)
+            u = u - np.outer(o, o @ u)
+        au = a[:, None] * u
+        d2 = np.sum((xy[:, None, :] - xy[None, :, :]) ** 2, axis=2)
+        return np.array([np.einsum("ji,jk,ki->i", au, np.exp(-d2 / (length * length)), au)
+                         for length in np.asarray(lengths, dtype=np.float64)]) / sigma_m**2
+
     @staticmethod
     def rescale_error_modes(table: np.ndarray, m: int, factor: float) -> np.ndarray:
         """A mode table of :meth:`error_modes` (``m`` points) for a map-error variance ``factor`` times the one it was
@@ -391,9 +410,22 @@ class MapErrorLearner:
     ``time_constant`` updates, 30 s at 10 Hz by default: the error of one correlation length is read over 10 s at
     100 m/s), each reading's ratio clipped to [1/4, 4].
 
-    **Assumptions.** The error's shape (a Gaussian covariance of the stated or default correlation length) is kept;
-    only its level is learned. The offset under the scan rides on the particles' altitude (it is not a mode), so the
-    level is learned from the tilts and curvatures the scan sees.
+    **Correlation length.** The modes' posterior moments lean on the statement: a mode the statement gives little
+    variance (a curvature under a length three times too long: ``k⁰ ≈ 0.05``) keeps its prior whatever the scan says.
+    The raw projections of the residuals do not: ``p_i = u_iᵀ r / σ`` at the particles, weighted by their
+    likelihoods (:func:`~warptan.kernels.filter.resampling.mode_projection_kernel`), have ``E[p_i²] = c + s d_i(L)``
+    with ``d_i(L)`` a mode's one-scan variance per unit error variance were the error correlated over ``L``
+    (:meth:`Likelihood.mode_spectrum`), ``s = σ_e²`` and ``c`` the whitened noise's share (under 1: σ counts the map's
+    interpolation noise too). Each reading fits ``(c, s)`` by maximum likelihood (the modes as independent Gaussians,
+    on grids) for each length of ``LENGTH_FACTORS`` times the one in use and steps ``log L`` towards the best with
+    gain ``length_gain``; the length is restated (the table rebuilt) when it moved by 20 %, within ``[prior /
+    length_range, prior · length_range]`` and at least ``min_corr_m``. Measured before it was wired in (S8, 120 s,
+    seed 0, one reading a second): a 5 m / 1 km world told 3 km read 1.16 km (geometric mean of the readings after the
+    first 20 s), told 1 km 0.80 km, and a 2 m / 300 m world from the default 500 m 0.38 km.
+
+    **Assumptions.** The error is a Gaussian covariance (one RMS, one length). The offset under the scan rides on the
+    particles' altitude (it is not a mode), so the level and length are learned from the tilts and curvatures the
+    scan sees.
 
     **Guard against a wrong lock confirming itself.** A filter locked in the wrong place explains its misfit with
     large mode amplitudes, which would raise ``σ_e`` and make the misfit look normal. So the learner reads only a
@@ -404,17 +436,23 @@ class MapErrorLearner:
     altitude's σ counts the statement's upper end for it (:meth:`Likelihood.offset_process`).
 
     The filter (:class:`warptan.filter.mpf.MarginalizedParticleFilter`) runs one when its likelihood has
-    ``map_error_learn``; ``scripts/learn_study.py`` measures it over six families of worlds. Not learned: the
-    correlation length, the white per-point σ (the smoothed-product and clutter worlds show it), anything in a batch.
+    ``map_error_learn``; ``scripts/learn_study.py`` measures it over six families of worlds. Not learned: the white
+    per-point σ (the smoothed-product and clutter worlds show it), anything in a batch.
     A single-range altimeter's filter rarely gets within the convergence guard, so it keeps its prior (S9, S12 in
     ``results/learned``). The weighted NIS cannot stand in for the white σ's evidence: at the truth it is ≈ 1 over a
     map that is the world but ≈ 0.2 over a world of 5 m / 1 km error (the map part of σ² is inflated for the updates
     that read the same cells), and 0.6–0.7 under 8 m clutter, so its level depends on the model's own composition."""
 
+    LENGTH_FACTORS = 2.0 ** (np.arange(-4, 5) / 2.0)
+    """The correlation lengths weighed against each other at a reading, as factors of the one in use."""
+
     def __init__(self, prior_sigma_m: float, every: int = 10, time_constant: float = 300.0, converged_m: float = 15.0,
-                 nis_max: float = 4.0, floor_m: float = 0.05, ceiling: float = 2.0):
+                 nis_max: float = 4.0, floor_m: float = 0.05, ceiling: float = 2.0, prior_corr_m: float | None = None,
+                 length_range: float = 4.0, min_corr_m: float = 0.0, length_gain: float | None = None):
         if not (np.isfinite(prior_sigma_m) and prior_sigma_m > 0):
             raise FilterError(f"map-error prior must be a positive RMS in m, got {prior_sigma_m!r}")
+        if prior_corr_m is not None and not (np.isfinite(prior_corr_m) and prior_corr_m > 0):
+            raise FilterError(f"map-error prior correlation length must be positive, in m, got {prior_corr_m!r}")
         self.prior_sigma_m = float(prior_sigma_m)
         self.every = int(every)
         self.gain = min(1.0, self.every / float(time_constant))
@@ -426,16 +464,32 @@ class MapErrorLearner:
         self.applied_sigma_m = self.prior_sigma_m
         self.readings = 0
         """Readings that moved the estimate."""
+        self.prior_corr_m = None if prior_corr_m is None else float(prior_corr_m)
+        self.log_len = None if prior_corr_m is None else math.log(self.prior_corr_m)
+        self.applied_corr_m = self.prior_corr_m
+        self.length_gain = 2.0 * self.gain if length_gain is None else float(length_gain)
+        self.len_bounds = (0.0, 0.0)
+        if prior_corr_m is not None:
+            self.len_bounds = (math.log(max(self.prior_corr_m / length_range, min_corr_m)),
+                               math.log(max(self.prior_corr_m * length_range, min_corr_m)))
+
+    @property
+    def corr_m(self) -> float | None:
+        """The learned correlation length, m (None: not learned)."""
+        return None if self.log_len is None else math.exp(self.log_len)
 
     @property
     def sigma_m(self) -> float:
         """The learned RMS of the map error, m."""
         return math.exp(0.5 * self.log_var)
 
-    def read(self, moments: np.ndarray) -> float | None:
+    def read(self, moments: np.ndarray, projections: np.ndarray | None = None,
+             spectrum: np.ndarray | None = None) -> tuple[float, float | None] | None:
         """One reading of :func:`~warptan.kernels.filter.resampling.map_error_moments_kernel`'s row (Σw, NIS, ratio,
-        modes used, var north, var east); returns the RMS to apply when it moved by more than 10 % since the last one
-        applied, else None."""
+        modes used, var north, var east) and, to learn the length, :func:`~warptan.kernels.filter.resampling.
+        mode_projection_kernel`'s row with the table's :meth:`Likelihood.mode_spectrum` at :attr:`LENGTH_FACTORS`
+        times its length. Returns ``(RMS, correlation length)`` to apply when either moved (by 10 % / 20 %) since
+        last applied (the length None when it is not learned), else None."""
         _sw, nis, ratio, used, var_n, var_e = (float(v) for v in moments[:6])
         spread = math.sqrt(max(var_n, 0.0) + max(var_e, 0.0))
         if used < 1 or not np.isfinite(ratio) or ratio <= 0:
@@ -446,7 +500,38 @@ class MapErrorLearner:
         lo, hi = 2.0 * math.log(self.floor_m), 2.0 * math.log(self.ceiling_m)
         self.log_var = min(max(self.log_var + step, lo), hi)
         self.readings += 1
-        if abs(math.log(self.sigma_m / self.applied_sigma_m)) > math.log(1.1):
+        moved = False
+        if self.log_len is not None and projections is not None and spectrum is not None:
+            factor = self.length_factor(projections, spectrum)
+            if factor is not None:
+                target = math.log(self.applied_corr_m * factor)
+                self.log_len = min(max(self.log_len + self.length_gain * (target - self.log_len), self.len_bounds[0]),
+                                   self.len_bounds[1])
+                moved = abs(self.log_len - math.log(self.applied_corr_m)) > math.log(1.2)
+        if moved or abs(math.log(self.sigma_m / self.applied_sigma_m)) > math.log(1.1):
             self.applied_sigma_m = self.sigma_m
-            return self.applied_sigma_m
+            if moved:
+                self.applied_corr_m = self.corr_m
+            return self.applied_sigma_m, self.applied_corr_m
         return None
+
+    _S_GRID = np.exp(np.linspace(math.log(0.05), math.log(400.0), 48))
+    _C_GRID = np.exp(np.linspace(math.log(0.02), math.log(2.0), 12))
+
+    def length_factor(self, projections: np.ndarray, spectrum: np.ndarray) -> float | None:
+        """The factor of :attr:`LENGTH_FACTORS` under which the modes' raw second moments (``projections``: Σ w p_i²
+        per mode, then Σ w) are likeliest, ``E[p_i²] = c + s d_i(L)`` with ``(c, s)`` fitted on grids; None with
+        fewer than four modes or no weight."""
+        projections = np.asarray(projections, dtype=np.float64)
+        n = spectrum.shape[1]
+        sw = projections[-1]
+        if not (np.isfinite(sw) and sw > 0):
+            return None
+        second = projections[:n] / sw
+        use = np.all(spectrum > 0, axis=0) & np.isfinite(second)
+        if np.count_nonzero(use) < 4:
+            return None
+        d, p2 = spectrum[:, use], second[use]
+        var = self._C_GRID[None, :, None, None] + self._S_GRID[None, None, :, None] * d[:, None, None, :]
+        nll = np.sum(np.log(var) + p2 / var, axis=3).reshape(len(d), -1).min(axis=1)
+        return float(self.LENGTH_FACTORS[int(np.argmin(nll))])

@@ -150,6 +150,9 @@ class MeasurementModel:
         self._modes: wp.array | None = None
         self._modes_host: np.ndarray | None = None
         self._modes_skip = 0
+        self.modes_version = 0
+        """Bumped whenever the mode table gets new modes (a rebuild; not a rescale: the modes stay)."""
+        self._spectrum: tuple | None = None  # ((version, factors), mode_spectrum's array)
         self._mode_sums: wp.array | None = None  # the CPU's SIMD kernels' scratch rows (_simd_mode_sums)
         self.footprint_centre = np.zeros(2)
         """Mean horizontal offset (m, navigation frame) of the scan's nominal ground points from the aircraft (the
@@ -180,12 +183,30 @@ class MeasurementModel:
         self._params = self.params()
         self.generation += 1
 
-    def restate_map_error(self, sigma_m: float) -> None:
+    def mode_spectrum(self, factors: np.ndarray) -> np.ndarray | None:
+        """``(len(factors), MAX_MODES)``: the current modes' one-scan variances per unit error variance were the error
+        correlated over each of ``factors`` times the stated length (:meth:`~warptan.sensing.likelihood.Likelihood.
+        mode_spectrum`; zero for the columns the table does not use), cached per table; None without one."""
+        if self._modes_host is None or self._modes_geometry is None:
+            return None
+        key = (self.modes_version, tuple(float(f) for f in factors))
+        if self._spectrum is None or self._spectrum[0] != key:
+            xy, _along, sens = self._modes_geometry
+            m, n = len(xy), int(self.modes_info.get("n_modes", 0))
+            lengths = self.likelihood.map_error_corr_m * np.asarray(factors, dtype=np.float64)
+            spectrum = np.zeros((len(lengths), klik.MAX_MODES))
+            spectrum[:, :n] = self.likelihood.mode_spectrum(xy, sens, self._modes_host[:m, :n], self.sigma_m, lengths,
+                                                            self.absorbs_map_offset)
+            self._spectrum = (key, spectrum)
+        return self._spectrum[1]
+
+    def restate_map_error(self, sigma_m: float, corr_m: float | None = None) -> None:
         """Use ``sigma_m`` as the stated map error's RMS from the next scan on, keeping the mode table's basis (its
         amplitudes are whitened by the point σ, which does not change: the filter's stored amplitudes stay valid;
         :class:`~warptan.sensing.likelihood.MapErrorLearner`). The modes and their correlations along the track do
         not depend on the RMS: the table in use is rescaled (:meth:`~warptan.sensing.likelihood.Likelihood.
-        rescale_error_modes`), not rebuilt.
+        rescale_error_modes`), not rebuilt. A new correlation length ``corr_m`` changes the modes: the table is
+        rebuilt at the next scan, the filter's amplitudes carried into the new modes by the basis change ``T``.
 
         The kernels' struct keeps the statement's RMS (``sigma_err``: the gross-miss gate's scale and the ray casts'
         geometry term, :meth:`params`) and the table's values change in place, so recorded launches and captured
@@ -193,6 +214,11 @@ class MeasurementModel:
         if not self._likelihood.models_map_error:
             raise FilterError("restate_map_error needs a likelihood with a stated map error")
         old = self._likelihood.map_error_sigma_m
+        if corr_m is not None and float(corr_m) != self._likelihood.map_error_corr_m:
+            self._likelihood = dataclasses.replace(self._likelihood, map_error_sigma_m=float(sigma_m),
+                                                   map_error_corr_m=float(corr_m))
+            self._modes_geometry, self._modes_skip = None, 0  # (rebuilt at the next stage, from the old table)
+            return
         self._likelihood = dataclasses.replace(self._likelihood, map_error_sigma_m=float(sigma_m))
         host = self._modes_host
         if host is not None and self._modes_geometry is not None:  # the same modes, their variances scaled
@@ -395,7 +421,8 @@ class MeasurementModel:
         table[m + klik.MODE_T:] = 0.0 if host is None else table[:m].T @ host[:m]
         self._modes.assign(table)
         self._modes_host = table
-        self._modes_geometry = (xy, along)
+        self._modes_geometry = (xy, along, sens)
+        self.modes_version += 1
         self.modes_info = {**info, "rebuilds": self.modes_info.get("rebuilds", 0) + 1}
 
     @property
