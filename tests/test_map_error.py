@@ -406,7 +406,8 @@ def test_s8_over_a_world_with_a_map_error_is_honest_told_or_not():
     """S8 over a world whose map error is 5 m RMS correlated over 1 km (2 seeds, 90 s): without a map-error model (the
     learner off, nothing stated) the per-point likelihood's 3σ covers under half of its error on some axis; nothing
     stated but the error learned in flight (the default), and told the DEM's accuracy, over 85 % on each axis with
-    the horizontal RMSE under half. (More seeds and worlds: scripts/world_study.py.)"""
+    the horizontal RMSE under half; the default's correlation length learned up from its 500 m towards the world's
+    kilometre. (More seeds and worlds: scripts/learn_study.py.)"""
     from warptan.sim.scenarios import run_scenario
 
     world = {"world_error_rms_m": 5.0, "world_error_corr_m": 1000.0, "world_seed": 1000, "duration_s": 90.0}
@@ -419,6 +420,8 @@ def test_s8_over_a_world_with_a_map_error_is_honest_told_or_not():
     assert horiz["default"] < 0.5 * horiz["off"] and horiz["told"] < 0.5 * horiz["off"], horiz
     assert all(r.run.info["map_error_learned_m"] > 0 for r in runs["default"] + runs["told"])
     assert all("map_error_learned_m" not in r.run.info for r in runs["off"])
+    learned = [r.run.info["map_error_learned_corr_m"] for r in runs["default"]]  # from the default's 500 m
+    assert 650.0 < np.exp(np.mean(np.log(learned))) < 2000.0, learned
 
 
 @pytest.mark.parametrize("name", ["sliding", "raycast"])

@@ -191,6 +191,7 @@ class ScenarioResult:
                 "sigma_over_rmse_attitude": (att_sigma / att_rmse).tolist(),
                 "injections": int(r.info.get("injections", 0)),
                 "map_error_learned_m": r.info.get("map_error_learned_m"),
+                "map_error_learned_corr_m": r.info.get("map_error_learned_corr_m"),
             }
 
 
