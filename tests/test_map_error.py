@@ -677,9 +677,9 @@ def test_the_learner_reads_the_correlation_length_from_the_raw_projections():
 
 
 def test_the_raw_projections_kernel_matches_numpy(device):
-    """``mode_projection_kernel`` (and ``loglik_max_kernel``): per filter Σ w p_i² and Σ w with ``p = Uᵀ r / σ`` over the
-    points inside the gate (NaN residuals and gross misses left out) and ``w = exp(ℓ − max ℓ)`` (a non-finite ℓ
-    weighs nothing), against NumPy."""
+    """``mode_projection_kernel`` (and ``loglik_max_kernel``): per filter Σ w p_i² and Σ w with ``p = Uᵀ r / σ``
+    over the points inside the gate (NaN residuals and gross misses left out) and ``w = exp(ℓ − max ℓ)`` (a
+    non-finite ℓ weighs nothing), against NumPy."""
     from warptan.kernels import mpf as kmpf
 
     rng = np.random.default_rng(3)
