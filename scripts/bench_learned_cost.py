@@ -47,11 +47,15 @@ def rows_for(sid: str, device: str, duration_s: float, repeats: int, n: int) -> 
 
 
 def _knows_learning() -> bool:
-    try:
-        from warptan.sensing.likelihood import MapErrorLearner  # noqa: F401
-    except ImportError:
-        return False
-    return True
+    import importlib
+
+    for name in ("warptan.sensing.learner", "warptan.sensing.likelihood"):  # (where it lives; where it lived)
+        try:
+            if hasattr(importlib.import_module(name), "MapErrorLearner"):
+                return True
+        except ImportError:
+            continue
+    return False
 
 
 def main(argv=None) -> int:

@@ -616,7 +616,7 @@ def test_the_learner_moves_the_rms_towards_what_the_modes_say_and_only_when_conv
     ratio 2 raises it to at most twice the prior; a filter spread over 100 m, one whose NIS says it is lost, or a
     reading without modes moves nothing; a nonsense prior is an error."""
     from warptan.checks import FilterError
-    from warptan.sensing.likelihood import MapErrorLearner
+    from warptan.sensing.learner import MapErrorLearner
 
     def reading(ratio, spread=1.0, nis=1.0, used=4):
         return np.array([1.0, nis, ratio, used, spread**2 / 2, spread**2 / 2])
@@ -642,7 +642,7 @@ def test_the_learner_reads_the_correlation_length_from_the_raw_projections():
     stated (the spectrum of a real scan's modes, :meth:`Likelihood.mode_spectrum`) take the length from 3 km to within
     25 % of 1 km over 200 readings, restated (with the RMS) as it moves; a world as stated keeps it within 25 %; it
     length stays within its bounds; the spectrum at the table's own length is its ``k⁰ / σ_e²``."""
-    from warptan.sensing.likelihood import MapErrorLearner
+    from warptan.sensing.learner import MapErrorLearner
 
     xy = _grid_xy(10, 30.0, 650.0)
     a = np.ones(len(xy))

@@ -306,7 +306,7 @@ def map_error_moments_kernel(n_per: int, m: int, table: wp.array(dtype=modes_vec
                              mean: wp.array(dtype=modes_vec), var: wp.array(dtype=modes_vec),
                              out: wp.array2d(dtype=wp.float64)):
     """Filter b's evidence on its stated map error after an update (one thread per filter; the host's
-    :class:`warptan.sensing.likelihood.MapErrorLearner` reads it every few updates). The modes' amplitudes are
+    :class:`warptan.sensing.learner.MapErrorLearner` reads it every few updates). The modes' amplitudes are
     stored predicted to the next scan (mean ``ρ_i q_i``, variance ``ρ_i² P⁺_i + (1 − ρ_i²) k⁰_i``,
     :func:`modes_variance_kernel`); their posterior second moment ``E[α_i²] = Σ_j w_j q_ij² + P⁺_i`` over the stated
     one-scan variance ``k⁰_i`` is 1 on average when the statement is right (the fixed point of an EM step for the
@@ -379,7 +379,7 @@ def mode_projection_kernel(n_per: int, m: int, table: wp.array(dtype=modes_vec),
     max ℓ)`` into filter b's ``Σ w p_i²`` (``out[b, i]``) and ``Σ w`` (``out[b, MAX_MODES]``), zeroed by the caller.
     Unlike the modes' posterior moments (:func:`map_error_moments_kernel`) these do not lean on the statement's
     variances: the evidence on the error's correlation length
-    (:meth:`warptan.sensing.likelihood.MapErrorLearner.read`)."""
+    (:meth:`warptan.sensing.learner.MapErrorLearner.read`)."""
     t = wp.tid()
     b = t // n_per
     lt = loglik[t]

@@ -1,3 +1,6 @@
+# Over 500 lines for now: the filter's construction (its device state, the Kalman part's noise, the map-error
+# learner) and the update's host side (staging, the learner's readings) share that state; issue 69 (filter state as
+# typed data) is where it gets split.
 """The marginalized particle filter on the device, open- or closed-loop INS correction (SPEC §6, §6b; paper §IV).
 
 Nonlinear state ``s^n = dp`` (3, N particles on the device); linear state ``s^l = [dv, dth, dba, dbg]``
@@ -110,7 +113,8 @@ from warptan.kernels import nav as knav
 from warptan.nav.imu import ImuGrade, check_rate, imu_grade
 from warptan.nav.ins import NavState, process_noise
 from warptan.parallel import Recorder, launch
-from warptan.sensing.likelihood import MapErrorLearner, RevisitMemory
+from warptan.sensing.learner import MapErrorLearner
+from warptan.sensing.likelihood import RevisitMemory
 
 SCHEMES = {name: k for k, name in enumerate(RESAMPLERS)}
 """The kernels' number of each resampling scheme (:data:`warptan.filter.config.RESAMPLERS`)."""
@@ -208,7 +212,7 @@ class MarginalizedParticleFilter(ImuIntake, Readout):
         self._q_dev = (wp.array(self.q_pos, dtype=wp.float64, device=self.device),
                        wp.array(self._q_vel_down, dtype=wp.float64, device=self.device))
         self.learner = None
-        """The map error's RMS learned in flight (:class:`~warptan.sensing.likelihood.MapErrorLearner`) when the
+        """The map error's RMS learned in flight (:class:`~warptan.sensing.learner.MapErrorLearner`) when the
         likelihood states an error to learn (``map_error_learn``) and the filter runs one flight (a batch shares one
         likelihood: its filters keep the statement)."""
         if getattr(lk, "models_map_error", False) and getattr(lk, "map_error_learn", False) and b == 1:

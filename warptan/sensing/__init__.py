@@ -1,2 +1,3 @@
-"""Sensing layer: the simulated sensors (:mod:`~warptan.sensing.sensors`) and the measurement models with their
-likelihoods (:mod:`~warptan.sensing.measurement`). Imports the common modules, terrain and nav."""
+"""Sensing layer: the simulated sensors (:mod:`~warptan.sensing.sensors`), the measurement models with their
+likelihoods (:mod:`~warptan.sensing.measurement`) and the map error learned in flight (:mod:`~warptan.sensing.learner`).
+Imports the common modules, terrain and nav."""

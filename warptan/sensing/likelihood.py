@@ -54,7 +54,7 @@ class Likelihood:
         fix_corr_m: Correlation length (m) of the terrain's slope under a stated map error: the scale on which
             the position fix the map error causes changes (:meth:`fix_process`); 0: the error's own length.
         map_error_learn: The stated ``map_error_sigma_m`` is a prior that the filter corrects in flight from its own
-            residuals (:class:`MapErrorLearner`; a filter of one run, not a batch).
+            residuals (:class:`~warptan.sensing.learner.MapErrorLearner`; a filter of one run, not a batch).
         map_error_confidence: The factor ``F`` (1–10) within which the stated (or default) RMS is right, when it is
             a prior (``map_error_learn``): the learner may raise σ_e to at most ``F`` times it (lower, freely), and
             the offset of the map under the scan, which no scan can see (the particles' altitude carries it:
@@ -236,8 +236,8 @@ class Likelihood:
         ``lengths``: ``(len(lengths), n)``, ``u_iᵀ P A R(L) A P u_i / σ²`` for the modes ``u_i`` (``modes``, M × n,
         of a table of :meth:`error_modes` for these ``xy``, ``sensitivity``, ``sigma_m`` and ``absorb_offset``,
         whose projection ``P`` of the offset it applies too). At the table's own length it is ``λ_i / σ²`` (``k⁰_i /
-        σ_e²``). :class:`MapErrorLearner` weighs the correlation length with it: an error shorter than stated puts
-        more of its variance into the higher modes."""
+        σ_e²``). :class:`~warptan.sensing.learner.MapErrorLearner` weighs the correlation length with it: an error
+        shorter than stated puts more of its variance into the higher modes."""
         xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
         a = np.asarray(sensitivity, dtype=np.float64).reshape(-1)
         u = np.asarray(modes, dtype=np.float64)
@@ -392,146 +392,3 @@ class RevisitMemory:
         again = (1.0 - rho) / ((1.0 + passes * rho) * (1.0 + (passes - 1.0) * rho))
         part = rho * np.minimum(passes, 1.0)
         return np.where(passes >= 1.0, again, (1.0 - part) / (1.0 + part))
-
-
-class MapErrorLearner:
-    """The map error's RMS learned in flight: a stated (or default) ``σ_e`` is a prior that the filter's own
-    residuals correct, so that neither silence nor a wrong statement fixes the likelihood's picture of the map.
-
-    **Estimator.** The filter carries the amplitudes ``α_i`` of the map-error modes (:meth:`Likelihood.error_modes`:
-    the error field's leading patterns over a scan, whitened by the point σ, one-scan variance ``k⁰_i = σ_e² λ_i /
-    σ²``) as a Kalman mean per particle and a variance per filter. For a scan the modes rule (``k⁰_i ≥ 1``) the
-    posterior second moment ``E[α_i²] = Σ_j w_j q_ij² + P⁺_i`` (:func:`warptan.kernels.filter.resampling.
-    map_error_moments_kernel`) has expectation ``k⁰_i`` exactly when the statement is right; a true error of variance
-    ``σ_t²`` gives ``(1 + k_t,i) / k⁰_i`` with ``k_t,i = σ_t² λ_i / σ²``. The variance-component (EM) step for
-    ``s = σ_e²`` is therefore ``s ← s · r̄`` with ``r̄`` the modes' mean ratio, whose fixed point is ``σ_t² + σ² /
-    λ_i``: the true variance plus the noise a mode cannot tell from it (about (σ / 8)² for a 10×10 scan). It is
-    applied in the log domain with gain ``every / time_constant`` per reading (an exponential memory of
-    ``time_constant`` updates, 30 s at 10 Hz by default: the error of one correlation length is read over 10 s at
-    100 m/s), each reading's ratio clipped to [1/4, 4].
-
-    **Correlation length.** The modes' posterior moments lean on the statement: a mode the statement gives little
-    variance (a curvature under a length three times too long: ``k⁰ ≈ 0.05``) keeps its prior whatever the scan says.
-    The raw projections of the residuals do not: ``p_i = u_iᵀ r / σ`` at the particles, weighted by their
-    likelihoods (:func:`~warptan.kernels.filter.resampling.mode_projection_kernel`), have ``E[p_i²] = c + s d_i(L)``
-    with ``d_i(L)`` a mode's one-scan variance per unit error variance were the error correlated over ``L``
-    (:meth:`Likelihood.mode_spectrum`), ``s = σ_e²`` and ``c`` the whitened noise's share (under 1: σ counts the map's
-    interpolation noise too). Each reading fits ``(c, s)`` by maximum likelihood (the modes as independent Gaussians,
-    on grids) for each length of ``LENGTH_FACTORS`` times the one in use and steps ``log L`` towards the best with
-    gain ``length_gain``; the length is restated (the table rebuilt) when it moved by 20 %, within ``[prior /
-    length_range, prior · length_range]`` and at least ``min_corr_m``. Measured before it was wired in (S8, 120 s,
-    seed 0, one reading a second): a 5 m / 1 km world told 3 km read 1.16 km (geometric mean of the readings after the
-    first 20 s), told 1 km 0.80 km, and a 2 m / 300 m world from the default 500 m 0.38 km.
-
-    **Assumptions.** The error is a Gaussian covariance (one RMS, one length). The offset under the scan rides on the
-    particles' altitude (it is not a mode), so the level and length are learned from the tilts and curvatures the
-    scan sees.
-
-    **Guard against a wrong lock confirming itself.** A filter locked in the wrong place explains its misfit with
-    large mode amplitudes, which would raise ``σ_e`` and make the misfit look normal. So the learner reads only a
-    converged filter (the particles' horizontal σ within ``max(converged_m, 3 σ_e)``), never while its integrity NIS
-    (weighted over the particles) exceeds ``nis_max``, and ``σ_e`` stays within ``[floor_m, ceiling · prior]``
-    (``ceiling``: the statement's ``map_error_confidence``): the statement bounds how much worse the map may be
-    learned to be, never how much better. The offset under the scan is not learned at all (no residual sees it): the
-    altitude's σ counts the statement's upper end for it (:meth:`Likelihood.offset_process`).
-
-    The filter (:class:`warptan.filter.mpf.MarginalizedParticleFilter`) runs one when its likelihood has
-    ``map_error_learn``; ``scripts/learn_study.py`` measures it over six families of worlds. Not learned: the white
-    per-point σ (the smoothed-product and clutter worlds show it), anything in a batch.
-    A single-range altimeter's filter rarely gets within the convergence guard, so it keeps its prior (S9, S12 in
-    ``results/learned``). The weighted NIS cannot stand in for the white σ's evidence: at the truth it is ≈ 1 over a
-    map that is the world but ≈ 0.2 over a world of 5 m / 1 km error (the map part of σ² is inflated for the updates
-    that read the same cells), and 0.6–0.7 under 8 m clutter, so its level depends on the model's own composition."""
-
-    LENGTH_FACTORS = 2.0 ** (np.arange(-4, 5) / 2.0)
-    """The correlation lengths weighed against each other at a reading, as factors of the one in use."""
-
-    def __init__(self, prior_sigma_m: float, every: int = 10, time_constant: float = 300.0, converged_m: float = 15.0,
-                 nis_max: float = 4.0, floor_m: float = 0.05, ceiling: float = 2.0, prior_corr_m: float | None = None,
-                 length_range: float = 4.0, min_corr_m: float = 0.0, length_gain: float | None = None):
-        if not (np.isfinite(prior_sigma_m) and prior_sigma_m > 0):
-            raise FilterError(f"map-error prior must be a positive RMS in m, got {prior_sigma_m!r}")
-        if prior_corr_m is not None and not (np.isfinite(prior_corr_m) and prior_corr_m > 0):
-            raise FilterError(f"map-error prior correlation length must be positive, in m, got {prior_corr_m!r}")
-        self.prior_sigma_m = float(prior_sigma_m)
-        self.every = int(every)
-        self.gain = min(1.0, self.every / float(time_constant))
-        self.converged_m = float(converged_m)
-        self.nis_max = float(nis_max)
-        self.floor_m = float(floor_m)
-        self.ceiling_m = float(ceiling) * self.prior_sigma_m
-        self.log_var = 2.0 * math.log(self.prior_sigma_m)
-        self.applied_sigma_m = self.prior_sigma_m
-        self.readings = 0
-        """Readings that moved the estimate."""
-        self.prior_corr_m = None if prior_corr_m is None else float(prior_corr_m)
-        self.log_len = None if prior_corr_m is None else math.log(self.prior_corr_m)
-        self.applied_corr_m = self.prior_corr_m
-        self.length_gain = 2.0 * self.gain if length_gain is None else float(length_gain)
-        self.len_bounds = (0.0, 0.0)
-        if prior_corr_m is not None:
-            self.len_bounds = (math.log(max(self.prior_corr_m / length_range, min_corr_m)),
-                               math.log(max(self.prior_corr_m * length_range, min_corr_m)))
-
-    @property
-    def corr_m(self) -> float | None:
-        """The learned correlation length, m (None: not learned)."""
-        return None if self.log_len is None else math.exp(self.log_len)
-
-    @property
-    def sigma_m(self) -> float:
-        """The learned RMS of the map error, m."""
-        return math.exp(0.5 * self.log_var)
-
-    def read(self, moments: np.ndarray, projections: np.ndarray | None = None,
-             spectrum: np.ndarray | None = None) -> tuple[float, float | None] | None:
-        """One reading of :func:`~warptan.kernels.filter.resampling.map_error_moments_kernel`'s row (Σw, NIS, ratio,
-        modes used, var north, var east) and, to learn the length, :func:`~warptan.kernels.filter.resampling.
-        mode_projection_kernel`'s row with the table's :meth:`Likelihood.mode_spectrum` at :attr:`LENGTH_FACTORS`
-        times its length. Returns ``(RMS, correlation length)`` to apply when either moved (by 10 % / 20 %) since
-        last applied (the length None when it is not learned), else None."""
-        _sw, nis, ratio, used, var_n, var_e = (float(v) for v in moments[:6])
-        spread = math.sqrt(max(var_n, 0.0) + max(var_e, 0.0))
-        if used < 1 or not np.isfinite(ratio) or ratio <= 0:
-            return None
-        if spread > max(self.converged_m, 3.0 * self.sigma_m) or not (np.isfinite(nis) and nis <= self.nis_max):
-            return None
-        step = self.gain * math.log(min(max(ratio, 0.25), 4.0))
-        lo, hi = 2.0 * math.log(self.floor_m), 2.0 * math.log(self.ceiling_m)
-        self.log_var = min(max(self.log_var + step, lo), hi)
-        self.readings += 1
-        moved = False
-        if self.log_len is not None and projections is not None and spectrum is not None:
-            factor = self.length_factor(projections, spectrum)
-            if factor is not None:
-                target = math.log(self.applied_corr_m * factor)
-                self.log_len = min(max(self.log_len + self.length_gain * (target - self.log_len), self.len_bounds[0]),
-                                   self.len_bounds[1])
-                moved = abs(self.log_len - math.log(self.applied_corr_m)) > math.log(1.2)
-        if moved or abs(math.log(self.sigma_m / self.applied_sigma_m)) > math.log(1.1):
-            self.applied_sigma_m = self.sigma_m
-            if moved:
-                self.applied_corr_m = self.corr_m
-            return self.applied_sigma_m, self.applied_corr_m
-        return None
-
-    _S_GRID = np.exp(np.linspace(math.log(0.05), math.log(400.0), 48))
-    _C_GRID = np.exp(np.linspace(math.log(0.02), math.log(2.0), 12))
-
-    def length_factor(self, projections: np.ndarray, spectrum: np.ndarray) -> float | None:
-        """The factor of :attr:`LENGTH_FACTORS` under which the modes' raw second moments (``projections``: Σ w p_i²
-        per mode, then Σ w) are likeliest, ``E[p_i²] = c + s d_i(L)`` with ``(c, s)`` fitted on grids; None with
-        fewer than four modes or no weight."""
-        projections = np.asarray(projections, dtype=np.float64)
-        n = spectrum.shape[1]
-        sw = projections[-1]
-        if not (np.isfinite(sw) and sw > 0):
-            return None
-        second = projections[:n] / sw
-        use = np.all(spectrum > 0, axis=0) & np.isfinite(second)
-        if np.count_nonzero(use) < 4:
-            return None
-        d, p2 = spectrum[:, use], second[use]
-        var = self._C_GRID[None, :, None, None] + self._S_GRID[None, None, :, None] * d[:, None, None, :]
-        nll = np.sum(np.log(var) + p2 / var, axis=3).reshape(len(d), -1).min(axis=1)
-        return float(self.LENGTH_FACTORS[int(np.argmin(nll))])

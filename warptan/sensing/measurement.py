@@ -203,7 +203,7 @@ class MeasurementModel:
     def restate_map_error(self, sigma_m: float, corr_m: float | None = None) -> None:
         """Use ``sigma_m`` as the stated map error's RMS from the next scan on, keeping the mode table's basis (its
         amplitudes are whitened by the point σ, which does not change: the filter's stored amplitudes stay valid;
-        :class:`~warptan.sensing.likelihood.MapErrorLearner`). The modes and their correlations along the track do
+        :class:`~warptan.sensing.learner.MapErrorLearner`). The modes and their correlations along the track do
         not depend on the RMS: the table in use is rescaled (:meth:`~warptan.sensing.likelihood.Likelihood.
         rescale_error_modes`), not rebuilt. A new correlation length ``corr_m`` changes the modes: the table is
         rebuilt at the next scan, the filter's amplitudes carried into the new modes by the basis change ``T``.

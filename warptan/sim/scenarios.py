@@ -198,10 +198,10 @@ class ScenarioResult:
 DEFAULT_MAP_ERROR = (5.0, 500.0)
 """The prior of a map error learned in flight when nothing is stated: RMS and correlation length, m. The RMS is
 about SRTM's measured absolute error (5.6–9.0 m LE90 by continent, :mod:`warptan.terrain.world`) and Copernicus
-GLO-30's < 4 m specification; the learner may take it to twice that (:class:`~warptan.sensing.likelihood.
-MapErrorLearner`) or down to centimetres. The length is on the short side of the hundreds of metres to kilometres
-reported for these products: a statement of a longer correlation than the map's makes the filter overconfident, a
-shorter one only costs accuracy."""
+GLO-30's < 4 m specification; the learner may take it to twice that (:class:`~warptan.sensing.learner.
+MapErrorLearner`) or down to centimetres, and the length from a quarter to four times it. The length is on the short
+side of the hundreds of metres to kilometres reported for these products: stated or learned, a longer correlation
+than the map's makes the filter overconfident, a shorter one only costs accuracy."""
 
 
 def learned_statement(lk, map_is_world: bool, post_m: float) -> tuple[float, float, bool]:
