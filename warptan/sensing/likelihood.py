@@ -189,9 +189,12 @@ class Likelihood:
         direction = np.asarray(along, dtype=np.float64).reshape(2)
         direction = direction / max(float(np.linalg.norm(direction)), 1e-12)
 
-        def full(shift: float) -> np.ndarray:  # A R(shift) A
-            d = xy[:, None, :] - xy[None, :, :] - shift * direction
-            return a[:, None] * np.exp(-np.sum(d * d, axis=2) / (length * length)) * a[None, :]
+        delta = xy[:, None, :] - xy[None, :, :]
+        d2, along_d = np.sum(delta * delta, axis=2), delta @ direction  # |x_j − x_k|², (x_j − x_k) · along
+        aa = a[:, None] * a[None, :]
+
+        def full(shift: float) -> np.ndarray:  # A R(shift) A: |x_j − x_k − s·along|² = d2 − 2 s along_d + s²
+            return aa * np.exp(-(d2 - 2.0 * shift * along_d + shift * shift) / (length * length))
 
         project, offset_var = None, 0.0
         if absorb_offset:
@@ -212,7 +215,8 @@ class Likelihood:
         if step > 0 and keep:
             k_max = math.ceil(4.0 * length / step)
             lags = np.arange(1, k_max + 1) * step if k_max <= 64 else np.linspace(step, k_max * step, 64)
-            rho = np.array([np.einsum("ji,jk,ki->i", vec_k, cov(d), vec_k) / lam_k for d in lags])
+            # the kept modes lie in the projection's range (P u_i = u_i), so u_iᵀ P C P u_i = u_iᵀ C u_i
+            rho = np.array([np.sum(vec_k * (full(d) @ vec_k), axis=0) / lam_k for d in lags])
             if k_max <= 64:
                 total = rho.sum(axis=0)
             else:  # Σ_{k≥1} ρ(k s) ≈ (1/s) ∫_s^∞ ρ + ρ(s) / 2 (trapezoid)
