@@ -676,6 +676,22 @@ def test_the_learner_reads_the_correlation_length_from_the_raw_projections():
         assert 750.0 - 1e-9 <= learner.corr_m <= 12000.0 + 1e-9
 
 
+def test_a_host_echo_returns_the_copy_before_the_last_with_its_tag(device):
+    """HostEcho: on CUDA, once two copies are queued, a read returns the one queued before the last (not the work
+    just queued) with the tag queued with it; before that, and on the CPU, the arrays as they are with the last tag."""
+    from warptan.device import HostEcho
+
+    a = wp.zeros(3, dtype=wp.float32, device=device)
+    echo = HostEcho([a])
+    for k in range(1, 5):
+        a.fill_(float(k))
+        echo.queue(tag=f"copy {k}")
+        (got,) = echo.read()
+        seen = k - 1 if (wp.get_device(device).is_cuda and k >= 2) else k
+        np.testing.assert_array_equal(got, np.full(3, float(seen)))
+        assert echo.tag == f"copy {seen}"
+
+
 def test_the_raw_projections_kernel_matches_numpy(device):
     """``mode_projection_kernel`` (and ``loglik_max_kernel``): per filter Σ w p_i² and Σ w with ``p = Uᵀ r / σ``
     over the points inside the gate (NaN residuals and gross misses left out) and ``w = exp(ℓ − max ℓ)`` (a

@@ -108,34 +108,37 @@ class HostEcho:
     :meth:`queue` copies them into one of two pinned buffers in turn and records an event; :meth:`read` returns the
     copy queued before the last one (waiting for its event, long past in a pipelined filter), so the host never
     waits for the work it just queued. Before two copies, and on the CPU (where the arrays are current and reading
-    them costs nothing), it reads the arrays themselves."""
+    them costs nothing), it reads the arrays themselves. A ``tag`` given to :meth:`queue` (host values that go with
+    the copy, e.g. the table it was computed with) is :attr:`tag` after the :meth:`read` that returns that copy."""
 
     def __init__(self, arrays: list[wp.array]):
         self.arrays = arrays
         self.device = arrays[0].device
         self._queued = 0
+        self._tags = [None, None]
+        self.tag = None
+        """The tag queued with the copy the last :meth:`read` returned."""
         if self.device.is_cuda:
             self._host = [[wp.empty(a.shape, dtype=a.dtype, device="cpu", pinned=True) for a in arrays]
                           for _ in range(2)]
             self._events = [wp.Event(self.device), wp.Event(self.device)]
 
-    def queue(self) -> None:
-        if not self.device.is_cuda:
-            return
+    def queue(self, tag=None) -> None:
         slot = self._queued % 2
+        self._tags[slot] = tag
+        if not self.device.is_cuda:
+            self._queued += 1
+            return
         for host, a in zip(self._host[slot], self.arrays, strict=True):
             wp.copy(host, a)
         wp.get_stream(self.device).record_event(self._events[slot])
         self._queued += 1
 
-    @property
-    def lag(self) -> int:
-        """How many queues before the last one the copy :meth:`read` returns was queued (0 or 1)."""
-        return 1 if self.device.is_cuda and self._queued >= 2 else 0
-
     def read(self) -> list[np.ndarray]:
         if not self.device.is_cuda or self._queued < 2:
+            self.tag = self._tags[(self._queued - 1) % 2]  # (the last queued: the arrays are its values)
             return [a.numpy() for a in self.arrays]
         slot = self._queued % 2  # the copy before the last one
+        self.tag = self._tags[slot]
         wp.synchronize_event(self._events[slot])
         return [h.numpy().copy() for h in self._host[slot]]

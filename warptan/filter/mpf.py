@@ -225,7 +225,6 @@ class MarginalizedParticleFilter(ImuIntake, Readout):
             self._proj_out = wp.zeros((b, kmpf.PROJ_LEN), dtype=wp.float64, device=self.device)
             self._proj_ref = wp.zeros(b, dtype=wp.float32, device=self.device)
             self._moments_echo = HostEcho([self._moments_out, self._proj_out])
-            self._spectra: list = []  # the mode spectrum of the table each queued reading read (the last two)
         self._platform_echo = None  # (the nominal's attitude and position for the map-error modes' scan geometry)
         self.max_stages = int(c.max_stages)
         self.bandwidth = float(c.regularize) * (4.0 / (self.n * 5.0)) ** (1.0 / 7.0)
@@ -450,11 +449,12 @@ class MarginalizedParticleFilter(ImuIntake, Readout):
         return self._info(out) if sync else None
 
     def _learn_map_error(self) -> None:
-        """A reading of the map-error evidence for :attr:`learner` (one (1, 6) copy to the host every
-        ``learner.every`` updates; on CUDA the reading queued ``2 every`` updates before, :class:`HostEcho`: the host
-        never waits for the device) and, when it moved, the error restated: the
-        model's likelihood and mode table, the offset's vertical-velocity noise and the fix wander (in place: captured
-        graphs read them; the offset's altitude variance keeps the prior's level)."""
+        """A reading of the map-error evidence for :attr:`learner` (the modes' moments and, to learn the length, the
+        residuals' raw projections on them: one copy to the host every ``learner.every`` updates; on CUDA the reading
+        queued ``2 every`` updates before, :class:`HostEcho`: the host never waits for the device) and, when it moved,
+        the error restated: the model's likelihood and mode table, the offset's vertical-velocity noise and the fix
+        wander (in place: captured graphs read them; the offset's altitude variance keeps its level from
+        construction, the statement's upper end)."""
         table = self._mode_table()
         if table is None or self._out is None:
             return
@@ -473,11 +473,9 @@ class MarginalizedParticleFilter(ImuIntake, Readout):
                    inputs=[self.n, m, table, self._out.residual_m, self._out.loglik, self._proj_ref,
                            float(self.model.sigma_m), float(gate)], outputs=[self._proj_out], device=self.device)
             spectrum = self.model.mode_spectrum(self.learner.LENGTH_FACTORS)
-        self._moments_echo.queue()
-        self._spectra = [*self._spectra, spectrum][-2:]
+        self._moments_echo.queue(tag=spectrum)  # (the spectrum of the table this reading reads)
         moments, projections = self._moments_echo.read()
-        spectrum = self._spectra[-1 - self._moments_echo.lag]
-        restated = self.learner.read(moments[0], projections[0], spectrum)
+        restated = self.learner.read(moments[0], projections[0], self._moments_echo.tag)
         if restated is None:
             return
         self.model.restate_map_error(*restated)
@@ -485,8 +483,9 @@ class MarginalizedParticleFilter(ImuIntake, Readout):
         if self._revisits is not None and self._revisits.likelihood.map_error_corr_m == lk.map_error_corr_m:
             self._revisits.likelihood = lk  # (a new length: a new memory at the next update)
         if getattr(self.model, "absorbs_map_offset", False):
-            # the offset under the scan rides on the altitude: no scan sees it, so its variance stays the prior's
-            # (a map 5 m high everywhere looks exact to the modes); its change along the track is the learned level's
+            # the offset under the scan rides on the altitude: no scan sees it, so its variance stays as built (F times
+            # the prior: a map 5 m high everywhere looks exact to the modes); its change along the track is the learned
+            # level's
             self._q_vel_down = np.array([lk.offset_process(v)[1] for v in self._speeds]) * self.dt
         if getattr(self.model, "fixes_per_scan", False):
             q = self._q_pos_base + np.array([lk.fix_process(v) for v in self._speeds]) * self.dt
