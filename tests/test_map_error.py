@@ -780,9 +780,14 @@ def test_the_statement_s_confidence_bounds_the_learner_and_the_offset_it_cannot_
     assert told.offset_process(100.0)[0] == 25.0 and prior.offset_process(100.0)[0] == pytest.approx(225.0)
     assert prior.offset_process(100.0)[1] == told.offset_process(100.0)[1]
     assert dataclasses.replace(prior, map_error_confidence=1.0).offset_process(100.0)[0] == 25.0
+    from warptan.sensing.likelihood import check_confidence
+
     for bad in (0.5, 10.5, float("nan")):
         with pytest.raises(FilterError, match="map_error_confidence"):
             dataclasses.replace(told, map_error_confidence=bad)
+        with pytest.raises(FilterError, match="map_error_confidence"):
+            check_confidence(bad)
+    assert check_confidence("3") == 3.0
 
 
 def test_a_restated_rms_rescales_the_mode_table_as_if_built_for_it():

@@ -20,6 +20,22 @@ invertible where the ground says nothing horizontally."""
 MAX_CONFIDENCE = 10.0
 """The widest factor a map-error statement may be right within (:attr:`Likelihood.map_error_confidence`)."""
 
+
+def check_confidence(value) -> float:
+    """``value`` as a map-error statement's confidence factor (:attr:`Likelihood.map_error_confidence`).
+
+    Raises:
+        FilterError: not a number in [1, :data:`MAX_CONFIDENCE`].
+    """
+    try:
+        f = float(value)
+    except (TypeError, ValueError):
+        f = math.nan
+    if not (math.isfinite(f) and 1.0 <= f <= MAX_CONFIDENCE):
+        raise FilterError(f"map_error_confidence must be a factor in [1, {MAX_CONFIDENCE:g}] (the stated RMS is right "
+                          f"within it), got {value!r}")
+    return f
+
 LIKELIHOODS = {"paper": klik.LIK_PAPER, "gaussian": klik.LIK_GAUSS, "student_t": klik.LIK_STUDENT}
 
 
@@ -115,9 +131,7 @@ class Likelihood:
             value = getattr(self, name)
             if not (np.isfinite(value) and value >= 0):
                 raise FilterError(f"likelihood {name} must be a number ≥ 0, got {value!r}")
-        if not (np.isfinite(self.map_error_confidence) and 1.0 <= self.map_error_confidence <= MAX_CONFIDENCE):
-            raise FilterError(f"likelihood map_error_confidence must be a factor in [1, {MAX_CONFIDENCE:g}] (the "
-                              f"stated RMS is right within it), got {self.map_error_confidence!r}")
+        check_confidence(self.map_error_confidence)
         if not (np.isfinite(self.revisit_correlation) and 0.0 <= self.revisit_correlation < 1.0):
             raise FilterError(f"likelihood revisit_correlation must be in [0, 1), got {self.revisit_correlation!r}")
         if self.map_error_sigma_m > 0 and self.map_error_corr_m <= 0:

@@ -32,7 +32,7 @@ from warptan.nav.frames import quat_to_mat
 from warptan.nav.geoframe import corners, frame_change
 from warptan.nav.imu import imu_grade
 from warptan.nav.ins import Ins, NavState
-from warptan.sensing.likelihood import MAX_CONFIDENCE, Likelihood
+from warptan.sensing.likelihood import Likelihood, check_confidence
 from warptan.sensing.sensors import AltimeterReading, PointCloud
 from warptan.sim.runner import collect_runs
 from warptan.sim.scenario_config import Scenario
@@ -136,11 +136,7 @@ def replay_config(log: FlightLog, model: str | None = None, backend: str | None 
             raise FilterError(f"map_error_learn must be 'auto', True or False, got {map_error_learn!r}")
         scenario = scenario.replace(likelihood={"map_error_learn": map_error_learn})
     if map_error_confidence is not None:
-        f = float(map_error_confidence)
-        if not (math.isfinite(f) and 1.0 <= f <= MAX_CONFIDENCE):
-            raise FilterError(f"map_error_confidence must be a factor in [1, {MAX_CONFIDENCE:g}] (the stated RMS is "
-                              f"right within it), got {map_error_confidence!r}")
-        scenario = scenario.replace(likelihood={"map_error_confidence": f})
+        scenario = scenario.replace(likelihood={"map_error_confidence": check_confidence(map_error_confidence)})
     if model is not None:
         if model not in ("sliding", "raycast", "altimeter"):
             raise FilterError(f"unknown model {model!r}; choose sliding, raycast or altimeter")
