@@ -278,6 +278,7 @@ _RAY_POINT = r"""
 # leave through ``modes_out[t]`` in modes_pack's layout.
 _MODES_HEAD = r"""
     constexpr int MM = MAX_MODES_;
+    constexpr int MB = 8;  // modes per register block
     float mp[MM], mh0s[MM], mh1s[MM], mh2s[MM], mg0s[MM], mg1s[MM], mg2s[MM];
     for (int i = 0; i < MM; ++i) {
         mp[i] = 0.0f; mh0s[i] = 0.0f; mh1s[i] = 0.0f; mh2s[i] = 0.0f; mg0s[i] = 0.0f; mg1s[i] = 0.0f; mg2s[i] = 0.0f;
@@ -294,16 +295,27 @@ _MODES_LANE = r"""
 """
 _MODES_ACCUM = r"""
         if (lik != LIK_PAPER_) {
-            for (int l = 0; l < n_lanes; ++l) {
-                if (!usebuf[l]) continue;
-                const float* u = (const float*)(ubase + size_t(j0 + l) * ustride);
-                const float z = mz[l], a0 = mh0[l], a1 = mh1[l], a2 = mh2[l], e0 = mg0[l], e1 = mg1[l], e2 = mg2[l];
-                #pragma clang loop vectorize(enable)
-                for (int i = 0; i < MM; ++i) {
-                    const float ui = u[i];
-                    mp[i] += ui * z;
-                    mh0s[i] += ui * a0; mh1s[i] += ui * a1; mh2s[i] += ui * a2;
-                    mg0s[i] += ui * e0; mg1s[i] += ui * e1; mg2s[i] += ui * e2;
+            for (int i0 = 0; i0 < MM; i0 += MB) {
+                float ap[MB], ah0[MB], ah1[MB], ah2[MB], ag0[MB], ag1[MB], ag2[MB];
+                for (int i = 0; i < MB; ++i) {
+                    ap[i] = mp[i0 + i]; ah0[i] = mh0s[i0 + i]; ah1[i] = mh1s[i0 + i]; ah2[i] = mh2s[i0 + i];
+                    ag0[i] = mg0s[i0 + i]; ag1[i] = mg1s[i0 + i]; ag2[i] = mg2s[i0 + i];
+                }
+                for (int l = 0; l < n_lanes; ++l) {
+                    if (!usebuf[l]) continue;
+                    const float* u = (const float*)(ubase + size_t(j0 + l) * ustride) + i0;
+                    const float z = mz[l], a0 = mh0[l], a1 = mh1[l], a2 = mh2[l], e0 = mg0[l], e1 = mg1[l], e2 = mg2[l];
+                    #pragma clang loop vectorize(enable)
+                    for (int i = 0; i < MB; ++i) {
+                        const float ui = u[i];
+                        ap[i] += ui * z;
+                        ah0[i] += ui * a0; ah1[i] += ui * a1; ah2[i] += ui * a2;
+                        ag0[i] += ui * e0; ag1[i] += ui * e1; ag2[i] += ui * e2;
+                    }
+                }
+                for (int i = 0; i < MB; ++i) {
+                    mp[i0 + i] = ap[i]; mh0s[i0 + i] = ah0[i]; mh1s[i0 + i] = ah1[i]; mh2s[i0 + i] = ah2[i];
+                    mg0s[i0 + i] = ag0[i]; mg1s[i0 + i] = ag1[i]; mg2s[i0 + i] = ag2[i];
                 }
             }
         }
