@@ -147,7 +147,10 @@ from warptan.kernels.filter.record import (
 )
 from warptan.kernels.filter.resampling import (
     MOMENTS_LEN,
+    PROJ_HF,
+    PROJ_HF_W,
     PROJ_LEN,
+    PROJ_SW,
     ancestor,
     ancestors_kernel,
     cdf_chunk,
@@ -247,7 +250,7 @@ __all__ = [
     'N_SUMMARY',
     'N_SUMMARY_SUMS',
     'N_TEMPER',
-    'PROJ_LEN',
+    'PROJ_HF', 'PROJ_HF_W', 'PROJ_LEN', 'PROJ_SW',
     'RANDN_EPS',
     'RECORD_BLOCK_DIM',
     'RO_COV',

@@ -676,6 +676,66 @@ def test_the_learner_reads_the_correlation_length_from_the_raw_projections():
         assert 750.0 - 1e-9 <= learner.corr_m <= 12000.0 + 1e-9
 
 
+def test_the_learner_reads_the_map_s_white_error_from_the_energy_outside_the_modes():
+    """MapErrorLearner's white error: readings whose energy outside the modes is 4 m² (against 0.25 m² of sensor and
+    1 m² of prior map σ) raise the map's σ to √(4 − 0.25) m, restated as it moves; an energy within the dead band
+    (1.5× the expected) keeps the prior, and nothing brings it below its prior or above the ceiling; without white
+    learning (None) the third value stays None; a nonsense prior is an error."""
+    from warptan.checks import FilterError
+    from warptan.kernels import mpf as kmpf
+    from warptan.sensing.learner import MapErrorLearner
+
+    moments = np.array([1.0, 1.0, 1.0, 4, 1.0, 1.0])
+
+    def projections(energy_m2, sigma=2.0):
+        out = np.zeros(kmpf.PROJ_LEN)
+        out[kmpf.PROJ_SW] = out[kmpf.PROJ_HF_W] = 2.0
+        out[kmpf.PROJ_HF] = 2.0 * energy_m2 / sigma**2
+        return out
+
+    up = MapErrorLearner(5.0, white_prior_m=1.0, sensor_sigma_m=0.5)
+    applied = [v[2] for v in (up.read(moments, projections(4.0), None, 2.0) for _ in range(200)) if v is not None]
+    assert up.white_m == pytest.approx(math.sqrt(3.75), rel=1e-3) and applied and all(np.diff(applied) > 0)
+    assert applied[-1] == up.applied_white_m
+    band = MapErrorLearner(5.0, white_prior_m=1.0, sensor_sigma_m=0.5)
+    for energy in (1.8, 0.1):  # within the dead band; below the prior
+        for _ in range(100):
+            band.read(moments, projections(energy), None, 2.0)
+        assert band.white_m == 1.0
+    high = MapErrorLearner(1.0, white_prior_m=0.5, ceiling=2.0)
+    for _ in range(300):
+        high.read(moments, projections(400.0), None, 2.0)
+    assert high.white_m == pytest.approx(2.0)  # F × max(white prior, RMS prior)
+    plain = MapErrorLearner(2.0)
+    out = [plain.read(np.array([1.0, 1.0, 2.0, 4, 1.0, 1.0]), projections(9.0), None, 2.0) for _ in range(100)]
+    assert plain.white_m is None and all(v is None or v[2] is None for v in out) and any(v is not None for v in out)
+    with pytest.raises(FilterError, match="white-error prior"):
+        MapErrorLearner(2.0, white_prior_m=-1.0)
+
+
+def test_a_white_restatement_whitens_anew_and_carries_the_amplitudes(scan, device):
+    """A learned white error (``restate_map_error(..., white_m=)``) rebuilds the kernels' struct (the per-point σ
+    grows; the statement's ``sigma_err`` kept; a new generation: a re-capture), scales the table's one-scan variances
+    by ``(σ_old / σ_new)²`` and carries the stored amplitudes by ``T = (σ_old / σ_new) I`` at the next scan only."""
+    dem, cloud, pos, q = scan
+    poses = (wp.array(pos, dtype=wp.vec3, device=device), wp.array(np.tile(q, (len(pos), 1)), dtype=wp.vec4,
+                                                                     device=device))
+    model = wt.make_model("raycast", dem, wt.Likelihood("gaussian", sensor_sigma_m=0.5, map_sigma_m=0.5, **STATED))
+    model.evaluate(*poses, cloud)
+    table, generation, old = model.mode_table, model.generation, model.sigma_m
+    m = table.shape[0] - klik.MODE_EXTRA_ROWS
+    k0 = table.numpy()[m + klik.MODE_K0].copy()
+    model.restate_map_error(5.0, None, 2.0)
+    new = model.sigma_m
+    assert new > old and model.generation > generation and model._params.sigma == pytest.approx(new)
+    assert model._params.sigma_err == 5.0 and model._params.n_modes == klik.MAX_MODES
+    np.testing.assert_allclose(table.numpy()[m + klik.MODE_K0], k0 * (old / new) ** 2, rtol=1e-5)
+    model.evaluate(*poses, cloud)
+    np.testing.assert_allclose(table.numpy()[m + klik.MODE_T:], (old / new) * np.eye(klik.MAX_MODES), rtol=1e-6)
+    model.evaluate(*poses, cloud)
+    np.testing.assert_array_equal(table.numpy()[m + klik.MODE_T:], np.eye(klik.MAX_MODES))
+
+
 def test_a_host_echo_returns_the_copy_before_the_last_with_its_tag(device):
     """HostEcho: on CUDA, once two copies are queued, a read returns the one queued before the last (not the work
     just queued) with the tag queued with it; before that, and on the CPU, the arrays as they are with the last tag."""
@@ -695,7 +755,8 @@ def test_a_host_echo_returns_the_copy_before_the_last_with_its_tag(device):
 def test_the_raw_projections_kernel_matches_numpy(device):
     """``mode_projection_kernel`` (and ``loglik_max_kernel``): per filter Σ w p_i² and Σ w with ``p = Uᵀ r / σ``
     over the points inside the gate (NaN residuals and gross misses left out) and ``w = exp(ℓ − max ℓ)`` (a
-    non-finite ℓ weighs nothing), against NumPy."""
+    non-finite ℓ weighs nothing), and the energy outside the modes and the mean per degree of freedom with its
+    weight, against NumPy."""
     from warptan.kernels import mpf as kmpf
 
     rng = np.random.default_rng(3)
@@ -720,8 +781,16 @@ def test_the_raw_projections_kernel_matches_numpy(device):
     ll = loglik.astype(np.float64).reshape(b, n)
     w = np.exp(ll - np.max(np.where(np.isfinite(ll), ll, -np.inf), axis=1, keepdims=True)).reshape(-1)
     w[~np.isfinite(w)] = 0.0
-    expected = np.stack([np.append((w[k * n:(k + 1) * n, None] * p[k * n:(k + 1) * n] ** 2).sum(0),
-                                   w[k * n:(k + 1) * n].sum()) for k in range(b)])
+    used = np.isfinite(res) & (np.abs(res.astype(np.float64) / sigma) <= gate)
+    count = used.sum(axis=1)
+    energy = (z**2).sum(1) - z.sum(1) ** 2 / np.maximum(count, 1) - (p**2).sum(1)
+    dof = count - 1 - klik.MAX_MODES
+    h = np.where(dof > 0, np.maximum(energy, 0.0) / np.maximum(dof, 1), 0.0)
+    w_h = np.where(dof > 0, w, 0.0)
+    expected = np.stack([np.concatenate([(w[k * n:(k + 1) * n, None] * p[k * n:(k + 1) * n] ** 2).sum(0),
+                                         [w[k * n:(k + 1) * n].sum(), (w_h * h)[k * n:(k + 1) * n].sum(),
+                                          w_h[k * n:(k + 1) * n].sum()]]) for k in range(b)])
+    assert expected[:, kmpf.PROJ_HF].min() > 0.0
     np.testing.assert_allclose(out.numpy(), expected, rtol=2e-4, atol=1e-6)
 
 

@@ -352,8 +352,12 @@ def map_error_moments_kernel(n_per: int, m: int, table: wp.array(dtype=modes_vec
     out[b, 5] = s_dp2[1] * inv - mn[1] * mn[1]
 
 
-PROJ_LEN = MAX_MODES + 1
-"""Columns of :func:`mode_projection_kernel`'s output: each mode's Σ w p_i², then Σ w."""
+PROJ_LEN = MAX_MODES + 3
+"""Columns of :func:`mode_projection_kernel`'s output: each mode's Σ w p_i², Σ w, Σ w h (the residuals' energy
+outside the modes per degree of freedom) and Σ w over the particles with that energy."""
+PROJ_SW = MAX_MODES
+PROJ_HF = MAX_MODES + 1
+PROJ_HF_W = MAX_MODES + 2
 
 
 @wp.kernel
@@ -374,12 +378,17 @@ def mode_projection_kernel(n_per: int, m: int, table: wp.array(dtype=modes_vec),
                            residual: wp.array2d(dtype=wp.float32), loglik: wp.array(dtype=wp.float32),
                            ref: wp.array(dtype=wp.float32), sigma: float, gate: float,
                            out: wp.array2d(dtype=wp.float64)):
-    """Particle t's raw projections of its last residuals on the scan's map-error modes, ``p_i = Σ_j u_ji r_j / σ``
-    (a point not received, not hit, or beyond ``gate`` whitened: none), weighted by its likelihood ``exp(ℓ_t −
-    max ℓ)`` into filter b's ``Σ w p_i²`` (``out[b, i]``) and ``Σ w`` (``out[b, MAX_MODES]``), zeroed by the caller.
-    Unlike the modes' posterior moments (:func:`map_error_moments_kernel`) these do not lean on the statement's
-    variances: the evidence on the error's correlation length
-    (:meth:`warptan.sensing.learner.MapErrorLearner.read`)."""
+    """Particle t's raw projections of its last residuals on the scan's map-error modes, ``p_i = Σ_j u_ji z_j``, ``z_j =
+    r_j / σ`` (a point not received, not hit, or beyond ``gate`` whitened: none), weighted by its likelihood ``w =
+    exp(ℓ_t − max ℓ)`` into filter b's ``Σ w p_i²`` (``out[b, i]``) and ``Σ w`` (``out[b, PROJ_SW]``), zeroed by the
+    caller. Unlike the modes' posterior moments (:func:`map_error_moments_kernel`) these do not lean on the
+    statement's variances: the evidence on the error's correlation length
+    (:meth:`warptan.sensing.learner.MapErrorLearner.read`).
+
+    Also the energy the modes and the offset leave, per degree of freedom: ``h = (Σ_j z_j² − n z̄² − Σ_i p_i²) / (n −
+    1 − M)`` over the ``n`` points used (``M = MAX_MODES``; the offset as the mean, exact where every point's
+    sensitivity to the map is 1), into ``Σ w h`` (``out[b, PROJ_HF]``) and ``Σ w`` (``out[b, PROJ_HF_W]``) over the
+    particles with ``n > M + 1``: the evidence on the map's white error (what varies from post to post)."""
     t = wp.tid()
     b = t // n_per
     lt = loglik[t]
@@ -388,10 +397,22 @@ def mode_projection_kernel(n_per: int, m: int, table: wp.array(dtype=modes_vec),
     w = wp.exp(wp.float64(lt - ref[b]))
     p = modes_vec()
     inv = 1.0 / sigma
+    s1 = float(0.0)
+    s2 = float(0.0)
+    n = int(0)
     for j in range(m):
         z = residual[t, j] * inv
         if wp.isfinite(z) and wp.abs(z) <= gate:
             p += table[j] * z
+            s1 += z
+            s2 += z * z
+            n += 1
+    pp = float(0.0)
     for i in range(MAX_MODES):
+        pp += p[i] * p[i]
         wp.atomic_add(out, b, i, w * wp.float64(p[i] * p[i]))
-    wp.atomic_add(out, b, MAX_MODES, w)
+    wp.atomic_add(out, b, PROJ_SW, w)
+    if n > MAX_MODES + 1:
+        h = wp.max(s2 - s1 * s1 / float(n) - pp, 0.0) / float(n - 1 - MAX_MODES)
+        wp.atomic_add(out, b, PROJ_HF, w * wp.float64(h))
+        wp.atomic_add(out, b, PROJ_HF_W, w)

@@ -219,8 +219,12 @@ class MarginalizedParticleFilter(ImuIntake, Readout):
             terrain = getattr(model, "terrain", None)
             post = max(float(getattr(terrain, "dn", 0.0)), float(getattr(terrain, "de", 0.0)))
             length = lk.map_error_corr_m if callable(getattr(model, "mode_spectrum", None)) else None
+            white = (lk.map_sigma_m if lk.sigma_m is None and callable(getattr(model, "surface_mismatch_m", None))
+                     else None)  # (a σ of its own fixes the per-point σ: nothing white to learn)
             self.learner = MapErrorLearner(lk.map_error_sigma_m, ceiling=lk.map_error_confidence, prior_corr_m=length,
-                                           min_corr_m=2.0 * post)
+                                           min_corr_m=2.0 * post, white_prior_m=white,
+                                           sensor_sigma_m=lk.sensor_sigma_m,
+                                           mismatch_m=model.surface_mismatch_m() if white is not None else 0.0)
             self._moments_out = wp.zeros((b, kmpf.MOMENTS_LEN), dtype=wp.float64, device=self.device)
             self._proj_out = wp.zeros((b, kmpf.PROJ_LEN), dtype=wp.float64, device=self.device)
             self._proj_ref = wp.zeros(b, dtype=wp.float32, device=self.device)
@@ -463,7 +467,8 @@ class MarginalizedParticleFilter(ImuIntake, Readout):
                inputs=[self.n, m, table, self.state.logw, self.state.dp, self._out.nis, self._mode_mean,
                        self._mode_var], outputs=[self._moments_out], device=self.device)
         spectrum = None
-        if self.learner.log_len is not None:  # the raw projections on the modes: the length's evidence
+        if self.learner.log_len is not None or self.learner.white_var is not None:  # the raw projections on the
+            # modes and the energy outside them: the length's and the white error's evidence
             lk = self.model.likelihood
             gate = lk.outlier_sigmas * math.sqrt(1.0 + (lk.map_error_sigma_m / self.model.sigma_m) ** 2)
             self._proj_out.zero_()
@@ -472,10 +477,13 @@ class MarginalizedParticleFilter(ImuIntake, Readout):
             launch(kmpf.mode_projection_kernel, dim=self.n_filters * self.n,
                    inputs=[self.n, m, table, self._out.residual_m, self._out.loglik, self._proj_ref,
                            float(self.model.sigma_m), float(gate)], outputs=[self._proj_out], device=self.device)
-            spectrum = self.model.mode_spectrum(self.learner.LENGTH_FACTORS)
-        self._moments_echo.queue(tag=spectrum)  # (the spectrum of the table this reading reads)
+            if self.learner.log_len is not None:
+                spectrum = self.model.mode_spectrum(self.learner.LENGTH_FACTORS)
+        # (the spectrum of the table this reading reads, the per-point σ that whitened it)
+        self._moments_echo.queue(tag=(spectrum, float(self.model.sigma_m)))
         moments, projections = self._moments_echo.read()
-        restated = self.learner.read(moments[0], projections[0], self._moments_echo.tag)
+        spectrum, sigma = self._moments_echo.tag if self._moments_echo.tag is not None else (None, None)
+        restated = self.learner.read(moments[0], projections[0], spectrum, sigma)
         if restated is None:
             return
         self.model.restate_map_error(*restated)

@@ -8,6 +8,7 @@ import math
 import numpy as np
 
 from warptan.checks import FilterError
+from warptan.kernels.filter.resampling import PROJ_HF, PROJ_HF_W, PROJ_SW
 
 
 class MapErrorLearner:
@@ -51,20 +52,38 @@ class MapErrorLearner:
     much better. The offset under the scan is not learned at all (no residual sees it): the altitude's σ counts the
     statement's upper end for it (:meth:`~warptan.sensing.likelihood.Likelihood.offset_process`).
 
+    **The white error.** What varies from post to post (relief the map lacks, canopy, sub-post noise) the modes
+    cannot hold: the likelihood counts it in the per-point σ as the map's own ``σ_map`` (``Likelihood.map_sigma_m``,
+    from the DEM's own hold-out interpolation error unless stated; inflated by ``map_correlation`` for the
+    consecutive scans that read the same cells). The residuals' energy outside the modes and the offset, per degree of
+    freedom (``h`` of :func:`~warptan.kernels.filter.resampling.mode_projection_kernel`, weighted by the likelihoods:
+    ``E[h σ²] = σ_sensor² + σ_map,true² + mismatch²`` at the truth), reads it. The learned ``σ_map²`` steps towards
+    ``h σ² − σ_sensor² − mismatch²`` (gain ``length_gain`` per reading) when that energy exceeds
+    :attr:`WHITE_EXCESS` times what the model expects, else back towards the prior; it stays within ``[prior, ceiling ·
+    max(prior, σ_e prior)]``: like the RMS, the statement (here the DEM's own σ) bounds how much better the map may
+    be learned to be. The dead band keeps a map as good as modelled where it is (the particles' spread, the
+    attitude's error and the modes' truncation add energy of their own, measured at a tenth of the expected: S8 over
+    its own map 0.9 of the sensor's variance; over a 5 m / 1 km world 0.7 of the modelled; 8 m canopy on 20 % of the
+    ground 4.1, a smoothed product 2.7). The altimeter's one range has no degree of freedom for it.
+
     The filter (:class:`warptan.filter.mpf.MarginalizedParticleFilter`) runs one when its likelihood has
-    ``map_error_learn``; ``scripts/learn_study.py`` measures it over six families of worlds. Not learned: the white
-    per-point σ (the smoothed-product and clutter worlds show it), anything in a batch.
-    A single-range altimeter's filter rarely gets within the convergence guard, so it keeps its prior (S9, S12 in
-    ``results/learned``). The weighted NIS cannot stand in for the white σ's evidence: at the truth it is ≈ 1 over a
-    map that is the world but ≈ 0.2 over a world of 5 m / 1 km error (the map part of σ² is inflated for the updates
-    that read the same cells), and 0.6–0.7 under 8 m clutter, so its level depends on the model's own composition."""
+    ``map_error_learn``; ``scripts/learn_study.py`` measures it over six families of worlds. Not learned: anything in
+    a batch. A single-range altimeter's filter rarely gets within the convergence guard, so it keeps its prior (S9,
+    S12 in ``results/learned``). The weighted NIS cannot stand in for the white σ's evidence: at the truth it is ≈ 1
+    over a map that is the world but ≈ 0.2 over a world of 5 m / 1 km error (the map part of σ² is inflated for the
+    updates that read the same cells), and 0.6–0.7 under 8 m clutter, so its level depends on the model's own
+    composition."""
 
     LENGTH_FACTORS = 2.0 ** (np.arange(-4, 5) / 2.0)
     """The correlation lengths weighed against each other at a reading, as factors of the one in use."""
+    WHITE_EXCESS = 1.5
+    """The residuals' energy outside the modes, as a multiple of what the likelihood expects, above which the map's
+    white error is learned to be larger than its prior."""
 
     def __init__(self, prior_sigma_m: float, every: int = 10, time_constant: float = 300.0, converged_m: float = 15.0,
                  nis_max: float = 4.0, floor_m: float = 0.05, ceiling: float = 2.0, prior_corr_m: float | None = None,
-                 length_range: float = 4.0, min_corr_m: float = 0.0, length_gain: float | None = None):
+                 length_range: float = 4.0, min_corr_m: float = 0.0, length_gain: float | None = None,
+                 white_prior_m: float | None = None, sensor_sigma_m: float = 0.0, mismatch_m: float = 0.0):
         if not (np.isfinite(prior_sigma_m) and prior_sigma_m > 0):
             raise FilterError(f"map-error prior must be a positive RMS in m, got {prior_sigma_m!r}")
         if prior_corr_m is not None and not (np.isfinite(prior_corr_m) and prior_corr_m > 0):
@@ -88,6 +107,14 @@ class MapErrorLearner:
         if prior_corr_m is not None:
             self.len_bounds = (math.log(max(self.prior_corr_m / length_range, min_corr_m)),
                                math.log(max(self.prior_corr_m * length_range, min_corr_m)))
+        if white_prior_m is not None and not (np.isfinite(white_prior_m) and white_prior_m >= 0):
+            raise FilterError(f"map white-error prior must be a non-negative RMS in m, got {white_prior_m!r}")
+        self.white_prior_m = None if white_prior_m is None else float(white_prior_m)
+        self.white_var = None if white_prior_m is None else self.white_prior_m**2
+        """The learned white map error's variance, m² (None: not learned)."""
+        self.applied_white_m = self.white_prior_m
+        self.white_ceiling_m = float(ceiling) * max(self.white_prior_m or 0.0, self.prior_sigma_m)
+        self.sensor_var = float(sensor_sigma_m) ** 2 + float(mismatch_m) ** 2
 
     @property
     def corr_m(self) -> float | None:
@@ -95,17 +122,24 @@ class MapErrorLearner:
         return None if self.log_len is None else math.exp(self.log_len)
 
     @property
+    def white_m(self) -> float | None:
+        """The learned white map error (the likelihood's ``map_sigma_m``), m (None: not learned)."""
+        return None if self.white_var is None else math.sqrt(self.white_var)
+
+    @property
     def sigma_m(self) -> float:
         """The learned RMS of the map error, m."""
         return math.exp(0.5 * self.log_var)
 
-    def read(self, moments: np.ndarray, projections: np.ndarray | None = None,
-             spectrum: np.ndarray | None = None) -> tuple[float, float | None] | None:
+    def read(self, moments: np.ndarray, projections: np.ndarray | None = None, spectrum: np.ndarray | None = None,
+             sigma_m: float | None = None) -> tuple[float, float | None, float | None] | None:
         """One reading of :func:`~warptan.kernels.filter.resampling.map_error_moments_kernel`'s row (Σw, NIS, ratio,
-        modes used, var north, var east) and, to learn the length, :func:`~warptan.kernels.filter.resampling.
-        mode_projection_kernel`'s row with the table's :meth:`~warptan.sensing.likelihood.Likelihood.mode_spectrum` at
-        :attr:`LENGTH_FACTORS` times its length. Returns ``(RMS, correlation length)`` to apply when either moved (the
-        RMS by 10 %, the length by 20 %) since last applied (the length None when it is not learned), else None."""
+        modes used, var north, var east) and, to learn the length and the white error, :func:`~warptan.kernels.
+        filter.resampling.mode_projection_kernel`'s row (whitened by ``sigma_m``, the per-point σ it used) with the
+        table's :meth:`~warptan.sensing.likelihood.Likelihood.mode_spectrum` at :attr:`LENGTH_FACTORS` times its
+        length. Returns ``(RMS, correlation length, white error)`` to apply when any moved (the RMS by 10 %, the length
+        by 20 %, the white error by 10 % of the per-point σ's map part) since last applied (the length and the white
+        error None when not learned), else None."""
         _sw, nis, ratio, used, var_n, var_e = (float(v) for v in moments[:6])
         spread = math.sqrt(max(var_n, 0.0) + max(var_e, 0.0))
         if used < 1 or not np.isfinite(ratio) or ratio <= 0:
@@ -124,12 +158,33 @@ class MapErrorLearner:
                 self.log_len = min(max(self.log_len + self.length_gain * (target - self.log_len), self.len_bounds[0]),
                                    self.len_bounds[1])
                 moved = abs(self.log_len - math.log(self.applied_corr_m)) > math.log(1.2)
-        if moved or abs(math.log(self.sigma_m / self.applied_sigma_m)) > math.log(1.1):
+        white_moved = False
+        if self.white_var is not None and projections is not None and sigma_m is not None:
+            white_moved = self._read_white(np.asarray(projections, dtype=np.float64), float(sigma_m))
+        if moved or white_moved or abs(math.log(self.sigma_m / self.applied_sigma_m)) > math.log(1.1):
             self.applied_sigma_m = self.sigma_m
             if moved:
                 self.applied_corr_m = self.corr_m
-            return self.applied_sigma_m, self.applied_corr_m
+            if white_moved:
+                self.applied_white_m = self.white_m
+            return self.applied_sigma_m, self.applied_corr_m, self.applied_white_m
         return None
+
+    def _read_white(self, projections: np.ndarray, sigma_m: float) -> bool:
+        """Step the white error's variance with one reading's energy outside the modes; True when it moved by more
+        than a tenth of the map part's scale since last applied."""
+        sw = projections[PROJ_HF_W]
+        if not (np.isfinite(sw) and sw > 0 and np.isfinite(projections[PROJ_HF])):
+            return False
+        energy = projections[PROJ_HF] / sw * sigma_m * sigma_m  # m²
+        prior = self.white_prior_m**2
+        target = prior
+        if energy > self.WHITE_EXCESS * (self.sensor_var + prior):
+            target = energy - self.sensor_var
+        self.white_var = min(max(self.white_var + self.length_gain * (target - self.white_var), prior),
+                             self.white_ceiling_m**2)
+        scale = max(self.applied_white_m, 0.1 * math.sqrt(max(self.sensor_var, 1e-6)))
+        return abs(self.white_m - self.applied_white_m) > 0.1 * scale
 
     _S_GRID = np.exp(np.linspace(math.log(0.05), math.log(400.0), 48))
     _C_GRID = np.exp(np.linspace(math.log(0.02), math.log(2.0), 12))
@@ -140,7 +195,7 @@ class MapErrorLearner:
         fewer than four modes or no weight."""
         projections = np.asarray(projections, dtype=np.float64)
         n = spectrum.shape[1]
-        sw = projections[-1]
+        sw = projections[PROJ_SW]
         if not (np.isfinite(sw) and sw > 0):
             return None
         second = projections[:n] / sw

@@ -150,6 +150,7 @@ class MeasurementModel:
         self._modes: wp.array | None = None
         self._modes_host: np.ndarray | None = None
         self._modes_skip = 0
+        self._amp_scale = 1.0  # the stored amplitudes' factor for the next scan (a new per-point σ whitens them anew)
         self.modes_version = 0
         """Bumped whenever the mode table gets new modes (a rebuild; not a rescale: the modes stay)."""
         self._spectrum: tuple | None = None  # ((version, factors), mode_spectrum's array)
@@ -200,7 +201,7 @@ class MeasurementModel:
             self._spectrum = (key, spectrum)
         return self._spectrum[1]
 
-    def restate_map_error(self, sigma_m: float, corr_m: float | None = None) -> None:
+    def restate_map_error(self, sigma_m: float, corr_m: float | None = None, white_m: float | None = None) -> None:
         """Use ``sigma_m`` as the stated map error's RMS from the next scan on, keeping the mode table's basis (its
         amplitudes are whitened by the point σ, which does not change: the filter's stored amplitudes stay valid;
         :class:`~warptan.sensing.learner.MapErrorLearner`). The modes and their correlations along the track do
@@ -210,10 +211,24 @@ class MeasurementModel:
 
         The kernels' struct keeps the statement's RMS (``sigma_err``: the gross-miss gate's scale and the ray casts'
         geometry term, :meth:`params`) and the table's values change in place, so recorded launches and captured
-        graphs stay valid: a restatement costs no re-capture on CUDA."""
+        graphs stay valid: a restatement costs no re-capture on CUDA.
+
+        ``white_m``: the map's own white error (``Likelihood.map_sigma_m``) learned anew. It changes the per-point σ,
+        so the struct is rebuilt (a re-capture), the table's one-scan variances are those of the new whitening and
+        the stored amplitudes, whitened by the old σ, are carried over by ``T = (σ_old / σ_new) I`` at the next
+        scan."""
         if not self._likelihood.models_map_error:
             raise FilterError("restate_map_error needs a likelihood with a stated map error")
-        old = self._likelihood.map_error_sigma_m
+        old, old_point = self._likelihood.map_error_sigma_m, self.sigma_m
+        if white_m is not None and float(white_m) != self._likelihood.map_sigma_m and self._likelihood.sigma_m is None:
+            statement = self._params.sigma_err
+            self._likelihood = dataclasses.replace(self._likelihood, map_sigma_m=float(white_m))
+            self._params = self.params()
+            self._params.sigma_err = statement
+            self._params.n_modes = klik.MAX_MODES
+            self.generation += 1
+            self._amp_scale *= old_point / self.sigma_m
+            self._modes_skip = 0
         if corr_m is not None and float(corr_m) != self._likelihood.map_error_corr_m:
             self._likelihood = dataclasses.replace(self._likelihood, map_error_sigma_m=float(sigma_m),
                                                    map_error_corr_m=float(corr_m))
@@ -223,9 +238,12 @@ class MeasurementModel:
         host = self._modes_host
         if host is not None and self._modes_geometry is not None:  # the same modes, their variances scaled
             m = host.shape[0] - klik.MODE_EXTRA_ROWS
-            self._modes_host = host = self.likelihood.rescale_error_modes(host, m, (float(sigma_m) / old) ** 2)
+            factor = (float(sigma_m) / old) ** 2 * (old_point / self.sigma_m) ** 2
+            self._modes_host = host = self.likelihood.rescale_error_modes(host, m, factor)
             self._modes.assign(host)
             self.modes_info = {**self.modes_info, "k0": host[m + klik.MODE_K0].tolist()}
+            if old_point != self.sigma_m:
+                self.modes_version += 1  # (the spectrum is per unit of the point variance)
 
     def bind_attitude_cov(self, att_cov: wp.array | None) -> None:
         """Use ``att_cov`` ((B,) mat33 on the particles' device, rad²: each filter's Kalman covariance of dθ,
@@ -409,7 +427,11 @@ class MeasurementModel:
         size = max(float(np.ptp(xy, axis=0).max()) if len(xy) > 1 else 0.0, 1.0)
         if old is not None and old[0].shape == xy.shape and np.abs(old[0] - xy).max() <= self.MODES_REBUILD * size \
                 and np.abs(old[1] - along).max() <= self.MODES_REBUILD:
-            if not np.array_equal(host[m + klik.MODE_T:], np.eye(klik.MAX_MODES)):  # the basis change applied once
+            if self._amp_scale != 1.0:  # the amplitudes whitened anew (restate_map_error's white_m)
+                host[m + klik.MODE_T:] = self._amp_scale * np.eye(klik.MAX_MODES, dtype=np.float32)
+                self._modes.assign(host)
+                self._amp_scale = 1.0
+            elif not np.array_equal(host[m + klik.MODE_T:], np.eye(klik.MAX_MODES)):  # the basis change applied once
                 host[m + klik.MODE_T:] = np.eye(klik.MAX_MODES, dtype=np.float32)
                 self._modes.assign(host)
             else:
@@ -418,7 +440,8 @@ class MeasurementModel:
         table, info = self.likelihood.error_modes(xy, sens, self.sigma_m, along, self.absorbs_map_offset)
         # T = U_newᵀ U_old carries the stored amplitudes into the new modes; a first table (or one for a new
         # likelihood) carries nothing: T = 0 gives the one-scan prior whatever a filter stored
-        table[m + klik.MODE_T:] = 0.0 if host is None else table[:m].T @ host[:m]
+        table[m + klik.MODE_T:] = 0.0 if host is None else self._amp_scale * (table[:m].T @ host[:m])
+        self._amp_scale = 1.0
         self._modes.assign(table)
         self._modes_host = table
         self._modes_geometry = (xy, along, sens)

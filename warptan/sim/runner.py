@@ -251,6 +251,8 @@ def collect_runs(mpf: MarginalizedParticleFilter, t_s: np.ndarray, truth: dict |
                                                       "map_error_learned_m": mpf.learner.sigma_m,
                                                       "map_error_prior_corr_m": mpf.learner.prior_corr_m,
                                                       "map_error_learned_corr_m": mpf.learner.corr_m,
+                                                      "map_white_prior_m": mpf.learner.white_prior_m,
+                                                      "map_white_learned_m": mpf.learner.white_m,
                                                       "map_error_readings": mpf.learner.readings})},
         ))
     return runs if batched else runs[0]

@@ -192,6 +192,7 @@ class ScenarioResult:
                 "injections": int(r.info.get("injections", 0)),
                 "map_error_learned_m": r.info.get("map_error_learned_m"),
                 "map_error_learned_corr_m": r.info.get("map_error_learned_corr_m"),
+                "map_white_learned_m": r.info.get("map_white_learned_m"),
             }
 
 
