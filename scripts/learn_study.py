@@ -67,7 +67,7 @@ def fly(job: tuple) -> dict:
     conv = r.run.t_s >= r.config.filter.converged_after_s
     parts = getattr(r.truth_terrain, "parts", None) or {}
     return {"horiz": float(np.hypot(*r.rmse_converged[:2])), "err": r.run.error[conv], "sig3": r.run.sigma3_pos[conv],
-            "learned": r.run.info.get("map_error_learned_m"),
+            "learned": r.run.info.get("map_error_learned_m"), "white": r.run.info.get("map_white_learned_m"),
             "world_rms": float(parts.get("map_minus_world_rms_m", 0.0)), "respreads": int(r.run.respread.sum())}
 
 
@@ -81,7 +81,7 @@ def run_row(sid: str, family: str, mode: str, seeds: int, worlds: int, duration_
     sig3 = np.concatenate([r["sig3"] for r in runs])
     rmse = np.sqrt(np.mean(err**2, axis=0))
     mean, half = ci95(horiz)
-    learned = [r["learned"] for r in runs]
+    learned, white = [r["learned"] for r in runs], [r.get("white") for r in runs]
     return {"scenario": sid, "family": family, "mode": mode, "seeds": seeds, "worlds": worlds,
             "duration_s": duration_s,
             "keywords": {k: v for k, v in kw.items() if k != "duration_s"},
@@ -90,6 +90,7 @@ def run_row(sid: str, family: str, mode: str, seeds: int, worlds: int, duration_
             "sigma_over_rmse": (np.mean(sig3, axis=0) / 3.0 / rmse).tolist(),
             "world_rms_m": float(np.mean([r["world_rms"] for r in runs])),
             "learned_m": None if learned[0] is None else [float(v) for v in learned],
+            "white_learned_m": None if white[0] is None else [float(v) for v in white],
             "respreads": int(sum(r["respreads"] for r in runs)), "meta": run_meta((device,))}
 
 
