@@ -118,9 +118,7 @@ def _ray_sigmas(model, out, cloud):
     gain = np.where(s_z != 0.0, np.minimum(np.abs(s_z), 1000.0), 1000.0)
     var = p.sigma_range**2 + p.sigma_map**2 * gain**2
     if p.sigma_err > 0:
-        down = np.asarray(cloud.dirs_s)[:, 2]
-        held = np.where(down >= klik.RAY_MODES_MIN_DOWN, 1.0 / np.maximum(down, 0.1), 0.0)  # ray_modes_gain
-        var = var + p.sigma_err**2 * (gain - held) ** 2
+        var = var + p.sigma_err**2 * (gain - 1.0 / np.maximum(np.asarray(cloud.dirs_s)[:, 2], 0.1)) ** 2
     if p.sigma_range <= 0 or (p.sigma_map <= 0 and p.sigma_err <= 0):
         return np.full(s_z.shape, p.sigma)
     return np.sqrt(var)
@@ -736,27 +734,6 @@ def test_a_white_restatement_whitens_anew_and_carries_the_amplitudes(scan, devic
     np.testing.assert_allclose(table.numpy()[m + klik.MODE_T:], (old / new) * np.eye(klik.MAX_MODES), rtol=1e-6)
     model.evaluate(*poses, cloud)
     np.testing.assert_array_equal(table.numpy()[m + klik.MODE_T:], np.eye(klik.MAX_MODES))
-
-
-def test_rays_far_from_the_vertical_keep_their_map_error_to_themselves(scan):
-    """At a 60° bank, the ray-casting model's modes hold the map error of the rays within 60° of the vertical with
-    sensitivity 1/u_z and none of the others (``RAY_MODES_MIN_DOWN``): their rows of the table are zero, and the
-    footprint's centre is that of the rays the modes hold."""
-    from warptan.nav.frames import euler_to_quat, quat_to_mat
-
-    dem, cloud, pos, _q = scan
-    model = wt.make_model("raycast", dem, wt.Likelihood("gaussian", sensor_sigma_m=0.5, **STATED))
-    banked = euler_to_quat(np.radians(60.0), 0.0, 0.3)
-    poses = (wp.array(pos, dtype=wp.vec3), wp.array(np.tile(banked, (len(pos), 1)), dtype=wp.vec4))
-    model.evaluate(*poses, cloud)
-    xy, sens, _along = model._scan_geometry(np.asarray(banked, dtype=np.float64))
-    u_down = (np.asarray(cloud.dirs_s, dtype=np.float64) @ quat_to_mat(banked).T)[:, 2]
-    far = u_down < klik.RAY_MODES_MIN_DOWN
-    assert far.any() and (~far).any()
-    np.testing.assert_allclose(sens, np.where(far, 0.0, 1.0 / np.maximum(u_down, 0.1)), rtol=1e-6)
-    table = model.mode_table.numpy()
-    assert np.abs(table[: len(u_down)][far]).max() < 1e-6 and np.abs(table[: len(u_down)][~far]).max() > 0.01
-    np.testing.assert_allclose(model.footprint_centre, xy[~far].mean(axis=0))
 
 
 def test_a_host_echo_returns_the_copy_before_the_last_with_its_tag(device):

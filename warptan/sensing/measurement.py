@@ -422,12 +422,10 @@ class MeasurementModel:
             return
         quat = np.asarray(attitude if attitude is not None else quat_nb[:1].numpy()[0], dtype=np.float64).reshape(4)
         xy, sens, along = self._scan_geometry(quat)
-        held = sens > 0 if np.any(sens > 0) else np.ones(len(sens), dtype=bool)  # the points the modes hold
-        self.footprint_centre = xy[held].mean(axis=0)  # where the scan reads the map, from the aircraft (m)
+        self.footprint_centre = xy.mean(axis=0)  # where the scan reads the map, from the aircraft (m)
         old, host = self._modes_geometry, self._modes_host
-        size = max(float(np.ptp(xy[held], axis=0).max()) if np.count_nonzero(held) > 1 else 0.0, 1.0)
-        if old is not None and old[0].shape == xy.shape and np.mean((old[2] > 0) != (sens > 0)) <= 0.05 \
-                and np.abs(old[0] - xy)[held].max() <= self.MODES_REBUILD * size \
+        size = max(float(np.ptp(xy, axis=0).max()) if len(xy) > 1 else 0.0, 1.0)
+        if old is not None and old[0].shape == xy.shape and np.abs(old[0] - xy).max() <= self.MODES_REBUILD * size \
                 and np.abs(old[1] - along).max() <= self.MODES_REBUILD:
             if self._amp_scale != 1.0:  # the amplitudes whitened anew (restate_map_error's white_m)
                 host[m + klik.MODE_T:] = self._amp_scale * np.eye(klik.MAX_MODES, dtype=np.float32)
@@ -550,10 +548,7 @@ class _PointCloudModel(MeasurementModel):
         # the nominal footprint: every ray meets the scan's median ground level (a smooth function of the altitude
         # and attitude; the points' own ranges moved it with every hill, and the modes with it)
         xy = (u * (agl / down)[:, None])[:, :2]
-        # a range's sensitivity (kernels.likelihood.ray_modes_gain: a ray past 60° from the vertical keeps its error
-        # to itself)
-        sens = np.where(u[:, 2] >= klik.RAY_MODES_MIN_DOWN, 1.0 / down, 0.0) if self.name == "raycast" \
-            else np.ones(len(u))
+        sens = 1.0 / down if self.name == "raycast" else np.ones(len(u))
         return xy, sens, _forward(quat)
 
     def _fill(self, items, meta: wp.array) -> np.ndarray:
