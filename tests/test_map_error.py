@@ -752,40 +752,59 @@ def test_a_host_echo_returns_the_copy_before_the_last_with_its_tag(device):
         assert echo.tag == f"copy {seen}"
 
 
-def test_the_raw_projections_kernel_matches_numpy(device):
+@pytest.mark.parametrize("ray", [0, 1])
+def test_the_raw_projections_kernel_matches_numpy(device, ray):
     """``mode_projection_kernel`` (and ``loglik_max_kernel``): per filter Σ w p_i² and Σ w with ``p = Uᵀ r / σ``
-    over the points inside the gate (NaN residuals and gross misses left out) and ``w = exp(ℓ − max ℓ)`` (a
-    non-finite ℓ weighs nothing), and the energy outside the modes and the mean per degree of freedom with its
-    weight, against NumPy."""
+    over the points inside the gate and held by the modes (NaN residuals, gross misses and zero rows of the table
+    left out) and ``w = exp(ℓ − max ℓ)`` (a non-finite ℓ weighs nothing), and the energy outside the modes and the
+    mean per degree of freedom times the mean 1/a² (a = 1/max(u_z, 0.1) under the particle's attitude for rays, 1
+    otherwise; of the points with a ≤ ``WHITE_MAX_GAIN`` and their own projections) with its weight, against
+    NumPy."""
     from warptan.kernels import mpf as kmpf
+    from warptan.nav.frames import euler_to_quat, quat_to_mat
 
     rng = np.random.default_rng(3)
     b, n, m, sigma, gate = 2, 40, 30, 0.7, 5.0
     table = np.zeros((m + klik.MODE_EXTRA_ROWS, klik.MAX_MODES), dtype=np.float32)
-    table[:m, :10] = np.linalg.qr(rng.normal(size=(m, 10)))[0]
+    table[:m - 3, :10] = np.linalg.qr(rng.normal(size=(m - 3, 10)))[0]  # (the last 3 points not held)
     res = rng.normal(0, 1.5, (b * n, m)).astype(np.float32)
     res[rng.random(res.shape) < 0.1] = np.nan
     res[0, :3] = 40.0  # beyond the gate
     loglik = rng.normal(-50, 5, b * n).astype(np.float32)
     loglik[5] = -np.inf
+    quat = euler_to_quat(rng.normal(0.0, 0.3, b * n), rng.normal(0.0, 0.3, b * n), rng.uniform(-3, 3, b * n))
+    dirs = np.column_stack([rng.uniform(-1.0, 1.0, (b, m)).ravel(), rng.uniform(-1.0, 1.0, (b, m)).ravel(),
+                            np.ones(b * m)]).reshape(b, m, 3)
+    dirs /= np.linalg.norm(dirs, axis=2, keepdims=True)
+    rows = np.zeros((b, m, 8), dtype=np.float32)
+    rows[:, :, 3:6] = dirs
     arr = {k: wp.array(v, dtype=t, device=device) for k, v, t in
-           (("table", table, klik.modes_vec), ("res", res, wp.float32), ("ll", loglik, wp.float32))}
+           (("table", table, klik.modes_vec), ("res", res, wp.float32), ("ll", loglik, wp.float32),
+            ("quat", quat.astype(np.float32), wp.vec4), ("cloud", rows, klik.cloud_row))}
     ref = wp.zeros(b, dtype=wp.float32, device=device)
     out = wp.zeros((b, kmpf.PROJ_LEN), dtype=wp.float64, device=device)
     wp.launch(kmpf.loglik_max_kernel, dim=b, inputs=[n, arr["ll"]], outputs=[ref], device=device)
     wp.launch(kmpf.mode_projection_kernel, dim=b * n,
-              inputs=[n, m, arr["table"], arr["res"], arr["ll"], ref, sigma, gate], outputs=[out], device=device)
-    z = res.astype(np.float64) / sigma
-    z = np.where(np.isfinite(z) & (np.abs(z) <= gate), z, 0.0)
+              inputs=[n, m, arr["table"], arr["res"], arr["ll"], ref, sigma, gate, arr["quat"], arr["cloud"], ray],
+              outputs=[out], device=device)
+    u_down = np.stack([dirs[t // n] @ quat_to_mat(quat[t]).T for t in range(b * n)])[:, :, 2]
+    a = 1.0 / np.maximum(u_down, 0.1) if ray else np.ones_like(u_down)
+    held = np.broadcast_to((np.abs(table[:m]).sum(axis=1) > 0)[None, :], a.shape)
+    assert (a > 2.0).any() == bool(ray)  # (some rays past 60°)
+    used = np.isfinite(res) & (np.abs(res.astype(np.float64) / sigma) <= gate) & held
+    z = np.where(used, res.astype(np.float64) / sigma, 0.0)
     p = z @ table[:m].astype(np.float64)
+    used = used & (a <= kmpf.WHITE_MAX_GAIN)  # the points that read the white error
+    z = np.where(used, z, 0.0)
+    q = z @ table[:m].astype(np.float64)
     ll = loglik.astype(np.float64).reshape(b, n)
     w = np.exp(ll - np.max(np.where(np.isfinite(ll), ll, -np.inf), axis=1, keepdims=True)).reshape(-1)
     w[~np.isfinite(w)] = 0.0
-    used = np.isfinite(res) & (np.abs(res.astype(np.float64) / sigma) <= gate)
     count = used.sum(axis=1)
-    energy = (z**2).sum(1) - z.sum(1) ** 2 / np.maximum(count, 1) - (p**2).sum(1)
+    energy = np.maximum((z**2).sum(1) - z.sum(1) ** 2 / np.maximum(count, 1), 0.0) - (q**2).sum(1)
+    inv_a2 = np.where(used, 1.0 / a**2, 0.0).sum(1) / np.maximum(count, 1)
     dof = count - 1 - klik.MAX_MODES
-    h = np.where(dof > 0, np.maximum(energy, 0.0) / np.maximum(dof, 1), 0.0)
+    h = np.where(dof > 0, np.maximum(energy, 0.0) / np.maximum(dof, 1) * inv_a2, 0.0)
     w_h = np.where(dof > 0, w, 0.0)
     expected = np.stack([np.concatenate([(w[k * n:(k + 1) * n, None] * p[k * n:(k + 1) * n] ** 2).sum(0),
                                          [w[k * n:(k + 1) * n].sum(), (w_h * h)[k * n:(k + 1) * n].sum(),

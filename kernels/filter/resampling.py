@@ -17,7 +17,17 @@ from warptan.kernels.filter.common import (
     stats_chol,
     vec12,
 )
-from warptan.kernels.likelihood import MAX_MODES, MODE_K0, MODE_RHO, mode_prior, modes_vec
+from warptan.kernels.frames import quat_to_mat_wxyz
+from warptan.kernels.likelihood import (
+    MAX_MODES,
+    MODE_K0,
+    MODE_RHO,
+    cloud_row,
+    mode_prior,
+    modes_vec,
+    ray_nominal_gain,
+    row_dir,
+)
 
 wp.set_module_options({"enable_backward": False})
 
@@ -356,6 +366,11 @@ PROJ_LEN = MAX_MODES + 3
 """Columns of :func:`mode_projection_kernel`'s output: each mode's Σ w p_i², Σ w, Σ w h (the residuals' energy
 outside the modes per degree of freedom) and Σ w over the particles with that energy."""
 PROJ_SW = MAX_MODES
+WHITE_MAX_GAIN = 1.5
+"""The largest sensitivity to the map (a ray's 1/u_z: within 48° of the vertical) of a point that reads the map's white
+error in :func:`mode_projection_kernel`: farther from the vertical the ray's own slope-dependent sensitivity departs
+from 1/u_z (by a third on a 0.3 slope at 48°) and its share of the stated error the modes cannot hold (``ray_var``'s
+excess) would read as white error."""
 PROJ_HF = MAX_MODES + 1
 PROJ_HF_W = MAX_MODES + 2
 
@@ -377,18 +392,23 @@ def loglik_max_kernel(n_per: int, loglik: wp.array(dtype=wp.float32), out: wp.ar
 def mode_projection_kernel(n_per: int, m: int, table: wp.array(dtype=modes_vec),
                            residual: wp.array2d(dtype=wp.float32), loglik: wp.array(dtype=wp.float32),
                            ref: wp.array(dtype=wp.float32), sigma: float, gate: float,
+                           quat_nb: wp.array(dtype=wp.vec4), cloud: wp.array2d(dtype=cloud_row), ray: int,
                            out: wp.array2d(dtype=wp.float64)):
     """Particle t's raw projections of its last residuals on the scan's map-error modes, ``p_i = Σ_j u_ji z_j``, ``z_j =
-    r_j / σ`` (a point not received, not hit, or beyond ``gate`` whitened: none), weighted by its likelihood ``w =
-    exp(ℓ_t − max ℓ)`` into filter b's ``Σ w p_i²`` (``out[b, i]``) and ``Σ w`` (``out[b, PROJ_SW]``), zeroed by the
-    caller. Unlike the modes' posterior moments (:func:`map_error_moments_kernel`) these do not lean on the
-    statement's variances: the evidence on the error's correlation length
-    (:meth:`warptan.sensing.learner.MapErrorLearner.read`).
+    r_j / σ`` (a point not received, not hit, beyond ``gate`` whitened, or not held by the modes (a zero row of the
+    table): none), weighted by its likelihood ``w = exp(ℓ_t − max ℓ)`` into filter b's ``Σ w p_i²`` (``out[b, i]``)
+    and ``Σ w`` (``out[b, PROJ_SW]``), zeroed by the caller. Unlike the modes' posterior moments
+    (:func:`map_error_moments_kernel`) these do not lean on the statement's variances: the evidence on the error's
+    correlation length (:meth:`warptan.sensing.learner.MapErrorLearner.read`).
 
-    Also the energy the modes and the offset leave, per degree of freedom: ``h = (Σ_j z_j² − n z̄² − Σ_i p_i²) / (n −
-    1 − M)`` over the ``n`` points used (``M = MAX_MODES``; the offset as the mean, exact where every point's
-    sensitivity to the map is 1), into ``Σ w h`` (``out[b, PROJ_HF]``) and ``Σ w`` (``out[b, PROJ_HF_W]``) over the
-    particles with ``n > M + 1``: the evidence on the map's white error (what varies from post to post)."""
+    Also the energy the modes and the offset leave, per degree of freedom and per unit of sensitivity to the map:
+    ``h = (Σ_j z_j² − n z̄² − Σ_i p_i²) / (n − 1 − M) · (1/n) Σ_j a_j⁻²`` over the ``n`` points used (``M =
+    MAX_MODES``; the offset as the mean, exact where every point's sensitivity ``a_j`` is 1; ``a_j`` the ray's
+    ``ray_nominal_gain`` 1/u_z under the particle's attitude ``quat_nb[t]`` and the scan's directions ``cloud`` with
+    ``ray``, else 1: a ray far from the vertical reads the map's white error magnified; only the points with ``a_j ≤
+    WHITE_MAX_GAIN``, their own projections ``p_i`` too), into ``Σ w h`` (``out[b,
+    PROJ_HF]``) and ``Σ w`` (``out[b, PROJ_HF_W]``) over the particles with ``n > M + 1``: the evidence on the map's
+    white error (what varies from post to post)."""
     t = wp.tid()
     b = t // n_per
     lt = loglik[t]
@@ -396,23 +416,34 @@ def mode_projection_kernel(n_per: int, m: int, table: wp.array(dtype=modes_vec),
         return
     w = wp.exp(wp.float64(lt - ref[b]))
     p = modes_vec()
+    q = modes_vec()  # (the projections of the points that read the white error)
     inv = 1.0 / sigma
+    mat = quat_to_mat_wxyz(quat_nb[t])
     s1 = float(0.0)
     s2 = float(0.0)
+    s_inv_a2 = float(0.0)
     n = int(0)
     for j in range(m):
         z = residual[t, j] * inv
-        if wp.isfinite(z) and wp.abs(z) <= gate:
-            p += table[j] * z
-            s1 += z
-            s2 += z * z
-            n += 1
+        u = table[j]
+        if wp.isfinite(z) and wp.abs(z) <= gate and wp.dot(u, u) > 0.0:
+            a = float(1.0)
+            if ray != 0:
+                a = ray_nominal_gain((mat * row_dir(cloud[b, j]))[2])
+            p += u * z
+            if a <= WHITE_MAX_GAIN:
+                q += u * z
+                s1 += z
+                s2 += z * z
+                s_inv_a2 += 1.0 / (a * a)
+                n += 1
     pp = float(0.0)
     for i in range(MAX_MODES):
-        pp += p[i] * p[i]
+        pp += q[i] * q[i]
         wp.atomic_add(out, b, i, w * wp.float64(p[i] * p[i]))
     wp.atomic_add(out, b, PROJ_SW, w)
     if n > MAX_MODES + 1:
-        h = wp.max(s2 - s1 * s1 / float(n) - pp, 0.0) / float(n - 1 - MAX_MODES)
+        h = wp.max(s2 - s1 * s1 / float(n), 0.0) - pp
+        h = wp.max(h, 0.0) / float(n - 1 - MAX_MODES) * s_inv_a2 / float(n)
         wp.atomic_add(out, b, PROJ_HF, w * wp.float64(h))
         wp.atomic_add(out, b, PROJ_HF_W, w)

@@ -476,7 +476,8 @@ class MarginalizedParticleFilter(ImuIntake, Readout):
                    outputs=[self._proj_ref], device=self.device)
             launch(kmpf.mode_projection_kernel, dim=self.n_filters * self.n,
                    inputs=[self.n, m, table, self._out.residual_m, self._out.loglik, self._proj_ref,
-                           float(self.model.sigma_m), float(gate)], outputs=[self._proj_out], device=self.device)
+                           float(self.model.sigma_m), float(gate), self._quat, self.model.staged_cloud,
+                           int(self.model.name == "raycast")], outputs=[self._proj_out], device=self.device)
             if self.learner.log_len is not None:
                 spectrum = self.model.mode_spectrum(self.learner.LENGTH_FACTORS)
         # (the spectrum of the table this reading reads, the per-point σ that whitened it)

@@ -150,6 +150,7 @@ class MeasurementModel:
         self._modes: wp.array | None = None
         self._modes_host: np.ndarray | None = None
         self._modes_skip = 0
+        self._no_cloud: wp.array | None = None
         self._amp_scale = 1.0  # the stored amplitudes' factor for the next scan (a new per-point σ whitens them anew)
         self.modes_version = 0
         """Bumped whenever the mode table gets new modes (a rebuild; not a rescale: the modes stay)."""
@@ -447,6 +448,17 @@ class MeasurementModel:
         self._modes_geometry = (xy, along, sens)
         self.modes_version += 1
         self.modes_info = {**info, "rebuilds": self.modes_info.get("rebuilds", 0) + 1}
+
+    @property
+    def staged_cloud(self) -> wp.array:
+        """The staged scans' rows ((B, M) :data:`~warptan.kernels.likelihood.cloud_row`: point, direction, range,
+        valid), or one zero row for a model whose staged measurement is not a point cloud (the altimeter)."""
+        staged = getattr(self, "_staged", None)
+        if staged is not None and staged.ndim == 2 and staged.dtype == klik.cloud_row:
+            return staged
+        if self._no_cloud is None or self._no_cloud.device != self._out.loglik.device:
+            self._no_cloud = wp.zeros((1, 1), dtype=klik.cloud_row, device=self._out.loglik.device)
+        return self._no_cloud
 
     @property
     def mode_table(self) -> wp.array | None:
