@@ -60,11 +60,13 @@ class MapErrorLearner:
     ``E[h σ²] = σ_sensor² + σ_map,true² + mismatch²`` at the truth), reads it. The learned ``σ_map²`` steps towards
     ``h σ² − σ_sensor² − mismatch²`` (gain ``length_gain`` per reading) when that energy exceeds
     :attr:`WHITE_EXCESS` times what the model expects, else back towards the prior; it stays within ``[prior, ceiling ·
-    max(prior, σ_e prior)]``: like the RMS, the statement (here the DEM's own σ) bounds how much better the map may
-    be learned to be. The dead band keeps a map as good as modelled where it is (the particles' spread, the
-    attitude's error and the modes' truncation add energy of their own, measured at a tenth of the expected: S8 over
-    its own map 0.9 of the sensor's variance; over a 5 m / 1 km world 0.7 of the modelled; 8 m canopy on 20 % of the
-    ground 4.1, a smoothed product 2.7). The altimeter's one range has no degree of freedom for it.
+    max(prior, σ_e prior)]``: unlike the RMS it is never learned below its prior, which is the DEM's own hold-out
+    error, measured from the map itself rather than stated. The dead band keeps a map as good as modelled where it is: the particles' spread, the attitude's
+    error and the modes' truncation add energy of their own. Only points within 48° of the vertical read it
+    (``WHITE_MAX_GAIN``): a ray farther out has a slope-dependent sensitivity the modes do not hold, and its excess
+    would read as white error. ``results/learned`` rows record what was learned (``white_learned_m``): the prior kept
+    over a map that is the world and over the long and short families, about 2.3–3 m over canopy and a smoothed
+    product. The altimeter's one range has no degree of freedom for it.
 
     The filter (:class:`warptan.filter.mpf.MarginalizedParticleFilter`) runs one when its likelihood has
     ``map_error_learn``; ``scripts/learn_study.py`` measures it over six families of worlds. Not learned: anything in
