@@ -40,6 +40,9 @@ MISSTATED = {"rms-half": (0.5, 1.0), "rms-double": (2.0, 1.0), "corr-third": (1.
              "corr-triple": (1.0, 3.0)}
 """Misstated modes: (factor on the RMS, factor on the correlation length) of the family's own error."""
 MODES = ("learn", "off", "told", *MISSTATED)
+LOST_M = 50.0
+"""A seed whose converged horizontal RMSE exceeds this is lost; ``lost_unflagged`` counts those that did not declare
+themselves unconverged (``warptan.sim.report.declared_unconverged``: their horizontal 3σ over 50 m)."""
 EXACT_STATEMENT = (5.0, 1000.0)
 """What ``told`` states over the ``exact`` family (a map better than stated)."""
 
@@ -63,12 +66,15 @@ def fly(job: tuple) -> dict:
     """One seed of a row (a worker's task): its converged horizontal RMSE, errors and 3σ after convergence, learned
     RMS, the map-minus-world RMS and its re-spreads."""
     sid, seed, world_seed, kw, device = job
+    from warptan.sim.report import declared_unconverged
+
     r = run_scenario(sid, seed, device=device, world_seed=world_seed, bound=False, **kw)
     conv = r.run.t_s >= r.config.filter.converged_after_s
     parts = getattr(r.truth_terrain, "parts", None) or {}
     return {"horiz": float(np.hypot(*r.rmse_converged[:2])), "err": r.run.error[conv], "sig3": r.run.sigma3_pos[conv],
             "learned": r.run.info.get("map_error_learned_m"), "white": r.run.info.get("map_white_learned_m"),
-            "world_rms": float(parts.get("map_minus_world_rms_m", 0.0)), "respreads": int(r.run.respread.sum())}
+            "world_rms": float(parts.get("map_minus_world_rms_m", 0.0)), "respreads": int(r.run.respread.sum()),
+            "flagged": declared_unconverged(r.run, r.config.filter.converged_after_s)}
 
 
 def run_row(sid: str, family: str, mode: str, seeds: int, worlds: int, duration_s: float, device: str,
@@ -91,7 +97,10 @@ def run_row(sid: str, family: str, mode: str, seeds: int, worlds: int, duration_
             "world_rms_m": float(np.mean([r["world_rms"] for r in runs])),
             "learned_m": None if learned[0] is None else [float(v) for v in learned],
             "white_learned_m": None if white[0] is None else [float(v) for v in white],
-            "respreads": int(sum(r["respreads"] for r in runs)), "meta": run_meta((device,))}
+            "respreads": int(sum(r["respreads"] for r in runs)),
+            "declared_unconverged": int(sum(bool(r.get("flagged")) for r in runs)),
+            "lost_unflagged": int(sum(r["horiz"] > LOST_M and not r.get("flagged") for r in runs)),
+            "meta": run_meta((device,))}
 
 
 def merged_meta(rows: list[dict]) -> dict:

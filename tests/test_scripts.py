@@ -193,8 +193,9 @@ def test_reproduce_paper_checks_its_output_before_the_work(tmp_path):
 
 @pytest.mark.slow
 def test_learn_study_runs_resumes_and_reports(tmp_path):
-    """`learn_study.py` on a tiny plan (2 seeds, one family, 35 s): a row per mode, the learned RMS only where the
-    learner ran; a resume adds only the missing row; the Markdown table names every row."""
+    """`learn_study.py` on a tiny plan (2 seeds, one family, 35 s): a row per mode, the learned RMS and white error
+    only where the learner ran, the lost seeds without a flag counted; a resume adds only the missing row; the Markdown
+    table names every row."""
     script, out = str(ROOT / "scripts" / "learn_study.py"), tmp_path / "l"
     base = [sys.executable, script, "--seeds", "2", "--worlds", "1", "--duration-s", "35", "--scenarios", "S8",
             "--families", "short", "--out", str(out)]
@@ -208,4 +209,8 @@ def test_learn_study_runs_resumes_and_reports(tmp_path):
     learned = {r["mode"]: r["learned_m"] for r in rows}
     assert learned["off"] is None and len(learned["learn"]) == 2 and all(v > 0 for v in learned["learn"])
     assert all(np.isfinite(r["horizontal_rmse_m"]) and r["worlds"] == 1 for r in rows)
+    assert all(r["lost_unflagged"] == sum(v > 50.0 for v in r["per_seed_m"]) - r["declared_unconverged"] == 0
+               for r in rows)  # (S8 converges: nothing lost, nothing declared)
+    white = {r["mode"]: r["white_learned_m"] for r in rows}
+    assert white["off"] is None and len(white["learn"]) == 2
     assert (out / "study.md").read_text().count("| S8 | short |") == 2
