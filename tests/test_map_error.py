@@ -813,6 +813,17 @@ def test_the_raw_projections_kernel_matches_numpy(device, ray):
     np.testing.assert_allclose(out.numpy(), expected, rtol=2e-4, atol=1e-6)
 
 
+def test_the_altimeter_learns_with_its_one_range():
+    """S9 (a single radar-altimeter range) over a 5 m / 1 km world with the learner on (20 s): the learner's launches
+    take the altimeter's staged measurement (no point cloud: ``staged_cloud`` is one zero row) and its white error
+    stays at the prior (one range has no degree of freedom for it); the run is finite."""
+    from warptan.sim.scenarios import run_scenario
+
+    r = run_scenario("S9", 0, world_error_rms_m=5.0, world_error_corr_m=1000.0, duration_s=20.0, bound=False)
+    assert r.run.info["map_white_learned_m"] == r.run.info["map_white_prior_m"]
+    assert np.isfinite(r.run.error).all()
+
+
 def test_a_map_better_than_stated_is_learned_to_be_so():
     """S8 over its own map told 4 m / 1 km with the learner on (90 s): the learned RMS ends under a metre and
     the run stays within a metre at ≥ 90 % coverage."""
