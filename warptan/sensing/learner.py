@@ -61,12 +61,12 @@ class MapErrorLearner:
     ``h σ² − σ_sensor² − mismatch²`` (gain ``length_gain`` per reading) when that energy exceeds
     :attr:`WHITE_EXCESS` times what the model expects, else back towards the prior; it stays within ``[prior, ceiling ·
     max(prior, σ_e prior)]``: unlike the RMS it is never learned below its prior, which is the DEM's own hold-out
-    error, measured from the map itself rather than stated. The dead band keeps a map as good as modelled where it is: the particles' spread, the attitude's
-    error and the modes' truncation add energy of their own. Only points within 48° of the vertical read it
-    (``WHITE_MAX_GAIN``): a ray farther out has a slope-dependent sensitivity the modes do not hold, and its excess
-    would read as white error. ``results/learned`` rows record what was learned (``white_learned_m``): the prior kept
-    over a map that is the world and over the long and short families, about 2.3–3 m over canopy and a smoothed
-    product. The altimeter's one range has no degree of freedom for it.
+    error, measured from the map itself rather than stated. The dead band keeps a map as good as modelled where it
+    is: the particles' spread, the attitude's error and the modes' truncation add energy of their own. Only points
+    within 48° of the vertical read it (``WHITE_MAX_GAIN``): a ray farther out has a slope-dependent sensitivity the
+    modes do not hold, and its excess would read as white error. ``results/learned`` rows record what was learned
+    (``white_learned_m``): the prior kept over a map that is the world and over the long and short families, about
+    2.3–3 m over canopy and a smoothed product. The altimeter's one range has no degree of freedom for it.
 
     The filter (:class:`warptan.filter.mpf.MarginalizedParticleFilter`) runs one when its likelihood has
     ``map_error_learn``; ``scripts/learn_study.py`` measures it over six families of worlds. Not learned: anything in
@@ -106,6 +106,7 @@ class MapErrorLearner:
         self.applied_corr_m = self.prior_corr_m
         self.length_gain = 2.0 * self.gain if length_gain is None else float(length_gain)
         self.len_bounds = (0.0, 0.0)
+        self._terms = None
         if prior_corr_m is not None:
             self.len_bounds = (math.log(max(self.prior_corr_m / length_range, min_corr_m)),
                                math.log(max(self.prior_corr_m * length_range, min_corr_m)))
@@ -201,10 +202,14 @@ class MapErrorLearner:
         if not (np.isfinite(sw) and sw > 0):
             return None
         second = projections[:n] / sw
-        use = np.all(spectrum > 0, axis=0) & np.isfinite(second)
+        held = np.all(spectrum > 0, axis=0)
+        use = held & np.isfinite(second)
         if np.count_nonzero(use) < 4:
             return None
-        d, p2 = spectrum[:, use], second[use]
-        var = self._C_GRID[None, :, None, None] + self._S_GRID[None, None, :, None] * d[:, None, None, :]
-        nll = np.sum(np.log(var) + p2 / var, axis=3).reshape(len(d), -1).min(axis=1)
+        if self._terms is None or self._terms[0] is not spectrum or not np.array_equal(use, held):
+            d = spectrum[:, use]
+            var = self._C_GRID[None, :, None, None] + self._S_GRID[None, None, :, None] * d[:, None, None, :]
+            self._terms = (spectrum if np.array_equal(use, held) else None, np.log(var).sum(axis=3), 1.0 / var)
+        _key, log_sum, inverse = self._terms  # (the grids' terms of one table's spectrum, kept while it is in use)
+        nll = (log_sum + inverse @ second[use]).reshape(len(spectrum), -1).min(axis=1)
         return float(self.LENGTH_FACTORS[int(np.argmin(nll))])
