@@ -759,25 +759,12 @@ RAY_MAP_GAIN_MAX = wp.constant(1000.0)
 stores a zero scaled normal)."""
 
 
-RAY_MODES_MIN_DOWN = wp.constant(0.5)
-"""The least down component the map-error modes' sensitivity of a ray counts (60° from the vertical): past it the
-flat-ground ``1/u_z`` is no guide to a ray's sensitivity (on a 0.3 slope it is off by half and more), and the modes
-would claim an error ten times a nadir ray's for a ray that meets a hill face on (:func:`ray_modes_gain`)."""
-
-
 @wp.func
 def ray_nominal_gain(u_down: float) -> float:
     """A range's change per metre of vertical map error over flat ground, ``1/u_z`` (``u_down``: the ray's down
-    component, at least 0.1): the scale of the gross-miss gate's stated error."""
+    component, at least 0.1): the sensitivity the map-error modes use (:meth:`warptan.sensing.likelihood.Likelihood.
+    error_modes` with the model's ``_scan_geometry``)."""
     return 1.0 / wp.max(u_down, 0.1)
-
-
-@wp.func
-def ray_modes_gain(u_down: float) -> float:
-    """The sensitivity of a ray the map-error modes hold, ``1/max(u_z, RAY_MODES_MIN_DOWN)`` (:meth:`warptan.sensing.
-    likelihood.Likelihood.error_modes` with the model's ``_scan_geometry``); the rest of the ray's own, ``s_z``
-    minus it, is counted in its variance (:func:`ray_var`)."""
-    return 1.0 / wp.max(u_down, RAY_MODES_MIN_DOWN)
 
 
 @wp.func
@@ -788,10 +775,10 @@ def ray_var(p: LikParams, s: wp.vec3, u_down: float) -> float:
     the range's Jacobians grow with ``s`` as well (:func:`ray_jacobians`), so a ray along a slope carries no more
     information than its map error allows (capped like the sliding model's slope factor, a hill seen from a 60°
     bank gave S5 a 16° pitch error with a 3σ of 0.1° within ten seconds of the first attitude update). A stated
-    correlated error (σ_e, ``sigma_err``) is held by the map-error modes with each ray's nominal sensitivity ``a =
-    1/max(u_z, 0.5)`` (``u_down``: the ray's down component; :func:`ray_modes_gain`;
-    :meth:`warptan.sensing.likelihood.Likelihood.error_modes`); what the ray's own gain adds or lacks, ``(s_z − a) e``,
-    the modes cannot hold, and it is counted here as the ray's own: ``+ σ_e² (s_z − a)²``. Without a map part
+    correlated error (σ_e, ``sigma_err``) is held by the map-error modes with each ray's nominal sensitivity
+    ``1/u_z`` (``u_down``: the ray's down component, at least 0.1;
+    :meth:`warptan.sensing.likelihood.Likelihood.error_modes`); what the ray's own gain adds or lacks, ``(s_z − 1/u_z)
+    e``, the modes cannot hold, and it is counted here as the ray's own: ``+ σ_e² (s_z − 1/u_z)²``. Without a map part
     (σ_map = 0 and no stated error: the map is the world) or with a fixed σ (σ_range = 0) it is the likelihood's own
     σ²."""
     if p.sigma_range <= 0.0 or (p.sigma_map <= 0.0 and p.sigma_err <= 0.0):
@@ -801,7 +788,7 @@ def ray_var(p: LikParams, s: wp.vec3, u_down: float) -> float:
         gain = wp.min(wp.abs(s[2]), gain)
     var = p.sigma_range * p.sigma_range + p.sigma_map * p.sigma_map * gain * gain
     if p.sigma_err > 0.0:
-        excess = gain - ray_modes_gain(u_down)
+        excess = gain - ray_nominal_gain(u_down)
         var = var + p.sigma_err * p.sigma_err * excess * excess
     return var
 

@@ -35,7 +35,6 @@ from warptan.kernels.likelihood import (
     LIK_STUDENT,
     MAX_MODES,
     RAY_MAP_GAIN_MAX,
-    RAY_MODES_MIN_DOWN,
     VAR_RATIO_FOLD_MAX,
     VAR_RATIO_FOLD_MIN,
     LikParams,
@@ -229,7 +228,7 @@ _SLIDING_POINT = r"""
             const float gj0 = g0 * -m22, gj1 = g1 * -m22, gj2 = -m22;
 """
 
-# A cast ray's residual (kernels/likelihood.py: reduce_loglik_kernel, ray_jacobians, ray_var, ray_modes_gain,
+# A cast ray's residual (kernels/likelihood.py: reduce_loglik_kernel, ray_jacobians, ray_var, ray_nominal_gain,
 # gross_miss, acc_gated): the range residual and the scaled normal s at the hit from the casts, H = t (Rᵀs) × d, G =
 # -s, the axis weights |d|; a gross miss scores its point's height above the map.
 _RAY_HEAD = r"""
@@ -259,7 +258,7 @@ _RAY_POINT = r"""
             const float gj0 = -sn0, gj1 = -sn1, gj2 = -sn2;
             const float gs = sn2 != 0.0f ? wp::min(wp::abs(sn2), RAY_MAP_GAIN_MAX_) : RAY_MAP_GAIN_MAX_;
             const float gain = 1.0f / wp::max(u_down, 0.1f);
-            const float excess = gs - 1.0f / wp::max(u_down, RAY_MODES_MIN_DOWN_);  // (ray_modes_gain)
+            const float excess = gs - gain;
             const float var_m = sr2 + sm2 * gs * gs;
             const float var = fixed ? var0 : (stated ? var_m + se2 * excess * excess : var_m);
             const float e = params.sigma_err * gain;
@@ -336,7 +335,6 @@ _CONSTANTS = {  # the Python constants the C++ reads (as NAME_), so that both ch
     "CR_POINT": CR_POINT, "CR_DIR": CR_DIR, "CR_RANGE": CR_RANGE, "CR_VALID": CR_VALID,
     "VAR_RATIO_FOLD_MIN": float(VAR_RATIO_FOLD_MIN), "VAR_RATIO_FOLD_MAX": float(VAR_RATIO_FOLD_MAX),
     "RAY_MAP_GAIN_MAX": float(RAY_MAP_GAIN_MAX), "MAX_MODES": MAX_MODES,
-    "RAY_MODES_MIN_DOWN": float(RAY_MODES_MIN_DOWN),
 }
 _STORE = "for (int l = 0; l < n_lanes; ++l) *(float*)(rrow + size_t(j0 + l) * rs1) = resbuf[l];"
 

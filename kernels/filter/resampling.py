@@ -25,7 +25,7 @@ from warptan.kernels.likelihood import (
     cloud_row,
     mode_prior,
     modes_vec,
-    ray_modes_gain,
+    ray_nominal_gain,
     row_dir,
 )
 
@@ -404,11 +404,11 @@ def mode_projection_kernel(n_per: int, m: int, table: wp.array(dtype=modes_vec),
     Also the energy the modes and the offset leave, per degree of freedom and per unit of sensitivity to the map:
     ``h = (Σ_j z_j² − n z̄² − Σ_i p_i²) / (n − 1 − M) · (1/n) Σ_j a_j⁻²`` over the ``n`` points used (``M =
     MAX_MODES``; the offset as the mean, exact where every point's sensitivity ``a_j`` is 1; ``a_j`` the ray's
-    ``ray_modes_gain`` 1/max(u_z, 0.5) under the particle's attitude ``quat_nb[t]`` and the scan's directions
-    ``cloud`` with ``ray``, else 1: a ray far from the vertical reads the map's white error magnified; only the points
-    with ``a_j ≤ WHITE_MAX_GAIN``, their own projections ``p_i`` too), into ``Σ w h`` (``out[b, PROJ_HF]``) and ``Σ
-    w`` (``out[b, PROJ_HF_W]``) over the particles with ``n > M + 1``: the evidence on the map's white error (what
-    varies from post to post)."""
+    ``ray_nominal_gain`` 1/u_z under the particle's attitude ``quat_nb[t]`` and the scan's directions ``cloud`` with
+    ``ray``, else 1: a ray far from the vertical reads the map's white error magnified; only the points with ``a_j ≤
+    WHITE_MAX_GAIN``, their own projections ``p_i`` too), into ``Σ w h`` (``out[b,
+    PROJ_HF]``) and ``Σ w`` (``out[b, PROJ_HF_W]``) over the particles with ``n > M + 1``: the evidence on the map's
+    white error (what varies from post to post)."""
     t = wp.tid()
     b = t // n_per
     lt = loglik[t]
@@ -429,7 +429,7 @@ def mode_projection_kernel(n_per: int, m: int, table: wp.array(dtype=modes_vec),
         if wp.isfinite(z) and wp.abs(z) <= gate and wp.dot(u, u) > 0.0:
             a = float(1.0)
             if ray != 0:
-                a = ray_modes_gain((mat * row_dir(cloud[b, j]))[2])
+                a = ray_nominal_gain((mat * row_dir(cloud[b, j]))[2])
             p += u * z
             if a <= WHITE_MAX_GAIN:
                 q += u * z

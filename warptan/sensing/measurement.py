@@ -560,8 +560,7 @@ class _PointCloudModel(MeasurementModel):
         # the nominal footprint: every ray meets the scan's median ground level (a smooth function of the altitude
         # and attitude; the points' own ranges moved it with every hill, and the modes with it)
         xy = (u * (agl / down)[:, None])[:, :2]
-        # a range's sensitivity as the modes hold it (kernels.likelihood.ray_modes_gain)
-        sens = 1.0 / np.maximum(u[:, 2], klik.RAY_MODES_MIN_DOWN) if self.name == "raycast" else np.ones(len(u))
+        sens = 1.0 / down if self.name == "raycast" else np.ones(len(u))
         return xy, sens, _forward(quat)
 
     def _fill(self, items, meta: wp.array) -> np.ndarray:
