@@ -13,7 +13,7 @@ from warptan.kernels import raycast as kray
 from warptan.kernels import simd as ksimd
 from warptan.kernels import simd_ray as ksimd_ray
 from warptan.kernels import sliding as kslide
-from warptan.nav.frames import euler_to_quat
+from warptan.nav.frames import euler_to_quat, quat_to_mat
 
 DEVICE = "cpu"
 
@@ -123,16 +123,16 @@ def test_simd_sliding_equals_the_warp_kernel(surface, lik, sigma, sigma_range, s
     _assert_sums_equal(got[1:], ref[1:], lik)
 
 
-def _ray_casts(rng):
+def _ray_casts(rng, roll: float = 0.1):
     """Real DDA casts (residuals, scaled normals, heights above the map) of 48 particles 30 m about the truth, two
-    over the map's edge, 37 random rays a scan, one in seven not received: (model, casts, attitudes, attitude
-    covariance)."""
+    over the map's edge, 37 random rays a scan, one in seven not received, the aircraft rolled by ``roll`` (rad):
+    (model, casts, attitudes, attitude covariance)."""
     terrain = _terrain()
     n0, n1, e0, e1 = terrain.bounds_ne
     m, n = 37, 48
     ground = float(np.nanmax(terrain.heights_m))
     truth = np.array([0.5 * (n0 + n1), 0.5 * (e0 + e1), -(ground + 400.0)])
-    truth_q = euler_to_quat(0.1, -0.05, 0.7)
+    truth_q = euler_to_quat(roll, -0.05, 0.7)
     pos = truth + rng.normal(0.0, [30.0, 30.0, 3.0], (n, 3))
     pos[3, 0] = n1 - 20.0
     pos[30, 1] = e0 + 10.0
@@ -298,11 +298,15 @@ def test_simd_sliding_with_modes_equals_the_warp_kernel(lik):
     _assert_modes_equal(got[1:], ref[1:], lik)
 
 
-def test_simd_ray_reduction_with_modes_equals_the_warp_kernel():
+@pytest.mark.parametrize("roll", [0.1, 0.9])
+def test_simd_ray_reduction_with_modes_equals_the_warp_kernel(roll):
     """The ray-casting model's reduction with 16 map-error modes over real DDA casts (:func:`_ray_casts`): the SIMD
-    kernel's sums, information and mode posteriors equal the Warp kernel's to float32 rounding."""
+    kernel's sums, information and mode posteriors equal the Warp kernel's to float32 rounding; rolled by 0.9 rad,
+    with rays more than 60° from the vertical (a large flat-ground sensitivity 1/u_z)."""
     rng = np.random.default_rng(11)
-    model, cast, quat, att = _ray_casts(rng)
+    model, cast, quat, att = _ray_casts(rng, roll)
+    u_down = (model._staged.numpy()[0, :, 3:6].astype(np.float64) @ quat_to_mat(quat.numpy()[0]).T)[:, 2]
+    assert (u_down < 0.5).any() == (roll > 0.5)
     params = _params(klik.LIK_GAUSS, 1.0, 0.5, 0.3, 4.0)
     params.err_kind = klik.ERR_AXES
     n = quat.shape[0]
