@@ -314,15 +314,16 @@ particles' north and east position errors (m²)."""
 def map_error_moments_kernel(n_per: int, m: int, table: wp.array(dtype=modes_vec), logw: wp.array(dtype=wp.float32),
                              dp: wp.array(dtype=wp.vec3), nis: wp.array(dtype=wp.float32),
                              mean: wp.array(dtype=modes_vec), var: wp.array(dtype=modes_vec),
-                             out: wp.array2d(dtype=wp.float64)):
+                             reads: wp.array(dtype=modes_vec), out: wp.array2d(dtype=wp.float64)):
     """Filter b's evidence on its stated map error after an update (one thread per filter; the host's
     :class:`warptan.sensing.learner.MapErrorLearner` reads it every few updates). The modes' amplitudes are
     stored predicted to the next scan (mean ``ρ_i q_i``, variance ``ρ_i² P⁺_i + (1 − ρ_i²) k⁰_i``,
     :func:`modes_variance_kernel`); their posterior second moment ``E[α_i²] = Σ_j w_j q_ij² + P⁺_i`` over the stated
     one-scan variance ``k⁰_i`` is 1 on average when the statement is right (the fixed point of an EM step for the
-    error's variance), ``(1 + k_true) / k⁰`` when not. Only modes the scan rules (``k⁰_i ≥ 1``) are averaged: the
-    others stay near their prior whatever the map is. Without a variance yet (negative) the ratio is 0 over 0
-    modes."""
+    error's variance), ``(1 + k_true) / k⁰`` when not. Only modes the scan rules (``k⁰_i ≥ 1``) and ``reads[0]``
+    marks (positive: the modes mostly on points whose sensitivity to the map the table knows,
+    :attr:`warptan.sensing.measurement.MeasurementModel.mode_reads`) are averaged: the others stay near their prior
+    whatever the map is. Without a variance yet (negative) the ratio is 0 over 0 modes."""
     b = wp.tid()
     rho = table[m + MODE_RHO]
     k0 = table[m + MODE_K0]
@@ -348,7 +349,7 @@ def map_error_moments_kernel(n_per: int, m: int, table: wp.array(dtype=modes_vec
     if v[0] >= 0.0:
         for j in range(MAX_MODES):
             r2 = rho[j] * rho[j]
-            if k0[j] >= 1.0 and r2 > 0.0:
+            if k0[j] >= 1.0 and r2 > 0.0 and reads[0][j] > 0.0:
                 post_var = wp.max((v[j] - (1.0 - r2) * k0[j]) / r2, 0.0)
                 second = float(s_q2[j] * float(inv)) / r2 + post_var
                 ratio += wp.float64(second / k0[j])

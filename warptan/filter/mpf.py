@@ -226,6 +226,8 @@ class MarginalizedParticleFilter(ImuIntake, Readout):
                                            sensor_sigma_m=lk.sensor_sigma_m,
                                            mismatch_m=model.surface_mismatch_m() if white is not None else 0.0)
             self._moments_out = wp.zeros((b, kmpf.MOMENTS_LEN), dtype=wp.float64, device=self.device)
+            self._reads = wp.array(np.ones((1, klik.MAX_MODES), np.float32), dtype=klik.modes_vec, device=self.device)
+            self._reads_host = np.ones(klik.MAX_MODES, np.float32)  # (the model's mode_reads on the device)
             self._proj_out = wp.zeros((b, kmpf.PROJ_LEN), dtype=wp.float64, device=self.device)
             self._proj_ref = wp.zeros(b, dtype=wp.float32, device=self.device)
             self._moments_echo = HostEcho([self._moments_out, self._proj_out])
@@ -463,9 +465,13 @@ class MarginalizedParticleFilter(ImuIntake, Readout):
         if table is None or self._out is None:
             return
         m = table.shape[0] - klik.MODE_EXTRA_ROWS
+        reads = np.asarray(getattr(self.model, "mode_reads", self._reads_host), dtype=np.float32)
+        if not np.array_equal(reads, self._reads_host):
+            self._reads.assign(reads[None])
+            self._reads_host = reads
         launch(kmpf.map_error_moments_kernel, dim=self.n_filters,
                inputs=[self.n, m, table, self.state.logw, self.state.dp, self._out.nis, self._mode_mean,
-                       self._mode_var], outputs=[self._moments_out], device=self.device)
+                       self._mode_var, self._reads], outputs=[self._moments_out], device=self.device)
         spectrum = None
         if self.learner.log_len is not None or self.learner.white_var is not None:  # the raw projections on the
             # modes and the energy outside them: the length's and the white error's evidence
