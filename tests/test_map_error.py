@@ -736,6 +736,27 @@ def test_a_white_restatement_whitens_anew_and_carries_the_amplitudes(scan, devic
     np.testing.assert_array_equal(table.numpy()[m + klik.MODE_T:], np.eye(klik.MAX_MODES))
 
 
+def test_the_learner_reads_the_modes_of_the_points_near_the_vertical(scan):
+    """``mode_reads``: level, every mode the table uses is read (every ray within 48° of the vertical); at a 60° bank
+    a mode mostly on rays beyond 48° (flat-ground sensitivity over 1.5) is not."""
+    from warptan.kernels import mpf as kmpf
+    from warptan.nav.frames import euler_to_quat, quat_to_mat
+
+    dem, cloud, pos, q = scan
+    for quat in (np.asarray(q, dtype=np.float64), euler_to_quat(np.radians(60.0), 0.0, 0.3)):
+        model = wt.make_model("raycast", dem, wt.Likelihood("gaussian", sensor_sigma_m=0.5, **STATED))
+        model.evaluate(wp.array(pos, dtype=wp.vec3), wp.array(np.tile(quat, (len(pos), 1)), dtype=wp.vec4), cloud)
+        n_modes, table = model.modes_info["n_modes"], model.mode_table.numpy()
+        u_down = (np.asarray(cloud.dirs_s, dtype=np.float64) @ quat_to_mat(quat).T)[:, 2]
+        near = 1.0 / np.maximum(u_down, 0.1) <= kmpf.WHITE_MAX_GAIN
+        share = (table[: len(u_down)][near] ** 2).sum(axis=0)[:n_modes]
+        np.testing.assert_array_equal(model.mode_reads[:n_modes], (share >= 0.5).astype(np.float32))
+        if near.all():
+            assert model.mode_reads[:n_modes].all()
+        else:
+            assert model.mode_reads[:n_modes].sum() < n_modes
+
+
 def test_a_host_echo_returns_the_copy_before_the_last_with_its_tag(device):
     """HostEcho: on CUDA, once two copies are queued, a read returns the one queued before the last (not the work
     just queued) with the tag queued with it; before that, and on the CPU, the arrays as they are with the last tag."""
