@@ -25,7 +25,10 @@ class MapErrorLearner:
     whose fixed point is ``σ_t² + σ² / λ_i``: the true variance plus the noise a mode cannot tell from it (about (σ /
     8)² for a 10×10 scan). It is applied in the log domain with gain ``every / time_constant`` per reading (an
     exponential memory of ``time_constant`` updates, 30 s at 10 Hz by default: the error of one correlation length is
-    read over 10 s at 100 m/s), each reading's ratio clipped to [1/4, 4].
+    read over 10 s at 100 m/s), each reading's ratio clipped to [1/4, 4]. Only the modes that lie mostly on points
+    within 48° of the vertical are read (``MeasurementModel.mode_reads``): a banked scan's grazing rays, whose
+    flat-ground sensitivity 1/u_z claims more error than a ray meeting a hill face sees, took the learned RMS of S5
+    (60° bank) to a metre over a 5 m world.
 
     **Correlation length.** The modes' posterior moments lean on the statement: a mode the statement gives little
     variance (a curvature under a length three times too long: ``k⁰ ≈ 0.05``) keeps its prior whatever the scan says.
