@@ -148,14 +148,13 @@ class MapErrorLearner:
         error None when not learned), else None."""
         _sw, nis, ratio, used, var_n, var_e = (float(v) for v in moments[:6])
         spread = math.sqrt(max(var_n, 0.0) + max(var_e, 0.0))
-        if used < 1 or not np.isfinite(ratio) or ratio <= 0:
-            return None
         if spread > max(self.converged_m, 3.0 * self.sigma_m) or not (np.isfinite(nis) and nis <= self.nis_max):
             return None
-        step = self.gain * math.log(min(max(ratio, 0.25), 4.0))
-        lo, hi = 2.0 * math.log(self.floor_m), 2.0 * math.log(self.ceiling_m)
-        self.log_var = min(max(self.log_var + step, lo), hi)
-        self.readings += 1
+        if used >= 1 and np.isfinite(ratio) and ratio > 0:  # (no mode the scan rules: the RMS keeps, the rest reads)
+            step = self.gain * math.log(min(max(ratio, 0.25), 4.0))
+            lo, hi = 2.0 * math.log(self.floor_m), 2.0 * math.log(self.ceiling_m)
+            self.log_var = min(max(self.log_var + step, lo), hi)
+            self.readings += 1
         moved = False
         if self.log_len is not None and projections is not None and spectrum is not None:
             factor = self.length_factor(projections, spectrum)
