@@ -710,7 +710,7 @@ def test_the_learner_reads_the_map_s_white_error_from_the_energy_outside_the_mod
     unruled = MapErrorLearner(5.0, white_prior_m=1.0, sensor_sigma_m=0.5)  # no mode the scan rules (k⁰ < 1)
     for _ in range(200):
         unruled.read(np.array([1.0, 1.0, 0.0, 0, 1.0, 1.0]), projections(4.0), None, 2.0)
-    assert unruled.white_m == pytest.approx(math.sqrt(3.75), rel=1e-3) and unruled.sigma_m == 5.0
+    assert unruled.white_m == pytest.approx(math.sqrt(3.75), rel=1e-3) and unruled.sigma_m == pytest.approx(5.0)
     plain = MapErrorLearner(2.0)
     out = [plain.read(np.array([1.0, 1.0, 2.0, 4, 1.0, 1.0]), projections(9.0), None, 2.0) for _ in range(100)]
     assert plain.white_m is None and all(v is None or v[2] is None for v in out) and any(v is not None for v in out)
