@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from warptan.meta import run_meta
-from warptan.sim.report import ci95
+from warptan.sim.report import ci95, declared_unconverged
 from warptan.sim.scenarios import run_scenario
 
 FAMILIES = {
@@ -64,10 +64,8 @@ def mode_keywords(mode: str, family: str) -> dict:
 
 def fly(job: tuple) -> dict:
     """One seed of a row (a worker's task): its converged horizontal RMSE, errors and 3σ after convergence, learned
-    RMS, the map-minus-world RMS and its re-spreads."""
+    RMS and white error, the map-minus-world RMS, its re-spreads and whether it declared itself unconverged."""
     sid, seed, world_seed, kw, device = job
-    from warptan.sim.report import declared_unconverged
-
     r = run_scenario(sid, seed, device=device, world_seed=world_seed, bound=False, **kw)
     conv = r.run.t_s >= r.config.filter.converged_after_s
     parts = getattr(r.truth_terrain, "parts", None) or {}
@@ -87,7 +85,7 @@ def run_row(sid: str, family: str, mode: str, seeds: int, worlds: int, duration_
     sig3 = np.concatenate([r["sig3"] for r in runs])
     rmse = np.sqrt(np.mean(err**2, axis=0))
     mean, half = ci95(horiz)
-    learned, white = [r["learned"] for r in runs], [r.get("white") for r in runs]
+    learned, white = [r["learned"] for r in runs], [r["white"] for r in runs]
     return {"scenario": sid, "family": family, "mode": mode, "seeds": seeds, "worlds": worlds,
             "duration_s": duration_s,
             "keywords": {k: v for k, v in kw.items() if k != "duration_s"},
@@ -98,8 +96,8 @@ def run_row(sid: str, family: str, mode: str, seeds: int, worlds: int, duration_
             "learned_m": None if learned[0] is None else [float(v) for v in learned],
             "white_learned_m": None if white[0] is None else [float(v) for v in white],
             "respreads": int(sum(r["respreads"] for r in runs)),
-            "declared_unconverged": int(sum(bool(r.get("flagged")) for r in runs)),
-            "lost_unflagged": int(sum(r["horiz"] > LOST_M and not r.get("flagged") for r in runs)),
+            "declared_unconverged": int(sum(r["flagged"] for r in runs)),
+            "lost_unflagged": int(sum(r["horiz"] > LOST_M and not r["flagged"] for r in runs)),
             "meta": run_meta((device,))}
 
 

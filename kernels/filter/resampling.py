@@ -444,7 +444,6 @@ def mode_projection_kernel(n_per: int, m: int, table: wp.array(dtype=modes_vec),
         wp.atomic_add(out, b, i, w * wp.float64(p[i] * p[i]))
     wp.atomic_add(out, b, PROJ_SW, w)
     if n > MAX_MODES + 1:
-        h = wp.max(s2 - s1 * s1 / float(n), 0.0) - pp
-        h = wp.max(h, 0.0) / float(n - 1 - MAX_MODES) * s_inv_a2 / float(n)
+        h = wp.max(s2 - s1 * s1 / float(n) - pp, 0.0) / float(n - 1 - MAX_MODES) * s_inv_a2 / float(n)
         wp.atomic_add(out, b, PROJ_HF, w * wp.float64(h))
         wp.atomic_add(out, b, PROJ_HF_W, w)

@@ -219,12 +219,10 @@ class MarginalizedParticleFilter(ImuIntake, Readout):
             terrain = getattr(model, "terrain", None)
             post = max(float(getattr(terrain, "dn", 0.0)), float(getattr(terrain, "de", 0.0)))
             length = lk.map_error_corr_m if callable(getattr(model, "mode_spectrum", None)) else None
-            white = (lk.map_sigma_m if lk.sigma_m is None and callable(getattr(model, "surface_mismatch_m", None))
-                     else None)  # (a σ of its own fixes the per-point σ: nothing white to learn)
+            white = lk.map_sigma_m if lk.sigma_m is None else None  # (a σ of its own fixes the per-point σ)
             self.learner = MapErrorLearner(lk.map_error_sigma_m, ceiling=lk.map_error_confidence, prior_corr_m=length,
                                            min_corr_m=2.0 * post, white_prior_m=white,
-                                           sensor_sigma_m=lk.sensor_sigma_m,
-                                           mismatch_m=model.surface_mismatch_m() if white is not None else 0.0)
+                                           sensor_sigma_m=lk.sensor_sigma_m, mismatch_m=model.surface_mismatch_m())
             self._moments_out = wp.zeros((b, kmpf.MOMENTS_LEN), dtype=wp.float64, device=self.device)
             self._reads = wp.array(np.ones((1, klik.MAX_MODES), np.float32), dtype=klik.modes_vec, device=self.device)
             self._reads_host = np.ones(klik.MAX_MODES, np.float32)  # (the model's mode_reads on the device)
@@ -465,7 +463,7 @@ class MarginalizedParticleFilter(ImuIntake, Readout):
         if table is None or self._out is None:
             return
         m = table.shape[0] - klik.MODE_EXTRA_ROWS
-        reads = np.asarray(getattr(self.model, "mode_reads", self._reads_host), dtype=np.float32)
+        reads = self.model.mode_reads
         if not np.array_equal(reads, self._reads_host):
             self._reads.assign(reads[None])
             self._reads_host = reads

@@ -463,9 +463,8 @@ class MeasurementModel:
     def staged_cloud(self) -> wp.array:
         """The staged scans' rows ((B, M) :data:`~warptan.kernels.likelihood.cloud_row`: point, direction, range,
         valid), or one zero row for a model whose staged measurement is not a point cloud (the altimeter)."""
-        staged = getattr(self, "_staged", None)
-        if staged is not None and staged.ndim == 2 and staged.dtype == klik.cloud_row:
-            return staged
+        if self._staged.ndim == 2 and self._staged.dtype == klik.cloud_row:
+            return self._staged
         if self._no_cloud is None or self._no_cloud.device != self._out.loglik.device:
             self._no_cloud = wp.zeros((1, 1), dtype=klik.cloud_row, device=self._out.loglik.device)
         return self._no_cloud
