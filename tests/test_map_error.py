@@ -576,8 +576,9 @@ def test_ground_read_again_after_the_modes_forgot_it_weighs_less():
     behind: ≥ 0.98), an orbit of 600 m radius inside one correlation length is discounted once its earlier passes
     are older than κ scans, to what one more pass adds to passes whose fixes are correlated by ρ, ``(1 − ρ) / ((1 +
     Cρ)(1 + (C − 1)ρ))`` (C ≥ 1; below, ``(1 − ρC) / (1 + ρC)``), of the NumPy sum over every earlier scan (C = Σ_k
-    exp(−d_k²/L²) / κ, the scans older than κ; the memory keeps every κ/16-th); the first κ updates are exactly 1;
-    ρ = 0 never discounts; the passes of an orbit add up to at most 1/ρ passes."""
+    exp(−d_k²/L²) / κ, the scans older than κ; the memory keeps every κ/16-th), also when read every fifth scan;
+    the first κ updates are exactly 1; ρ = 0 never discounts; the passes of an orbit add up to at most 1/ρ
+    passes."""
     from warptan.sensing.likelihood import RevisitMemory
 
     lk = wt.Likelihood("gaussian", sensor_sigma_m=0.5, **STATED)
@@ -605,6 +606,10 @@ def test_ground_read_again_after_the_modes_forgot_it_weighs_less():
             assert got[-1] < 0.03  # three orbits on: the same error read a fourth time
             assert (got[mem:].sum() / (len(got) - mem)) * (len(got) / (2 * math.pi * 600.0 / 10.0)) < 1.0 / rho
         np.testing.assert_allclose(got, expected, atol=0.04)  # C counted from every κ/16-th scan
+        every = RevisitMemory(lk, 2)  # read every 5 scans (the filter's PLATFORM_EVERY), each ground for 5 scans
+        read = np.arange(4, 1200, 5)
+        got5 = np.array([every.exponents(np.stack([track[i], track[i] + 5.0]), scans=5)[0] for i in read])
+        np.testing.assert_allclose(got5, expected[read], atol=0.05)
     independent = RevisitMemory(wt.Likelihood("gaussian", sensor_sigma_m=0.5, revisit_correlation=0.0, **STATED), 1)
     assert all(independent.exponents(np.asarray(x)) == 1.0 for x in orbit)
     with pytest.raises(wt.FilterError, match="revisit_correlation"):

@@ -149,6 +149,12 @@ class MarginalizedParticleFilter(ImuIntake, Readout):
             :class:`~warptan.checks.FilterError`.
     """
 
+    PLATFORM_EVERY = 5
+    """Updates between two readings of the revisit memory (:class:`~warptan.sensing.likelihood.RevisitMemory`; each
+    reading's ground stands for the scans since the last): 0.5 s at 10 Hz, 25-50 m of flight against an error
+    correlated over hundreds of metres (reading the platform's pose back and the memory's sums at every update was a
+    large part of a GPU update's host time)."""
+
     def __init__(self, model, nominal, grade: str | ImuGrade, rate_hz: float, p0_pos, p0_lin,
                  config: FilterConfig | None = None, *, device=None, seed=0, graph: bool | None = None, **settings):
         if config is None:
@@ -353,6 +359,7 @@ class MarginalizedParticleFilter(ImuIntake, Readout):
         self._uploads = Uploads()  # (the exponent's copy: pinned on CUDA, behind the device's work)
         self._exponent_host: np.ndarray | None = None  # (its value on the device: copied again only when it changes)
         self._revisits = None
+        self._unread_scans = 0  # (updates since the revisit memory last read the platform's ground)
         self._moments_partial = wp.empty((b, kmpf.N_MOMENT_CHUNKS, kmpf.N_MOMENTS), dtype=wp.float64, device=d)
         # what estimate() reads, packed on the device and copied to the host at once (pinned memory on CUDA)
         self._readout = wp.empty((b, kmpf.N_READOUT), dtype=wp.float64, device=d)
@@ -402,22 +409,28 @@ class MarginalizedParticleFilter(ImuIntake, Readout):
         self._early = self._head_first()
         if self._early:
             self.model.check(measurement)  # a measurement refused here moves nothing
+        revisit = False
         if map_modes:
-            # the map-error modes' scan geometry needs the platform's attitude and the revisit memory its ground: the
-            # nominal as the update before last left it (copied to the host behind the device's work, HostEcho: 0.2 s
-            # old at 10 Hz, within the geometry's tolerance; on the CPU, and before two updates, the last interval's),
-            # so neither waits for the head
+            # the map-error modes' scan geometry needs the platform's attitude and the revisit memory its ground, each
+            # every few updates (the model's MODES_CHECK_EVERY, PLATFORM_EVERY): the nominal as an earlier update left
+            # it (copied to the host behind the device's work before an update that reads it, HostEcho: 0.5-1 s old at
+            # 10 Hz, within the geometry's tolerance; on the CPU, and before two copies, the last interval's), so
+            # neither waits for the head
             if self._platform_echo is None:
                 self._platform_echo = HostEcho([self._nav["quat"], self._nav["pos"]])
-            quat, pos = self._platform_echo.read()
-            attitude = quat[0]
-            if self._early:  # the head reads the exponent
+            self._unread_scans += 1
+            revisit = (self._unread_scans >= self.PLATFORM_EVERY or self._revisits is None
+                       or self._revisits.likelihood.map_error_corr_m != likelihood.map_error_corr_m)
+            if revisit or self.model.modes_look_due:
+                quat, pos = self._platform_echo.read()
+                attitude = quat[0]
+            if self._early and revisit:  # the head reads the exponent
                 self._read_again(likelihood, pos)
         if self._early:
             self._stage_interval()
             self._queue_head()
         out, staged = self._stage_scan(measurement, attitude)
-        if map_modes and not self._early:
+        if revisit and not self._early:
             self._read_again(likelihood, pos)
         t_staged = time.perf_counter()
         if hasattr(self.model, "bind_attitude_cov"):
@@ -445,10 +458,10 @@ class MarginalizedParticleFilter(ImuIntake, Readout):
             else:  # CPU: the launches ran as they were issued
                 timer._add(t_queue - t_staged, t_staged - t_enter, t_queued - t_queue)
         self._next_set()
-        if self._platform_echo is not None:
-            self._platform_echo.queue()
         if self.learner is not None and self.n_updates % self.learner.every == 0:
             self._learn_map_error()
+        if map_modes and (self.model.modes_look_due or self._unread_scans + 1 >= self.PLATFORM_EVERY):
+            self._platform_echo.queue()  # (what the next update reads)
         self.last_n_received = np.array(out.n_received)  # (after the device work is queued: nothing there reads it)
         return self._info(out) if sync else None
 
@@ -508,11 +521,13 @@ class MarginalizedParticleFilter(ImuIntake, Readout):
 
     def _read_again(self, likelihood, pos: np.ndarray) -> None:
         """The update's exponent over ground read again after the modes forgot it (:class:`RevisitMemory`), at the
-        scan's footprint (the model's last) under the platform's position ``pos`` (B, 3)."""
+        scan's footprint (the model's last) under the platform's position ``pos`` (B, 3), standing for the scans since
+        the last reading."""
         if self._revisits is None or self._revisits.likelihood.map_error_corr_m != likelihood.map_error_corr_m:
             self._revisits = RevisitMemory(likelihood, self.n_filters)
         ground = pos[:, :2] + getattr(self.model, "footprint_centre", np.zeros(2))
-        exponent = self._revisits.exponents(ground).astype(np.float32)
+        exponent = self._revisits.exponents(ground, scans=self._unread_scans).astype(np.float32)
+        self._unread_scans = 0
         if self._exponent_host is None or not np.array_equal(exponent, self._exponent_host):  # (1 on fresh ground)
             self._uploads.put("exponent", self._exponent, exponent)
             self._exponent_host = exponent

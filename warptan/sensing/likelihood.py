@@ -383,29 +383,42 @@ class RevisitMemory:
     1.39 and 1.49, S2 unchanged (0.87/0.95). A told stated error is what a pass mostly reads (S5: 5 m against the
     sensor's 0.5 m): ρ = 0.9 is the default; an orbit's second pass (C about 0.8) then weighs about a sixth. A
     straight flight's older scans are 1.8 km behind: C < 0.01, an exponent ≥ 0.98. The positions are kept every
-    ``κ/16`` scans (each standing for that many): the host work of an update is
-    O(flight length / κ) per filter, never O(particles)."""
+    ``κ/16`` scans (each standing for the scans since the one kept before): the host work of an update is
+    O(flight length / κ) per filter, never O(particles). A caller may read the memory every few scans
+    (``exponents(ground, scans=k)``: this ground stands for the ``k`` scans since the last reading; the filter does so
+    every :data:`~warptan.filter.mpf.MarginalizedParticleFilter.PLATFORM_EVERY` updates)."""
 
     def __init__(self, likelihood: Likelihood, n_filters: int):
         self.likelihood = likelihood
         self.kappa = likelihood.point_sharing()
         self.stride = max(1, int(self.kappa // 16))
         self.n_filters = int(n_filters)
-        self.count = 0  # updates seen
-        self._kept = np.zeros((0, self.n_filters, 2))  # (K, B, 2) ground points, one per stride updates
+        self.count = 0  # scans seen
+        self._kept = np.zeros((0, self.n_filters, 2))  # (K, B, 2) ground points, one per ≥ stride scans
+        self._scans = np.zeros(0)  # (K,) the scans each kept point stands for
+        self._at = np.zeros(0, dtype=np.int64)  # (K,) the scan index at which each was kept
+        self._block = 0  # the stride block of the last kept point
 
-    def exponents(self, ground: np.ndarray) -> np.ndarray:
+    def exponents(self, ground: np.ndarray, scans: int = 1) -> np.ndarray:
         """The exponents (B,) of the update whose ground points are ``ground`` (B, 2, m, navigation frame), which
-        it then remembers."""
+        it then remembers as the ground of the ``scans`` scans since the last call."""
         ground = np.asarray(ground, dtype=np.float64).reshape(self.n_filters, 2)
-        old = (self.count - math.ceil(self.kappa)) // self.stride  # kept points older than κ scans: [0, old]
+        self.count += int(scans)
+        now = self.count - 1  # (this ground's scan: the newest of them)
+        old = self._at <= now - math.ceil(self.kappa)  # kept points older than κ scans
         passes = np.zeros(self.n_filters)
-        if old >= 0 and self.kappa > 1:
-            d2 = np.sum((self._kept[:old + 1] - ground[None]) ** 2, axis=2)
-            passes = self.stride * np.exp(-d2 / self.likelihood.map_error_corr_m**2).sum(axis=0) / self.kappa
-        if self.count % self.stride == 0:  # a copy per kept point: O(K) every κ/16 updates
+        if self.kappa > 1 and old.any():
+            d2 = np.sum((self._kept[old] - ground[None]) ** 2, axis=2)
+            weight = self._scans[old][:, None]
+            passes = (weight * np.exp(-d2 / self.likelihood.map_error_corr_m**2)).sum(axis=0) / self.kappa
+        block = now // self.stride
+        if len(self._at) == 0 or block > self._block:  # a copy per kept point: O(K) every κ/16 scans
+            if len(self._at):
+                self._scans[-1] = now - self._at[-1]  # (the one before stands for the scans up to this one)
             self._kept = np.concatenate([self._kept, ground[None]])
-        self.count += 1
+            self._scans = np.append(self._scans, float(max(self.stride, scans)))
+            self._at = np.append(self._at, now)
+            self._block = block
         rho = self.likelihood.revisit_correlation
         again = (1.0 - rho) / ((1.0 + passes * rho) * (1.0 + (passes - 1.0) * rho))
         part = rho * np.minimum(passes, 1.0)

@@ -401,6 +401,14 @@ class MeasurementModel:
     not separate 5 % from 25 %, and ``results/world`` ran at 25 %. (With the points' own ranges as the footprint,
     an earlier version, rebuilding at every 5 % had cost S8's down axis: 43 %.)"""
 
+    @property
+    def modes_look_due(self) -> bool:
+        """True when the next :meth:`stage` looks at the scan's geometry (a stated map error; every
+        :data:`MODES_CHECK_EVERY` scans, and at once after a new table or statement): the one stage that reads
+        the platform's attitude (its ``attitude``, else the first particle's)."""
+        return self.likelihood.models_map_error and (self._modes is None or self._modes_geometry is None
+                                                     or self._modes_skip <= 0)
+
     def _ensure_modes(self, device, quat_nb: wp.array, attitude=None) -> None:
         """The map-error mode table on ``device``: a zero table without a stated map error; with one, the modes of
         the current scan's ground geometry (the first filter's scan placed with its first particle's attitude),
@@ -559,10 +567,9 @@ class _PointCloudModel(MeasurementModel):
     def _scan_geometry(self, quat: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         from warptan.nav.frames import quat_to_mat
 
-        dirs, rng = self._host["first"]  # the first filter's cloud as staged (float32)
+        dirs, rng, _ = self._host["first"]  # the first filter's cloud as staged (float32 values)
         rot = quat_to_mat(quat / max(float(np.linalg.norm(quat)), 1e-12))
-        u = dirs.astype(np.float64) @ rot.T  # the rays in the navigation frame
-        rng = rng.astype(np.float64)
+        u = dirs @ rot.T  # the rays in the navigation frame (float64)
         down = np.maximum(u[:, 2], 0.1)
         ok = (u[:, 2] > 0.1) & np.isfinite(rng)
         agl = float(np.median((rng * u[:, 2])[ok])) if ok.any() else 1.0
@@ -570,7 +577,7 @@ class _PointCloudModel(MeasurementModel):
         # and attitude; the points' own ranges moved it with every hill, and the modes with it)
         xy = (u * (agl / down)[:, None])[:, :2]
         sens = 1.0 / down if self.name == "raycast" else np.ones(len(u))
-        return xy, sens, _forward(quat)
+        return xy, sens, _forward(quat, rot)
 
     def _fill(self, items, meta: wp.array) -> np.ndarray:
         """The clouds into the staged rows and ``meta``; returns each cloud's finite ranges."""
@@ -622,15 +629,21 @@ class _PointCloudModel(MeasurementModel):
         if not self._uploads.later(cmd[4].launch):
             cmd[4].launch()
         if self.likelihood.models_map_error:  # the modes' scan geometry reads it (:meth:`_scan_geometry`)
-            self._host["first"] = (first.astype(np.float32), ranges[0, :m].copy())
+            kept = self._host.get("first")
+            if kept is None or kept[2] is not first:  # (the directions in float64 once per pattern)
+                kept = (first.astype(np.float32).astype(np.float64), None, first)
+            self._host["first"] = (kept[0], ranges[0, :m].astype(np.float64), first)
         return n_received
 
 
-def _forward(quat: np.ndarray) -> np.ndarray:
-    """The horizontal unit vector of the body's x axis (the flight direction in coordinated flight)."""
+def _forward(quat: np.ndarray, rot: np.ndarray | None = None) -> np.ndarray:
+    """The horizontal unit vector of the body's x axis (the flight direction in coordinated flight); ``rot``: the
+    quaternion's rotation matrix when the caller has it."""
     from warptan.nav.frames import quat_to_mat
 
-    x = quat_to_mat(quat / max(float(np.linalg.norm(quat)), 1e-12))[:2, 0]
+    if rot is None:
+        rot = quat_to_mat(quat / max(float(np.linalg.norm(quat)), 1e-12))
+    x = rot[:2, 0]
     norm = float(np.linalg.norm(x))
     return x / norm if norm > 1e-6 else np.array([1.0, 0.0])
 
