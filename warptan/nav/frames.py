@@ -85,6 +85,11 @@ def quat_log(q) -> np.ndarray:
 def quat_to_mat(q) -> np.ndarray:
     """``R(q)`` (…, 3, 3), body to navigation."""
     q = np.asarray(q, dtype=np.float64)
+    if q.shape == (4,):  # one quaternion: Python floats (the same float64 products, without stacking 0-d arrays)
+        w, x, y, z = (float(v) for v in q)
+        return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+                         [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+                         [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
     w, x, y, z = np.moveaxis(q, -1, 0)
     return np.stack([
         np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),

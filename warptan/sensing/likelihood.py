@@ -229,8 +229,18 @@ class Likelihood:
         if step > 0 and keep:
             k_max = math.ceil(4.0 * length / step)
             lags = np.arange(1, k_max + 1) * step if k_max <= 64 else np.linspace(step, k_max * step, 64)
-            # the kept modes lie in the projection's range (P u_i = u_i), so u_iᵀ P C P u_i = u_iᵀ C u_i
-            rho = np.array([np.sum(vec_k * (full(d) @ vec_k), axis=0) / lam_k for d in lags])
+            # the kept modes lie in the projection's range (P u_i = u_i), so u_iᵀ P C P u_i = u_iᵀ C u_i; the lags
+            # are evenly spaced (l_k = l_0 + k Δ), so A R(l_k) A = aa ∘ exp(−(d2 − 2 l_k along_d)/L²) · exp(−l_k²/L²)
+            # with the first factor a running product (one exp per element for all lags, bounded by aa e^16: its
+            # exponent is at most (l_k/L)² ≤ 16)
+            scale = 1.0 / (length * length)
+            running = aa * np.exp(-(d2 - 2.0 * lags[0] * along_d) * scale)
+            grow = np.exp(2.0 * (lags[1] - lags[0]) * along_d * scale) if len(lags) > 1 else None
+            rho = np.empty((len(lags), len(keep)))
+            for k, d in enumerate(lags):
+                rho[k] = np.sum(vec_k * ((running * math.exp(-d * d * scale)) @ vec_k), axis=0) / lam_k
+                if grow is not None:
+                    running *= grow
             if k_max <= 64:
                 total = rho.sum(axis=0)
             else:  # Σ_{k≥1} ρ(k s) ≈ (1/s) ∫_s^∞ ρ + ρ(s) / 2 (trapezoid)
@@ -264,7 +274,7 @@ class Likelihood:
             u = u - np.outer(o, o @ u)
         au = a[:, None] * u
         d2 = np.sum((xy[:, None, :] - xy[None, :, :]) ** 2, axis=2)
-        return np.array([np.einsum("ji,jk,ki->i", au, np.exp(-d2 / (length * length)), au)
+        return np.array([np.sum(au * (np.exp(-d2 / (length * length)) @ au), axis=0)
                          for length in np.asarray(lengths, dtype=np.float64)]) / sigma_m**2
 
     @staticmethod
