@@ -236,6 +236,7 @@ class MarginalizedParticleFilter(ImuIntake, Readout):
             self._proj_ref = wp.zeros(b, dtype=wp.float32, device=self.device)
             self._moments_echo = HostEcho([self._moments_out, self._proj_out])
         self._platform_echo = None  # (the nominal's attitude and position for the map-error modes' scan geometry)
+        self._learn_launches = None  # (the arrays and values a map-error reading's recorded launches hold)
         self.max_stages = int(c.max_stages)
         self.bandwidth = float(c.regularize) * (4.0 / (self.n * 5.0)) ** (1.0 / 7.0)
         """Regularisation bandwidth h (Silverman's rule for d = 3 times ``regularize``)."""
@@ -480,23 +481,22 @@ class MarginalizedParticleFilter(ImuIntake, Readout):
         if not np.array_equal(reads, self._reads_host):
             self._reads.assign(reads[None])
             self._reads_host = reads
-        launch(kmpf.map_error_moments_kernel, dim=self.n_filters,
-               inputs=[self.n, m, table, self.state.logw, self.state.dp, self._out.nis, self._mode_mean,
-                       self._mode_var, self._reads], outputs=[self._moments_out], device=self.device)
         spectrum = None
-        if self.learner.log_len is not None or self.learner.white_var is not None:  # the raw projections on the
-            # modes and the energy outside them: the length's and the white error's evidence
-            lk = self.model.likelihood
-            gate = lk.outlier_sigmas * math.sqrt(1.0 + (lk.map_error_sigma_m / self.model.sigma_m) ** 2)
+        projections = self.learner.log_len is not None or self.learner.white_var is not None
+        lk = self.model.likelihood
+        gate = lk.outlier_sigmas * math.sqrt(1.0 + (lk.map_error_sigma_m / self.model.sigma_m) ** 2)
+        arrays = (table, self.state.logw, self.state.dp, self._out.nis, self._out.loglik, self._out.residual_m,
+                  self._mode_mean, self._mode_var, self._quat, self.model.staged_cloud)
+        scalars = (m, projections, float(self.model.sigma_m), float(gate), int(self.model.name == "raycast"))
+        held = self._learn_launches
+        if held is None or held[1] != scalars or any(a is not b for a, b in zip(held[0], arrays, strict=True)):
+            held = self._learn_launches = (arrays, scalars, Recorder())  # (recorded again: an array or value moved)
+        if projections:  # the raw projections on the modes and the energy outside them: the length's and the white
+            # error's evidence
             self._proj_out.zero_()
-            launch(kmpf.loglik_max_kernel, dim=self.n_filters, inputs=[self.n, self._out.loglik],
-                   outputs=[self._proj_ref], device=self.device)
-            launch(kmpf.mode_projection_kernel, dim=self.n_filters * self.n,
-                   inputs=[self.n, m, table, self._out.residual_m, self._out.loglik, self._proj_ref,
-                           float(self.model.sigma_m), float(gate), self._quat, self.model.staged_cloud,
-                           int(self.model.name == "raycast")], outputs=[self._proj_out], device=self.device)
-            if self.learner.log_len is not None:
-                spectrum = self.model.mode_spectrum(self.learner.LENGTH_FACTORS)
+        held[2].run(0, lambda: self._learn_launch(arrays, scalars))
+        if projections and self.learner.log_len is not None:
+            spectrum = self.model.mode_spectrum(self.learner.LENGTH_FACTORS)
         # (the spectrum of the table this reading reads, the per-point σ that whitened it)
         self._moments_echo.queue(tag=(spectrum, float(self.model.sigma_m)))
         moments, projections = self._moments_echo.read()
@@ -518,6 +518,21 @@ class MarginalizedParticleFilter(ImuIntake, Readout):
             self.q_pos = np.broadcast_to(np.asarray(q, dtype=np.float64), (self.n_filters,)).copy()
         self._q_dev[0].assign(self.q_pos)
         self._q_dev[1].assign(np.asarray(self._q_vel_down, dtype=np.float64))
+
+    def _learn_launch(self, arrays: tuple, scalars: tuple) -> None:
+        """The launches of a map-error reading (recorded once per set of arrays and values: ``_learn_map_error``):
+        the modes' moments and, to learn the length and the white error, the residuals' raw projections on them."""
+        table, logw, dp, nis, loglik, residual, mean, var, quat, cloud = arrays
+        m, projections, sigma, gate, ray = scalars
+        launch(kmpf.map_error_moments_kernel, dim=self.n_filters,
+               inputs=[self.n, m, table, logw, dp, nis, mean, var, self._reads], outputs=[self._moments_out],
+               device=self.device)
+        if projections:
+            launch(kmpf.loglik_max_kernel, dim=self.n_filters, inputs=[self.n, loglik], outputs=[self._proj_ref],
+                   device=self.device)
+            launch(kmpf.mode_projection_kernel, dim=self.n_filters * self.n,
+                   inputs=[self.n, m, table, residual, loglik, self._proj_ref, sigma, gate, quat, cloud, ray],
+                   outputs=[self._proj_out], device=self.device)
 
     def _read_again(self, likelihood, pos: np.ndarray) -> None:
         """The update's exponent over ground read again after the modes forgot it (:class:`RevisitMemory`), at the

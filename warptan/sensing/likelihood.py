@@ -229,23 +229,26 @@ class Likelihood:
         if step > 0 and keep:
             k_max = math.ceil(4.0 * length / step)
             lags = np.arange(1, k_max + 1) * step if k_max <= 64 else np.linspace(step, k_max * step, 64)
-            # the kept modes lie in the projection's range (P u_i = u_i), so u_iᵀ P C P u_i = u_iᵀ C u_i; the lags
-            # are evenly spaced (l_k = l_0 + k Δ), so A R(l_k) A = aa ∘ exp(−(d2 − 2 l_k along_d)/L²) · exp(−l_k²/L²)
-            # with the first factor a running product (one exp per element for all lags, bounded by aa e^16: its
-            # exponent is at most (l_k/L)² ≤ 16)
+            # Σ_{k≥1} ρ_i(k s): the lags' sum, or beyond 64 steps (1/s) ∫_s^∞ ρ + ρ(s)/2 by the trapezoid over them; a
+            # weighted sum of ρ_i(l_k) = u_iᵀ C(l_k) u_i / λ_i (the kept modes lie in the projection's range, P u_i =
+            # u_i, so u_iᵀ P C P u_i = u_iᵀ C u_i): one matrix Σ_k w_k C(l_k) read by the modes. The lags are evenly
+            # spaced (l_k = l_0 + k Δ), so C(l_k) = aa ∘ exp(−(d2 − 2 l_k along_d)/L²) · exp(−l_k²/L²) with the first
+            # factor a running product (one exp per element for all lags, bounded by aa e^16: its exponent is at most
+            # (l_k/L)² ≤ 16)
+            if k_max <= 64:
+                weights = np.ones(len(lags))
+            else:
+                weights = np.r_[0.5, np.ones(len(lags) - 2), 0.5] * (lags[1] - lags[0]) / step
+                weights[0] += 0.5
             scale = 1.0 / (length * length)
             running = aa * np.exp(-(d2 - 2.0 * lags[0] * along_d) * scale)
             grow = np.exp(2.0 * (lags[1] - lags[0]) * along_d * scale) if len(lags) > 1 else None
-            rho = np.empty((len(lags), len(keep)))
+            summed = np.zeros_like(running)
             for k, d in enumerate(lags):
-                rho[k] = np.sum(vec_k * ((running * math.exp(-d * d * scale)) @ vec_k), axis=0) / lam_k
-                if grow is not None:
+                summed += (weights[k] * math.exp(-d * d * scale)) * running
+                if grow is not None and k + 1 < len(lags):
                     running *= grow
-            if k_max <= 64:
-                total = rho.sum(axis=0)
-            else:  # Σ_{k≥1} ρ(k s) ≈ (1/s) ∫_s^∞ ρ + ρ(s) / 2 (trapezoid)
-                integral = np.sum(0.5 * (rho[1:] + rho[:-1]) * np.diff(lags)[:, None], axis=0)
-                total = integral / step + 0.5 * rho[0]
+            total = np.sum(vec_k * (summed @ vec_k), axis=0) / lam_k
             sharing = np.maximum(1.0 + 2.0 * total, 1.0)
         k_one = self.map_error_sigma_m**2 * lam_k / sigma_m**2  # k⁰_i: one scan's
         rho = (sharing - 1.0) / (sharing + 1.0)
