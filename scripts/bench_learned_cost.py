@@ -10,6 +10,11 @@ the filter as it was, told nothing) and this one run the same rows on the same m
 
     python scripts/bench_learned_cost.py --device cpu --label new --json new.json
     PYTHONPATH=/path/to/old python scripts/bench_learned_cost.py --device cpu --label old --json old.json
+
+Runs alternated several times (new, old, new, old, …: a machine's speed drifts between runs) are pooled into one file,
+each row's walls from every run of its code and its medians from them:
+
+    python scripts/bench_learned_cost.py --pool new1.json old1.json new2.json old2.json --json cost.json
 """
 
 from __future__ import annotations
@@ -46,6 +51,32 @@ def rows_for(sid: str, device: str, duration_s: float, repeats: int, n: int) -> 
     return rows
 
 
+def pool(paths: list[str]) -> dict:
+    """The rows of several runs' files pooled by (code label, scenario, config, device, particles, flight): every
+    run's walls, and the real-time factor and time per update from their median (the number of updates a row's
+    median wall is divided by is the run's own: ``flight_s / ms_per_update``)."""
+    runs, pooled = [], {}
+    for path in paths:
+        with open(path) as f:
+            data = json.load(f)
+        meta = data["meta"]
+        runs.append({**meta, "file": path})
+        for row in data["rows"]:
+            key = (meta.get("label"), row["scenario"], row["config"], row["device"], row["particles"], row["flight_s"])
+            updates = round(1e3 * statistics.median(row["walls_s"]) / row["ms_per_update"])
+            have = pooled.setdefault(key, {**row, "code": meta.get("label"), "walls_s": [], "runs": 0,
+                                           "updates": updates})
+            have["walls_s"] += row["walls_s"]
+            have["runs"] += 1
+    rows = []
+    for row in pooled.values():
+        wall = statistics.median(row["walls_s"])
+        rows.append({**row, "real_time_factor": row["flight_s"] / wall, "ms_per_update": 1e3 * wall / row["updates"]})
+    labels = sorted({str(r.get("label")) for r in runs})
+    return {"meta": {**runs[0], "label": " and ".join(labels) + f", {len(runs)} runs alternated", "runs": runs},
+            "rows": rows}
+
+
 def _knows_learning() -> bool:
     import importlib
 
@@ -67,7 +98,14 @@ def main(argv=None) -> int:
     p.add_argument("--n", type=int, default=500)
     p.add_argument("--label", default="this checkout")
     p.add_argument("--json", dest="json_out")
+    p.add_argument("--pool", nargs="+", metavar="JSON", help="pool the rows of these runs' files into --json")
     args = p.parse_args(argv)
+    if args.pool:
+        if not args.json_out:
+            p.error("--pool needs --json")
+        with open(args.json_out, "w") as f:
+            json.dump(pool(args.pool), f, indent=1)
+        return 0
     from warptan.meta import run_meta
 
     rows = [r for sid in args.scenarios for r in rows_for(sid, args.device, args.duration_s, args.repeats, args.n)]

@@ -214,3 +214,26 @@ def test_learn_study_runs_resumes_and_reports(tmp_path):
     white = {r["mode"]: r["white_learned_m"] for r in rows}
     assert white["off"] is None and len(white["learn"]) == 2
     assert (out / "study.md").read_text().count("| S8 | short |") == 2
+
+
+def test_bench_learned_cost_pools_alternated_runs(tmp_path):
+    """`bench_learned_cost.py --pool`: the rows of alternated runs are pooled per code, scenario and config, every
+    run's walls kept and the medians taken over them (the updates a row's wall is divided by, its own)."""
+    files = []
+    for k, (label, walls) in enumerate([("new", [1.0, 2.0, 3.0]), ("old", [0.5, 0.5, 0.6]), ("new", [4.0, 5.0, 6.0])]):
+        row = {"scenario": "S8", "config": "world", "device": "cpu", "particles": 500, "flight_s": 30.0,
+               "walls_s": walls, "real_time_factor": 30.0 / walls[1], "ms_per_update": 1e3 * walls[1] / 300}
+        path = tmp_path / f"run{k}.json"
+        path.write_text(json.dumps({"meta": {"label": label, "git_commit": "x"}, "rows": [row]}))
+        files.append(str(path))
+    out = tmp_path / "pooled.json"
+    proc = subprocess.run([sys.executable, str(ROOT / "scripts" / "bench_learned_cost.py"), "--pool", *files,
+                           "--json", str(out)], capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    data = json.loads(out.read_text())
+    rows = {r["code"]: r for r in data["rows"]}
+    assert rows["new"]["walls_s"] == [1.0, 2.0, 3.0, 4.0, 5.0, 6.0] and rows["new"]["runs"] == 2
+    assert rows["new"]["real_time_factor"] == pytest.approx(30.0 / 3.5)
+    assert rows["new"]["ms_per_update"] == pytest.approx(1e3 * 3.5 / 300)
+    assert rows["old"]["ms_per_update"] == pytest.approx(1e3 * 0.5 / 300)
+    assert len(data["meta"]["runs"]) == 3 and "3 runs alternated" in data["meta"]["label"]
