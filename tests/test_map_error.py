@@ -571,6 +571,67 @@ def test_the_filter_carries_the_mode_amplitudes_from_scan_to_scan():
     assert np.abs(mpf._mode_mean.numpy()[:, :n_modes]).max() > 0
 
 
+def test_a_mode_table_built_behind_the_updates_is_the_one_built_at_once_two_scans_later():
+    """``MeasurementModel.MODES_BEHIND``: a scan whose geometry moved (a 40° turn) has its new table built on the
+    worker and first used two scans later; that table's modes and basis change are those a model building at once
+    used at the turn (same geometry), the scans between keep the old table, and the next scan sets the basis
+    change back to the identity."""
+    from warptan.nav.frames import euler_to_quat
+
+    dem = wt.Terrain.load("rugged")
+    sensor = wt.PointCloudSensor(wt.ScanPattern.grid(10, 10, 30.0), range_sigma_m=0.5)
+    pos = np.array([0.0, 0.0, -(dem.height_at(0.0, 0.0) + 700.0)])
+    tables = {}
+    for behind in (0, 2):
+        model = wt.make_model("sliding", dem, wt.Likelihood("gaussian", sensor_sigma_m=0.5, **STATED), surface=True)
+        model.MODES_BEHIND, model.MODES_CHECK_EVERY = behind, 1  # (the geometry looked at every scan)
+        got = []
+        for k in range(8):
+            quat = euler_to_quat(0.0, 0.0, 0.0 if k < 3 else math.radians(40.0))
+            cloud = sensor.measure(dem, pos, quat, np.random.default_rng(k))
+            model.stage(cloud, wp.array(np.tile(pos, (4, 1)), dtype=wp.vec3),
+                        wp.array(np.tile(quat, (4, 1)), dtype=wp.vec4), attitude=quat)
+            got.append(model.mode_table.numpy().copy())
+        tables[behind] = got
+        assert model.modes_info["rebuilds"] == 2
+    now, late = tables[0], tables[2]
+    m = now[0].shape[0] - klik.MODE_EXTRA_ROWS
+    eye = np.eye(klik.MAX_MODES)
+    for k in (3, 4):  # the old table while the new one is built
+        np.testing.assert_array_equal(late[k][:m + klik.MODE_T], late[2][:m + klik.MODE_T])
+        np.testing.assert_array_equal(late[k][m + klik.MODE_T:], eye)
+    assert not np.allclose(now[3][:m], now[2][:m], atol=1e-3)  # the turn asked for new modes
+    np.testing.assert_allclose(late[5], now[3], atol=1e-6)  # the turn's table, with its basis change
+    assert not np.allclose(late[5][m + klik.MODE_T:], eye, atol=1e-3)
+    np.testing.assert_array_equal(late[6][m + klik.MODE_T:], eye)
+
+
+def test_a_run_that_builds_its_mode_tables_behind_the_updates_repeats_bit_for_bit(monkeypatch):
+    """The tables built on the worker thread (``MODES_BEHIND``) are used at fixed scans: two runs of one seed over a
+    world whose map errs, learning (the length too: tables rebuilt for it), give the same bits whatever the
+    threads' timing (one run's worker slowed down)."""
+    import time
+
+    from warptan.sensing import likelihood as lk_module
+
+    built = []
+    plain = lk_module.Likelihood.error_modes
+
+    def slow(self, *args, **kwargs):
+        built.append(1)
+        if len(built) % 2:
+            time.sleep(0.05)  # (later than the two scans' host work of the CPU here)
+        return plain(self, *args, **kwargs)
+
+    world = {"world_error_rms_m": 5.0, "world_error_corr_m": 1000.0, "world_seed": 2000, "bound": False}
+    a = wt.run_scenario("S8", 0, "cpu", duration_s=25.0, **world)
+    monkeypatch.setattr(lk_module.Likelihood, "error_modes", slow)
+    b = wt.run_scenario("S8", 0, "cpu", duration_s=25.0, **world)
+    assert len(built) >= 2  # the first table, and at least one built behind
+    np.testing.assert_array_equal(a.run.est_pos, b.run.est_pos)
+    np.testing.assert_array_equal(a.run.sigma3_pos, b.run.sigma3_pos)
+
+
 def test_ground_read_again_after_the_modes_forgot_it_weighs_less():
     """:class:`warptan.sensing.likelihood.RevisitMemory`: a straight flight keeps exponent 1 (its older scans are far
     behind: ≥ 0.98), an orbit of 600 m radius inside one correlation length is discounted once its earlier passes

@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -151,6 +152,7 @@ class MeasurementModel:
         self._modes: wp.array | None = None
         self._modes_host: np.ndarray | None = None
         self._modes_skip = 0
+        self._pending: tuple | None = None  # a mode table built behind the updates (MODES_BEHIND)
         self._no_cloud: wp.array | None = None
         self._amp_scale = 1.0  # the stored amplitudes' factor for the next scan (a new per-point σ whitens them anew)
         self.modes_version = 0
@@ -407,7 +409,7 @@ class MeasurementModel:
         :data:`MODES_CHECK_EVERY` scans, and at once after a new table or statement): the one stage that reads
         the platform's attitude (its ``attitude``, else the first particle's)."""
         return self.likelihood.models_map_error and (self._modes is None or self._modes_geometry is None
-                                                     or self._modes_skip <= 0)
+                                                     or (self._pending is None and self._modes_skip <= 0))
 
     def _ensure_modes(self, device, quat_nb: wp.array, attitude=None) -> None:
         """The map-error mode table on ``device``: a zero table without a stated map error; with one, the modes of
@@ -423,9 +425,12 @@ class MeasurementModel:
             self._modes = wp.zeros(rows, dtype=klik.modes_vec, device=device)
             self._modes_host = None
             self._modes_geometry = None
+            self._pending = None
             self._params.n_modes = klik.MAX_MODES if self.likelihood.models_map_error else 0
             self.generation += 1
         if not self.likelihood.models_map_error:
+            return
+        if not fresh and self._pending is not None and self._modes_due():
             return
         if not fresh and self._modes_skip > 0:  # the geometry looked at again every MODES_CHECK_EVERY scans
             self._modes_skip -= 1
@@ -447,14 +452,51 @@ class MeasurementModel:
             else:
                 self._modes_skip = self.MODES_CHECK_EVERY - 1
             return
-        table, info = self.likelihood.error_modes(xy, sens, self.sigma_m, along, self.absorbs_map_offset)
+        if host is not None and self.MODES_BEHIND > 0:  # built on the worker, applied MODES_BEHIND scans on
+            self._pending = (_modes_worker().submit(self.likelihood.error_modes, xy, sens, self.sigma_m, along,
+                                                    self.absorbs_map_offset),
+                             self.MODES_BEHIND, self.likelihood, self.sigma_m, (xy, along, sens))
+            return
+        self._apply_modes(self.likelihood.error_modes(xy, sens, self.sigma_m, along, self.absorbs_map_offset),
+                          (xy, along, sens))
+
+    MODES_BEHIND = 2
+    """Scans between the one whose geometry asks for a new mode table and the one that first uses it: the table
+    (eigenvectors of the scan's error covariance, its sharing along the track: a few ms of NumPy) is built on a
+    worker thread behind the filter's updates, which keep the table in use until then (a geometry that moved by
+    :data:`MODES_REBUILD` of the footprint moves a few per cent more in two scans). The scan that uses it is fixed,
+    whatever the threads' timing: a run's results do not depend on it. 0: built at once. A statement restated while
+    it is built (a new RMS, length or per-point σ) has it built again at once for the restatement."""
+
+    def _modes_due(self) -> bool:
+        """A table built behind the updates (:data:`MODES_BEHIND`) applied at its scan (the next scan looks at the
+        geometry again, and sets the basis change back to the identity); True: this scan's table is settled."""
+        job, left, likelihood, sigma, geometry = self._pending
+        if left > 1:
+            self._pending = (job, left - 1, likelihood, sigma, geometry)
+            return True
+        built = job.result()  # (long done: a few ms against two updates)
+        self._pending = None
+        if likelihood is not self.likelihood or sigma != self.sigma_m:  # restated meanwhile: for the statement now
+            xy, along, sens = geometry
+            built = self.likelihood.error_modes(xy, sens, self.sigma_m, along, self.absorbs_map_offset)
+        self._apply_modes(built, geometry)
+        return True
+
+    def _apply_modes(self, built: tuple, geometry: tuple) -> None:
+        """Use the mode table ``built`` (:meth:`Likelihood.error_modes`' table and summary) of the scan geometry
+        ``geometry`` (xy, along, sensitivities)."""
+        table, info = built
+        host = self._modes_host
+        m = table.shape[0] - klik.MODE_EXTRA_ROWS
         # T = U_newᵀ U_old carries the stored amplitudes into the new modes; a first table (or one for a new
         # likelihood) carries nothing: T = 0 gives the one-scan prior whatever a filter stored
         table[m + klik.MODE_T:] = 0.0 if host is None else self._amp_scale * (table[:m].T @ host[:m])
         self._amp_scale = 1.0
         self._modes.assign(table)
         self._modes_host = table
-        self._modes_geometry = (xy, along, sens)
+        self._modes_geometry = geometry
+        sens = geometry[2]
         self.modes_version += 1
         self.modes_info = {**info, "rebuilds": self.modes_info.get("rebuilds", 0) + 1}
         near = np.abs(sens) <= WHITE_MAX_GAIN
@@ -634,6 +676,17 @@ class _PointCloudModel(MeasurementModel):
                 kept = (first.astype(np.float32).astype(np.float64), None, first)
             self._host["first"] = (kept[0], ranges[0, :m].astype(np.float64), first)
         return n_received
+
+
+_WORKER: ThreadPoolExecutor | None = None
+
+
+def _modes_worker() -> ThreadPoolExecutor:
+    """The thread that builds mode tables behind the filter's updates (:data:`MeasurementModel.MODES_BEHIND`)."""
+    global _WORKER
+    if _WORKER is None:
+        _WORKER = ThreadPoolExecutor(max_workers=1, thread_name_prefix="warptan-modes")
+    return _WORKER
 
 
 def _forward(quat: np.ndarray, rot: np.ndarray | None = None) -> np.ndarray:
