@@ -614,7 +614,7 @@ class _PointCloudModel(MeasurementModel):
         u = dirs @ rot.T  # the rays in the navigation frame (float64)
         down = np.maximum(u[:, 2], 0.1)
         ok = (u[:, 2] > 0.1) & np.isfinite(rng)
-        agl = float(np.median((rng * u[:, 2])[ok])) if ok.any() else 1.0
+        agl = _median((rng * u[:, 2])[ok]) if ok.any() else 1.0
         # the nominal footprint: every ray meets the scan's median ground level (a smooth function of the altitude
         # and attitude; the points' own ranges moved it with every hill, and the modes with it)
         xy = (u * (agl / down)[:, None])[:, :2]
@@ -676,6 +676,16 @@ class _PointCloudModel(MeasurementModel):
                 kept = (first.astype(np.float32).astype(np.float64), None, first)
             self._host["first"] = (kept[0], ranges[0, :m].astype(np.float64), first)
         return n_received
+
+
+def _median(values: np.ndarray) -> float:
+    """``np.median`` of a non-empty 1-D array (the same value: the middle one, or the mean of the two), without its
+    generic machinery (a tenth of a millisecond per call)."""
+    k = len(values) // 2
+    if len(values) % 2:
+        return float(np.partition(values, k)[k])
+    part = np.partition(values, (k - 1, k))
+    return float((part[k - 1] + part[k]) / 2.0)
 
 
 _WORKER: ThreadPoolExecutor | None = None
