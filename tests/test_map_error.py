@@ -573,9 +573,9 @@ def test_the_filter_carries_the_mode_amplitudes_from_scan_to_scan():
 
 def test_a_mode_table_built_behind_the_updates_is_the_one_built_at_once_two_scans_later():
     """``MeasurementModel.MODES_BEHIND``: a scan whose geometry moved (a 40° turn) has its new table built on the
-    worker and first used two scans later; that table's modes and basis change are those a model building at once
-    used at the turn (same geometry), the scans between keep the old table, and the next scan sets the basis
-    change back to the identity."""
+    worker and first used ``MODES_BEHIND`` scans later (2 here); that table's modes and basis change are those a
+    model building at once used at the turn (same geometry), the scans between keep the old table, and the next
+    scan sets the basis change back to the identity."""
     from warptan.nav.frames import euler_to_quat
 
     dem = wt.Terrain.load("rugged")
@@ -620,7 +620,7 @@ def test_a_run_that_builds_its_mode_tables_behind_the_updates_repeats_bit_for_bi
     def slow(self, *args, **kwargs):
         built.append(1)
         if len(built) % 2:
-            time.sleep(0.05)  # (later than the two scans' host work of the CPU here)
+            time.sleep(0.05)  # (later than the eight scans' host work of the CPU here)
         return plain(self, *args, **kwargs)
 
     world = {"world_error_rms_m": 5.0, "world_error_corr_m": 1000.0, "world_seed": 2000, "bound": False}

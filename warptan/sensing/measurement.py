@@ -460,11 +460,12 @@ class MeasurementModel:
         self._apply_modes(self.likelihood.error_modes(xy, sens, self.sigma_m, along, self.absorbs_map_offset),
                           (xy, along, sens))
 
-    MODES_BEHIND = 2
+    MODES_BEHIND = 8
     """Scans between the one whose geometry asks for a new mode table and the one that first uses it: the table
-    (eigenvectors of the scan's error covariance, its sharing along the track: a few ms of NumPy) is built on a
-    worker thread behind the filter's updates, which keep the table in use until then (a geometry that moved by
-    :data:`MODES_REBUILD` of the footprint moves a few per cent more in two scans). The scan that uses it is fixed,
+    (eigenvectors of the scan's error covariance, its sharing along the track: 3-5 ms of NumPy) is built on a worker
+    thread behind the filter's updates, which keep the table in use until then. Eight scans are 0.8 s at 10 Hz (a
+    3°/s turn turns 2.4° more; the table is rebuilt when the footprint moved by :data:`MODES_REBUILD` of its size)
+    and 5 ms of a GPU's updates (at two scans the GPU's host waited for the worker). The scan that uses it is fixed,
     whatever the threads' timing: a run's results do not depend on it. 0: built at once. A statement restated while
     it is built (a new RMS, length or per-point σ) has it built again at once for the restatement."""
 
