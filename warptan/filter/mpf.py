@@ -357,7 +357,7 @@ class MarginalizedParticleFilter(ImuIntake, Readout):
         self._cdf_sums = wp.empty((b, kmpf.N_CHUNKS), dtype=wp.float64, device=d)
         self._stats = wp.zeros((b, kmpf.N_STATS), dtype=wp.float64, device=d)
         self._exponent = wp.ones(b, dtype=wp.float32, device=d)  # per update (RevisitMemory)
-        self._uploads = Uploads()  # (the exponent's copy: pinned on CUDA, behind the device's work)
+        self._uploads = Uploads()  # (the exponent's and the learner's copies: pinned on CUDA, behind the device's work)
         self._exponent_host: np.ndarray | None = None  # (its value on the device: copied again only when it changes)
         self._revisits = None
         self._unread_scans = 0  # (updates since the revisit memory last read the platform's ground)
@@ -479,7 +479,7 @@ class MarginalizedParticleFilter(ImuIntake, Readout):
         m = table.shape[0] - klik.MODE_EXTRA_ROWS
         reads = self.model.mode_reads
         if not np.array_equal(reads, self._reads_host):
-            self._reads.assign(reads[None])
+            self._uploads.put("reads", self._reads, reads[None])
             self._reads_host = reads
         spectrum = None
         projections = self.learner.log_len is not None or self.learner.white_var is not None
@@ -516,8 +516,8 @@ class MarginalizedParticleFilter(ImuIntake, Readout):
         if getattr(self.model, "fixes_per_scan", False):
             q = self._q_pos_base + np.array([lk.fix_process(v) for v in self._speeds]) * self.dt
             self.q_pos = np.broadcast_to(np.asarray(q, dtype=np.float64), (self.n_filters,)).copy()
-        self._q_dev[0].assign(self.q_pos)
-        self._q_dev[1].assign(np.asarray(self._q_vel_down, dtype=np.float64))
+        self._uploads.put("q_pos", self._q_dev[0], self.q_pos)
+        self._uploads.put("q_vel_down", self._q_dev[1], np.asarray(self._q_vel_down, dtype=np.float64))
 
     def _learn_launch(self, arrays: tuple, scalars: tuple) -> None:
         """The launches of a map-error reading (recorded once per set of arrays and values: ``_learn_map_error``):

@@ -147,6 +147,8 @@ class MeasurementModel:
         self._host: dict[str, np.ndarray] = {}
         self._poses_ok: tuple = ()  # (pos_n, quat_nb, device): the pose arrays _check_poses last accepted
         self._uploads = Uploads()  # the scan's host-to-device copies (pinned on CUDA: they do not hold the host)
+        self._table_uploads = Uploads()  # the mode table's, queued at once (never held in a graph: a table changes
+        # at some scans only; a pageable assign on CUDA would wait for all the device work queued so far)
         self._att_cov: wp.array | None = None
         self._zero_att: wp.array | None = None
         self._modes: wp.array | None = None
@@ -244,7 +246,7 @@ class MeasurementModel:
             m = host.shape[0] - klik.MODE_EXTRA_ROWS
             factor = (float(sigma_m) / old) ** 2 * (old_point / self.sigma_m) ** 2
             self._modes_host = host = self.likelihood.rescale_error_modes(host, m, factor)
-            self._modes.assign(host)
+            self._table_uploads.put("modes", self._modes, host)
             self.modes_info = {**self.modes_info, "k0": host[m + klik.MODE_K0].tolist()}
             if old_point != self.sigma_m:
                 self.modes_version += 1  # (the spectrum is per unit of the point variance)
@@ -444,11 +446,11 @@ class MeasurementModel:
                 and np.abs(old[1] - along).max() <= self.MODES_REBUILD:
             if self._amp_scale != 1.0:  # the amplitudes whitened anew (restate_map_error's white_m)
                 host[m + klik.MODE_T:] = self._amp_scale * np.eye(klik.MAX_MODES, dtype=np.float32)
-                self._modes.assign(host)
+                self._table_uploads.put("modes", self._modes, host)
                 self._amp_scale = 1.0
             elif not np.array_equal(host[m + klik.MODE_T:], np.eye(klik.MAX_MODES)):  # the basis change applied once
                 host[m + klik.MODE_T:] = np.eye(klik.MAX_MODES, dtype=np.float32)
-                self._modes.assign(host)
+                self._table_uploads.put("modes", self._modes, host)
             else:
                 self._modes_skip = self.MODES_CHECK_EVERY - 1
             return
@@ -494,7 +496,7 @@ class MeasurementModel:
         # likelihood) carries nothing: T = 0 gives the one-scan prior whatever a filter stored
         table[m + klik.MODE_T:] = 0.0 if host is None else self._amp_scale * (table[:m].T @ host[:m])
         self._amp_scale = 1.0
-        self._modes.assign(table)
+        self._table_uploads.put("modes", self._modes, table)
         self._modes_host = table
         self._modes_geometry = geometry
         sens = geometry[2]
