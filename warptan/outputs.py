@@ -14,9 +14,11 @@ error names the file, and the previous run stays).
   by ``--export-log`` are the inputs of a later replay, never a previous run that ``--out`` may replace.
 * **Outputs only**: :meth:`OutputFolder.refuse_inputs` refuses a target that is, contains or lies inside any input
   of the run (log, bag, DEM, map, scenario or campaign file).
-* The target may be missing, empty, or a previous output of the same kind (a folder from before the manifest is
-  recognised by its ``results.json``). Anything else (a file, a folder of other things, a read-only or immutable
-  folder, an unwritable parent) is refused by :meth:`OutputFolder.check` before any work starts.
+* The target may be missing, empty, or a previous output of the same kind (its manifest says so). Anything else (a
+  file, a folder of other things, a folder holding a ``results.json`` without a manifest — a user's copy, or a run
+  from before the manifest: which files warptan wrote there cannot be told, and the rule that guessed them from
+  their names deleted a user's ``*_seed*_*.png`` —, a read-only or immutable folder, an unwritable parent) is
+  refused by :meth:`OutputFolder.check` before any work starts.
 * Replacing a previous output removes only the files its manifest lists: anything else in the folder (the user's
   notes, a file added inside a sub-folder) is carried into the new folder as hard links (copies where links are
   impossible) before the swap. A user's file with the name of a new output is never overwritten: the new output
@@ -51,7 +53,6 @@ MANIFEST = ".warptan-run"
 """The file in an output folder naming its kind and listing what was written (JSON: ``{"kind": .., "files": [..]}``)."""
 KINDS = ("run", "replay", "campaign", "flight-logs")
 """What writes output folders: ``warptan run``, ``warptan replay``, ``warptan campaign`` and ``--export-log``."""
-_LEGACY_FILES = ("results.json", "results.md")
 _KIND_WORDS = {"run": "a warptan run's results", "replay": "a warptan replay's results",
                "campaign": "a warptan campaign's results",
                "flight-logs": "flight logs written by --export-log (inputs of a replay, not a run)"}
@@ -103,15 +104,6 @@ def _previous_output(folder: Path) -> tuple[str, set[str]] | None:
             else:
                 kind = "results"  # a run or a replay of an earlier version: either may replace it
         return kind, files
-    results = folder / "results.json"
-    if results.is_file():  # a run written before the manifest existed
-        try:
-            data = json.loads(results.read_text())
-        except (ValueError, OSError):
-            return None
-        if isinstance(data, dict) and {"meta", "scenarios", "runs"} <= set(data):
-            plots = {p.name for p in folder.glob("*_seed*_*.png")}
-            return "results", {*_LEGACY_FILES, *plots}
     return None
 
 
@@ -281,9 +273,12 @@ class OutputFolder:
                 previous = _previous_output(target)
                 if previous is None:
                     first = sorted(e.name for e in target.iterdir())[:3]
-                    raise OutputError(f"{self._name()} holds files that are not a warptan run "
-                                      f"({', '.join(first)} ...); choose a new or empty folder (nothing there is "
-                                      "replaced)")
+                    why = "files that are not a warptan run"
+                    if (target / "results.json").exists():  # a copy, or a run from before the manifest
+                        why = (f"a results.json but no {MANIFEST} manifest (a copy, or a run from before the "
+                               "manifest: which files warptan wrote cannot be told)")
+                    raise OutputError(f"{self._name()} holds {why} ({', '.join(first)} ...); choose a new or empty "
+                                      "folder (nothing there is replaced)")
                 kind = previous[0]
                 if kind != self.kind and not (kind == "results" and self.kind in ("run", "replay")):
                     raise OutputError(f"{self._name()} holds {_KIND_WORDS.get(kind, kind)}; a {self.kind} does not "
