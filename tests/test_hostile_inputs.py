@@ -10,7 +10,9 @@ import json
 from pathlib import Path
 
 import pytest
-from test_nothing_lost import QUICK, _cli, _error_line, _snapshot
+from test_nothing_lost import QUICK, RUGGED_TIF, _cli, _error_line, _snapshot
+
+from warptan import outputs
 
 RUN_RESULTS = json.dumps({"meta": {"git_commit": "x"}, "scenarios": ["S8"], "runs": []})
 
@@ -36,3 +38,76 @@ def test_a_folder_without_a_manifest_is_someone_elses(capsys, tmp_path, files):
     status, _, err = _cli(capsys, "run", "S8", *QUICK, "--out", out, "--check")
     assert status == 2 and "no .warptan-run manifest" in err
     assert _snapshot(out) == before and sorted(p.name for p in tmp_path.iterdir()) == ["legacy"]
+
+
+# ------------------------------------------------------------------------------------------- inputs are not outputs
+def _previous_output(path: Path, kind: str) -> Path:
+    """A folder a previous warptan output of ``kind`` wrote (its manifest, one file)."""
+    with outputs.OutputFolder(path, kind=kind) as tmp:
+        (tmp / "results.json").write_text("{}")
+    return path
+
+
+@pytest.mark.parametrize("outs", [["dem.tif"], ["info.png", "dem.tif"], ["link.tif"]],
+                         ids=["the-input", "second-out", "a-link-to-it"])
+def test_overwrite_never_replaces_an_input(capsys, tmp_path, outs):
+    """`terrain info dem.tif --information --out dem.tif --overwrite` replaced the input DEM with the information
+    map (also as a second --out). --overwrite never applies to an input, whatever name reaches it."""
+    dem = tmp_path / "dem.tif"
+    dem.write_bytes(Path(RUGGED_TIF).read_bytes())
+    (tmp_path / "link.tif").symlink_to(dem)
+    before = dem.read_bytes()
+    argv = ["terrain", "info", dem, "--information", "--scans", "1", "--stride", "40", "--overwrite"]
+    for out in outs:
+        argv += ["--out", tmp_path / out]
+    status, _, err = _cli(capsys, *argv)
+    assert status == 2
+    _error_line(err, "is the input", "--overwrite never replaces an input")
+    assert dem.read_bytes() == before and not (tmp_path / "info.png").exists()
+
+
+def test_one_file_named_twice_by_out_is_refused(capsys, tmp_path):
+    """Two --out of one file wrote it twice (the second over the first)."""
+    dem = tmp_path / "dem.tif"
+    dem.write_bytes(Path(RUGGED_TIF).read_bytes())
+    status, _, err = _cli(capsys, "terrain", "info", dem, "--information", "--scans", "1", "--stride", "40",
+                          "--out", tmp_path / "a.png", "--out", tmp_path / "a.png")
+    assert status == 2
+    _error_line(err, "names one file twice")
+    assert not (tmp_path / "a.png").exists()
+
+
+def test_inputs_hidden_behind_a_spec_are_still_inputs(capsys, tmp_path, monkeypatch):
+    """A DEM given as `FILE#band=1`, a named terrain read from WARPTAN_DEM_DIR and a DEM named by a campaign's
+    scenario file were not seen as inputs: an --out holding them was accepted."""
+    out = _previous_output(tmp_path / "rA", "run")  # the user's DEM put in it
+    dem = out / "mydem.tif"
+    dem.write_bytes(Path(RUGGED_TIF).read_bytes())
+    before = _snapshot(out)
+    for command in (["run", "S8", *QUICK, "--terrain", f"{dem}#band=1", "--out", out],
+                    ["run", "S8", *QUICK, "--terrain", f"{dem}#band=1", "--out", out, "--check"]):
+        status, _, err = _cli(capsys, *command)
+        assert status == 2
+        _error_line(err, f"{out} contains the input {dem}")
+    out = _previous_output(tmp_path / "cA", "campaign")
+    dem = out / "mydem.tif"
+    dem.write_bytes(Path(RUGGED_TIF).read_bytes())
+    (tmp_path / "c.toml").write_text(f'scenarios = ["S8"]\nseeds = 1\n[overrides]\nduration_s = 0.5\n'
+                                     f'particles = 16\nterrain = "{dem}#band=1"\n')
+    status, _, err = _cli(capsys, "campaign", tmp_path / "c.toml", "--out", out, "--check")
+    assert status == 2 and f"{out} contains the input {dem}" in err
+    scenario = Path(__file__).resolve().parents[1] / "warptan" / "scenario_files" / "S8.toml"
+    (tmp_path / "mine.toml").write_text(scenario.read_text().replace('id = "S8"', 'id = "MINE"').replace(
+        'kind = "rugged"', 'kind = "path"').replace('path = ""', f'path = "{dem}"', 1))
+    (tmp_path / "d.toml").write_text('scenarios = ["mine.toml"]\nseeds = 1\n[overrides]\nduration_s = 0.5\n'
+                                     'particles = 16\n')
+    status, _, err = _cli(capsys, "campaign", tmp_path / "d.toml", "--out", out, "--check")
+    assert status == 2 and f"{out} contains the input {dem}" in err
+    out = _previous_output(tmp_path / "rB", "run")
+    before = _snapshot(out)
+    (out / "thuringia_hilly_srtm3_crop44km.tif").write_bytes(dem.read_bytes())
+    monkeypatch.setenv("WARPTAN_DEM_DIR", str(out))
+    status, _, err = _cli(capsys, "run", "S8", *QUICK, "--out", out, "--check")
+    assert status == 2
+    _error_line(err, f"{out} contains the input {out / 'thuringia_hilly_srtm3_crop44km.tif'}")
+    assert _snapshot(out) == {**before, "thuringia_hilly_srtm3_crop44km.tif": dem.read_bytes()}

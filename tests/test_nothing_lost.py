@@ -108,9 +108,9 @@ def test_an_output_folder_that_is_holds_or_lies_in_an_input_is_refused(capsys, e
     dem_dir = tmp_path / "dems"
     dem_dir.mkdir()
     shutil.copy(RUGGED_TIF, dem_dir / "world.tif")
-    (dem_dir / "results.json").write_text('{"meta": {}, "scenarios": {}, "runs": []}')  # an old run's folder
+    (dem_dir / outputs.MANIFEST).write_text('{"kind": "run", "files": ["results.json"]}')  # an old run's folder
     status, _, err = _cli(capsys, "run", "S8", "--terrain", dem_dir / "world.tif", "--check", "--out", dem_dir)
-    assert status == 2 and sorted(os.listdir(dem_dir)) == ["results.json", "world.tif"]
+    assert status == 2 and sorted(os.listdir(dem_dir)) == [outputs.MANIFEST, "world.tif"]
     _error_line(err, "contains the input", "world.tif")
     status, _, err = _cli(capsys, "run", "S8", "--map", dem_dir / "world.tif", "--check", "--out", dem_dir)
     assert status == 2
@@ -118,7 +118,7 @@ def test_an_output_folder_that_is_holds_or_lies_in_an_input_is_refused(capsys, e
     scen = tmp_path / "mine"
     scen.mkdir()
     shutil.copy(scenario_path("S8"), scen / "S8b.toml")
-    (scen / "results.json").write_text('{"meta": {}, "scenarios": {}, "runs": []}')  # looks like an old run
+    (scen / outputs.MANIFEST).write_text('{"kind": "run", "files": ["results.json"]}')  # an old run's folder
     status, _, err = _cli(capsys, "run", scen / "S8b.toml", *QUICK, "--out", scen)
     assert status == 2 and (scen / "S8b.toml").exists()
     _error_line(err, "contains the input", "S8b.toml")

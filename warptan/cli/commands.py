@@ -53,8 +53,12 @@ def _information(args) -> int:
     from warptan.terrain.grid import Terrain
     from warptan.terrain.information import check_geotiff_target
     from warptan.terrain.meshfile import check_export_path
+    from warptan.terrain.raster import TerrainError
 
-    outs = [check_export_path(o, args.overwrite, (".png", ".tif", ".tiff"), "information map") for o in args.out]
+    outs = [check_export_path(o, args.overwrite, (".png", ".tif", ".tiff"), "information map",
+                              inputs=(args.terrain, args.sensor)) for o in args.out]
+    if len({os.path.realpath(o) for o in outs}) < len(outs):
+        raise TerrainError(f"--out names one file twice ({', '.join(outs)}); nothing was written")
     scenario = load_config(args.sensor)
     lk, scan = scenario.likelihood, scenario_scan(scenario)
     rms = lk.map_error_rms_m if args.map_error_m is None else args.map_error_m
@@ -99,7 +103,7 @@ def _terrain_export(args) -> int:
     from warptan.terrain.grid import Terrain
     from warptan.terrain.meshfile import check_export_path
 
-    check_export_path(args.out, args.overwrite)  # before the DEM is loaded
+    check_export_path(args.out, args.overwrite, inputs=(args.terrain,))  # before the DEM is loaded
     terrain = Terrain.load(args.terrain, spacing=args.spacing)
     terrain.export(args.out, frame=args.frame, overwrite=args.overwrite)
     print(f"wrote {args.out} ({terrain.shape[0]}×{terrain.shape[1]} posts, {args.frame.upper()} frame)")
@@ -178,7 +182,7 @@ def _run(args) -> int:
     inputs = [path for name, (scenario, _, _) in plans.items() for path in _scenario_inputs(name, scenario, terrain)]
     for folder in (out, export):
         if folder is not None:
-            folder.refuse_inputs(inputs)
+            folder.refuse_inputs(_input_files(inputs))
     if args.check:
         for scenario, truth, flight in plans.values():
             print(f"{scenario.id}: ok ({truth.name}{_map_words(scenario)}, altitude {-flight.pos_n[0, 2]:.0f} m, "
@@ -261,12 +265,21 @@ def _refuse_nested(out, export) -> None:
         raise OutputError(f"--export-log {b} and --out {a} must be separate folders, neither inside the other")
 
 
+def _input_files(items) -> list:
+    """``items`` (paths, terrain specs, None) with each terrain spec as the file it reads (a named terrain's file,
+    ``WARPTAN_DEM_DIR``'s included; a DEM without its ``#band=N``): what an output folder must not be, hold or lie
+    in."""
+    from warptan.terrain.grid import terrain_source_file
+
+    return [terrain_source_file(item) or item for item in items]
+
+
 def _scenario_inputs(name: str, scenario, terrain) -> list:
     """The files a scenario run reads: its scenario file (not for S1…S12), the world's DEM and the map's DEM."""
     from warptan.sim.scenario_config import SCENARIO_IDS, scenario_path
 
     t = scenario.terrain
-    world = terrain if isinstance(terrain, (str, os.PathLike)) else (t.path if t.kind == "path" else None)
+    world = terrain if isinstance(terrain, (str, os.PathLike)) else t.dem  # (a name: its file, WARPTAN_DEM_DIR's)
     return [None if name.upper() in SCENARIO_IDS else scenario_path(name), world, t.map_path or None]
 
 
@@ -279,7 +292,8 @@ def _campaign(args) -> int:
     out = OutputFolder(args.out, kind="campaign")
     campaign = Campaign.load(args.file)
     plans = campaign.check(check_options(args.engine, args.device, args.address, args.cpus_per_task))
-    out.refuse_inputs([args.file, *campaign.inputs()])
+    scenario_dems = [d for scenario, _, _ in plans for d in (scenario.terrain.dem, scenario.terrain.map_path or None)]
+    out.refuse_inputs(_input_files([args.file, *campaign.inputs(), *scenario_dems]))
     if args.check:
         for b, (scenario, truth, flight) in zip(campaign.batches, plans, strict=True):
             print(f"{b.label}: ok ({truth.name}{_map_words(scenario)}, {flight.duration_s:.0f} s, "
@@ -340,10 +354,10 @@ def _replay(args) -> int:
     from warptan.sim.report import write_outputs
 
     out = OutputFolder(args.out if args.out is not None else "warptan-replay", kind="replay")
-    out.refuse_inputs([args.log, _bag_folder(args.log), args.terrain, args.bag_config])
+    out.refuse_inputs(_input_files([args.log, _bag_folder(args.log), args.terrain, args.bag_config]))
     resolve_device(args.device)
     log = _load_flight(args)
-    out.refuse_inputs([log.dem_reference or None, log.settings.get("terrain_spec")])
+    out.refuse_inputs(_input_files([log.dem_reference or None, log.settings.get("terrain_spec")]))
     from warptan.sim.replay import replay_config, replay_terrain
 
     stated = None

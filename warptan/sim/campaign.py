@@ -175,11 +175,12 @@ class Campaign:
         return plans
 
     def inputs(self) -> list[str]:
-        """The files the campaign reads besides itself: scenario files and DEMs named in [overrides] or [sweep]."""
+        """What the campaign reads besides itself: scenario files, and the DEMs (terrain specs: a name, a path, a path
+        with its #band=N) named in [overrides] or [sweep]."""
         files = [s for s in self.scenarios if s not in SCENARIO_IDS]
         for key in PATH_KEYWORDS:
             values = [self.overrides.get(key), *self.sweep.get(key, [])]
-            files += [v for v in values if isinstance(v, str) and v and os.path.exists(v)]
+            files += [v for v in values if isinstance(v, str) and v]  # (a DEM with its #band=N too)
         return files
 
     def describe(self) -> dict:

@@ -72,6 +72,27 @@ def named_terrain_file(name: str) -> Path:
     return Path(str(resources.files("warptan") / "data" / "dem" / file))
 
 
+def terrain_source_file(spec) -> Path | None:
+    """The file a terrain spec of :meth:`Terrain.load` reads (a named terrain's file, a DEM path without its
+    ``#band=N``), or None (a ``synthetic:`` spec, a name or path that is not a file): what an output must never
+    replace or hold."""
+    if not isinstance(spec, (str, os.PathLike)):
+        return None
+    text = os.fspath(spec)
+    if text in NAMED_TERRAINS:
+        try:
+            return named_terrain_file(text)
+        except TerrainError:
+            return None
+    if text.startswith("synthetic:"):
+        return None
+    head, sep, _ = text.rpartition("#band=")
+    for candidate in ((text, head) if sep else (text,)):
+        if os.path.exists(candidate):
+            return Path(candidate)
+    return None
+
+
 @dataclass(eq=False)
 class Terrain:
     """A height grid in the local NED frame, with optional geographic reference.

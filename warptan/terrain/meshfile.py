@@ -16,11 +16,19 @@ MESH_FORMATS = (".ply", ".glb", ".obj", ".stl")
 
 
 def check_export_path(path: str | os.PathLike, overwrite: bool = False, formats: tuple = MESH_FORMATS,
-                      what: str = "mesh") -> str:
+                      what: str = "mesh", inputs: tuple = ()) -> str:
     """``path`` as text when a ``what`` file (one of ``formats``; default :meth:`~warptan.terrain.grid.Terrain.
     export`'s meshes) may be written there (a known format, an existing folder, not an existing file unless
-    ``overwrite``), else a TerrainError naming the problem."""
+    ``overwrite``, never one of ``inputs``: terrain specs or paths the command reads, whatever ``overwrite`` says),
+    else a TerrainError naming the problem."""
+    from warptan.terrain.grid import terrain_source_file
+
     path = os.fspath(path)
+    for spec in inputs:
+        source = terrain_source_file(spec)
+        if source is not None and os.path.lexists(path) and os.path.samefile(path, source):
+            raise TerrainError(f"{path} is the input {spec}; nothing was written (--overwrite never replaces an "
+                               "input: give another file name)")
     ext = os.path.splitext(path)[1].lower()
     if ext not in formats:
         raise TerrainError(f"{path}: unsupported {what} format {ext!r}; use {', '.join(formats)}")
