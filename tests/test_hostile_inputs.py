@@ -7,6 +7,10 @@ full-disk cases run real ``python -m warptan`` processes under ``ulimit -f``.
 """
 
 import json
+import os
+import resource
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -111,3 +115,61 @@ def test_inputs_hidden_behind_a_spec_are_still_inputs(capsys, tmp_path, monkeypa
     assert status == 2
     _error_line(err, f"{out} contains the input {out / 'thuringia_hilly_srtm3_crop44km.tif'}")
     assert _snapshot(out) == {**before, "thuringia_hilly_srtm3_crop44km.tif": dem.read_bytes()}
+
+
+# ------------------------------------------------------------------------------------------- a full disk
+def _fsize_limit(limit):
+    def apply():
+        resource.setrlimit(resource.RLIMIT_FSIZE, (limit, limit))
+    return apply
+
+
+def _warptan(cwd, *argv, limit=None):
+    env = {**os.environ, "PYTHONDONTWRITEBYTECODE": "1"}
+    return subprocess.run([sys.executable, "-m", "warptan", *map(str, argv)], capture_output=True, text=True,
+                          timeout=300, cwd=cwd, env=env, preexec_fn=None if limit is None else _fsize_limit(limit))
+
+
+def test_flight_logs_on_a_full_disk_are_one_line_and_leave_nothing(tmp_path):
+    """`run --export-log` and `log import --out x.h5` under `ulimit -f` (a full disk's stand-in): dozens of h5py
+    "Exception ignored" tracebacks, then a segmentation fault (rc 139), nothing written. Now one line naming the
+    file, the previous outputs as they were and no partial file."""
+    logs, res = tmp_path / "L", tmp_path / "R"
+    first = _warptan(tmp_path, "run", "S8", *QUICK, "--export-log", logs, "--out", res)
+    assert first.returncode == 0, first.stderr
+    before = {folder: _snapshot(folder) for folder in (logs, res)}
+    proc = _warptan(tmp_path, "run", "S8", *QUICK, "--seeds", "2", "--export-log", logs, "--out", res, limit=20000)
+    assert proc.returncode == 2, proc.stderr[-2000:]
+    _error_line(proc.stderr, f"writing {logs / 'S8_seed0.h5'} failed", "File too large", "disk is full",
+                f"{logs} is as it was before this run")
+    assert {folder: _snapshot(folder) for folder in (logs, res)} == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["L", "R"]
+    from warptan.io.flightlog import read_log
+    from warptan.io.logcsv import write_tables
+
+    layout = write_tables(read_log(logs / "S8_seed0.h5"), tmp_path / "tables")
+    proc = _warptan(tmp_path, "log", "import", layout, "--out", tmp_path / "x.h5", limit=20000)
+    assert proc.returncode == 2, proc.stderr[-2000:]
+    _error_line(proc.stderr, f"--out {tmp_path / 'x.h5'}", "writing it failed: File too large", "nothing was written")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["L", "R", "tables"]
+
+
+def test_a_full_disk_at_the_manifest_names_the_folder(tmp_path, monkeypatch):
+    """The manifest's write was outside the write-failure handler: a raw "[Errno 28]" naming no file."""
+    import errno
+
+    out = _previous_output(tmp_path / "res", "run")
+    before = _snapshot(out)
+    plain = Path.write_text
+
+    def full(self, *args, **kwargs):
+        if self.name == outputs.MANIFEST:
+            raise OSError(errno.ENOSPC, "No space left on device")
+        return plain(self, *args, **kwargs)
+
+    monkeypatch.setattr(Path, "write_text", full)
+    with pytest.raises(outputs.OutputError, match=rf"writing {out} failed: No space left on device \(the disk is "
+                                                  rf"full or a file size limit was reached\); {out} is as it was"):
+        with outputs.OutputFolder(out) as tmp:
+            plain(tmp / "results.json", "new")
+    assert _snapshot(out) == before and sorted(p.name for p in tmp_path.iterdir()) == ["res"]

@@ -62,6 +62,14 @@ class OutputError(ValueError):
     """An output folder that cannot be used; the message names it and what to do."""
 
 
+def write_failure(err: OSError) -> str:
+    """Why a write failed, in words (a full disk or a file size limit said so)."""
+    why = err.strerror or str(err)
+    if err.errno in (errno.ENOSPC, errno.EFBIG, errno.EDQUOT):
+        why += " (the disk is full or a file size limit was reached)"
+    return why
+
+
 def json_ready(value):
     """``value`` with NumPy scalars and arrays made Python, and non-finite floats made None (JSON null)."""
     if isinstance(value, dict):
@@ -319,6 +327,11 @@ class OutputFolder:
             if exc_type is None:
                 try:
                     self._commit(tmp)
+                except OSError as err:  # the manifest's write, the swap: nothing of the new run is kept
+                    shutil.rmtree(tmp, ignore_errors=True)
+                    where = err.filename if err.filename and str(tmp) not in str(err.filename) else self.path
+                    raise OutputError(f"writing {where} failed: {write_failure(err)}; {self.path} is as it was "
+                                      "before this run") from None
                 except BaseException:
                     shutil.rmtree(tmp, ignore_errors=True)
                     raise
@@ -326,11 +339,8 @@ class OutputFolder:
                 failed = _failed_file(tmp, exc) if isinstance(exc, OSError) else None
                 shutil.rmtree(tmp, ignore_errors=True)
                 if failed is not None:
-                    why = exc.strerror or str(exc)
-                    if exc.errno in (errno.ENOSPC, errno.EFBIG, errno.EDQUOT):
-                        why += " (the disk is full or a file size limit was reached)"
-                    raise OutputError(f"writing {self.path / failed} failed: {why}; {self.path} is as it was "
-                                      "before this run") from None
+                    raise OutputError(f"writing {self.path / failed} failed: {write_failure(exc)}; {self.path} is "
+                                      "as it was before this run") from None
         finally:
             self.release()
         return False

@@ -426,12 +426,16 @@ def _bag_folder(path: str) -> str | None:
 def _log_import(args) -> int:
     from warptan.io.flightlog import LogError, write_log
     from warptan.io.logcsv import read_tables
+    from warptan.outputs import write_failure
 
     out = Path(args.out)
     if out.exists():
         raise LogError(f"--out {out}", ["exists; remove it or choose another name"])
     log = read_tables(args.layout)
-    write_log(log, out)
+    try:
+        write_log(log, out)
+    except OSError as err:
+        raise LogError(f"--out {out}", [f"writing it failed: {write_failure(err)}; nothing was written"]) from None
     f = log.frame
     print(f"wrote {out}: {len(log.imu_t)} IMU samples, {len(log.scan_t) if log.has_scans else 0} scans, "
           f"{len(log.alt_t) if log.has_altimeter else 0} altimeter readings; frame origin lat {f.origin_lat_deg:.6f}°, "

@@ -359,45 +359,61 @@ def _read_frame(attrs, source: str) -> GeoFrame | None:
 
 
 def write_log(log: FlightLog, path: str | os.PathLike) -> Path:
-    """Write ``log`` to ``path`` (HDF5), validated first; written beside the target and renamed into place."""
+    """Write ``log`` to ``path`` (HDF5), validated first. The file is built in memory and then written beside the
+    target and renamed into place: a write that fails (a full disk, a file size limit) is an ``OSError`` naming
+    ``path``, with nothing left there and a previous file of that name as it was. (Written by the HDF5 library
+    itself, a failed write left it in a state whose clean-up crashed the process: dozens of ignored exceptions, then
+    a segmentation fault.)"""
+    import io
+
     import h5py
 
     path = Path(path)
     log.validate(f"flight log {path}")
     tmp = path.with_name(f".{path.name}.partial")
+    buffer = io.BytesIO()
+    with h5py.File(buffer, "w") as f:
+        _write_hdf5(log, f)
     try:
-        with h5py.File(tmp, "w") as f:
-            f.attrs["format"] = FORMAT
-            f.attrs["version"] = VERSION
-            f.attrs["name"] = log.name
-            for group, items in _LAYOUT.items():
-                values = {ds: getattr(log, attr) for ds, attr in items}
-                if all(v is None for v in values.values()):
-                    continue
-                g = f.create_group(group)
-                for ds, value in values.items():
-                    if value is not None:
-                        d = g.create_dataset(ds, data=np.asarray(value), compression="gzip" if np.size(value) > 4096
-                                             else None)
-                        d.attrs["units"] = _UNITS.get(ds, "")
-            for (group, key), attr in _SCALARS.items():
-                if group in f or group == "dem":
-                    g = f.require_group(group)
-                    g.attrs[key] = getattr(log, attr)
-            frame = f.create_group("frame")
-            frame.attrs["kind"] = "dem-grid" if log.frame is None else "geodetic"
-            if log.frame is not None:
-                for key in _FRAME_KEYS:
-                    frame.attrs[key] = getattr(log.frame, key)
-            if log.dem_posts is not None:
-                f["dem"].attrs["posts"] = np.asarray(log.dem_posts, dtype=np.float64)
-            if log.settings:
-                f.create_group("settings").attrs["json"] = json.dumps(log.settings, sort_keys=True)
+        with open(tmp, "wb") as out:
+            out.write(buffer.getbuffer())
         os.replace(tmp, path)
+    except OSError as err:
+        raise OSError(err.errno, err.strerror or str(err), str(path)) from None
     finally:
         if tmp.exists():
             tmp.unlink()
     return path
+
+
+def _write_hdf5(log: FlightLog, f) -> None:
+    """The log's groups, datasets and attributes into the open HDF5 file ``f``."""
+    f.attrs["format"] = FORMAT
+    f.attrs["version"] = VERSION
+    f.attrs["name"] = log.name
+    for group, items in _LAYOUT.items():
+        values = {ds: getattr(log, attr) for ds, attr in items}
+        if all(v is None for v in values.values()):
+            continue
+        g = f.create_group(group)
+        for ds, value in values.items():
+            if value is not None:
+                d = g.create_dataset(ds, data=np.asarray(value), compression="gzip" if np.size(value) > 4096
+                                     else None)
+                d.attrs["units"] = _UNITS.get(ds, "")
+    for (group, key), attr in _SCALARS.items():
+        if group in f or group == "dem":
+            g = f.require_group(group)
+            g.attrs[key] = getattr(log, attr)
+    frame = f.create_group("frame")
+    frame.attrs["kind"] = "dem-grid" if log.frame is None else "geodetic"
+    if log.frame is not None:
+        for key in _FRAME_KEYS:
+            frame.attrs[key] = getattr(log.frame, key)
+    if log.dem_posts is not None:
+        f["dem"].attrs["posts"] = np.asarray(log.dem_posts, dtype=np.float64)
+    if log.settings:
+        f.create_group("settings").attrs["json"] = json.dumps(log.settings, sort_keys=True)
 
 
 def read_log(path: str | os.PathLike) -> FlightLog:
