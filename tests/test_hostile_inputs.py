@@ -13,6 +13,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 from test_nothing_lost import QUICK, RUGGED_TIF, _cli, _error_line, _snapshot
 
@@ -173,3 +174,66 @@ def test_a_full_disk_at_the_manifest_names_the_folder(tmp_path, monkeypatch):
         with outputs.OutputFolder(out) as tmp:
             plain(tmp / "results.json", "new")
     assert _snapshot(out) == before and sorted(p.name for p in tmp_path.iterdir()) == ["res"]
+
+
+# ------------------------------------------------------------------------------------------- a metre is a metre
+def _write_dem(path, heights, crs, transform, units=None):
+    import rasterio
+
+    with rasterio.open(path, "w", driver="GTiff", width=heights.shape[1], height=heights.shape[0], count=1,
+                       dtype="float32", crs=crs, transform=transform) as dst:
+        dst.write(heights.astype(np.float32), 1)
+        if units is not None:
+            dst.set_band_unit(1, units)
+    return path
+
+
+def _hills(rows, cols):
+    r, c = np.mgrid[0:rows, 0:cols]
+    return 300.0 + 40.0 * np.sin(r / 7.0) * np.cos(c / 9.0) + 0.5 * r
+
+
+def test_a_web_mercator_dem_is_put_on_metres_of_ground(tmp_path):
+    """A DEM in EPSG:3857 (Web Mercator: 1.56 of its units per metre of ground at 50°N) was taken as a metric grid:
+    a replay 1 km wrong at 0-4 % coverage, exit 0. Its posts are now reprojected onto a metric frame: the grid spans
+    the ground it covers."""
+    from rasterio.transform import from_origin
+
+    import warptan as wt
+
+    lat0, lon0, radius, pixel = 50.0, 10.0, 6378137.0, 90.0
+    x0 = radius * np.radians(lon0)
+    y0 = radius * np.log(np.tan(np.pi / 4 + np.radians(lat0) / 2))
+    rows = cols = 80
+    path = _write_dem(tmp_path / "merc.tif", _hills(rows, cols), "EPSG:3857", from_origin(x0, y0, pixel, pixel))
+    terrain = wt.Terrain.load(str(path))
+    lat_south = np.degrees(2 * np.arctan(np.exp((y0 - rows * pixel) / radius)) - np.pi / 2)
+    ground_ns = np.radians(lat0 - lat_south) * 6371000.0  # (a sphere: within 0.5 % at this size)
+    span = terrain.dn * (terrain.shape[0] - 1)
+    assert abs(span / ground_ns - 1.0) < 0.03, (span, ground_ns)  # it was 1.56
+    assert "reprojected" in terrain.description
+    utm = _write_dem(tmp_path / "utm.tif", _hills(rows, cols), "EPSG:32632", from_origin(600000, 5540000, 90, 90))
+    assert wt.Terrain.load(str(utm)).description.endswith("native posts")  # UTM in its zone keeps its posts
+
+
+def test_heights_in_feet_are_metres_when_the_raster_says_feet_and_refused_when_it_says_nothing(tmp_path):
+    """A DEM in US feet (CRS and heights): the heights were read as metres (the track 507 m below the surface, exit
+    0). The unit its vertical CRS or band states converts them; a DEM in feet that states no height unit is refused."""
+    from rasterio.transform import from_origin
+
+    import warptan as wt
+
+    feet = _hills(60, 60) * 3.28
+    transform = from_origin(6_000_000, 2_100_000, 300, 300)
+    us_foot = 1200.0 / 3937.0
+    for name, crs, units in (("compound", "EPSG:2227+6360", None), ("tagged", "EPSG:2227", "ft")):
+        terrain = wt.Terrain.load(str(_write_dem(tmp_path / f"{name}.tif", feet, crs, transform, units)))
+        factor = us_foot if name == "compound" else 0.3048
+        assert np.nanmean(terrain.heights_m) == pytest.approx(feet.mean() * factor, rel=0.01), name
+    untagged = _write_dem(tmp_path / "untagged.tif", feet, "EPSG:2227", transform)
+    with pytest.raises(wt.TerrainError, match=r"untagged\.tif: its CRS is in US survey foot and its heights' unit "
+                                              r"is not stated"):
+        wt.Terrain.load(str(untagged))
+    weird = _write_dem(tmp_path / "fathoms.tif", feet, "EPSG:32632", from_origin(600000, 5540000, 90, 90), "fathom")
+    with pytest.raises(wt.TerrainError, match=r"heights in 'fathom'"):
+        wt.Terrain.load(str(weird))
