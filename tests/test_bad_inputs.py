@@ -197,7 +197,7 @@ def test_cli_check_runs_the_same_validation_as_a_run(capsys, tmp_path):
     """--check passed a 100000×100000 scan (MemoryError traceback in the run), a singular N_k, and called a
     1e308 m/s flight "over nodata"."""
     cases = (
-        (dict(scan_nx=100000, scan_ny=100000), "needs about", "memory"),
+        (dict(scan_nx=100000, scan_ny=100000), "10000000000 points", "more than 65536 per scan"),
         (dict(kalman_pos_noise_m_rthz=0.0, vel_mps=0.0), "N_k singular"),
         (dict(speed_mps=1e308), "speed_mps = 1e+308 must be in (0, 1000]"),
         (dict(particles=100_000_000), "needs about"),

@@ -237,3 +237,35 @@ def test_heights_in_feet_are_metres_when_the_raster_says_feet_and_refused_when_i
     weird = _write_dem(tmp_path / "fathoms.tif", feet, "EPSG:32632", from_origin(600000, 5540000, 90, 90), "fathom")
     with pytest.raises(wt.TerrainError, match=r"heights in 'fathom'"):
         wt.Terrain.load(str(weird))
+
+
+# ------------------------------------------------------------------------------------------- sizes before work
+def test_sizes_a_user_gives_are_checked_before_work(capsys, tmp_path):
+    """`terrain info --information --scans 1000000000` grew past 10 GB; a scenario with scan_nx = 100000 passed
+    --check and a 0.3 s flight was not done after 120 s; an .npz of 81 M posts (945 kB) was loaded whole (5.4 GB).
+    Each is one line at once; --check states what a run holds and evaluates."""
+    import time
+    import zipfile
+
+    t0 = time.monotonic()
+    status, _, err = _cli(capsys, "terrain", "info", "rugged", "--information", "--scans", "1000000000")
+    assert status == 2 and time.monotonic() - t0 < 30
+    _error_line(err, "n_scans = 1000000000", "at most 10000")
+    scenario = Path(__file__).resolve().parents[1] / "warptan" / "scenario_files" / "S8.toml"
+    big = tmp_path / "big.toml"
+    big.write_text(scenario.read_text().replace("scan_nx = 10", "scan_nx = 100000", 1))
+    assert "scan_nx = 100000" in big.read_text()
+    status, _, err = _cli(capsys, "run", big, "--duration-s", "0.3", "--check", "--out", tmp_path / "o")
+    assert status == 2
+    _error_line(err, "100000×10 = 1000000 points", "more than 65536 per scan")
+    npz = tmp_path / "big.npz"  # the header of 9000 × 9000 float32 heights (the data need not be there: it is not read)
+    header = {"descr": "<f4", "fortran_order": False, "shape": (9000, 9000)}
+    with zipfile.ZipFile(npz, "w") as archive, archive.open("heights_m.npy", "w") as f:
+        np.lib.format.write_array_header_1_0(f, header)
+    status, _, err = _cli(capsys, "terrain", "export", npz, tmp_path / "big2.stl")
+    assert status == 2
+    _error_line(err, "(9000, 9000) (81000000 posts", "crop or coarsen it first")
+    assert not (tmp_path / "big2.stl").exists()
+    status, out, err = _cli(capsys, "run", "S8", "--check", "--out", tmp_path / "o")
+    assert status == 0, err
+    assert "1200 updates × 500 particles × 100 point(s), about" in out and "of host memory" in out

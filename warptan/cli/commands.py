@@ -186,7 +186,8 @@ def _run(args) -> int:
     if args.check:
         for scenario, truth, flight in plans.values():
             print(f"{scenario.id}: ok ({truth.name}{_map_words(scenario)}, altitude {-flight.pos_n[0, 2]:.0f} m, "
-                  f"{flight.duration_s:.0f} s, {scenario.sensor.model}, {seeds} seed(s))")
+                  f"{flight.duration_s:.0f} s, {scenario.sensor.model}, {seeds} seed(s); "
+                  f"{_size_words(scenario, seeds)})")
         print(f"output folder {out.path}: ok" + (f"; flight logs {export.path}: ok" if export else ""))
         return 0
     if demo:
@@ -263,6 +264,18 @@ def _refuse_nested(out, export) -> None:
     a, b = out.path, export.path
     if a == b or a in b.parents or b in a.parents:
         raise OutputError(f"--export-log {b} and --out {a} must be separate folders, neither inside the other")
+
+
+def _size_words(scenario, seeds: int) -> str:
+    """What a run of ``seeds`` seeds holds and evaluates (checked against memory before work)."""
+    from warptan.sim.scenario_config import format_bytes, memory_estimate
+
+    s = scenario.sensor
+    points = 1 if s.model == "altimeter" else s.scan_nx * s.scan_ny
+    updates = round(scenario.flight.duration_s * s.rate_hz) * seeds
+    need = memory_estimate(scenario, seeds)
+    return (f"{updates} updates × {scenario.filter.particles} particles × {points} point(s), about "
+            f"{format_bytes(need['host'])} of host memory")
 
 
 def _input_files(items) -> list:

@@ -72,6 +72,32 @@ def named_terrain_file(name: str) -> Path:
     return Path(str(resources.files("warptan") / "data" / "dem" / file))
 
 
+def _check_npz_size(path) -> None:
+    """Refuse (TerrainError) a ``.npz`` whose heights exceed :data:`~warptan.terrain.raster.MAX_POSTS` posts or the
+    memory available, from the array's header (before it is decompressed: a 945 kB file held 81 M posts, 5.4 GB)."""
+    import zipfile
+
+    from warptan.checks import host_memory_available
+    from warptan.terrain.raster import MAX_POSTS
+
+    try:
+        with zipfile.ZipFile(path) as archive, archive.open("heights_m.npy") as f:
+            version = np.lib.format.read_magic(f)
+            read = np.lib.format.read_array_header_1_0 if version == (1, 0) else np.lib.format.read_array_header_2_0
+            shape, _, dtype = read(f)
+    except (KeyError, ValueError, OSError, zipfile.BadZipFile) as err:
+        raise TerrainError(f"{path}: not a terrain saved by Terrain.save_npz ({err})") from None
+    posts = int(np.prod(shape)) if len(shape) else 1
+    if len(shape) != 2 or posts > MAX_POSTS:
+        raise TerrainError(f"{path}: heights of shape {shape} ({posts} posts; a DEM is 2-D, at most {MAX_POSTS} "
+                           "posts); crop or coarsen it first")
+    need = 4.0 * posts * max(np.dtype(dtype).itemsize, 8)  # (read, as float64, and the grid's copies)
+    have = host_memory_available()
+    if need > 0.9 * have:
+        raise TerrainError(f"{path}: its {shape[0]}×{shape[1]} posts need about {need / 1e9:.2g} GB of memory but "
+                           f"{have / 1e9:.2g} GB is available; crop or coarsen it first")
+
+
 def terrain_source_file(spec) -> Path | None:
     """The file a terrain spec of :meth:`Terrain.load` reads (a named terrain's file, a DEM path without its
     ``#band=N``), or None (a ``synthetic:`` spec, a name or path that is not a file): what an output must never
@@ -295,6 +321,7 @@ class Terrain:
         """Load a terrain saved by :meth:`save_npz`."""
         if not os.path.exists(path):
             raise FileNotFoundError(f"terrain file not found: {path}")
+        _check_npz_size(path)
         try:
             with np.load(path, allow_pickle=False) as z:
                 n0, e0, dn, de = (float(v) for v in z["grid"])

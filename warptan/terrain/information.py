@@ -130,6 +130,11 @@ def check_geotiff_target(path, crs_wkt: str | None) -> None:
                            "write a .png, or load a georeferenced DEM")
 
 
+MAX_LEG_SCANS = 10_000
+"""Scans along the information map's leg at most: 100 km at 10 m a scan, longer than any DEM a run loads (its work is
+posts × scans; a billion scans filled 10 GB of memory before anything was computed)."""
+
+
 def leg_shifts(direction, n_scans: int, step_m: float) -> np.ndarray:
     """(n, 2) offsets (north, east; m) of ``n_scans`` scans ``step_m`` apart along the horizontal ``direction``,
     centred on 0.
@@ -139,6 +144,10 @@ def leg_shifts(direction, n_scans: int, step_m: float) -> np.ndarray:
     """
     if isinstance(n_scans, bool) or not isinstance(n_scans, (int, np.integer)) or n_scans < 1:
         raise TerrainError(f"n_scans = {n_scans!r} must be a whole number ≥ 1")
+    if n_scans > MAX_LEG_SCANS:
+        raise TerrainError(f"n_scans = {n_scans} scans along the leg: at most {MAX_LEG_SCANS} (a leg of "
+                           f"{MAX_LEG_SCANS * float(step_m) / 1000.0:g} km at {float(step_m):g} m a scan; every post "
+                           "sums every scan of its leg)")
     if not (math.isfinite(float(step_m)) and step_m > 0.0):
         raise TerrainError(f"scan_step_m = {step_m!r} must be a positive number of metres")
     d = np.asarray(direction, dtype=np.float64)[:2]
