@@ -269,3 +269,47 @@ def test_sizes_a_user_gives_are_checked_before_work(capsys, tmp_path):
     status, out, err = _cli(capsys, "run", "S8", "--check", "--out", tmp_path / "o")
     assert status == 0, err
     assert "1200 updates × 500 particles × 100 point(s), about" in out and "of host memory" in out
+
+
+# ------------------------------------------------------------------------------------------- unclear: one clear line
+def test_output_folders_that_cannot_be_one_are_refused_before_work(capsys, tmp_path, monkeypatch):
+    """A 300-character --out (a raw "[Errno 36]"), an --out symlink loop (refused only after the run), a mount
+    point (the run computed, then a raw "[Errno 16]"): one line before any work."""
+    long = tmp_path / ("a" * 300)
+    status, _, err = _cli(capsys, "run", "S8", *QUICK, "--check", "--out", long)
+    assert status == 2
+    _error_line(err, "the folder name is 300 bytes long; at most 200")
+    (tmp_path / "loop1").symlink_to(tmp_path / "loop2")
+    (tmp_path / "loop2").symlink_to(tmp_path / "loop1")
+    status, _, err = _cli(capsys, "run", "S8", *QUICK, "--check", "--out", tmp_path / "loop1")
+    assert status == 2
+    _error_line(err, "is a symbolic link that leads nowhere")
+    mounted = tmp_path / "mnt"
+    mounted.mkdir()
+    monkeypatch.setattr(outputs.os.path, "ismount", lambda p: os.fspath(p) == str(mounted))
+    status, _, err = _cli(capsys, "run", "S8", *QUICK, "--check", "--out", mounted)
+    assert status == 2
+    _error_line(err, "is a mount point", "choose a folder inside it")
+
+
+def test_a_replaced_folder_keeps_its_mode(tmp_path):
+    """A chmod 555 output folder, replaced by a rerun, came back 0755."""
+    out = _previous_output(tmp_path / "res", "run")
+    os.chmod(out, 0o555)
+    try:
+        with outputs.OutputFolder(out) as tmp:
+            (tmp / "results.json").write_text("2")
+        assert oct(os.stat(out).st_mode & 0o777) == oct(0o555) and (out / "results.json").read_text() == "2"
+        assert sorted(p.name for p in tmp_path.iterdir()) == ["res"]
+    finally:
+        os.chmod(out, 0o755)
+
+
+@pytest.mark.parametrize("spec, fragment", [("synthetic:rugged,seed=-1", "option seed = -1 must be a whole number"),
+                                            ("synthetic:rugged,size_m=0", "option size_m = 0 must be a positive"),
+                                            ("synthetic:flat,spacing=nan", "option spacing = nan must be a positive")])
+def test_a_synthetic_spec_names_its_bad_option(capsys, spec, fragment):
+    """`synthetic:rugged,seed=-1` said "expected non-negative integer", naming nothing."""
+    status, _, err = _cli(capsys, "terrain", "info", spec)
+    assert status == 2
+    _error_line(err, spec, fragment)

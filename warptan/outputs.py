@@ -40,6 +40,7 @@ import math
 import os
 import shutil
 import signal
+import stat
 import sys
 import tempfile
 import threading
@@ -49,6 +50,9 @@ from pathlib import Path
 
 import numpy as np
 
+MAX_NAME_BYTES = 200
+"""Longest output folder name (bytes): the lock, partial and previous folders beside it add up to 30 (the file
+system's limit is 255; a 300-character name was a raw "[Errno 36]")."""
 MANIFEST = ".warptan-run"
 """The file in an output folder naming its kind and listing what was written (JSON: ``{"kind": .., "files": [..]}``)."""
 KINDS = ("run", "replay", "campaign", "flight-logs")
@@ -189,6 +193,9 @@ class OutputFolder:
         self.kind, self.option = kind, option
         self._tmp: Path | None = None
         self._lock_fd: int | None = None
+        if len(self.path.name.encode()) > MAX_NAME_BYTES:
+            raise OutputError(f"{option} {text[:60]}…: the folder name is {len(self.path.name.encode())} bytes long; "
+                              f"at most {MAX_NAME_BYTES} (the files written beside it have longer names)")
         self.check()
 
     def _siblings(self, kind: str) -> list[Path]:
@@ -258,8 +265,14 @@ class OutputFolder:
         """Refuse a target that is a file, a folder of other things or of another kind of output, a read-only
         folder, in an unwritable parent, or locked by another process (OutputError)."""
         target, parent = self.path, self.path.parent
+        if os.path.lexists(target) and not os.path.exists(target):
+            raise OutputError(f"{self._name()} is a symbolic link that leads nowhere (a loop, or to a folder whose "
+                              "parent is missing); choose another folder")
         if target.exists() and not target.is_dir():
             raise OutputError(f"{self._name()} is a file, not a folder; choose a folder name")
+        if os.path.ismount(target):
+            raise OutputError(f"{self._name()} is a mount point; an output folder is replaced as a whole (a rename, "
+                              "which a mount point refuses): choose a folder inside it")
         if not parent.is_dir():
             raise OutputError(f"{self._name()}: its parent folder {parent} does not exist")
         try:  # the real test (permissions, read-only or full file systems): make and remove a folder there
@@ -348,9 +361,9 @@ class OutputFolder:
     def _commit(self, tmp: Path) -> None:
         written = sorted(str(p.relative_to(tmp)) for p in tmp.rglob("*") if p.is_file())
         (tmp / MANIFEST).write_text(json.dumps({"kind": self.kind, "files": written}, indent=1) + "\n")
-        os.chmod(tmp, 0o777 & ~current_umask())  # mkdtemp makes 0700; an output folder is an ordinary folder
         target = self.path
         if not target.exists():
+            os.chmod(tmp, 0o777 & ~current_umask())  # mkdtemp makes 0700; an output folder is an ordinary folder
             os.rename(tmp, target)
             return
         self.check()
@@ -361,14 +374,22 @@ class OutputFolder:
             os.rename(tmp, kept)
             raise OutputError(f"{target / clash} was not written by the previous run and the new one writes a file "
                               f"of that name: nothing in {target} was replaced; the new outputs are in {kept}")
+        os.chmod(tmp, stat.S_IMODE(target.stat().st_mode))  # the replaced folder's mode (a 555 one came back 0755)
         if _rename_exchange(tmp, target):
-            shutil.rmtree(tmp, ignore_errors=True)  # tmp now holds the previous run
+            _remove_folder(tmp)  # tmp now holds the previous run
             return
         old = target.parent / f".{target.name}.warptan-old-{uuid.uuid4().hex[:8]}"
         with _interrupts_held():
             os.rename(target, old)
             os.rename(tmp, target)
-        shutil.rmtree(old, ignore_errors=True)
+        _remove_folder(old)
+
+
+def _remove_folder(path: Path) -> None:
+    """Remove a replaced output folder (made writable first: it kept its own mode, which may be read-only)."""
+    with contextlib.suppress(OSError):
+        os.chmod(path, 0o700)
+    shutil.rmtree(path, ignore_errors=True)
 
 
 def _read_holder(fd: int) -> str:
