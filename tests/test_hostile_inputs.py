@@ -313,3 +313,23 @@ def test_a_synthetic_spec_names_its_bad_option(capsys, spec, fragment):
     status, _, err = _cli(capsys, "terrain", "info", spec)
     assert status == 2
     _error_line(err, spec, fragment)
+
+
+@pytest.mark.parametrize("argv, fragments", [
+    (["run", "S8", "--map-error-corr-m", "1000"], ["--map-error-corr-m 1000", "give --map-error-m too"]),
+    (["run", "S8", "--world-clutter-fraction", "0.2"], ["clutter needs a height and a fraction", "give both"]),
+    (["run", "S8", "--world-clutter-m", "8"], ["clutter needs a height and a fraction"]),
+    (["run", "S8", "--world-refine", "2"], ["--world-refine 2 refines a world", "this one is the map"]),
+    (["run", "S8", "--world-bias-m", "inf"], ["must be a finite number, got 'inf'"]),
+    (["terrain", "info", "rugged", "--information", "--heading-deg", "1e300"], ["within ±360, got '1e300'"]),
+    (["terrain", "info", "rugged", "--information", "--stride", "1000000"], ["stride = 1000000 leaves fewer than 2×2"]),
+], ids=["corr-alone", "clutter-fraction-alone", "clutter-height-alone", "refine-alone", "inf", "heading", "stride"])
+def test_cli_values_that_would_do_nothing_or_nonsense_are_one_line(capsys, tmp_path, argv, fragments):
+    """Options that silently did nothing (a correlation length without an RMS, clutter or refinement alone), a
+    heading of 1e300° taken, a stride past the grid reported as "no fix", "must be a finite number ≥ -inf"."""
+    extra = ["--check", "--out", tmp_path / "o"] if argv[0] == "run" else []
+    status, _, err = _cli(capsys, *argv, *extra)
+    assert status == 2
+    if err.startswith("usage:"):  # (argparse: its usage, then the one error line)
+        err = err.strip().splitlines()[-1]
+    _error_line(err, *fragments)

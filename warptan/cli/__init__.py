@@ -9,7 +9,16 @@ import sys
 import threading
 import warnings
 
-from warptan.cli.args import DEFAULT_TERRAIN, _finite, _relief_arg, count_arg, number_arg, script_inputs, seed_arg
+from warptan.cli.args import (
+    DEFAULT_TERRAIN,
+    _finite,
+    _relief_arg,
+    count_arg,
+    heading_arg,
+    number_arg,
+    script_inputs,
+    seed_arg,
+)
 from warptan.cli.commands import (
     _campaign,
     _log_export,
@@ -48,7 +57,7 @@ def build_parser() -> argparse.ArgumentParser:
                        "altimeter, noise, surface, rate, speed and stated map error (default S8)")
     where.add_argument("--altitude-agl", type=number_arg(0.0, True), default=None, metavar="M",
                        help="height above the terrain in m (default: the scenario's altitude rule, 600 or 150 m)")
-    where.add_argument("--heading-deg", type=_finite, default=0.0, help="flight heading, degrees from north")
+    where.add_argument("--heading-deg", type=heading_arg, default=0.0, help="flight heading, degrees from north")
     where.add_argument("--scans", type=count_arg, default=10, help="scans along the leg of the second bound "
                        "(default 10: one second at 10 Hz)")
     where.add_argument("--map-error-m", type=number_arg(0.0, False), default=None, metavar="RMS",

@@ -52,7 +52,21 @@ def _relief_arg(text: str):
 
 def _finite(text: str) -> float:
     """argparse type: any finite number."""
-    return number_arg(-math.inf, False)(text)
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be a number, got {text!r}") from None
+    if not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"must be a finite number, got {text!r}")  # (it said "≥ -inf")
+    return value
+
+
+def heading_arg(text: str) -> float:
+    """argparse type: a heading in degrees from north, within ±360 (1e300 was taken, its sine meaningless)."""
+    value = _finite(text)
+    if abs(value) > 360.0:
+        raise argparse.ArgumentTypeError(f"must be a heading in degrees within ±360, got {text!r}")
+    return value
 
 
 def script_inputs(prog: str, devices: list[str], terrain_spec: str):

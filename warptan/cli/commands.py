@@ -179,6 +179,8 @@ def _run(args) -> int:
     if clash:
         raise ScenarioError(f"two scenarios have the id {', '.join(clash)} (results are kept by id); give one of "
                             "the files another id")
+    for scenario, _, _ in plans.values():
+        _check_effective(args, scenario)
     inputs = [path for name, (scenario, _, _) in plans.items() for path in _scenario_inputs(name, scenario, terrain)]
     for folder in (out, export):
         if folder is not None:
@@ -264,6 +266,27 @@ def _refuse_nested(out, export) -> None:
     a, b = out.path, export.path
     if a == b or a in b.parents or b in a.parents:
         raise OutputError(f"--export-log {b} and --out {a} must be separate folders, neither inside the other")
+
+
+def _check_effective(args, scenario) -> None:
+    """Refuse (ScenarioError) an option that would change nothing in ``scenario`` (it was silently ignored): a
+    correlation length without a stated RMS, clutter without a height or a fraction, a refined world that is the
+    map."""
+    from warptan.sim.scenario_config import ScenarioError
+
+    w, where = scenario.world, f"scenario {scenario.id}"
+    if args.map_error_corr_m is not None and not scenario.likelihood.map_error_rms_m:
+        raise ScenarioError(f"{where}: --map-error-corr-m {args.map_error_corr_m:g} is the correlation length of a "
+                            "stated map error, and none is stated: give --map-error-m too (they go together)")
+    if (args.world_clutter_m is not None or args.world_clutter_fraction is not None) and not (
+            w.clutter_height_m and w.clutter_fraction):
+        raise ScenarioError(f"{where}: clutter needs a height and a fraction of the ground (now "
+                            f"--world-clutter-m {w.clutter_height_m:g}, --world-clutter-fraction "
+                            f"{w.clutter_fraction:g}): with either 0 there is none; give both")
+    if args.world_refine is not None and not w.active:
+        raise ScenarioError(f"{where}: --world-refine {args.world_refine} refines a world that differs from the map, "
+                            "and this one is the map: give the difference too (--world-relief-m, --world-error-m, "
+                            "--world-bias-m or --world-clutter-m)")
 
 
 def _size_words(scenario, seeds: int) -> str:

@@ -259,6 +259,10 @@ def information_map(terrain, dirs_body, altitude_agl_m: float, sigma_m: float, *
         raise TerrainError(f"surface = {surface!r} must be 'bilinear' or 'triangles'")
     if isinstance(stride, bool) or not isinstance(stride, (int, np.integer)) or stride < 1:
         raise TerrainError(f"stride = {stride!r} must be a whole number ≥ 1")
+    if min((n + stride - 1) // stride for n in terrain.shape) < 2:
+        raise TerrainError(f"stride = {stride} leaves fewer than 2×2 cells of the terrain's "
+                           f"{terrain.shape[0]}×{terrain.shape[1]} posts (no map to compute: it said 'no fix'); "
+                           f"use at most {max(1, (min(terrain.shape) - 1) // 2)}")
     scan = scan_footprint(dirs_body, altitude_agl_m, heading_deg, 1, scan_step_m)
     psi = math.radians(float(heading_deg))
     leg = leg_shifts((math.cos(psi), math.sin(psi)), n_scans, scan_step_m)  # the scans' centres
