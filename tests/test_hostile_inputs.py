@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 from test_nothing_lost import QUICK, RUGGED_TIF, _cli, _error_line, _snapshot
 
-from warptan import outputs
+from warptan import cli, outputs
 
 RUN_RESULTS = json.dumps({"meta": {"git_commit": "x"}, "scenarios": ["S8"], "runs": []})
 
@@ -333,3 +333,44 @@ def test_cli_values_that_would_do_nothing_or_nonsense_are_one_line(capsys, tmp_p
     if err.startswith("usage:"):  # (argparse: its usage, then the one error line)
         err = err.strip().splitlines()[-1]
     _error_line(err, *fragments)
+
+
+@pytest.fixture(scope="module")
+def a_log(tmp_path_factory):
+    base = tmp_path_factory.mktemp("alog")
+    assert cli.main(["run", "S8", *QUICK, "--export-log", str(base / "L"), "--out", str(base / "R")]) == 0
+    return base / "L" / "S8_seed0.h5"
+
+
+@pytest.mark.parametrize("argv, fragment", [
+    (["--backend", "warp9"], "unknown backend 'warp9'"),
+    (["--likelihood", "gausian"], "unknown likelihood 'gausian'"),
+    (["--particles", "1000000000"], "1000000000 particles × 100 point(s) need about"),
+], ids=["backend", "likelihood", "particles"])
+def test_replay_values_are_checked_before_work(capsys, a_log, tmp_path, argv, fragment):
+    """`replay --backend warp9` was accepted (the sliding model never reads it); `--particles 1000000000` was a raw
+    allocation traceback (a run checks its memory first)."""
+    status, _, err = _cli(capsys, "replay", a_log, *argv, "--out", tmp_path / "o")
+    assert status == 2
+    if err.startswith("usage:"):
+        err = err.strip().splitlines()[-1]
+    _error_line(err, fragment)
+    assert not (tmp_path / "o").exists()
+
+
+def test_a_scenario_files_relative_dem_is_relative_to_the_file(capsys, tmp_path, monkeypatch):
+    """A relative `[terrain] path` in a scenario file resolved against the current folder: run from elsewhere, it
+    read another file of that name (or none)."""
+    scenario = Path(__file__).resolve().parents[1] / "warptan" / "scenario_files" / "S8.toml"
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    (mine / "dem.tif").write_bytes(Path(RUGGED_TIF).read_bytes())
+    (mine / "S8b.toml").write_text(scenario.read_text().replace('id = "S8"', 'id = "S8B"').replace(
+        'kind = "rugged"', 'kind = "path"').replace('path = ""', 'path = "dem.tif"', 1))
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    (elsewhere / "dem.tif").write_bytes(b"not the DEM the scenario means")
+    monkeypatch.chdir(elsewhere)
+    status, out, err = _cli(capsys, "run", mine / "S8b.toml", *QUICK, "--check", "--out", tmp_path / "o")
+    assert status == 0, err
+    assert "S8B: ok" in out

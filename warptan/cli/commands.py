@@ -394,7 +394,7 @@ def _replay(args) -> int:
     resolve_device(args.device)
     log = _load_flight(args)
     out.refuse_inputs(_input_files([log.dem_reference or None, log.settings.get("terrain_spec")]))
-    from warptan.sim.replay import replay_config, replay_terrain
+    from warptan.sim.replay import check_replay_memory, replay_config, replay_terrain
 
     stated = None
     if args.map_error_m is not None or args.map_error_corr_m is not None:
@@ -405,6 +405,7 @@ def _replay(args) -> int:
     learn = _learn_arg(args.map_error_learn)
     scenario = replay_config(log, args.model, args.backend, args.particles, args.likelihood, stated,
                              map_error_learn=learn, map_error_confidence=args.map_error_confidence)  # checks them
+    check_replay_memory(log, scenario, args.device)
     replay_terrain(log, scenario, args.terrain)  # loads (and caches) the DEM before the progress bar
     n_meas = len(log.alt_t if scenario.sensor.model == "altimeter" else log.scan_t)
     with progress_bar(n_meas, "update", disable=args.quiet) as bar:

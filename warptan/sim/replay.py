@@ -142,12 +142,20 @@ def replay_config(log: FlightLog, model: str | None = None, backend: str | None 
             raise FilterError(f"unknown model {model!r}; choose sliding, raycast or altimeter")
         scenario = scenario.replace(sensor={"model": model})
     if backend is not None:
+        from warptan.terrain.raycast import BACKENDS
+
+        if backend not in BACKENDS:  # (warp9 was accepted: the sliding model never reads it)
+            raise FilterError(f"unknown backend {backend!r}; choose {', '.join(BACKENDS)}")
         scenario = scenario.replace(sensor={"backend": backend})
     if particles is not None:
         if isinstance(particles, bool) or not isinstance(particles, (int, np.integer)) or particles < MIN_PARTICLES:
             raise FilterError(f"particles must be a whole number ≥ {MIN_PARTICLES}, got {particles!r}")
         scenario = scenario.replace(filter={"particles": int(particles)})
     if likelihood is not None:
+        from warptan.sensing.likelihood import LIKELIHOODS
+
+        if likelihood not in LIKELIHOODS:
+            raise FilterError(f"unknown likelihood {likelihood!r}; choose {', '.join(LIKELIHOODS)}")
         scenario = scenario.replace(likelihood={"kind": likelihood})
     kind = scenario.sensor.model
     if kind == "altimeter" and not log.has_altimeter:
@@ -155,6 +163,21 @@ def replay_config(log: FlightLog, model: str | None = None, backend: str | None 
     if kind != "altimeter" and not log.has_scans:
         raise LogError(f"flight log {log.name}", [f"the {kind} model needs point-cloud scans (group /scans)"])
     return scenario
+
+
+def check_replay_memory(log: FlightLog, scenario: Scenario, device) -> None:
+    """Refuse (FilterError) a replay whose particles' arrays exceed what ``device`` has (as a run is checked before
+    work; 10⁹ particles were a raw allocation error)."""
+    from warptan.sim.scenario_config import MEMORY_FRACTION, available_memory, format_bytes
+
+    s = scenario.sensor
+    points = 1 if s.model == "altimeter" or not log.has_scans else int(np.shape(log.scan_ranges)[-1])
+    per_point = 4.0 + (12.0 if s.model == "raycast" else 0.0)
+    need = float(scenario.filter.particles) * (1024.0 + per_point * points)
+    have = available_memory(device if device is not None else "cpu")["device"]
+    if need > MEMORY_FRACTION * have:
+        raise FilterError(f"{scenario.filter.particles} particles × {points} point(s) need about {format_bytes(need)} "
+                          f"of device memory but {format_bytes(have)} is available; use fewer particles")
 
 
 def _simulated_on_its_map(ran: Scenario) -> bool:
@@ -343,6 +366,7 @@ def replay(log: FlightLog, terrain=None, *, model: str | None = None, backend: s
     log.validate(f"flight log {log.name}")
     scenario = replay_config(log, model, backend, particles, likelihood, map_error, map_error_learn,
                              map_error_confidence)
+    check_replay_memory(log, scenario, device)
     truth_terrain = replay_terrain(log, scenario, terrain)
     own = own_terrain(log, terrain)
     log, placed = place_log(log, truth_terrain, own)

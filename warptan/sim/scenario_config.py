@@ -342,6 +342,20 @@ def scenario_path(name_or_path: str | os.PathLike) -> Path:
     raise ScenarioError(f"unknown scenario {text!r}; use one of {', '.join(SCENARIO_IDS)}, 'all', or a .toml path")
 
 
+def _relative_to_file(config: dict, path: Path) -> None:
+    """A scenario file's relative DEM paths (``[terrain] path``, ``map_path``; a ``#band=N`` kept) made relative to
+    the file's folder, in place: they resolved against the current folder, so a run started elsewhere read another
+    file of that name, or none (an override's path stays relative to the current folder, as a command line's)."""
+    table = config.get("terrain")
+    if not isinstance(table, dict):
+        return
+    for key in ("path", "map_path"):
+        value = table.get(key)
+        if isinstance(value, str) and value.strip() and not os.path.isabs(value) and not value.startswith(
+                "synthetic:"):
+            table[key] = str(Path(path).resolve().parent / value)
+
+
 def load_config(name_or_path, overrides_from: str = "override", **overrides) -> Scenario:
     """Read, override and validate a scenario, parsed once into a :class:`Scenario`; raises :class:`ScenarioError`
     listing every problem. A problem of an overridden value names ``overrides_from`` (e.g. the campaign file that
@@ -352,6 +366,7 @@ def load_config(name_or_path, overrides_from: str = "override", **overrides) -> 
             config = tomllib.load(f)
     except tomllib.TOMLDecodeError as err:
         raise ScenarioError(f"{path}: not valid TOML ({err})") from None
+    _relative_to_file(config, path)
     config = with_optional_defaults(config)
     problems = []
     for key, value in overrides.items():
