@@ -374,3 +374,75 @@ def test_a_scenario_files_relative_dem_is_relative_to_the_file(capsys, tmp_path,
     status, out, err = _cli(capsys, "run", mine / "S8b.toml", *QUICK, "--check", "--out", tmp_path / "o")
     assert status == 0, err
     assert "S8B: ok" in out
+
+
+# ------------------------------------------------------------------------------------------- CSV tables and logs
+def _edit_tables(folder: Path, how: str) -> None:
+    """One hostile edit of the tables `write_tables` wrote in ``folder``."""
+    def rows(name):
+        return (folder / name).read_text().splitlines()
+
+    def put(name, lines):
+        (folder / name).write_text("\n".join(lines) + "\n")
+
+    layout = rows("layout.toml")
+    if how == "bom":
+        (folder / "imu.csv").write_text("\ufeff" + (folder / "imu.csv").read_text())
+    elif how == "misspelt-key":
+        at = layout.index("[imu]") + 1
+        put("layout.toml", [*layout[:at], 'unit = {t = "ms"}', *layout[at:]])
+    elif how in ("gps-jump", "gps-radians"):
+        lines = rows("gps.csv")
+        for k in range(1, len(lines)):
+            cells = lines[k].split(",")
+            if how == "gps-radians":
+                cells[1], cells[2] = (repr(float(np.radians(float(v)))) for v in cells[1:3])
+            elif k == 40:
+                cells[1] = repr(float(cells[1]) + 1.0)  # 111 km north in 0.01 s
+            lines[k] = ",".join(cells)
+        put("gps.csv", lines)
+    elif how == "scans-after-imu":
+        lines = rows("scans.csv")
+        put("scans.csv", [lines[0]] + [",".join([repr(float(r.split(",")[0]) + 1000.0), *r.split(",")[1:]])
+                                       for r in lines[1:]])
+    elif how == "rate":
+        put("layout.toml", [("imu_rate_hz = 1e12" if ln.startswith("imu_rate_hz") else ln) for ln in layout])
+    elif how == "fifty":
+        put("layout.toml", [('roll_deg = "fifty"' if ln.startswith("roll_deg") else ln) for ln in layout])
+    elif how == "settings":
+        put("layout.toml", [("settings_json = \"[1, 2]\"" if ln.startswith("settings_json") else ln)
+                            for ln in layout])
+
+
+@pytest.mark.parametrize("how, fragment", [
+    ("misspelt-key", "[imu] unknown key(s) unit (keys: file, columns, units)"),
+    ("gps-jump", "[gps] a jump of 111 km in 0.01 s"),
+    ("gps-radians", "km from the first GPS fix"),
+    ("scans-after-imu", "[scans] 500 of its 500 rows lie outside the IMU's time span"),
+    ("rate", "imu_rate_hz = 1e+12 Hz, but the [imu] samples are 100 Hz apart"),
+    ("fifty", "[initial] roll_deg = 'fifty' is not a number"),
+    ("settings", "settings_json must be a JSON object"),
+])
+def test_hostile_tables_are_one_clear_line(a_log, tmp_path, how, fragment):
+    """A misspelt `unit =` ignored (the default unit read), GPS jumps of 111 km taken as the filter's error, GPS in
+    radians labelled degrees imported 5 500 km from [initial], scans 1 000 s after the IMU imported, an IMU rate of
+    1e12 Hz over 100 Hz samples, 'could not convert string to float' naming nothing, settings_json unchecked."""
+    from warptan.io.flightlog import LogError, read_log
+    from warptan.io.logcsv import read_tables, write_tables
+
+    layout = write_tables(read_log(a_log), tmp_path / "tables")
+    _edit_tables(tmp_path / "tables", how)
+    with pytest.raises(LogError) as err:
+        read_tables(layout)
+    assert fragment in str(err.value)
+
+
+def test_a_byte_order_mark_is_not_part_of_the_first_column(a_log, tmp_path):
+    """A spreadsheet's UTF-8 BOM made the header's first column '\\ufefft': "missing column 't'"."""
+    from warptan.io.flightlog import read_log
+    from warptan.io.logcsv import read_tables, write_tables
+
+    log = read_log(a_log)
+    layout = write_tables(log, tmp_path / "tables")
+    _edit_tables(tmp_path / "tables", "bom")
+    np.testing.assert_array_equal(read_tables(layout).imu_f, log.imu_f)

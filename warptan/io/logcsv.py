@@ -196,6 +196,12 @@ def _north_turn(frame, lat, lon) -> np.ndarray:
 def _read_csv(path: Path, table: str, spec: dict, problems: list[str]) -> dict | None:
     """The table's columns in SI units (angles in rad), keyed by column key; None after recording problems."""
     keys = {**TABLES[table], **OPTIONAL_COLUMNS.get(table, {})}
+    if not isinstance(spec, dict):
+        problems.append(f"[{table}] must be a table (file, columns, units), got {spec!r}")
+        return None
+    strange = sorted(set(spec) - {"file", "columns", "units"})
+    if strange:  # (a misspelt "unit =" had been ignored: the default unit read instead)
+        problems.append(f"[{table}] unknown key(s) {', '.join(strange)} (keys: file, columns, units)")
     names = spec.get("columns", {})
     units = spec.get("units", {})
     for what, given in (("column", names), ("unit", units)):
@@ -219,10 +225,13 @@ def _read_csv(path: Path, table: str, spec: dict, problems: list[str]) -> dict |
         return None
     path = path.parent / file
     try:
-        with open(path, newline="") as fh:
+        with open(path, newline="", encoding="utf-8-sig") as fh:  # (a spreadsheet's byte-order mark: not a column)
             rows = list(csv.reader(fh))
     except OSError as err:
         problems.append(f"[{table}] {path}: {err.strerror or err}")
+        return None
+    except (UnicodeDecodeError, csv.Error) as err:
+        problems.append(f"[{table}] {path}: not a UTF-8 CSV table ({err})")
         return None
     if not rows:
         problems.append(f"[{table}] {path}: empty file (no header)")
@@ -280,6 +289,9 @@ def read_tables(layout: str | os.PathLike) -> FlightLog:
     if problems:
         raise LogError(source, problems)
     imu, gps = data["imu"], data["gps"]
+    problems += _check_streams(spec, data)
+    if problems:
+        raise LogError(source, problems)
     kw: dict = {}
     if "scans" in data:
         sc = data["scans"]
@@ -297,8 +309,10 @@ def read_tables(layout: str | os.PathLike) -> FlightLog:
            else None)
     try:
         settings = json.loads(spec.get("settings_json") or "{}")
-    except json.JSONDecodeError as err:
+    except (json.JSONDecodeError, TypeError) as err:
         raise LogError(source, [f"settings_json does not parse as JSON ({err})"]) from None
+    if not isinstance(settings, dict):
+        raise LogError(source, [f"settings_json must be a JSON object (the run's settings), got {settings!r}"])
     for key in ("range_sigma_m", "altimeter_sigma_m", "baro_sigma_m", "imu_rate_hz"):
         if key in spec:
             kw[key] = spec[key]
@@ -310,6 +324,17 @@ def read_tables(layout: str | os.PathLike) -> FlightLog:
             keys = ", ".join(INITIAL_KEYS)
             raise LogError(source, [f"[initial] misses {', '.join(missing)}" if missing else
                                     f"[initial] has unknown key(s) {', '.join(unknown)} (keys: {keys})"])
+        bad = [f"[initial] {k} = {i[k]!r} is not a number" for k in INITIAL_KEYS[:6]
+               if isinstance(i[k], bool) or not isinstance(i[k], (int, float)) or not math.isfinite(i[k])]
+        if bad:
+            raise LogError(source, bad)
+        far = _distance_km(float(i["lat_deg"]), float(i["lon_deg"]), float(np.degrees(gps["lat"][0])),
+                           float(np.degrees(gps["lon"][0])))
+        if far > 10.0:
+            raise LogError(source, [f"[initial] is {far:.0f} km from the first GPS fix (lat {i['lat_deg']}°, lon "
+                                    f"{i['lon_deg']}° against {np.degrees(gps['lat'][0]):.6f}°, "
+                                    f"{np.degrees(gps['lon'][0]):.6f}°): are the GPS angles in the unit [gps] units "
+                                    "says (deg or rad)?"])
         kw["initial"] = {**{k: i[k] for k in ("lat_deg", "lon_deg", "height_m", "vel_ned")},
                          **{f"{a}_rad": math.radians(float(i[f"{a}_deg"])) for a in ("roll", "pitch", "yaw")},
                          **{k: i[k] for k in ("accel_bias", "gyro_bias") if k in i}}
@@ -321,6 +346,56 @@ def read_tables(layout: str | os.PathLike) -> FlightLog:
         init_sigma=spec.get("initial_sigma"), mount_quat=spec.get("mount_quat_bs", (1.0, 0, 0, 0)),
         mount_lever=spec.get("mount_lever_b", (0.0, 0, 0)), vertical_datum=str(spec.get("vertical_datum", "")),
         dem_reference=str(spec.get("dem", "")), name=str(spec.get("name", path.stem)), settings=settings, **kw)
+
+
+MAX_GPS_SPEED_MPS = 1000.0
+"""Horizontal speed between two GPS fixes above which (beyond 50 m of noise) a fix is a jump, not a flight."""
+EDGE_S = 1.0
+"""How far (s) scans and altimeter readings may lie outside the IMU's time span."""
+
+
+def _distance_km(lat1: float, lon1: float, lat2: float, lon2: float) -> float:
+    """Great-circle distance (km, a 6371 km sphere) between two points in degrees."""
+    p1, p2 = math.radians(lat1), math.radians(lat2)
+    h = math.sin((p2 - p1) / 2) ** 2 + math.cos(p1) * math.cos(p2) * math.sin(math.radians(lon2 - lon1) / 2) ** 2
+    return 2.0 * 6371.0 * math.asin(min(1.0, math.sqrt(h)))
+
+
+def _check_streams(spec: dict, data: dict) -> list[str]:
+    """What the tables' values say against each other: the stated IMU rate against its samples' times, readings
+    outside the IMU's time span, GPS jumps (a 1.1 km and a 111 km jump had been taken as the filter's error)."""
+    problems = []
+    imu_t, gps = data["imu"]["t"], data["gps"]
+    if len(imu_t) < 2:
+        return ["[imu] needs at least two samples"]
+    step = float(np.median(np.diff(imu_t)))
+    rate = spec.get("imu_rate_hz")
+    if rate is not None:
+        if isinstance(rate, bool) or not isinstance(rate, (int, float)) or not (math.isfinite(rate) and rate > 0):
+            problems.append(f"imu_rate_hz = {rate!r} must be a positive number of Hz")
+        elif abs(rate * step - 1.0) > 0.01:
+            problems.append(f"imu_rate_hz = {rate:g} Hz, but the [imu] samples are {1.0 / step:.6g} Hz apart (median "
+                            "step): state the samples' rate, or leave imu_rate_hz out")
+    lo, hi = float(imu_t[0]) - EDGE_S, float(imu_t[-1]) + EDGE_S
+    for table in ("scans", "altimeter", "gps"):
+        t = data.get(table, {}).get("t")
+        if t is not None and len(t):
+            out = int(np.count_nonzero((t < lo) | (t > hi)))
+            if out:
+                problems.append(f"[{table}] {out} of its {len(t)} rows lie outside the IMU's time span (t = "
+                                f"{imu_t[0]:.3f} … {imu_t[-1]:.3f} s; they run {t[0]:.3f} … {t[-1]:.3f} s): "
+                                "cut them, or give the IMU samples of that time")
+    lat, lon, t = gps["lat"], gps["lon"], gps["t"]
+    if len(t) > 1 and np.all(np.abs(lat) <= math.pi / 2):  # (latitudes out of range: from_geodetic says so)
+        north = np.diff(lat) * 6371000.0
+        east = np.diff(lon) * 6371000.0 * np.cos(lat[:-1])
+        jump = np.hypot(north, east) > 50.0 + MAX_GPS_SPEED_MPS * np.diff(t)
+        if jump.any():
+            k = int(np.argmax(jump))
+            problems.append(f"[gps] a jump of {np.hypot(north[k], east[k]) / 1000.0:.3g} km in {t[k + 1] - t[k]:.3g} s "
+                            f"at t = {t[k + 1]:.3f} s ({int(jump.sum())} jump(s) faster than "
+                            f"{MAX_GPS_SPEED_MPS:g} m/s): cut or repair the fixes")
+    return problems
 
 
 def write_tables(log: FlightLog, folder: str | os.PathLike) -> Path:
