@@ -446,3 +446,18 @@ def test_a_byte_order_mark_is_not_part_of_the_first_column(a_log, tmp_path):
     layout = write_tables(log, tmp_path / "tables")
     _edit_tables(tmp_path / "tables", "bom")
     np.testing.assert_array_equal(read_tables(layout).imu_f, log.imu_f)
+
+
+def test_a_run_that_used_fewer_than_half_its_updates_is_an_error_unless_gaps_are_allowed(capsys, monkeypatch):
+    """A DEM with data only on a strip under the track: 199 of 200 updates skipped, exit 0 with a note."""
+    from types import SimpleNamespace
+
+    from warptan.cli import commands
+    from warptan.sim import report
+
+    monkeypatch.setattr(report, "update_counts", lambda run: (200, 199, 1))
+    runs = [SimpleNamespace(run=None, scenario="S8", seed=0)]
+    assert commands._report_skipped(runs) == 1
+    _error_line(capsys.readouterr().err, "S8 seed 0 (199 of 200): most updates were not used", "--allow-gaps")
+    assert commands._report_skipped(runs, allow_gaps=True) == 0
+    assert "199 of 200 updates were not used" in capsys.readouterr().out

@@ -237,17 +237,20 @@ def _report_unconverged(results) -> None:
                   f"exceeds {UNCONVERGED_3SIGMA_M:g} m (declared_unconverged in results.json)")
 
 
-def _report_skipped(results) -> int:
+def _report_skipped(results, allow_gaps: bool = False) -> int:
     """A line for every run in which updates were skipped; 1 (after an error line) when a run used none of its
-    updates (it navigated nothing: INS only), else 0."""
+    updates (it navigated nothing: INS only), or (unless ``allow_gaps``) fewer than half of them (199 of 200 skipped
+    over a DEM with data on a strip only had been exit 0 with a note), else 0."""
     from warptan.sim.report import update_counts
 
-    blind = []
+    blind, mostly = [], []
     for r in results:
         updates, skipped, used = update_counts(r.run)
         label = f"{r.scenario} seed {r.seed}"
         if used == 0 and updates > 0:
             blind.append(label)
+        elif 2 * used < updates and not allow_gaps:
+            mostly.append(f"{label} ({updates - used} of {updates})")
         elif used < updates:
             print(f"warptan: note: {label}: {updates - used} of {updates} updates were not used ({skipped} skipped: "
                   f"the map could not predict the scan; {updates - skipped - used} without a valid measurement)")
@@ -255,6 +258,11 @@ def _report_skipped(results) -> int:
         print(f"warptan: error: {', '.join(blind)}: every update was skipped (no valid measurement, or the map does "
               "not cover the scans): the run navigated nothing (INS only); results were written, marked "
               "updates_used = 0 in results.json", file=sys.stderr)
+        return 1
+    if mostly:
+        print(f"warptan: error: {', '.join(mostly)}: most updates were not used (no valid measurement, or the map "
+              "does not cover the scans): the run navigated mostly on its INS; results were written, with their "
+              "update counts in results.json (replay --allow-gaps accepts a flight over gaps)", file=sys.stderr)
         return 1
     return 0
 
@@ -427,7 +435,7 @@ def _replay(args) -> int:
         print("(the log has no truth: errors are undefined; results.json holds the estimate and its 3σ)")
     print("wrote " + ", ".join(written["files"]))
     _report_unconverged([result])
-    return _report_skipped([result])
+    return _report_skipped([result], allow_gaps=args.allow_gaps)
 
 
 def _learn_arg(value: str | None):
