@@ -461,3 +461,32 @@ def test_a_run_that_used_fewer_than_half_its_updates_is_an_error_unless_gaps_are
     _error_line(capsys.readouterr().err, "S8 seed 0 (199 of 200): most updates were not used", "--allow-gaps")
     assert commands._report_skipped(runs, allow_gaps=True) == 0
     assert "199 of 200 updates were not used" in capsys.readouterr().out
+
+
+def test_log_export_is_whole_or_nothing_and_names_its_problem(capsys, a_log, tmp_path):
+    """`log export --out` onto a file: a raw "[Errno 20]"; under `ulimit -f`: a raw "[Errno 27]", a truncated
+    scans.csv and no layout.toml."""
+    (tmp_path / "afile").write_text("mine")
+    status, _, err = _cli(capsys, "log", "export", a_log, "--out", tmp_path / "afile")
+    assert status == 2
+    _error_line(err, "afile", "is a file")
+    assert (tmp_path / "afile").read_text() == "mine"
+    proc = _warptan(tmp_path, "log", "export", a_log, "--out", tmp_path / "tables", limit=20000)
+    assert proc.returncode == 2, proc.stderr[-2000:]
+    _error_line(proc.stderr, f"--out {tmp_path / 'tables'}", "failed: File too large", "nothing was written")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["afile"]
+
+
+def test_two_writers_of_one_log_never_replace_each_other(a_log, tmp_path):
+    """Two `log import --out x.h5` at once: both failed raw, and the loser's clean-up deleted the winner's partial
+    file. Each writer has its own partial file; an exclusive write never replaces what another wrote."""
+    from warptan.io.flightlog import read_log, write_log
+
+    log = read_log(a_log)
+    target = tmp_path / "x.h5"
+    target.write_bytes(b"the winner's log")
+    with pytest.raises(FileExistsError):
+        write_log(log, target, exclusive=True)
+    assert target.read_bytes() == b"the winner's log" and sorted(p.name for p in tmp_path.iterdir()) == ["x.h5"]
+    write_log(log, tmp_path / "y.h5", exclusive=True)
+    assert read_log(tmp_path / "y.h5").imu_f.shape == log.imu_f.shape

@@ -21,14 +21,13 @@ from warptan.cli.args import (
 )
 from warptan.cli.commands import (
     _campaign,
-    _log_export,
-    _log_import,
     _replay,
     _run,
     _stated_accuracy,
     _terrain_export,
     _terrain_info,
 )
+from warptan.cli.logs import _log_export, _log_import
 
 __all__ = ["DEFAULT_TERRAIN", "Terminated", "build_parser", "count_arg", "main", "number_arg", "script_inputs",
            "seed_arg"]

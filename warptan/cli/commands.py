@@ -5,7 +5,6 @@ from __future__ import annotations
 import json
 import os
 import sys
-from pathlib import Path
 
 from warptan.cli.args import number_arg
 from warptan.progress import progress_bar
@@ -56,7 +55,7 @@ def _information(args) -> int:
     from warptan.terrain.raster import TerrainError
 
     outs = [check_export_path(o, args.overwrite, (".png", ".tif", ".tiff"), "information map",
-                              inputs=(args.terrain, args.sensor)) for o in args.out]
+                              inputs=_input_files([args.terrain, args.sensor])) for o in args.out]
     if len({os.path.realpath(o) for o in outs}) < len(outs):
         raise TerrainError(f"--out names one file twice ({', '.join(outs)}); nothing was written")
     scenario = load_config(args.sensor)
@@ -103,7 +102,7 @@ def _terrain_export(args) -> int:
     from warptan.terrain.grid import Terrain
     from warptan.terrain.meshfile import check_export_path
 
-    check_export_path(args.out, args.overwrite, inputs=(args.terrain,))  # before the DEM is loaded
+    check_export_path(args.out, args.overwrite, inputs=_input_files([args.terrain]))  # before the DEM is loaded
     terrain = Terrain.load(args.terrain, spacing=args.spacing)
     terrain.export(args.out, frame=args.frame, overwrite=args.overwrite)
     print(f"wrote {args.out} ({terrain.shape[0]}×{terrain.shape[1]} posts, {args.frame.upper()} frame)")
@@ -466,38 +465,6 @@ def _bag_folder(path: str) -> str | None:
     if path.endswith((".db3", ".mcap")) and os.path.isfile(os.path.join(os.path.dirname(path) or ".", "metadata.yaml")):
         return os.path.dirname(os.path.abspath(path))
     return None
-
-
-def _log_import(args) -> int:
-    from warptan.io.flightlog import LogError, write_log
-    from warptan.io.logcsv import read_tables
-    from warptan.outputs import write_failure
-
-    out = Path(args.out)
-    if out.exists():
-        raise LogError(f"--out {out}", ["exists; remove it or choose another name"])
-    log = read_tables(args.layout)
-    try:
-        write_log(log, out)
-    except OSError as err:
-        raise LogError(f"--out {out}", [f"writing it failed: {write_failure(err)}; nothing was written"]) from None
-    f = log.frame
-    print(f"wrote {out}: {len(log.imu_t)} IMU samples, {len(log.scan_t) if log.has_scans else 0} scans, "
-          f"{len(log.alt_t) if log.has_altimeter else 0} altimeter readings; frame origin lat {f.origin_lat_deg:.6f}°, "
-          f"lon {f.origin_lon_deg:.6f}° (datum {f.vertical_datum or 'not stated'})")
-    return 0
-
-
-def _log_export(args) -> int:
-    from warptan.io.flightlog import LogError, read_log
-    from warptan.io.logcsv import write_tables
-
-    out = Path(args.out)
-    if out.exists() and any(out.iterdir()):
-        raise LogError(f"--out {out}", ["is not empty; choose a new folder"])
-    layout = write_tables(read_log(args.log), out)
-    print(f"wrote {layout} and its tables in {out}")
-    return 0
 
 
 def _load_flight(args):

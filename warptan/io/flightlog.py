@@ -47,6 +47,7 @@ from __future__ import annotations
 
 import json
 import os
+import uuid
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -358,26 +359,32 @@ def _read_frame(attrs, source: str) -> GeoFrame | None:
     return GeoFrame(*values, text(attrs["vertical_datum"]))
 
 
-def write_log(log: FlightLog, path: str | os.PathLike) -> Path:
+def write_log(log: FlightLog, path: str | os.PathLike, exclusive: bool = False) -> Path:
     """Write ``log`` to ``path`` (HDF5), validated first. The file is built in memory and then written beside the
     target and renamed into place: a write that fails (a full disk, a file size limit) is an ``OSError`` naming
     ``path``, with nothing left there and a previous file of that name as it was. (Written by the HDF5 library
     itself, a failed write left it in a state whose clean-up crashed the process: dozens of ignored exceptions, then
-    a segmentation fault.)"""
+    a segmentation fault.) ``exclusive``: a file that exists at ``path`` when the new one is complete is never
+    replaced (``FileExistsError``): two writers of one name, the loser's work is dropped, the winner's kept."""
     import io
 
     import h5py
 
     path = Path(path)
     log.validate(f"flight log {path}")
-    tmp = path.with_name(f".{path.name}.partial")
+    tmp = path.with_name(f".{path.name}.partial-{uuid.uuid4().hex[:8]}")  # (one per writer: two had shared one)
     buffer = io.BytesIO()
     with h5py.File(buffer, "w") as f:
         _write_hdf5(log, f)
     try:
         with open(tmp, "wb") as out:
             out.write(buffer.getbuffer())
-        os.replace(tmp, path)
+        if exclusive:
+            os.link(tmp, path)  # (fails if the name exists: never replaces)
+        else:
+            os.replace(tmp, path)
+    except FileExistsError:
+        raise
     except OSError as err:
         raise OSError(err.errno, err.strerror or str(err), str(path)) from None
     finally:

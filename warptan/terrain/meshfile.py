@@ -19,15 +19,12 @@ def check_export_path(path: str | os.PathLike, overwrite: bool = False, formats:
                       what: str = "mesh", inputs: tuple = ()) -> str:
     """``path`` as text when a ``what`` file (one of ``formats``; default :meth:`~warptan.terrain.grid.Terrain.
     export`'s meshes) may be written there (a known format, an existing folder, not an existing file unless
-    ``overwrite``, never one of ``inputs``: terrain specs or paths the command reads, whatever ``overwrite`` says),
-    else a TerrainError naming the problem."""
-    from warptan.terrain.grid import terrain_source_file
-
+    ``overwrite``, never one of ``inputs``: the files the command reads, whatever ``overwrite`` says), else a
+    TerrainError naming the problem."""
     path = os.fspath(path)
-    for spec in inputs:
-        source = terrain_source_file(spec)
-        if source is not None and os.path.lexists(path) and os.path.samefile(path, source):
-            raise TerrainError(f"{path} is the input {spec}; nothing was written (--overwrite never replaces an "
+    for source in inputs:
+        if source is not None and os.path.lexists(path) and os.path.exists(source) and os.path.samefile(path, source):
+            raise TerrainError(f"{path} is the input {source}; nothing was written (--overwrite never replaces an "
                                "input: give another file name)")
     ext = os.path.splitext(path)[1].lower()
     if ext not in formats:
