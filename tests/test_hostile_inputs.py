@@ -490,3 +490,23 @@ def test_two_writers_of_one_log_never_replace_each_other(a_log, tmp_path):
     assert target.read_bytes() == b"the winner's log" and sorted(p.name for p in tmp_path.iterdir()) == ["x.h5"]
     write_log(log, tmp_path / "y.h5", exclusive=True)
     assert read_log(tmp_path / "y.h5").imu_f.shape == log.imu_f.shape
+
+
+def test_a_log_declaring_more_samples_than_memory_is_refused_before_reading(a_log, tmp_path):
+    """A 175 kB log whose IMU datasets declare 400 M samples was read whole (6.8 GB) before the refusal."""
+    import shutil
+
+    import h5py
+
+    from warptan.checks import host_memory_available
+    from warptan.io.flightlog import LogError, read_log
+
+    big = tmp_path / "big.h5"
+    shutil.copy(a_log, big)
+    samples = int(host_memory_available() / 8 / 3)  # (three columns: the memory it has, declared, never written)
+    with h5py.File(big, "r+") as f:
+        del f["imu"]["f_b"]
+        f["imu"].create_dataset("f_b", shape=(samples, 3), dtype="f8", chunks=(65536, 3), compression="gzip")
+    assert big.stat().st_size < 5_000_000
+    with pytest.raises(LogError, match=r"its datasets declare .* GB of samples but .* GB of memory is available"):
+        read_log(big)

@@ -53,7 +53,7 @@ from pathlib import Path
 
 import numpy as np
 
-from warptan.checks import FilterError
+from warptan.checks import FilterError, host_memory_available
 from warptan.nav.geoframe import GeoFrame
 from warptan.nav.imu import IMU_GRADES, imu_grade
 
@@ -447,6 +447,11 @@ def read_log(path: str | os.PathLike) -> FlightLog:
         problems = [f"group /{g} is missing" for g in _REQUIRED + (("frame",) if version >= 2 else ()) if g not in f]
         if problems:
             raise LogError(source, problems)
+        need = sum(8.0 * f[g][ds].size for g, items in _LAYOUT.items() if g in f for ds, _ in items if ds in f[g])
+        have = host_memory_available()
+        if need > 0.5 * have:  # (from the datasets' shapes: a 175 kB log declaring 400 M samples was read whole)
+            raise LogError(source, [f"its datasets declare {need / 1e9:.3g} GB of samples but {have / 1e9:.3g} GB of "
+                                    "memory is available; cut the log into shorter flights"])
         kw: dict = {"name": str(f.attrs.get("name", path.stem)), "version": version}
         if version >= 2:
             kw["frame"] = _read_frame(f["frame"].attrs, source)
