@@ -305,9 +305,11 @@ def test_a_replaced_folder_keeps_its_mode(tmp_path):
         os.chmod(out, 0o755)
 
 
-@pytest.mark.parametrize("spec, fragment", [("synthetic:rugged,seed=-1", "option seed = -1 must be a whole number"),
-                                            ("synthetic:rugged,size_m=0", "option size_m = 0 must be a positive"),
-                                            ("synthetic:flat,spacing=nan", "option spacing = nan must be a positive")])
+@pytest.mark.parametrize("spec, fragment", [
+    ("synthetic:rugged,seed=-1", "option seed must be a whole number ≥ 0, got -1"),
+    ("synthetic:rugged,size_m=0", "option size_m must be a positive"),
+    ("synthetic:flat,spacing=nan", "option spacing must be a positive"),
+])
 def test_a_synthetic_spec_names_its_bad_option(capsys, spec, fragment):
     """`synthetic:rugged,seed=-1` said "expected non-negative integer", naming nothing."""
     status, _, err = _cli(capsys, "terrain", "info", spec)

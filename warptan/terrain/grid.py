@@ -295,8 +295,9 @@ class Terrain:
                     raise TerrainError(f"{text}: option {key} needs a number, got {value!r}") from None
                 number = kwargs[key]
                 if not (math.isfinite(number) and (number >= 0 if key == "seed" else number > 0)):
-                    raise TerrainError(f"{text}: option {key} = {value} must be " +
-                                       ("a whole number ≥ 0" if key == "seed" else "a positive number of metres"))
+                    raise TerrainError(f"{text}: option {key} must be " + ("a whole number ≥ 0" if key == "seed" else
+                                                                            "a positive number of metres") +
+                                       f", got {value}")
             if spacing is not None:
                 kwargs["spacing"] = spacing
             return cls.synthetic(kind, **kwargs)
