@@ -512,3 +512,15 @@ def test_a_log_declaring_more_samples_than_memory_is_refused_before_reading(a_lo
     assert big.stat().st_size < 5_000_000
     with pytest.raises(LogError, match=r"its datasets declare .* GB of samples but .* GB of memory is available"):
         read_log(big)
+
+
+def test_a_campaigns_band_path_is_relative_to_the_campaign_file(tmp_path, monkeypatch):
+    """`terrain = "dem.tif#band=1"` in a campaign was not made relative to the campaign file (a plain path was)."""
+    from warptan.sim.campaign import Campaign
+
+    (tmp_path / "c").mkdir()
+    (tmp_path / "c" / "dem.tif").write_bytes(Path(RUGGED_TIF).read_bytes())
+    (tmp_path / "c" / "c.toml").write_text('scenarios = ["S8"]\nseeds = 1\n[overrides]\nterrain = "dem.tif#band=1"\n')
+    monkeypatch.chdir(tmp_path)
+    campaign = Campaign.load(tmp_path / "c" / "c.toml")
+    assert campaign.overrides["terrain"] == f"{(tmp_path / 'c' / 'dem.tif').resolve()}#band=1"

@@ -280,7 +280,9 @@ def _resolve(key: str, value, base: Path):
     """A file name in ``terrain`` or ``map_path`` relative to the campaign file's folder, made absolute (tasks run
     elsewhere); names and specs (``rugged``, ``synthetic:…``) are kept."""
     if key in PATH_KEYWORDS and isinstance(value, str) and value and not Path(value).is_absolute():
-        candidate = base / value
+        head, sep, band = value.rpartition("#band=")
+        file = head if sep else value  # (a raster's band: the file is relative, the suffix kept)
+        candidate = base / file
         if candidate.exists():
-            return str(candidate.resolve())
+            return str(candidate.resolve()) + (f"#band={band}" if sep else "")
     return value
