@@ -524,3 +524,25 @@ def test_a_campaigns_band_path_is_relative_to_the_campaign_file(tmp_path, monkey
     monkeypatch.chdir(tmp_path)
     campaign = Campaign.load(tmp_path / "c" / "c.toml")
     assert campaign.overrides["terrain"] == f"{(tmp_path / 'c' / 'dem.tif').resolve()}#band=1"
+
+
+def test_a_log_names_its_dem_by_absolute_path_and_checksum(capsys, tmp_path, monkeypatch):
+    """A log stored its DEM as the relative path it was given: replayed from another folder it silently read another
+    file of that name. It now stores the absolute path and the file's SHA-256, and a replay checks it."""
+    (tmp_path / "a").mkdir()
+    (tmp_path / "b").mkdir()
+    (tmp_path / "a" / "dem.tif").write_bytes(Path(RUGGED_TIF).read_bytes())
+    (tmp_path / "b" / "dem.tif").write_bytes(b"another file of that name")
+    monkeypatch.chdir(tmp_path / "a")
+    status, _, err = _cli(capsys, "run", "S8", *QUICK, "--terrain", "dem.tif", "--export-log", "L", "--out", "R")
+    assert status == 0, err
+    log = tmp_path / "a" / "L" / "S8_seed0.h5"
+    monkeypatch.chdir(tmp_path / "b")
+    status, _, err = _cli(capsys, "replay", log, "--quiet", "--no-plots", "--out", tmp_path / "b" / "o")
+    assert status == 0, err
+    data = bytearray(Path(RUGGED_TIF).read_bytes())
+    data[len(data) // 2] ^= 1  # the DEM changed since the flight
+    (tmp_path / "a" / "dem.tif").write_bytes(bytes(data))
+    status, _, err = _cli(capsys, "replay", log, "--quiet", "--no-plots", "--out", tmp_path / "b" / "o2")
+    assert status == 2
+    _error_line(err, f"the DEM file {tmp_path / 'a' / 'dem.tif'} it names is not the one it was recorded over")

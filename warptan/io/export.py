@@ -4,6 +4,8 @@
 from __future__ import annotations
 
 import dataclasses
+import hashlib
+from pathlib import Path
 
 import numpy as np
 
@@ -14,6 +16,29 @@ from warptan.nav.imu import imu_grade
 from warptan.sensing.likelihood import Likelihood
 
 
+def dem_reference(spec) -> tuple[str, str | None]:
+    """(the spec a log names its DEM by, the SHA-256 of its file): a DEM file's path made absolute (its ``#band=N``
+    kept) with its checksum; a named or synthetic terrain as it is, without one. A relative path had been stored as
+    given, so a replay from another folder read another file of that name."""
+    from warptan.terrain.grid import NAMED_TERRAINS, terrain_source_file
+
+    text = str(spec)
+    file = terrain_source_file(text)
+    if file is None or text in NAMED_TERRAINS:
+        return text, None
+    _, sep, band = text.rpartition("#band=")
+    return str(Path(file).resolve()) + (f"#band={band}" if sep and not Path(text).exists() else ""), file_sha256(file)
+
+
+def file_sha256(path) -> str:
+    """The SHA-256 of a file's bytes, hex."""
+    digest = hashlib.sha256()
+    with open(path, "rb") as f:
+        for chunk in iter(lambda: f.read(1 << 20), b""):
+            digest.update(chunk)
+    return digest.hexdigest()
+
+
 def logs_from_record(record: dict, flight, config: dict, likelihood: Likelihood, total_seeds: list[int],
                      seeds: list[int], terrain_spec: str, terrain=None) -> list[FlightLog]:
     """One :class:`FlightLog` per seed of a simulated batch (``run_filter(record=...)``): the IMU samples, scans or
@@ -22,6 +47,7 @@ def logs_from_record(record: dict, flight, config: dict, likelihood: Likelihood,
     origin (:class:`~warptan.nav.geoframe.GeoFrame`; positions, velocities and attitudes converted into it when the
     DEM's grid is not that tangent frame, e.g. a UTM DEM); without one, the DEM's grid (kind dem-grid)."""
     ie, s = config["initial_error"], config["sensor"]
+    terrain_spec, dem_sha256 = dem_reference(terrain_spec)
     geo = GeoFrame.of_terrain(terrain) if terrain is not None else None
     change = None if geo is None else frame_change(terrain, geo, corners(flight.pos_n))
     dem = getattr(terrain, "base", None) or terrain  # a World's: the DEM it was made from, the one the log names
@@ -48,7 +74,8 @@ def logs_from_record(record: dict, flight, config: dict, likelihood: Likelihood,
             kw.update(scan_t=t_meas, scan_dirs=np.array([m.dirs_s for m in meas]), scan_ranges=ranges,
                       scan_valid=np.isfinite(ranges), range_sigma_m=s["range_sigma_m"])
         settings = {"config": config, "likelihood": dataclasses.asdict(likelihood), "seed": int(total),
-                    "scenario_seed": int(seed), "terrain_spec": terrain_spec}
+                    "scenario_seed": int(seed), "terrain_spec": terrain_spec,
+                    **({"dem_sha256": dem_sha256} if dem_sha256 else {})}
         log = FlightLog(
             imu_t=t_imu, imu_f=record["f"][:, b], imu_w=record["w"][:, b], imu_rate_hz=float(flight.rate_hz),
             imu_grade=str(config["imu"]["grade"]), t_end=float(flight.t_s[k_total]), init_t=float(t_imu[0]),

@@ -313,6 +313,17 @@ def replay_terrain(log: FlightLog, scenario: Scenario, terrain=None):
     spec = terrain if terrain is not None else (log.settings.get("terrain_spec") or log.dem_reference or None)
     if spec is None:
         raise LogError(f"flight log {log.name}", ["no DEM: the log names none (dem.reference); give --terrain"])
+    recorded = log.settings.get("dem_sha256")
+    if terrain is None and recorded:  # the file the log names must be the one it was recorded over
+        from warptan.io.export import file_sha256
+        from warptan.terrain.grid import terrain_source_file
+
+        file = terrain_source_file(spec)
+        if file is None:
+            raise LogError(f"flight log {log.name}", [f"its DEM {spec} is not there; give --terrain"])
+        if file_sha256(file) != recorded:
+            raise LogError(f"flight log {log.name}", [f"the DEM file {file} it names is not the one it was recorded "
+                                                      "over (its SHA-256 differs); give the right one with --terrain"])
     posts = None
     if log.dem_posts is not None and log.frame is not None and not own_terrain(log, terrain):
         posts = (log.frame.crs_wkt, (0.0, 0.0), tuple(float(v) for v in log.dem_posts))
