@@ -546,3 +546,29 @@ def test_a_log_names_its_dem_by_absolute_path_and_checksum(capsys, tmp_path, mon
     status, _, err = _cli(capsys, "replay", log, "--quiet", "--no-plots", "--out", tmp_path / "b" / "o2")
     assert status == 2
     _error_line(err, f"the DEM file {tmp_path / 'a' / 'dem.tif'} it names is not the one it was recorded over")
+
+
+def test_a_geographic_giant_is_refused_before_reading_and_a_headless_tiff_is_called_damaged(tmp_path):
+    """A sparse geographic GeoTIFF of 144 M posts was read whole (3.2 GB, 16 s) before a refusal saying "spacing
+    None m"; a GeoTIFF cut in half whose header was at its end was "not a raster"."""
+    import time
+
+    import rasterio
+    from rasterio.transform import Affine
+
+    import warptan as wt
+
+    path = tmp_path / "sparse_geo.tif"
+    with rasterio.open(path, "w", driver="GTiff", width=12000, height=12000, count=1, dtype="float32",
+                       crs="EPSG:4326", transform=Affine(1 / 1200, 0, 10.0, 0, -1 / 1200, 51.0), tiled=True,
+                       SPARSE_OK=True) as dst:
+        dst.write(np.ones((256, 256), "float32"), 1, window=rasterio.windows.Window(0, 0, 256, 256))
+    t0 = time.monotonic()
+    with pytest.raises(wt.TerrainError, match=r"144000000 posts \(limit 60000000 at native resolution\)"):
+        wt.Terrain.load(str(path))
+    assert time.monotonic() - t0 < 10
+    data = Path(RUGGED_TIF).read_bytes()
+    cut = tmp_path / "cut.tif"
+    cut.write_bytes(data[:8] + b"\0" * 8)  # the TIFF magic, its first directory's offset past the end
+    with pytest.raises(wt.TerrainError, match=r"cut\.tif: a TIFF file GDAL cannot open: truncated or damaged"):
+        wt.Terrain.load(str(cut))

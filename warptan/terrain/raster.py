@@ -259,6 +259,8 @@ def _read_open(path: str, spacing, frame, opener, errors, band: int | None = Non
     try:
         src = opener(path)
     except errors as err:
+        if _is_tiff(path):  # (a GeoTIFF cut before its header, which a writer may put at the end)
+            raise TerrainError(f"{path}: a TIFF file GDAL cannot open: truncated or damaged ({err})") from None
         raise TerrainError(f"{path}: not a raster that rasterio/GDAL can read ({err})") from None
     with src:
         if src.count < 1:
@@ -276,11 +278,13 @@ def _read_open(path: str, spacing, frame, opener, errors, band: int | None = Non
         height_factor, wrong = height_unit_factor(src, band)
         if wrong:
             raise TerrainError(f"{path}: {wrong}")
-        limit = MAX_POSTS if native else MAX_SOURCE_POSTS  # read at native resolution, the grid is the raster
+        # read at native resolution, the grid is the raster; reprojected at native resolution, about as many posts
+        at_native = native or (spacing is None and frame is None)
+        limit = MAX_POSTS if at_native else MAX_SOURCE_POSTS
         if src.width * src.height > limit:
             raise TerrainError(f"{path}: raster is {src.height}×{src.width} = {src.width * src.height} posts (limit "
-                               f"{limit}{' at native resolution' if native else ''}); crop it first (gdal_translate "
-                               "-projwin)" + ("" if not native else " or give a coarser spacing"))
+                               f"{limit}{' at native resolution' if at_native else ''}); crop it first "
+                               "(gdal_translate -projwin)" + (" or give a coarser spacing" if at_native else ""))
         need = READ_BYTES_PER_POST * src.width * src.height
         have = host_memory_available()
         if need > 0.9 * have:
@@ -311,6 +315,16 @@ def _read_open(path: str, spacing, frame, opener, errors, band: int | None = Non
     if frame is None and metric and north_up and spacing is None:
         return _native_grid(data, crs, transform, path)
     return _reprojected_grid(data, crs, transform, bounds, spacing, path, frame, posts)
+
+
+def _is_tiff(path: str) -> bool:
+    """The file starts as a TIFF does (little- or big-endian, classic or BigTIFF)."""
+    try:
+        with open(path, "rb") as f:
+            head = f.read(4)
+    except OSError:
+        return False
+    return head in (b"II*\x00", b"MM\x00*", b"II+\x00", b"MM\x00+")
 
 
 def _band(src, band: int | None, path: str) -> int:
@@ -419,10 +433,9 @@ def _reprojected_grid(data, crs, transform, bounds, spacing, path, frame=None, p
     if out_rows < 2 or out_cols < 2:
         raise TerrainError(f"{path}: spacing {spacing} m leaves fewer than 2×2 posts")
     if out_rows * out_cols > MAX_POSTS:
-        raise TerrainError(
-            f"{path}: spacing {spacing} m would make {out_rows}×{out_cols} posts (limit {MAX_POSTS}); "
-            "use a larger spacing"
-        )
+        at = "its native resolution" if spacing is None else f"spacing {spacing} m"  # (it said "spacing None m")
+        raise TerrainError(f"{path}: reprojected at {at} it would make {out_rows}×{out_cols} posts (limit "
+                           f"{MAX_POSTS}); give a larger spacing or crop it first")
     dst_transform = from_origin(left, top, de, dn)
 
     heights = np.full((out_rows, out_cols), np.nan, dtype=np.float32)
