@@ -572,3 +572,21 @@ def test_a_geographic_giant_is_refused_before_reading_and_a_headless_tiff_is_cal
     cut.write_bytes(data[:8] + b"\0" * 8)  # the TIFF magic, its first directory's offset past the end
     with pytest.raises(wt.TerrainError, match=r"cut\.tif: a TIFF file GDAL cannot open: truncated or damaged"):
         wt.Terrain.load(str(cut))
+
+
+@pytest.mark.parametrize("line, fragment", [
+    ("vel_ned = [1.0, 2.0]", "[initial] vel_ned = [1.0, 2.0] must be a list of 3 finite numbers"),
+    ('mount_quat_bs = "x"', "mount_quat_bs = 'x' must be a list of 4 finite numbers"),
+])
+def test_a_layouts_vectors_are_named_when_wrong(a_log, tmp_path, line, fragment):
+    """"cannot reshape array of size 2 into shape (3)" and "could not convert string to float: 'x'" named nothing."""
+    from warptan.io.flightlog import LogError, read_log
+    from warptan.io.logcsv import read_tables, write_tables
+
+    layout = write_tables(read_log(a_log), tmp_path / "tables")
+    key = line.split(" =")[0]
+    layout.write_text("\n".join(line if ln.startswith(f"{key} =") else ln
+                                for ln in layout.read_text().splitlines()) + "\n")
+    with pytest.raises(LogError) as err:
+        read_tables(layout)
+    assert fragment in str(err.value)

@@ -283,6 +283,15 @@ def read_tables(layout: str | os.PathLike) -> FlightLog:
             problems.append(f"[{table}] table is missing")
     if "scans" not in spec and "altimeter" not in spec:
         problems.append("neither [scans] nor [altimeter]: nothing to navigate with")
+    vectors = [("mount_quat_bs", spec, 4), ("mount_lever_b", spec, 3), ("initial_sigma", spec, 15)]
+    if isinstance(spec.get("initial"), dict):
+        vectors += [(f"[initial] {k}", spec["initial"], 3) for k in ("vel_ned", "accel_bias", "gyro_bias")]
+    for name, table, size in vectors:  # ("cannot reshape array of size 2 into shape (3)" named nothing)
+        key = name.split()[-1]
+        value = table.get(key)
+        if value is not None and not (isinstance(value, list) and len(value) == size and all(
+                isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in value)):
+            problems.append(f"{name} = {value!r} must be a list of {size} finite numbers")
     if problems:
         raise LogError(source, problems)
     data = {t: _read_csv(path, t, spec[t], problems) for t in TABLES if t in spec}
