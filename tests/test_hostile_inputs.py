@@ -421,7 +421,7 @@ def _edit_tables(folder: Path, how: str) -> None:
     ("gps-jump", "[gps] a jump of 111 km in 0.01 s"),
     ("gps-radians", "km from the first GPS fix"),
     ("scans-after-imu", "[scans] 500 of its 500 rows lie outside the IMU's time span"),
-    ("rate", "imu_rate_hz = 1e+12 Hz, but the [imu] samples are 100 Hz apart"),
+    ("rate", "imu.rate_hz = 1e+12 Hz, but the samples are 100 Hz apart"),
     ("fifty", "[initial] roll_deg = 'fifty' is not a number"),
     ("settings", "settings_json must be a JSON object"),
 ])

@@ -298,13 +298,11 @@ def _check_effective(args, scenario) -> None:
 
 def _size_words(scenario, seeds: int) -> str:
     """What a run of ``seeds`` seeds holds and evaluates (checked against memory before work)."""
-    from warptan.sim.scenario_config import format_bytes, memory_estimate
+    from warptan.sim.scenario_config import format_bytes, memory_estimate, scan_points
 
-    s = scenario.sensor
-    points = 1 if s.model == "altimeter" else s.scan_nx * s.scan_ny
-    updates = round(scenario.flight.duration_s * s.rate_hz) * seeds
+    updates = round(scenario.flight.duration_s * scenario.sensor.rate_hz) * seeds
     need = memory_estimate(scenario, seeds)
-    return (f"{updates} updates × {scenario.filter.particles} particles × {points} point(s), about "
+    return (f"{updates} updates × {scenario.filter.particles} particles × {scan_points(scenario)} point(s), about "
             f"{format_bytes(need['host'])} of host memory")
 
 

@@ -234,6 +234,10 @@ def _problems(log: FlightLog) -> list[str]:
             p.append(f"imu.t_end = {log.t_end!r} s must be after the last sample (t = {float(log.imu_t[-1])!r} s)")
         else:
             steps = log.step_s
+            median = float(np.median(steps))
+            if np.isfinite(log.imu_rate_hz) and log.imu_rate_hz > 0 and abs(log.imu_rate_hz * median - 1.0) > 0.01:
+                p.append(f"imu.rate_hz = {log.imu_rate_hz:g} Hz, but the samples are {1.0 / median:.6g} Hz apart (the "
+                         "median step; a rate of 1e12 Hz over 100 Hz samples had been taken)")
             gap = steps > MAX_GAP_S
             if gap.any():
                 i = int(np.argmax(gap))

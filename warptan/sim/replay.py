@@ -168,12 +168,11 @@ def replay_config(log: FlightLog, model: str | None = None, backend: str | None 
 def check_replay_memory(log: FlightLog, scenario: Scenario, device) -> None:
     """Refuse (FilterError) a replay whose particles' arrays exceed what ``device`` has (as a run is checked before
     work; 10⁹ particles were a raw allocation error)."""
-    from warptan.sim.scenario_config import MEMORY_FRACTION, available_memory, format_bytes
+    from warptan.sim.scenario_config import MEMORY_FRACTION, available_memory, format_bytes, particle_bytes
 
     s = scenario.sensor
     points = 1 if s.model == "altimeter" or not log.has_scans else int(np.shape(log.scan_ranges)[-1])
-    per_point = 4.0 + (12.0 if s.model == "raycast" else 0.0)
-    need = float(scenario.filter.particles) * (1024.0 + per_point * points)
+    need = particle_bytes(scenario.filter.particles, points, s.model)
     have = available_memory(device if device is not None else "cpu")["device"]
     if need > MEMORY_FRACTION * have:
         raise FilterError(f"{scenario.filter.particles} particles × {points} point(s) need about {format_bytes(need)} "

@@ -272,17 +272,28 @@ def check_seeds(seeds, base: int = 0) -> list[int]:
     return out
 
 
+def scan_points(scenario: Scenario) -> int:
+    """Points of one of the scenario's measurements (``scan_nx × scan_ny``; 1 for the altimeter)."""
+    s = scenario.sensor
+    return 1 if s.model == "altimeter" else int(s.scan_nx) * int(s.scan_ny)
+
+
+def particle_bytes(particles: float, points: int, model: str) -> float:
+    """Device bytes of ``particles`` particles evaluating ``points`` points each, about (the particles' state, the
+    model's residuals and, for ray casts, hit normals)."""
+    per_point = 4.0 + (12.0 if model == "raycast" else 0.0)
+    return float(particles) * (1024.0 + per_point * points)
+
+
 def memory_estimate(scenario: Scenario, n_seeds: int) -> dict[str, float]:
     """Bytes a run of ``n_seeds`` seeds needs, about: ``host`` (the flight, each seed's IMU samples and scans, the
-    histories) and ``device`` (particles, and the model's per-particle × per-point arrays)."""
+    histories) and ``device`` (:func:`particle_bytes`, and each seed's scan)."""
     s = scenario.sensor
     samples = scenario.flight.duration_s * scenario.imu.rate_hz
     epochs = scenario.flight.duration_s * s.rate_hz
-    points = 1.0 if s.model == "altimeter" else float(s.scan_nx) * float(s.scan_ny)
-    particles = float(scenario.filter.particles) * n_seeds
-    per_point = 4.0 + (12.0 if s.model == "raycast" else 0.0)  # residual (+ hit normal)
+    points = scan_points(scenario)
     host = samples * (400.0 + 64.0 * n_seeds) + epochs * n_seeds * 2048.0 + points * (200.0 + 64.0 * n_seeds)
-    device = particles * (1024.0 + per_point * points) + points * n_seeds * 64.0
+    device = particle_bytes(float(scenario.filter.particles) * n_seeds, points, s.model) + points * n_seeds * 64.0
     return {"host": host, "device": device}
 
 
@@ -305,8 +316,8 @@ def check_memory(scenario: Scenario, n_seeds: int, device="cpu") -> None:
     """Refuse (ScenarioError) a scan of more than :data:`MAX_SCAN_POINTS` points and a run whose
     :func:`memory_estimate` exceeds :data:`MEMORY_FRACTION` of what is available, before anything is allocated."""
     s = scenario.sensor
-    if s.model != "altimeter" and s.scan_nx * s.scan_ny > MAX_SCAN_POINTS:
-        raise ScenarioError(f"scenario {scenario.id}: a scan of {s.scan_nx}×{s.scan_ny} = {s.scan_nx * s.scan_ny} "
+    if scan_points(scenario) > MAX_SCAN_POINTS:
+        raise ScenarioError(f"scenario {scenario.id}: a scan of {s.scan_nx}×{s.scan_ny} = {scan_points(scenario)} "
                             f"points (sensor.scan_nx × scan_ny) is more than {MAX_SCAN_POINTS} per scan; every "
                             "particle evaluates every point: use fewer")
     need, have = memory_estimate(scenario, n_seeds), available_memory(device)

@@ -28,7 +28,15 @@ import warp as wp
 from warptan.checks import LOCAL_FRAME_M
 from warptan.device import resolve_device
 from warptan.kernels import terrain as kterrain
-from warptan.terrain.raster import TerrainError, check_spacing, latlon_to_projected, projected_to_latlon, read_raster
+from warptan.terrain.raster import (
+    MAX_POSTS,
+    TerrainError,
+    check_read_memory,
+    check_spacing,
+    latlon_to_projected,
+    projected_to_latlon,
+    read_raster,
+)
 
 NAMED_TERRAINS = {
     "rugged": "thuringia_hilly_srtm3_crop44km.tif",
@@ -77,25 +85,18 @@ def _check_npz_size(path) -> None:
     memory available, from the array's header (before it is decompressed: a 945 kB file held 81 M posts, 5.4 GB)."""
     import zipfile
 
-    from warptan.checks import host_memory_available
-    from warptan.terrain.raster import MAX_POSTS
-
     try:
         with zipfile.ZipFile(path) as archive, archive.open("heights_m.npy") as f:
             version = np.lib.format.read_magic(f)
             read = np.lib.format.read_array_header_1_0 if version == (1, 0) else np.lib.format.read_array_header_2_0
-            shape, _, dtype = read(f)
+            shape, _, _ = read(f)
     except (KeyError, ValueError, OSError, zipfile.BadZipFile) as err:
         raise TerrainError(f"{path}: not a terrain saved by Terrain.save_npz ({err})") from None
     posts = int(np.prod(shape)) if len(shape) else 1
     if len(shape) != 2 or posts > MAX_POSTS:
         raise TerrainError(f"{path}: heights of shape {shape} ({posts} posts; a DEM is 2-D, at most {MAX_POSTS} "
                            "posts); crop or coarsen it first")
-    need = 4.0 * posts * max(np.dtype(dtype).itemsize, 8)  # (read, as float64, and the grid's copies)
-    have = host_memory_available()
-    if need > 0.9 * have:
-        raise TerrainError(f"{path}: its {shape[0]}×{shape[1]} posts need about {need / 1e9:.2g} GB of memory but "
-                           f"{have / 1e9:.2g} GB is available; crop or coarsen it first")
+    check_read_memory(path, shape[0], shape[1], "crop or coarsen it first")
 
 
 def terrain_source_file(spec) -> Path | None:

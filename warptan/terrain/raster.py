@@ -32,7 +32,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from warptan.checks import check_positive, host_memory_available
-from warptan.terrain.units import height_unit_factor, metre_grid
+from warptan.terrain.units import height_unit_factor, metre_grid, raster_centre
 
 MAX_POSTS = 60_000_000
 """Largest grid (posts) a load may produce; beyond it the requested spacing is almost surely a mistake."""
@@ -285,12 +285,7 @@ def _read_open(path: str, spacing, frame, opener, errors, band: int | None = Non
             raise TerrainError(f"{path}: raster is {src.height}×{src.width} = {src.width * src.height} posts (limit "
                                f"{limit}{' at native resolution' if at_native else ''}); crop it first "
                                "(gdal_translate -projwin)" + (" or give a coarser spacing" if at_native else ""))
-        need = READ_BYTES_PER_POST * src.width * src.height
-        have = host_memory_available()
-        if need > 0.9 * have:
-            raise TerrainError(f"{path}: reading its {src.height}×{src.width} posts needs about {need / 1e9:.2g} GB "
-                               f"of memory but {have / 1e9:.2g} GB is available; crop it first (gdal_translate "
-                               "-projwin)")
+        check_read_memory(path, src.height, src.width, "crop it first (gdal_translate -projwin)")
         try:
             heights = src.read(band, masked=True)
         except errors as err:
@@ -315,6 +310,16 @@ def _read_open(path: str, spacing, frame, opener, errors, band: int | None = Non
     if frame is None and metric and north_up and spacing is None:
         return _native_grid(data, crs, transform, path)
     return _reprojected_grid(data, crs, transform, bounds, spacing, path, frame, posts)
+
+
+def check_read_memory(path, rows: int, cols: int, remedy: str) -> None:
+    """Refuse (TerrainError) reading ``rows × cols`` posts whose :data:`READ_BYTES_PER_POST` exceed 90 % of the
+    host memory available, before anything is read."""
+    need = READ_BYTES_PER_POST * rows * cols
+    have = host_memory_available()
+    if need > 0.9 * have:
+        raise TerrainError(f"{path}: reading its {rows}×{cols} posts needs about {need / 1e9:.2g} GB of memory but "
+                           f"{have / 1e9:.2g} GB is available; {remedy}")
 
 
 def _is_tiff(path: str) -> bool:
@@ -393,8 +398,7 @@ def _reprojected_grid(data, crs, transform, bounds, spacing, path, frame=None, p
 
     rows, cols = data.shape
     # Centre of the raster, in geographic coordinates, is the projection centre and the NED origin.
-    cx = transform.c + transform.a * cols / 2.0 + transform.b * rows / 2.0
-    cy = transform.f + transform.d * cols / 2.0 + transform.e * rows / 2.0
+    cx, cy = raster_centre(transform, cols, rows)
     lon_c, lat_c = (v[0] for v in warp_transform(crs, "EPSG:4326", [cx], [cy]))
     if frame is None:
         dst_crs, origin = tmerc_crs(lat_c, lon_c), (0.0, 0.0)

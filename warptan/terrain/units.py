@@ -16,6 +16,12 @@ is 1.56, and its grid taken as metres made a replay 1 km wrong. Beyond it the ra
 Mercator at its centre, as a geographic one is."""
 
 
+def raster_centre(transform, cols: int, rows: int) -> tuple[float, float]:
+    """The raster's centre in its CRS (``transform`` an affine geotransform)."""
+    return (transform.c + transform.a * cols / 2.0 + transform.b * rows / 2.0,
+            transform.f + transform.d * cols / 2.0 + transform.e * rows / 2.0)
+
+
 def metre_grid(crs, transform, cols: int, rows: int) -> bool:
     """True when the raster's posts are a metric grid as they are: a projected CRS in metres whose scale at the
     raster's centre is within :data:`SCALE_TOLERANCE` of 1."""
@@ -23,8 +29,7 @@ def metre_grid(crs, transform, cols: int, rows: int) -> bool:
         return False
     from rasterio.warp import transform as warp_transform
 
-    cx = transform.c + transform.a * cols / 2.0 + transform.b * rows / 2.0
-    cy = transform.f + transform.d * cols / 2.0 + transform.e * rows / 2.0
+    cx, cy = raster_centre(transform, cols, rows)
     step = 100.0
     lon, lat = warp_transform(crs, "EPSG:4326", [cx, cx + step, cx], [cy, cy, cy + step])
     if not np.all(np.isfinite(lon + lat)):
@@ -38,10 +43,10 @@ def metre_grid(crs, transform, cols: int, rows: int) -> bool:
     return all(abs(k - 1.0) <= SCALE_TOLERANCE for k in scales)
 
 
-_FOOT_UNITS = {"ft": 0.3048, "foot": 0.3048, "feet": 0.3048, "international foot": 0.3048,
-               "us survey foot": 1200.0 / 3937.0, "us-ft": 1200.0 / 3937.0, "ftus": 1200.0 / 3937.0,
-               "us foot": 1200.0 / 3937.0, "foot_us": 1200.0 / 3937.0}
-_METRE_UNITS = {"m", "metre", "meter", "metres", "meters"}
+_HEIGHT_UNITS = {**dict.fromkeys(("m", "metre", "meter", "metres", "meters"), 1.0),
+                 **dict.fromkeys(("ft", "foot", "feet", "international foot"), 0.3048),
+                 **dict.fromkeys(("us survey foot", "us-ft", "ftus", "us foot", "foot us"), 1200.0 / 3937.0)}
+"""Metres per height unit, by the names GDAL and PROJ write (lower case, underscores as spaces)."""
 
 
 def height_unit_factor(src, band: int) -> tuple[float, str | None]:
@@ -58,12 +63,9 @@ def height_unit_factor(src, band: int) -> tuple[float, str | None]:
         if tag.strip():
             stated, whence = tag.strip(), f"band {band}'s unit tag"
     if stated is not None:
-        unit = stated.lower().replace("_", " ").strip()
-        if unit in _METRE_UNITS:
-            return 1.0, None
-        for name, factor in _FOOT_UNITS.items():
-            if unit == name.replace("_", " "):
-                return factor, None
+        factor = _HEIGHT_UNITS.get(stated.lower().replace("_", " ").strip())
+        if factor is not None:
+            return factor, None
         return math.nan, (f"heights in {stated!r} ({whence}); warptan reads heights in metres or feet: convert them "
                           "first (gdal_calc.py)")
     if src.crs is not None and not src.crs.is_geographic and not math.isclose(src.crs.linear_units_factor[1], 1.0):
