@@ -204,6 +204,35 @@ def test_ray_engine_gives_the_local_rows(tmp_path):
 
 
 @pytest.mark.slow
+def test_ray_engine_terminated_cleans_up_as_the_local_engine(tmp_path):
+    """`campaign --engine ray` + SIGTERM: Ray's own handlers (installed by ray.init) printed a C++ stack dump
+    ("*** SIGTERM received ...") and ended with rc 1 or 134; the local engine's clean 143 and its line never came.
+    Now as the local engine: rc 143, one line, no output folder, no Ray worker left."""
+    import signal
+    import time
+
+    pytest.importorskip("ray", reason="the Ray engine needs the cluster extra")
+    (tmp_path / "long.toml").write_text('scenarios = ["S8"]\nseeds = 1\n[overrides]\nduration_s = 240.0\n')
+    code = "import sys; sys.path.pop(0); from warptan.cli import main; sys.exit(main())"
+    err = tmp_path / "err.txt"
+    with open(err, "w") as stderr:
+        proc = subprocess.Popen([sys.executable, "-c", code, "campaign", "long.toml", "--engine", "ray", "--out",
+                                 "o"], cwd=tmp_path, stdout=subprocess.DEVNULL, stderr=stderr)
+        deadline = time.monotonic() + 120
+        while "0/1" not in err.read_text() and proc.poll() is None and time.monotonic() < deadline:
+            time.sleep(0.5)  # (the bar: Ray is up and the task submitted)
+        time.sleep(3.0)
+        proc.send_signal(signal.SIGTERM)
+        rc = proc.wait(timeout=120)
+    text = err.read_text()
+    assert rc == 128 + signal.SIGTERM, text[-3000:]
+    assert "SIGTERM received" not in text and "Traceback" not in text, text[-3000:]
+    assert text.rstrip().splitlines()[-1] == ("warptan: terminated (SIGTERM); the output folder is as it was before "
+                                              "this run")
+    assert not (tmp_path / "o").exists()
+
+
+@pytest.mark.slow
 def test_ray_engine_retries_once_and_keeps_the_other_rows(tmp_path, small_local):
     pytest.importorskip("ray", reason="the Ray engine needs the cluster extra")
     c = Campaign.from_dict(SMALL)

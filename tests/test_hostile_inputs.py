@@ -590,3 +590,79 @@ def test_a_layouts_vectors_are_named_when_wrong(a_log, tmp_path, line, fragment)
     with pytest.raises(LogError) as err:
         read_tables(layout)
     assert fragment in str(err.value)
+
+
+@pytest.mark.parametrize("edit, fragment", [
+    (lambda s: s["likelihood"].update(bogus=1), "settings.likelihood: unknown key 'bogus'"),
+    (lambda s: s.update(likelihood=[1, 2]), "settings.likelihood must be a JSON object, got [1, 2]"),
+    (lambda s: s.update(config="S8"), "settings.config must be a JSON object"),
+    (lambda s: s["config"].pop("filter"), "settings.config: missing section [filter]"),
+    (lambda s: s.update(scenario_seed=1.5), "settings.scenario_seed must be a whole number ≥ 0, got 1.5"),
+    (lambda s: s.update(seeed=3), "settings: unknown key 'seeed' (did you mean 'seed'?)"),
+], ids=["likelihood-key", "likelihood-list", "config-string", "config-section", "seed-float", "misspelt"])
+def test_a_logs_settings_are_checked_before_a_replay(a_log, edit, fragment):
+    """`settings_json` (a log's /settings) was not validated: a hand-edited one was a raw TypeError ('unexpected
+    keyword argument'), a raw KeyError or 'dictionary update sequence element' on replay, or silently ignored."""
+    import copy
+    import dataclasses
+
+    from warptan.io.flightlog import LogError, read_log
+    from warptan.sim.replay import replay_config
+
+    log = read_log(a_log)
+    settings = copy.deepcopy(log.settings)
+    edit(settings)
+    with pytest.raises(LogError) as err:
+        replay_config(dataclasses.replace(log, settings=settings))
+    assert fragment in str(err.value)
+    replay_config(log)  # (the log as written passes)
+
+
+def test_a_dem_grid_log_over_another_generated_terrain_names_both(capsys, tmp_path):
+    """A log over `synthetic:rugged,seed=3` (a dem-grid frame) replayed over `synthetic:rugged,seed=4` was told it
+    "cannot be placed on synthetic:rugged; replay it over its own DEM": a generated terrain's name dropped its
+    options, so the message named neither the DEM given nor the log's own."""
+    from warptan.terrain.grid import Terrain
+
+    assert Terrain.load("synthetic:rugged,seed=4,size_m=10000").name == "synthetic:rugged,size_m=10000,seed=4"
+    assert Terrain.load("synthetic:rugged").name == "synthetic:rugged"
+    assert cli.main(["run", "S8", *QUICK, "--terrain", "synthetic:rugged,seed=3", "--export-log",
+                     str(tmp_path / "L"), "--out", str(tmp_path / "R")]) == 0
+    capsys.readouterr()
+    status, _, err = _cli(capsys, "replay", tmp_path / "L" / "S8_seed0.h5", "--terrain", "synthetic:rugged,seed=4",
+                          "--quiet", "--out", tmp_path / "o")
+    assert status == 2
+    _error_line(err, "cannot be placed on synthetic:rugged,seed=4",
+                "replay it over its own DEM 'synthetic:rugged,seed=3' (leave out --terrain)")
+
+
+def test_a_file_size_limit_names_the_file_that_hit_it(tmp_path):
+    """Under `ulimit -f` a plot's failed write was reported as results.md (the newest file by modification time, a
+    guess: files written within one clock tick tie). The last file opened for writing is the one named."""
+    proc = _warptan(tmp_path, "run", "S8", "--duration-s", "0.5", "--particles", "16", "--quiet", "--out",
+                    tmp_path / "R", limit=20000)
+    assert proc.returncode == 2, proc.stderr[-2000:]
+    _error_line(proc.stderr, f"writing {tmp_path / 'R' / 'S8_seed0_track.png'} failed: File too large")
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_recording_the_commit_never_writes_the_users_repository(tmp_path, monkeypatch):
+    """A run records its git commit with `git status`, which refreshed the checkout's index (writing
+    .git/index.lock): under `ulimit -f` the write was cut and a stale lock blocked the user's next git command."""
+    import shutil
+
+    from warptan.meta import git_commit
+
+    if shutil.which("git") is None:
+        pytest.skip("git is not installed")
+    env = {**os.environ, "GIT_AUTHOR_NAME": "t", "GIT_AUTHOR_EMAIL": "t@t", "GIT_COMMITTER_NAME": "t",
+           "GIT_COMMITTER_EMAIL": "t@t"}
+    (tmp_path / "a.txt").write_text("a")
+    for argv in (["init", "-q"], ["add", "a.txt"], ["commit", "-q", "-m", "a"]):
+        subprocess.run(["git", *argv], cwd=tmp_path, env=env, check=True, capture_output=True)
+    monkeypatch.delenv("WARPTAN_GIT_COMMIT", raising=False)
+    index = tmp_path / ".git" / "index"
+    os.utime(tmp_path / "a.txt", ns=(1, 1))  # (its stat no longer matches the index: `git status` rewrites it)
+    before = index.stat().st_mtime_ns, index.read_bytes()
+    assert len(git_commit(tmp_path).split("+")[0]) == 40
+    assert (index.stat().st_mtime_ns, index.read_bytes()) == before

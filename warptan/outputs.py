@@ -332,6 +332,7 @@ class OutputFolder:
     def __enter__(self) -> Path:
         self.check()
         self._tmp = Path(tempfile.mkdtemp(prefix=f".{self.path.name}.warptan-partial-", dir=self.path.parent))
+        _watch_writes(self._tmp)
         return self._tmp
 
     def __exit__(self, exc_type, exc, tb) -> bool:
@@ -355,6 +356,7 @@ class OutputFolder:
                     raise OutputError(f"writing {self.path / failed} failed: {write_failure(exc)}; {self.path} is "
                                       "as it was before this run") from None
         finally:
+            _OPENED.pop(os.path.abspath(tmp), None)
             self.release()
         return False
 
@@ -401,21 +403,46 @@ def _read_holder(fd: int) -> str:
     return "its process id is not recorded yet"
 
 
+_OPENED: dict[str, str | None] = {}
+"""Per output folder being written (its partial folder): the last file opened for writing in it."""
+_HOOK: list = []
+
+
+def _audit(event: str, args) -> None:
+    if event != "open" or not _OPENED or not isinstance(args[0], (str, bytes, os.PathLike)):
+        return
+    mode, flags = args[1], args[2]
+    if (any(c in mode for c in "wax+") if isinstance(mode, str) else bool(flags & (os.O_WRONLY | os.O_RDWR))):
+        path = os.path.abspath(os.fsdecode(args[0]))
+        for tmp in _OPENED:
+            if path.startswith(tmp + os.sep):
+                _OPENED[tmp] = path
+
+
+def _watch_writes(tmp: Path) -> None:
+    """Record the last file opened for writing in ``tmp`` (a Python audit hook, installed once): a write that fails
+    without naming its file (a full disk, a file size limit) is named by it. (The newest file by modification time
+    was a guess: files written within one clock tick tie, and ``ulimit -f`` named results.md for a plot.)"""
+    if not _HOOK:
+        _HOOK.append(_audit)
+        sys.addaudithook(_audit)
+    _OPENED[os.path.abspath(tmp)] = None
+
+
 def _failed_file(tmp: Path | None, err: OSError) -> str | None:
     """The file (relative to the output folder) whose write raised ``err``: the error's own file name when it lies
-    in ``tmp``, else (an error that names no file, as a full disk's) the newest file there (writes are
-    sequential). None when ``tmp`` is gone or the error is about a file elsewhere (not a failed write)."""
+    in ``tmp``, else (an error that names no file, as a full disk's) the last file opened for writing there
+    (:func:`_watch_writes`; writes are sequential). None when ``tmp`` is gone or the error is about a file
+    elsewhere (not a failed write)."""
     if tmp is None or not tmp.is_dir():
         return None
-    if err.filename:
-        try:
-            return str(Path(os.path.realpath(os.fsdecode(err.filename))).relative_to(os.path.realpath(tmp)))
-        except ValueError:
-            return None
-    files = [p for p in tmp.rglob("*") if p.is_file()]
-    if not files:
+    name = os.fsdecode(err.filename) if err.filename else _OPENED.get(os.path.abspath(tmp))
+    if name is None:
         return "(its first file)"
-    return str(max(files, key=lambda p: p.stat().st_mtime_ns).relative_to(tmp))
+    try:
+        return str(Path(os.path.realpath(name)).relative_to(os.path.realpath(tmp)))
+    except ValueError:
+        return None
 
 
 def _carry_user_files(target: Path, tmp: Path, listed: set[str]) -> str | None:

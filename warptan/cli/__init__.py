@@ -214,22 +214,29 @@ def main(argv: list[str] | None = None) -> int:
     quiet_warp()
     args = build_parser().parse_args(argv)
     warnings.formatwarning = _warning_line
+    global _SIGTERM_SEEN
+    _SIGTERM_SEEN = False
     previous = _terminate_as_interrupt()
     try:
         return args.func(args)
     except (ValueError, OSError) as err:  # every expected failure: one line, exit 2, no traceback
         print(f"warptan: error: {_one_line(err)}", file=sys.stderr)
         return 2
-    except Terminated:
+    except KeyboardInterrupt as err:
+        if not (isinstance(err, Terminated) or _SIGTERM_SEEN):  # (Ray re-raises a plain KeyboardInterrupt)
+            print("warptan: interrupted; the output folder is as it was before this run", file=sys.stderr)
+            return 130
         print("warptan: terminated (SIGTERM); the output folder is as it was before this run", file=sys.stderr)
         return 128 + signal.SIGTERM
-    except KeyboardInterrupt:
-        print("warptan: interrupted; the output folder is as it was before this run", file=sys.stderr)
-        return 130
     finally:
         release_locks()
         if previous is not None:
             signal.signal(signal.SIGTERM, previous)
+
+
+_SIGTERM_SEEN = False
+"""SIGTERM arrived (a library between the handler and :func:`main` may turn :class:`Terminated` into a plain
+KeyboardInterrupt)."""
 
 
 class Terminated(KeyboardInterrupt):
@@ -242,6 +249,8 @@ def _terminate_as_interrupt():
         return None
 
     def handler(signum, frame):
+        global _SIGTERM_SEEN
+        _SIGTERM_SEEN = True
         raise Terminated()
 
     return signal.signal(signal.SIGTERM, handler)

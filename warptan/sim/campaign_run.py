@@ -197,6 +197,23 @@ def _on_ray_worker(task: Callable, spec: dict, cuda: bool, cpu_threads: int | No
     return {**task(spec, device, cpu_threads), "ray_gpu_ids": ids}
 
 
+def _signal_handlers(restore: dict | None = None) -> dict:
+    """The Python handlers of SIGINT and SIGTERM (main thread only), or with ``restore`` those put back. ``ray.init``
+    replaces them with its own (a C++ crash handler that printed a stack dump on SIGTERM, rc 1 or 134), so the
+    command's own clean-up (the output folder as it was, rc 143) never ran."""
+    import signal
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        return {}
+    if restore is not None:
+        for sig, handler in restore.items():
+            if handler is not None:
+                signal.signal(sig, handler)
+        return restore
+    return {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
+
+
 def _run_ray(campaign: Campaign, cuda: bool, address: str | None, cpus_per_task: int, task: Callable,
              progress: bool) -> tuple[dict[int, dict], dict]:
     try:
@@ -210,6 +227,7 @@ def _run_ray(campaign: Campaign, cuda: bool, address: str | None, cpus_per_task:
         # never shadows the installed package on a worker (Ray puts the driver's directory on the workers' path
         # unless a working_dir is given). File names in the campaign were made absolute when it was read.
         workdir = tempfile.mkdtemp(prefix="warptan-ray-")
+        held = _signal_handlers()
         try:
             ray.init(address=address, include_dashboard=False, logging_level=logging.WARNING, log_to_driver=False,
                      runtime_env={"working_dir": workdir})
@@ -217,6 +235,8 @@ def _run_ray(campaign: Campaign, cuda: bool, address: str | None, cpus_per_task:
             shutil.rmtree(workdir, ignore_errors=True)
             raise CampaignError(f"cannot start or reach the Ray cluster{f' at {address}' if address else ''}: "
                                 f"{_describe_error(err)}") from None
+        finally:
+            _signal_handlers(held)
     refs: dict = {}
     try:
         resources = ray.cluster_resources()

@@ -18,6 +18,7 @@ recorded time), for the errors; without truth the errors are NaN and the report 
 from __future__ import annotations
 
 import dataclasses
+import difflib
 import math
 import time
 
@@ -99,6 +100,44 @@ def _measurements(log: FlightLog, model_name: str, idx: np.ndarray) -> list:
 
 
 # ---------------------------------------------------------------------- replay
+SETTINGS = {"config": dict, "likelihood": dict, "seed": int, "scenario_seed": int, "terrain_spec": str,
+            "dem_sha256": str}
+"""A flight log's ``settings`` keys (what ``run --export-log`` writes) and their JSON types."""
+
+
+def check_settings(log: FlightLog) -> None:
+    """Refuse (:class:`LogError`, every problem named ``settings.KEY``) a log whose settings a replay would read
+    wrong: an unknown key, a value of the wrong type, a ``config`` the scenario schema refuses, a ``likelihood``
+    with keys the :class:`~warptan.sensing.likelihood.Likelihood` lacks or values it refuses (hand-edited
+    ``settings_json`` was a raw TypeError or KeyError on replay, or silently ignored)."""
+    from warptan.sim.scenario_schema import validate, with_optional_defaults
+
+    problems = []
+    for key, value in log.settings.items():
+        kind = SETTINGS.get(key)
+        if kind is None:
+            hint = difflib.get_close_matches(str(key), list(SETTINGS), n=1)
+            problems.append(f": unknown key {key!r}" + (f" (did you mean {hint[0]!r}?)" if hint else ""))
+        elif kind is int and (isinstance(value, bool) or not isinstance(value, int) or value < 0):
+            problems.append(f"{key} must be a whole number ≥ 0, got {value!r}")
+        elif not isinstance(value, kind):
+            problems.append(f"{key} must be a JSON {'object' if kind is dict else 'string'}, got {value!r:.60}")
+    config, stored = log.settings.get("config"), log.settings.get("likelihood")
+    if isinstance(config, dict):
+        problems += [f"config: {p[2:]}" for p in validate(with_optional_defaults(dict(config)), "")]
+    if isinstance(stored, dict):
+        names = {f.name for f in dataclasses.fields(Likelihood)}
+        unknown = sorted(set(stored) - names, key=str)
+        problems += [f"likelihood: unknown key {k!r}" for k in unknown]
+        if not unknown:
+            try:
+                Likelihood(**stored)
+            except (TypeError, ValueError, FilterError) as err:
+                problems.append(f"likelihood: {err}")
+    if problems:
+        raise LogError(f"flight log {log.name}", [f"settings{p}" if p[0] == ":" else f"settings.{p}" for p in problems])
+
+
 def replay_config(log: FlightLog, model: str | None = None, backend: str | None = None,
                   particles: int | None = None, likelihood: str | None = None,
                   map_error: tuple[float, float] | None = None, map_error_learn: bool | str | None = None,
@@ -109,6 +148,7 @@ def replay_config(log: FlightLog, model: str | None = None, backend: str | None 
     ``map_error_confidence``: the factor its RMS is right within)."""
     from warptan.sim.scenario_config import load_config
 
+    check_settings(log)
     stored = log.settings.get("config")
     scenario = load_config("S8") if stored is None else Scenario.from_tables(stored)
     if stored is None:
@@ -282,7 +322,7 @@ def place_log(log: FlightLog, terrain, own: bool) -> tuple[FlightLog, dict]:
         if log.version >= 2:
             raise LogError(source, [f"its frame is the grid of the DEM {log.dem_reference!r} (frame kind dem-grid, "
                                     f"no position on the Earth): it cannot be placed on {terrain.name}; replay it over "
-                                    "its own DEM"])
+                                    f"its own DEM {log.dem_reference!r} (leave out --terrain)"])
         warnings.warn(f"{source}: a version 1 log's frame is the grid of its DEM {log.dem_reference!r}; replayed over "
                       f"{terrain.name} as if that grid were this DEM's (write the log again as version 2 to tie it to "
                       "the Earth)", UserWarning, stacklevel=3)

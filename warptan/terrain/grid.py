@@ -47,6 +47,8 @@ NAMED_TERRAINS = {
 Thuringia (±22 km, ≈ 93 × 59 m posts), ``rugged30`` SRTM1 San Gabriel Mountains (19 × 36 km, 30 m UTM), ``flat``
 SRTM3 Ganges plain (±12 km)."""
 PLAUSIBLE_HEIGHTS_M = (-500.0, 9000.0)
+_SYNTHETIC_DEFAULTS = {"size_m": 20_000.0, "spacing": 30.0, "seed": 0}
+"""A generated terrain's default options (:meth:`Terrain.synthetic`; its name lists the others)."""
 """Heights a land DEM can hold (the Dead Sea shore is at −430 m, Everest at 8 849 m): posts outside are nodata
 (a fill value the file does not declare, a corrupt post), with a :class:`TerrainWarning`. Pass another
 ``valid_range_m`` for bathymetry."""
@@ -233,7 +235,8 @@ class Terrain:
         )
 
     @classmethod
-    def synthetic(cls, kind: str = "rugged", size_m: float = 20_000.0, spacing: float = 30.0, seed: int = 0) -> Terrain:
+    def synthetic(cls, kind: str = "rugged", size_m: float = _SYNTHETIC_DEFAULTS["size_m"],
+                  spacing: float = _SYNTHETIC_DEFAULTS["spacing"], seed: int = _SYNTHETIC_DEFAULTS["seed"]) -> Terrain:
         """A deterministic generated terrain centred on the NED origin.
 
         ``rugged``: a fractal (power-law spectrum, several octaves) surface with about 800 m of relief,
@@ -248,9 +251,11 @@ class Terrain:
         """
         from warptan.terrain.synthetic import synthetic_heights
 
+        given = {"size_m": size_m, "spacing": spacing, "seed": seed}
+        options = "".join(f",{k}={v:g}" for k, v in given.items() if v != _SYNTHETIC_DEFAULTS[k])
         heights, half, spacing, size_m = synthetic_heights(kind, size_m, spacing, seed)
-        return cls(
-            heights, -half, -half, spacing, spacing, name=f"synthetic:{kind}",
+        return cls(  # (named by its spec, non-default options kept: another seed is another terrain)
+            heights, -half, -half, spacing, spacing, name=f"synthetic:{kind}{options}",
             description=f"synthetic {kind} terrain, {size_m:g} m square, {spacing:g} m posts, seed {seed}",
         )
 
