@@ -666,3 +666,24 @@ def test_recording_the_commit_never_writes_the_users_repository(tmp_path, monkey
     before = index.stat().st_mtime_ns, index.read_bytes()
     assert len(git_commit(tmp_path).split("+")[0]) == 40
     assert (index.stat().st_mtime_ns, index.read_bytes()) == before
+
+
+@pytest.mark.parametrize("argv, fragment", [
+    (["run", "S8", "--terrain", ""], "argument --terrain: must not be empty"),
+    (["run", "S8", "--out", " "], "argument --out: must not be empty"),
+    (["replay", "x.h5", "--terrain", ""], "argument --terrain: must not be empty"),
+    (["terrain", "info", "synthetic:rugged,seed=1,seed=2"], "option seed given twice"),
+    (["run", "S8", "--duration-s", "0.5", "--seeds", "100000000", "--check"],
+     "the results of 100000000 seeds run one by one held"),
+], ids=["empty-terrain", "blank-out", "replay-empty-terrain", "synthetic-twice", "seeds-held"])
+def test_names_and_counts_that_mean_nothing_are_refused(capsys, tmp_path, monkeypatch, argv, fragment):
+    """The wider probe (scripts/hostile_probe.py): `--terrain ""` silently ran the scenario's own DEM;
+    `synthetic:rugged,seed=1,seed=2` took the last seed silently; `--seeds 100000000` of a 0.5 s flight passed the
+    memory check (one seed at a time) and ran on for days, holding every seed's result."""
+    monkeypatch.chdir(tmp_path)
+    status, _, err = _cli(capsys, *argv)
+    assert status == 2
+    if err.startswith("usage:"):
+        err = err.strip().splitlines()[-1]
+    assert fragment in err, err
+    assert list(tmp_path.iterdir()) == []

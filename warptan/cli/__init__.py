@@ -18,6 +18,7 @@ from warptan.cli.args import (
     number_arg,
     script_inputs,
     seed_arg,
+    text_arg,
 )
 from warptan.cli.commands import (
     _campaign,
@@ -46,13 +47,14 @@ def build_parser() -> argparse.ArgumentParser:
                  "or synthetic:rugged|flat[,size_m=..,spacing=..,seed=..]")
 
     info = tsub.add_parser("info", help="CRS, bounds, spacing, shape, height range, nodata fraction")
-    info.add_argument("terrain", nargs="?", default=DEFAULT_TERRAIN, help=spec_help)
+    info.add_argument("terrain", type=text_arg, nargs="?", default=DEFAULT_TERRAIN, help=spec_help)
     info.add_argument("--spacing", type=number_arg(0.0, True), default=None, help="resample to this post spacing in m")
     info.add_argument("--json", action="store_true", help="print JSON instead of a table")
     where = info.add_argument_group("information", "where terrain navigation works: the 1σ horizontal position "
                                     "bound of one scan and of a leg of scans at every post (--information)")
     where.add_argument("--information", action="store_true", help="compute the information map")
-    where.add_argument("--sensor", default="S8", help="the sensor of this scenario (S1…S12 or a .toml): its scan or "
+    where.add_argument("--sensor", type=text_arg, default="S8",
+                       help="the sensor of this scenario (S1…S12 or a .toml): its scan or "
                        "altimeter, noise, surface, rate, speed and stated map error (default S8)")
     where.add_argument("--altitude-agl", type=number_arg(0.0, True), default=None, metavar="M",
                        help="height above the terrain in m (default: the scenario's altitude rule, 600 or 150 m)")
@@ -64,15 +66,15 @@ def build_parser() -> argparse.ArgumentParser:
     where.add_argument("--map-error-corr-m", type=number_arg(0.0, False), default=None, metavar="L",
                        help="its correlation length in m (default: the scenario's)")
     where.add_argument("--stride", type=count_arg, default=1, help="every N-th post (default 1)")
-    where.add_argument("--out", action="append", default=[], metavar="FILE",
+    where.add_argument("--out", type=text_arg, action="append", default=[], metavar="FILE",
                        help="write the map: .png (a picture with units) and/or .tif (GeoTIFF, 2 bands: one scan, "
                        "the leg; needs a DEM with a CRS); may be given twice")
     where.add_argument("--overwrite", action="store_true", help="replace output files that exist")
     info.set_defaults(func=_terrain_info)
 
     export = tsub.add_parser("export", help="write the triangulated DEM as PLY/GLB/OBJ/STL for viewing")
-    export.add_argument("terrain", help=spec_help)
-    export.add_argument("out", help="output file (.ply, .glb, .obj, .stl)")
+    export.add_argument("terrain", type=text_arg, help=spec_help)
+    export.add_argument("out", type=text_arg, help="output file (.ply, .glb, .obj, .stl)")
     export.add_argument("--spacing", type=number_arg(0.0, True), default=None,
                         help="resample to this post spacing in m")
     export.add_argument("--frame", choices=("enu", "ned"), default="enu", help="vertex frame (default enu, z up)")
@@ -83,13 +85,14 @@ def build_parser() -> argparse.ArgumentParser:
                          description="Run paper scenarios with several seeds; write results.json, results.md "
                                      "and PNG plots. Without a scenario: a one-minute demonstration (S8, 60 s, "
                                      "generated rugged terrain).")
-    run.add_argument("scenarios", nargs="*", help="S1 … S12, 'all', or scenario .toml files")
+    run.add_argument("scenarios", type=text_arg, nargs="*", help="S1 … S12, 'all', or scenario .toml files")
     run.add_argument("--seeds", type=count_arg, default=None, help="seeds per scenario, ≥ 1 (default 1)")
     run.add_argument("--batch", action="store_true",
                      help="run the seeds of a scenario as one batched filter (one launch per kernel for all; "
                           "results as without it)")
     run.add_argument("--device", default="cpu", help="Warp device (cpu, cuda:0)")
-    run.add_argument("--out", default=None, help="output folder (default warptan-results, demo: warptan-demo)")
+    run.add_argument("--out", type=text_arg, default=None,
+                     help="output folder (default warptan-results, demo: warptan-demo)")
     run.add_argument("--paper-rates", action="store_true", help="terrain measurements at the IMU rate, as the paper")
     run.add_argument("--particles", type=count_arg, default=None, help="override the particle count")
     run.add_argument("--backend", default=None, help="ray-cast backend: dda, mesh, bisection")
@@ -97,10 +100,11 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--surface", default=None,
                      help="what the sliding and altimeter models read: triangles (the map's triangulated surface) or "
                           "bilinear")
-    run.add_argument("--terrain", default=None,
+    run.add_argument("--terrain", type=text_arg, default=None,
                      help="the world of every scenario: rugged, rugged30 (30 m San Gabriel tile), flat, a DEM path "
                           "or synthetic:KIND (default: the scenario's)")
-    run.add_argument("--map", default=None, help="the filter's map from another DEM file of the same ground")
+    run.add_argument("--map", type=text_arg, default=None,
+                     help="the filter's map from another DEM file of the same ground")
     run.add_argument("--map-spacing-m", type=number_arg(0.0, True), default=None,
                      help="map error: coarser posts (block means)")
     run.add_argument("--map-noise-m", type=number_arg(0.0, False), default=None,
@@ -135,7 +139,7 @@ def build_parser() -> argparse.ArgumentParser:
                      help="validate everything a run would (scenarios, seeds, memory, terrain, flight, map, --out) "
                           "and stop")
     run.add_argument("--quiet", action="store_true", help="no progress bar")
-    run.add_argument("--export-log", default=None, metavar="DIR",
+    run.add_argument("--export-log", type=text_arg, default=None, metavar="DIR",
                      help="also write each simulated flight as a warptan flight log DIR/ID_seedN.h5 (warptan replay "
                           "reads it back)")
     run.add_argument("--export-bag", action="store_true",
@@ -145,8 +149,9 @@ def build_parser() -> argparse.ArgumentParser:
     rep = sub.add_parser("replay", help="filter a recorded flight (warptan flight log or ROS 2 bag)",
                          description="Run the filter on a recorded flight with its timestamps; write results.json, "
                                      "results.md, plots and the trajectory (CSV; GeoJSON when the DEM has a CRS).")
-    rep.add_argument("log", help="a warptan flight log (.h5) or a ROS 2 bag (folder, .db3 or .mcap)")
-    rep.add_argument("--terrain", default=None, help="the DEM (name, path or spec; default: the log's dem.reference)")
+    rep.add_argument("log", type=text_arg, help="a warptan flight log (.h5) or a ROS 2 bag (folder, .db3 or .mcap)")
+    rep.add_argument("--terrain", type=text_arg, default=None,
+                     help="the DEM (name, path or spec; default: the log's dem.reference)")
     rep.add_argument("--model", choices=("sliding", "raycast", "altimeter"), default=None,
                      help="measurement model (default: the log's settings, else sliding with scans, altimeter without)")
     rep.add_argument("--backend", default=None, help="ray-cast backend: dda, mesh, bisection")
@@ -154,7 +159,7 @@ def build_parser() -> argparse.ArgumentParser:
     rep.add_argument("--particles", type=count_arg, default=None, help="particle count")
     rep.add_argument("--seed", type=seed_arg, default=None, help="the filter's seed (default: the log's, else 0)")
     rep.add_argument("--device", default="cpu", help="Warp device (cpu, cuda:0)")
-    rep.add_argument("--out", default=None, help="output folder (default warptan-replay)")
+    rep.add_argument("--out", type=text_arg, default=None, help="output folder (default warptan-replay)")
     rep.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
     rep.add_argument("--allow-gaps", action="store_true",
                      help="fly through nodata under the track (its updates skipped and counted) instead of refusing")
@@ -162,7 +167,8 @@ def build_parser() -> argparse.ArgumentParser:
     _stated_accuracy(rep, "its published correlated vertical error (SRTM, Copernicus, DTED): the filter's bounds "
                           "count it")
     bag = rep.add_argument_group("ROS 2 bags", "topics and mounting (a TOML file, or these flags)")
-    bag.add_argument("--bag-config", default=None, help="TOML with topics, mounting, initial σ, IMU grade")
+    bag.add_argument("--bag-config", type=text_arg, default=None,
+                     help="TOML with topics, mounting, initial σ, IMU grade")
     bag.add_argument("--imu-topic", default=None, help="sensor_msgs/Imu topic (default /imu)")
     bag.add_argument("--cloud-topic", default=None, help="sensor_msgs/PointCloud2 topic (default /points)")
     bag.add_argument("--range-topic", default=None, help="sensor_msgs/Range altimeter topic (default /altimeter)")
@@ -175,19 +181,19 @@ def build_parser() -> argparse.ArgumentParser:
     lsub = logp.add_subparsers(dest="log_command", required=True)
     imp = lsub.add_parser("import", help="CSV tables described by a layout TOML (GPS lat/lon/height, IMU, scans or "
                                          "altimeter, baro) → a flight log (see warptan.io.logcsv)")
-    imp.add_argument("layout", help="the layout .toml (warptan log export writes an example)")
-    imp.add_argument("--out", required=True, help="the flight log to write (.h5)")
+    imp.add_argument("layout", type=text_arg, help="the layout .toml (warptan log export writes an example)")
+    imp.add_argument("--out", type=text_arg, required=True, help="the flight log to write (.h5)")
     imp.set_defaults(func=_log_import)
     exp = lsub.add_parser("export", help="a flight log (with truth and a geodetic frame) → CSV tables and layout.toml")
-    exp.add_argument("log", help="a warptan flight log (.h5)")
-    exp.add_argument("--out", required=True, help="a new folder for the tables")
+    exp.add_argument("log", type=text_arg, help="a warptan flight log (.h5)")
+    exp.add_argument("--out", type=text_arg, required=True, help="a new folder for the tables")
     exp.set_defaults(func=_log_export)
 
     camp = sub.add_parser("campaign", help="parameter sweeps × seeds × scenarios, in-process or on a Ray cluster",
                           description="Run a campaign file (scenarios, seeds, [overrides], [sweep]): one batch per "
                                       "(scenario, combination), in this process or as Ray tasks; write campaign.json, "
                                       "campaign.md and one plot per swept parameter.")
-    camp.add_argument("file", help="campaign .toml file")
+    camp.add_argument("file", type=text_arg, help="campaign .toml file")
     camp.add_argument("--engine", choices=("local", "ray"), default="local",
                       help="local: in-process, one batch after another (default); ray: one Ray task per batch "
                            "(pip install 'warptan[cluster]')")
@@ -197,7 +203,8 @@ def build_parser() -> argparse.ArgumentParser:
                       help="cpu or a CUDA device (local: cuda:0; ray: cuda = one GPU per task)")
     camp.add_argument("--cpus-per-task", type=count_arg, default=1,
                       help="ray on the CPU: CPUs each task asks for (its launch threads; default 1)")
-    camp.add_argument("--out", default="warptan-campaign", help="output folder (default warptan-campaign)")
+    camp.add_argument("--out", type=text_arg, default="warptan-campaign",
+                      help="output folder (default warptan-campaign)")
     camp.add_argument("--check", action="store_true",
                       help="validate the file and every batch (scenario, seeds, memory, terrain, flight) and stop")
     camp.add_argument("--no-plots", action="store_true", help="skip the PNG plots")

@@ -20,6 +20,16 @@ def count_arg(text: str) -> int:
     return value
 
 
+def text_arg(text: str) -> str:
+    """argparse type: a name or path that is not empty or blank (an empty ``--terrain ""`` silently meant the
+    scenario's own DEM, an empty ``--out ""`` the current folder)."""
+    if not text.strip():
+        raise argparse.ArgumentTypeError(f"must not be empty, got {text!r}")
+    if "\0" in text:
+        raise argparse.ArgumentTypeError(f"must not hold a NUL character, got {text!r}")
+    return text
+
+
 def seed_arg(text: str) -> int:
     """argparse type: a seed, a whole number in [0, 2**63)."""
     try:

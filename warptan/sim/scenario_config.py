@@ -285,14 +285,16 @@ def particle_bytes(particles: float, points: int, model: str) -> float:
     return float(particles) * (1024.0 + per_point * points)
 
 
-def memory_estimate(scenario: Scenario, n_seeds: int) -> dict[str, float]:
-    """Bytes a run of ``n_seeds`` seeds needs, about: ``host`` (the flight, each seed's IMU samples and scans, the
-    histories) and ``device`` (:func:`particle_bytes`, and each seed's scan)."""
+def memory_estimate(scenario: Scenario, n_seeds: int, kept: int = 0) -> dict[str, float]:
+    """Bytes a run of ``n_seeds`` seeds at once needs, about: ``host`` (the flight, each seed's IMU samples and
+    scans, the histories, and the results of ``kept`` more seeds run one by one before, held for the report) and
+    ``device`` (:func:`particle_bytes`, and each seed's scan)."""
     s = scenario.sensor
     samples = scenario.flight.duration_s * scenario.imu.rate_hz
     epochs = scenario.flight.duration_s * s.rate_hz
     points = scan_points(scenario)
     host = samples * (400.0 + 64.0 * n_seeds) + epochs * n_seeds * 2048.0 + points * (200.0 + 64.0 * n_seeds)
+    host += kept * (16_000.0 + 512.0 * epochs)  # (a result: its histories, summary and info)
     device = particle_bytes(float(scenario.filter.particles) * n_seeds, points, s.model) + points * n_seeds * 64.0
     return {"host": host, "device": device}
 
@@ -312,23 +314,26 @@ MAX_SCAN_POINTS = 65_536
 the memory check and a 0.3 s flight was not done after two minutes (every particle evaluates every point)."""
 
 
-def check_memory(scenario: Scenario, n_seeds: int, device="cpu") -> None:
+def check_memory(scenario: Scenario, n_seeds: int, device="cpu", kept: int = 0) -> None:
     """Refuse (ScenarioError) a scan of more than :data:`MAX_SCAN_POINTS` points and a run whose
-    :func:`memory_estimate` exceeds :data:`MEMORY_FRACTION` of what is available, before anything is allocated."""
+    :func:`memory_estimate` exceeds :data:`MEMORY_FRACTION` of what is available, before anything is allocated
+    (``kept``: seeds run one by one whose results are held; ``--seeds 100000000`` ran on for days)."""
     s = scenario.sensor
     if scan_points(scenario) > MAX_SCAN_POINTS:
         raise ScenarioError(f"scenario {scenario.id}: a scan of {s.scan_nx}×{s.scan_ny} = {scan_points(scenario)} "
                             f"points (sensor.scan_nx × scan_ny) is more than {MAX_SCAN_POINTS} per scan; every "
                             "particle evaluates every point: use fewer")
-    need, have = memory_estimate(scenario, n_seeds), available_memory(device)
+    need, have = memory_estimate(scenario, n_seeds, kept), available_memory(device)
     for where in ("host", "device"):
         if need[where] > MEMORY_FRACTION * have[where]:
             name = "host" if where == "host" else f"device {device}"
             raise ScenarioError(
                 f"scenario {scenario.id}: needs about {format_bytes(need[where])} of {name} memory ({n_seeds} "
-                f"seed(s) × {scenario.filter.particles} particles, scan {s.scan_nx}×{s.scan_ny}, "
-                f"{scenario.flight.duration_s:g} s at {scenario.imu.rate_hz:g} Hz) but {format_bytes(have[where])} "
-                "is available; use fewer particles, scan points, seeds or a shorter flight")
+                f"seed(s) at once × {scenario.filter.particles} particles, scan {s.scan_nx}×{s.scan_ny}, "
+                f"{scenario.flight.duration_s:g} s at {scenario.imu.rate_hz:g} Hz"
+                f"{f'; the results of {kept} seeds run one by one held' if kept else ''}) but "
+                f"{format_bytes(have[where])} is available; use fewer particles, scan points, seeds or a shorter "
+                "flight")
 
 
 def format_bytes(n: float) -> str:

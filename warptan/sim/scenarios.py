@@ -280,7 +280,7 @@ def prepare(name_or_path, seed: int = 0, terrain=None, *, seeds=None, device=Non
                             "every seed its own map or world; run the seeds one by one (without --batch), or fix "
                             "terrain.map_seed / world.seed")
     if device is not None:  # seeds one by one hold one seed's memory at a time
-        check_memory(scenario, len(seeds) if batched else 1, device)
+        check_memory(scenario, len(seeds) if batched else 1, device, kept=0 if batched else len(seeds))
     truth_terrain = world_terrain(resolve_terrain(scenario, terrain), scenario, base + seeds[0])
     flight = build_flight(scenario, truth_terrain)
     the_map = map_terrain(truth_terrain, scenario, base + seeds[0])

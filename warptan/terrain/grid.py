@@ -295,6 +295,8 @@ class Terrain:
                 key, sep, value = pair.partition("=")
                 if not sep or key not in ("size_m", "spacing", "seed"):
                     raise TerrainError(f"{text}: bad option {pair!r}; use size_m=, spacing=, seed=")
+                if key in kwargs:  # (the last one was taken silently)
+                    raise TerrainError(f"{text}: option {key} given twice")
                 try:
                     kwargs[key] = int(value) if key == "seed" else float(value)
                 except ValueError:
