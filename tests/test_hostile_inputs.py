@@ -675,15 +675,20 @@ def test_recording_the_commit_never_writes_the_users_repository(tmp_path, monkey
     (["terrain", "info", "synthetic:rugged,seed=1,seed=2"], "option seed given twice"),
     (["run", "S8", "--duration-s", "0.5", "--seeds", "100000000", "--check"],
      "the results of 100000000 seeds run one by one held"),
-], ids=["empty-terrain", "blank-out", "replay-empty-terrain", "synthetic-twice", "seeds-held"])
+    (["run", "S8", "--world-error-corr-m", "0", "--check"], "--world-error-corr-m 0 is the correlation length of"),
+    (["log", "import", "missing.toml", "--out", "x.h5"], "does not load: No such file or directory"),
+    (["terrain", "info", "rugged", "--information", "--altitude-agl", "1e9"], "more than the DEM's"),
+], ids=["empty-terrain", "blank-out", "replay-empty-terrain", "synthetic-twice", "seeds-held", "world-corr-alone",
+        "missing-layout", "footprint-beyond-dem"])
 def test_names_and_counts_that_mean_nothing_are_refused(capsys, tmp_path, monkeypatch, argv, fragment):
     """The wider probe (scripts/hostile_probe.py): `--terrain ""` silently ran the scenario's own DEM;
     `synthetic:rugged,seed=1,seed=2` took the last seed silently; `--seeds 100000000` of a 0.5 s flight passed the
-    memory check (one seed at a time) and ran on for days, holding every seed's result."""
+    memory check (one seed at a time) and ran on for days, holding every seed's result; `--world-error-corr-m`
+    alone did nothing; a missing layout said "[Errno 2]"; an information map 1e9 m up said "no fix" with exit 0."""
     monkeypatch.chdir(tmp_path)
     status, _, err = _cli(capsys, *argv)
     assert status == 2
     if err.startswith("usage:"):
         err = err.strip().splitlines()[-1]
-    assert fragment in err, err
+    assert fragment in err and "Errno" not in err, err
     assert list(tmp_path.iterdir()) == []

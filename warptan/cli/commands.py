@@ -277,14 +277,17 @@ def _refuse_nested(out, export) -> None:
 
 def _check_effective(args, scenario) -> None:
     """Refuse (ScenarioError) an option that would change nothing in ``scenario`` (it was silently ignored): a
-    correlation length without a stated RMS, clutter without a height or a fraction, a refined world that is the
-    map."""
+    correlation length without a stated RMS (or without the world's error RMS), clutter without a height or a
+    fraction, a refined world that is the map."""
     from warptan.sim.scenario_config import ScenarioError
 
     w, where = scenario.world, f"scenario {scenario.id}"
     if args.map_error_corr_m is not None and not scenario.likelihood.map_error_rms_m:
         raise ScenarioError(f"{where}: --map-error-corr-m {args.map_error_corr_m:g} is the correlation length of a "
                             "stated map error, and none is stated: give --map-error-m too (they go together)")
+    if args.world_error_corr_m is not None and not w.error_rms_m:
+        raise ScenarioError(f"{where}: --world-error-corr-m {args.world_error_corr_m:g} is the correlation length of "
+                            "the world's error, and it has none: give --world-error-m too (they go together)")
     if (args.world_clutter_m is not None or args.world_clutter_fraction is not None) and not (
             w.clutter_height_m and w.clutter_fraction):
         raise ScenarioError(f"{where}: clutter needs a height and a fraction of the ground (now "

@@ -276,7 +276,8 @@ def read_tables(layout: str | os.PathLike) -> FlightLog:
     try:
         spec = tomllib.loads(path.read_text())
     except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as err:
-        raise LogError(source, [f"does not load: {err}"]) from None
+        why = err.strerror if isinstance(err, OSError) and err.strerror else err  # (no raw "[Errno 2]")
+        raise LogError(source, [f"does not load: {why}"]) from None
     problems = [f"unknown key {k!r} (known: {', '.join(sorted(LAYOUT_KEYS))})" for k in sorted(set(spec) - LAYOUT_KEYS)]
     for table in ("imu", "gps"):
         if table not in spec:

@@ -266,6 +266,12 @@ def information_map(terrain, dirs_body, altitude_agl_m: float, sigma_m: float, *
     scan = scan_footprint(dirs_body, altitude_agl_m, heading_deg, 1, scan_step_m)
     psi = math.radians(float(heading_deg))
     leg = leg_shifts((math.cos(psi), math.sin(psi)), n_scans, scan_step_m)  # the scans' centres
+    span = np.ptp(np.concatenate([scan, scan[:1] + np.ptp(leg, axis=0)]), axis=0)  # (the leg's scans' footprint)
+    extent = ((terrain.shape[0] - 1) * terrain.dn, (terrain.shape[1] - 1) * terrain.de)
+    if span[0] >= extent[0] or span[1] >= extent[1]:
+        raise TerrainError(f"at {altitude_agl_m:g} m above the terrain the scans cover {span[0]:.4g} × {span[1]:.4g} m "
+                           f"(north × east), more than the DEM's {extent[0]:.4g} × {extent[1]:.4g} m: no cell can be "
+                           "evaluated (it said 'no fix'); fly lower or give a larger DEM")
     d = resolve_device(device)
     grid = terrain.grid(d)
     rows, cols = (terrain.shape[0] + stride - 1) // stride, (terrain.shape[1] + stride - 1) // stride
