@@ -275,7 +275,10 @@ def main(argv=None) -> int:
     print(f"{len(verdicts)} cases: {counts}")
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps({"counts": counts, "cases": verdicts}, indent=1) + "\n")
+        from warptan.meta import run_meta
+
+        args.json.write_text(json.dumps({"meta": run_meta(["cpu"]), "counts": counts, "cases": verdicts},
+                                        indent=1) + "\n")
     return 1 if counts["bad"] else 0
 
 

@@ -670,7 +670,6 @@ def test_recording_the_commit_never_writes_the_users_repository(tmp_path, monkey
 
 @pytest.mark.parametrize("argv, fragment", [
     (["run", "S8", "--terrain", ""], "argument --terrain: must not be empty"),
-    (["run", "S8", "--out", " "], "argument --out: must not be empty"),
     (["replay", "x.h5", "--terrain", ""], "argument --terrain: must not be empty"),
     (["terrain", "info", "synthetic:rugged,seed=1,seed=2"], "option seed given twice"),
     (["run", "S8", "--duration-s", "0.5", "--seeds", "100000000", "--check"],
@@ -678,7 +677,7 @@ def test_recording_the_commit_never_writes_the_users_repository(tmp_path, monkey
     (["run", "S8", "--world-error-corr-m", "0", "--check"], "--world-error-corr-m 0 is the correlation length of"),
     (["log", "import", "missing.toml", "--out", "x.h5"], "does not load: No such file or directory"),
     (["terrain", "info", "rugged", "--information", "--altitude-agl", "1e9"], "more than the DEM's"),
-], ids=["empty-terrain", "blank-out", "replay-empty-terrain", "synthetic-twice", "seeds-held", "world-corr-alone",
+], ids=["empty-terrain", "replay-empty-terrain", "synthetic-twice", "seeds-held", "world-corr-alone",
         "missing-layout", "footprint-beyond-dem"])
 def test_names_and_counts_that_mean_nothing_are_refused(capsys, tmp_path, monkeypatch, argv, fragment):
     """The wider probe (scripts/hostile_probe.py): `--terrain ""` silently ran the scenario's own DEM;

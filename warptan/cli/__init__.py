@@ -66,7 +66,7 @@ def build_parser() -> argparse.ArgumentParser:
     where.add_argument("--map-error-corr-m", type=number_arg(0.0, False), default=None, metavar="L",
                        help="its correlation length in m (default: the scenario's)")
     where.add_argument("--stride", type=count_arg, default=1, help="every N-th post (default 1)")
-    where.add_argument("--out", type=text_arg, action="append", default=[], metavar="FILE",
+    where.add_argument("--out", action="append", default=[], metavar="FILE",
                        help="write the map: .png (a picture with units) and/or .tif (GeoTIFF, 2 bands: one scan, "
                        "the leg; needs a DEM with a CRS); may be given twice")
     where.add_argument("--overwrite", action="store_true", help="replace output files that exist")
@@ -91,7 +91,7 @@ def build_parser() -> argparse.ArgumentParser:
                      help="run the seeds of a scenario as one batched filter (one launch per kernel for all; "
                           "results as without it)")
     run.add_argument("--device", default="cpu", help="Warp device (cpu, cuda:0)")
-    run.add_argument("--out", type=text_arg, default=None,
+    run.add_argument("--out", default=None,
                      help="output folder (default warptan-results, demo: warptan-demo)")
     run.add_argument("--paper-rates", action="store_true", help="terrain measurements at the IMU rate, as the paper")
     run.add_argument("--particles", type=count_arg, default=None, help="override the particle count")
@@ -159,7 +159,7 @@ def build_parser() -> argparse.ArgumentParser:
     rep.add_argument("--particles", type=count_arg, default=None, help="particle count")
     rep.add_argument("--seed", type=seed_arg, default=None, help="the filter's seed (default: the log's, else 0)")
     rep.add_argument("--device", default="cpu", help="Warp device (cpu, cuda:0)")
-    rep.add_argument("--out", type=text_arg, default=None, help="output folder (default warptan-replay)")
+    rep.add_argument("--out", default=None, help="output folder (default warptan-replay)")
     rep.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
     rep.add_argument("--allow-gaps", action="store_true",
                      help="fly through nodata under the track (its updates skipped and counted) instead of refusing")
@@ -182,11 +182,11 @@ def build_parser() -> argparse.ArgumentParser:
     imp = lsub.add_parser("import", help="CSV tables described by a layout TOML (GPS lat/lon/height, IMU, scans or "
                                          "altimeter, baro) → a flight log (see warptan.io.logcsv)")
     imp.add_argument("layout", type=text_arg, help="the layout .toml (warptan log export writes an example)")
-    imp.add_argument("--out", type=text_arg, required=True, help="the flight log to write (.h5)")
+    imp.add_argument("--out", required=True, help="the flight log to write (.h5)")
     imp.set_defaults(func=_log_import)
     exp = lsub.add_parser("export", help="a flight log (with truth and a geodetic frame) → CSV tables and layout.toml")
     exp.add_argument("log", type=text_arg, help="a warptan flight log (.h5)")
-    exp.add_argument("--out", type=text_arg, required=True, help="a new folder for the tables")
+    exp.add_argument("--out", required=True, help="a new folder for the tables")
     exp.set_defaults(func=_log_export)
 
     camp = sub.add_parser("campaign", help="parameter sweeps × seeds × scenarios, in-process or on a Ray cluster",
@@ -203,7 +203,7 @@ def build_parser() -> argparse.ArgumentParser:
                       help="cpu or a CUDA device (local: cuda:0; ray: cuda = one GPU per task)")
     camp.add_argument("--cpus-per-task", type=count_arg, default=1,
                       help="ray on the CPU: CPUs each task asks for (its launch threads; default 1)")
-    camp.add_argument("--out", type=text_arg, default="warptan-campaign",
+    camp.add_argument("--out", default="warptan-campaign",
                       help="output folder (default warptan-campaign)")
     camp.add_argument("--check", action="store_true",
                       help="validate the file and every batch (scenario, seeds, memory, terrain, flight) and stop")

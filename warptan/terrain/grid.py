@@ -252,8 +252,8 @@ class Terrain:
         from warptan.terrain.synthetic import synthetic_heights
 
         given = {"size_m": size_m, "spacing": spacing, "seed": seed}
+        heights, half, spacing, size_m = synthetic_heights(kind, size_m, spacing, seed)  # (checks the options)
         options = "".join(f",{k}={v:g}" for k, v in given.items() if v != _SYNTHETIC_DEFAULTS[k])
-        heights, half, spacing, size_m = synthetic_heights(kind, size_m, spacing, seed)
         return cls(  # (named by its spec, non-default options kept: another seed is another terrain)
             heights, -half, -half, spacing, spacing, name=f"synthetic:{kind}{options}",
             description=f"synthetic {kind} terrain, {size_m:g} m square, {spacing:g} m posts, seed {seed}",
