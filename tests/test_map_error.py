@@ -990,3 +990,25 @@ def test_a_restated_rms_rescales_the_mode_table_as_if_built_for_it():
               .error_modes(xy, a, 0.7, (1.0, 0.0), True)[0] for s in (5.0, 3.0)]
     rescaled = wt.Likelihood.rescale_error_modes(tables[0], 60, (3.0 / 5.0) ** 2)
     np.testing.assert_allclose(rescaled, tables[1], rtol=1e-5, atol=1e-5)
+
+
+def test_the_fix_error_counts_what_the_offset_leaves_over_the_slope():
+    """``fix_sigma_m = σ_e √(1 − ρ̄) / s``: ``ρ̄`` (:func:`footprint_correlation`, closed form) against a NumPy
+    Monte-Carlo mean of ``exp(−r²/L²)`` over point pairs of a square footprint, and the defaults (no footprint, a
+    slope of 1) keep ``σ_d = σ_e``."""
+    from warptan.sensing.likelihood import footprint_correlation
+
+    rng = np.random.default_rng(0)
+    a, b = rng.uniform(0.0, 1.0, (2, 400_000, 2))
+    for ratio in (0.3, 1.0, 2.3, 7.0):
+        oracle = np.exp(-(((a - b) * ratio) ** 2).sum(axis=1)).mean()
+        assert footprint_correlation(ratio) == pytest.approx(oracle, abs=2e-3)
+    assert footprint_correlation(0.0) == 1.0
+    plain = wt.Likelihood("gaussian", sensor_sigma_m=0.5, **STATED)
+    assert plain.fix_sigma_m() == plain.map_error_sigma_m
+    shaped = wt.Likelihood("gaussian", sensor_sigma_m=0.5, fix_slope=0.2, fix_footprint_m=700.0, **STATED)
+    share = 1.0 - footprint_correlation(700.0 / STATED["map_error_corr_m"])
+    assert shaped.fix_sigma_m() == pytest.approx(plain.map_error_sigma_m * np.sqrt(share) / 0.2, rel=1e-12)
+    assert shaped.fix_process(100.0) == pytest.approx(plain.fix_process(100.0) * share / 0.04, rel=1e-12)
+    with pytest.raises(wt.FilterError, match="fix_slope"):
+        wt.Likelihood("gaussian", fix_slope=0.0)

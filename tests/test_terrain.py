@@ -499,3 +499,11 @@ def test_block_top_bounds_the_cells_within_reach():
             want = cm[max(0, 4 * bi - 4):4 * bi + 8, max(0, 4 * bj - 4):4 * bj + 8].max()
             assert top[bi, bj] == want
     assert np.isinf(top[0, 5:]).all() and np.isfinite(top[3:, :5]).all()
+
+
+def test_the_rms_slope_of_sinusoidal_ridges():
+    """Ridges ``h = 50 sin(2π north / λ)``: ``|∇h| = 50 (2π / λ) |cos|``, RMS ``50 (2π / λ) / √2`` (0.111 for λ = 2 km;
+    central differences on 30 m posts read the slope within 0.2 %)."""
+    north = np.arange(400) * 30.0
+    ridges = Terrain.from_grid(np.tile(50.0 * np.sin(2 * np.pi * north / 2000.0)[:, None], (1, 300)), 30.0)
+    assert ridges.slope_rms == pytest.approx(50.0 * 2 * np.pi / 2000.0 / np.sqrt(2.0), rel=3e-3)

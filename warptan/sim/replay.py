@@ -238,7 +238,7 @@ def _likelihood(log: FlightLog, scenario: Scenario, the_map, own: bool = True) -
     (:meth:`~warptan.terrain.grid.Terrain.interpolation_sigma_m`). The map error is learned in flight
     (:func:`~warptan.sim.scenarios.learned_statement`) unless the log was simulated over this DEM as its world
     (:func:`_simulated_on_its_map`): a recorded flight's map is never known to be its world."""
-    from warptan.sim.scenarios import learned_statement, scenario_likelihood
+    from warptan.sim.scenarios import fix_geometry, learned_statement, scenario_likelihood
 
     stored, stored_config = log.settings.get("likelihood"), log.settings.get("config")
     lk = scenario.likelihood
@@ -251,7 +251,8 @@ def _likelihood(log: FlightLog, scenario: Scenario, the_map, own: bool = True) -
                                                            lik.map_error_learn, lik.map_error_confidence):
             lik = dataclasses.replace(lik, map_error_sigma_m=rms, map_error_corr_m=corr, map_error_learn=learn,
                                       map_error_confidence=lk.map_error_confidence,
-                                      fix_corr_m=the_map.slope_correlation_m if rms > 0 else 0.0)
+                                      fix_corr_m=the_map.slope_correlation_m if rms > 0 else 0.0,
+                                      **fix_geometry(the_map, _footprint(lik, ran) if rms > 0 else None))
         if not own and lk.map_aware:
             lik = dataclasses.replace(lik, map_sigma_m=math.hypot(lik.map_sigma_m,
                                                                   the_map.interpolation_sigma_m(lik.map_sigma_m)))
@@ -263,6 +264,14 @@ def _likelihood(log: FlightLog, scenario: Scenario, the_map, own: bool = True) -
         along = np.where(valid, log.scan_dirs[..., 0] / np.maximum(log.scan_dirs[..., 2], 1e-3), np.nan)
         footprint = median_range * float(np.nanmax(along) - np.nanmin(along)) if np.isfinite(along).any() else 0.0
     return scenario_likelihood(scenario, the_map, None, footprint_m=footprint)
+
+
+def _footprint(lik: Likelihood, ran: Scenario) -> float:
+    """The scan footprint of the run a log was simulated with: its stored likelihood's, else its flight's at the
+    altitude rule's clearance (0 for the altimeter)."""
+    if lik.fix_footprint_m or ran.sensor.model == "altimeter":
+        return lik.fix_footprint_m
+    return ran.flight.footprint_m(ran.sensor.scan_half_angle_deg)
 
 
 def check_coverage(log: FlightLog, terrain, ins_pos: np.ndarray, allow_gaps: bool = False) -> int:

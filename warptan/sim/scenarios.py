@@ -263,7 +263,19 @@ def scenario_likelihood(scenario: Scenario, the_map: Terrain, truth: Terrain | N
                       map_correlation=n_corr, footprint_correlation=n_fp,
                       map_error_sigma_m=rms, map_error_corr_m=corr, map_error_learn=learn,
                       map_error_confidence=lk.map_error_confidence, track_step_m=step_m,
-                      fix_corr_m=the_map.slope_correlation_m if rms > 0 else 0.0)
+                      fix_corr_m=the_map.slope_correlation_m if rms > 0 else 0.0,
+                      **fix_geometry(the_map, footprint_m if rms > 0 and s.model != "altimeter" else None))
+
+
+def fix_geometry(the_map: Terrain, footprint_m: float | None) -> dict:
+    """The likelihood's ``fix_slope`` (the map's RMS slope, at least
+    :data:`~warptan.sensing.likelihood.MIN_FIX_SLOPE`) and ``fix_footprint_m`` for a scan of ``footprint_m`` under a
+    stated map error (:meth:`~warptan.sensing.likelihood.Likelihood.fix_sigma_m`); none without a footprint."""
+    from warptan.sensing.likelihood import MIN_FIX_SLOPE
+
+    if not footprint_m:
+        return {}
+    return {"fix_slope": max(the_map.slope_rms, MIN_FIX_SLOPE), "fix_footprint_m": float(footprint_m)}
 
 
 def prepare(name_or_path, seed: int = 0, terrain=None, *, seeds=None, device=None, batched: bool = False,
