@@ -1012,3 +1012,32 @@ def test_the_fix_error_counts_what_the_offset_leaves_over_the_slope():
     assert shaped.fix_process(100.0) == pytest.approx(plain.fix_process(100.0) * share / 0.04, rel=1e-12)
     with pytest.raises(wt.FilterError, match="fix_slope"):
         wt.Likelihood("gaussian", fix_slope=0.0)
+
+
+def test_the_length_is_read_from_the_modes_the_learner_reads():
+    """The length's fit reads the modes near the vertical only (``model.mode_reads``), as the RMS does: a banked
+    scan's grazing modes drew S5's length away. The masked spectrum is kept while the spectrum and the reads stay
+    (the learner's fit keeps its grid terms per spectrum object)."""
+    from types import SimpleNamespace
+
+    from warptan.filter.mpf import MarginalizedParticleFilter
+    from warptan.sensing.learner import MapErrorLearner
+
+    spectrum = np.abs(np.random.default_rng(0).normal(size=(len(MapErrorLearner.LENGTH_FACTORS), 6))) + 0.1
+    reads = np.array([1, 1, 0, 1, 0, 1, 1, 1], np.float32)
+    holder = SimpleNamespace(_spectrum_read=None)
+    masked = MarginalizedParticleFilter._read_spectrum(holder, spectrum, reads)
+    np.testing.assert_array_equal(masked[:, [2, 4]], 0.0)
+    np.testing.assert_array_equal(masked[:, [0, 1, 3, 5]], spectrum[:, [0, 1, 3, 5]])
+    assert MarginalizedParticleFilter._read_spectrum(holder, spectrum, reads) is masked
+    assert MarginalizedParticleFilter._read_spectrum(holder, spectrum, np.ones(8, np.float32)) is not masked
+    from warptan.kernels.filter.resampling import PROJ_SW
+
+    learner = MapErrorLearner(5.0, prior_corr_m=500.0)
+    projections = np.zeros(PROJ_SW + 4)
+    projections[:6] = 0.3 + 2.0 * spectrum[4]  # (the moments of the length 500 m × LENGTH_FACTORS[4])
+    projections[PROJ_SW] = 1.0
+    factor = learner.length_factor(projections, masked)
+    projections[[2, 4]] = 1e6  # grazing modes' moments, which would draw any fit that read them
+    assert learner.length_factor(projections, masked) == factor
+    assert learner.length_factor(projections, spectrum) != factor

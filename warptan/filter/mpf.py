@@ -235,6 +235,7 @@ class MarginalizedParticleFilter(ImuIntake, Readout):
             self._proj_out = wp.zeros((b, kmpf.PROJ_LEN), dtype=wp.float64, device=self.device)
             self._proj_ref = wp.zeros(b, dtype=wp.float32, device=self.device)
             self._moments_echo = HostEcho([self._moments_out, self._proj_out])
+        self._spectrum_read = None  # (the length's spectrum without the modes the learner does not read)
         self._platform_echo = None  # (the nominal's attitude and position for the map-error modes' scan geometry)
         self._learn_launches = None  # (the arrays and values a map-error reading's recorded launches hold)
         self.max_stages = int(c.max_stages)
@@ -496,7 +497,7 @@ class MarginalizedParticleFilter(ImuIntake, Readout):
             self._proj_out.zero_()
         held[2].run(0, lambda: self._learn_launch(arrays, scalars))
         if projections and self.learner.log_len is not None:
-            spectrum = self.model.mode_spectrum(self.learner.LENGTH_FACTORS)
+            spectrum = self._read_spectrum(self.model.mode_spectrum(self.learner.LENGTH_FACTORS), reads)
         # (the spectrum of the table this reading reads, the per-point σ that whitened it)
         self._moments_echo.queue(tag=(spectrum, float(self.model.sigma_m)))
         moments, projections = self._moments_echo.read()
@@ -518,6 +519,18 @@ class MarginalizedParticleFilter(ImuIntake, Readout):
             self.q_pos = np.broadcast_to(np.asarray(q, dtype=np.float64), (self.n_filters,)).copy()
         self._uploads.put("q_pos", self._q_dev[0], self.q_pos)
         self._uploads.put("q_vel_down", self._q_dev[1], np.asarray(self._q_vel_down, dtype=np.float64))
+
+    def _read_spectrum(self, spectrum: np.ndarray, reads: np.ndarray) -> np.ndarray:
+        """``spectrum`` with the modes the learner does not read (``model.mode_reads``: mostly on points beyond 48°
+        of the vertical) at zero, which the length's fit leaves out (the same array while both stay). The RMS was
+        read from the modes near the vertical only, the length from all: on a banked scan (S5, S6) the grazing
+        rays' modes, whose flat-ground sensitivity the spectrum assumes, drew the length away once a reading
+        without a ruling mode read it too (999de27: S5 short 8.6 → 9.7 m, 8 seeds)."""
+        key = (id(spectrum), reads.tobytes())
+        if self._spectrum_read is None or self._spectrum_read[0] != key:
+            mask = reads[: spectrum.shape[1]] > 0.5
+            self._spectrum_read = (key, spectrum * mask[None, :], spectrum)  # (the source kept: its id stays its own)
+        return self._spectrum_read[1]
 
     def _learn_launch(self, arrays: tuple, scalars: tuple) -> None:
         """The launches of a map-error reading (recorded once per set of arrays and values: ``_learn_map_error``):
