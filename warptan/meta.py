@@ -33,8 +33,7 @@ def git_commit(path: str | os.PathLike | None = None) -> str:
         # (--no-optional-locks: a plain `git status` refreshes the checkout's index, writing .git/index.lock; under
         # a file size limit that write was cut and a stale lock blocked the user's next git command)
         dirty = subprocess.run(["git", "--no-optional-locks", "status", "--porcelain", "--untracked-files=no"],
-                               cwd=where,
-                               capture_output=True, text=True, timeout=10).stdout.strip()
+                               cwd=where, capture_output=True, text=True, timeout=10).stdout.strip()
         return head.stdout.strip() + ("+dirty" if dirty else "")
     except (OSError, subprocess.SubprocessError):
         return "unknown (git not available)"

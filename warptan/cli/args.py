@@ -22,7 +22,7 @@ def count_arg(text: str) -> int:
 
 def text_arg(text: str) -> str:
     """argparse type: a name or path that is not empty or blank (an empty ``--terrain ""`` silently meant the
-    scenario's own DEM, an empty ``--out ""`` the current folder)."""
+    scenario's own DEM; ``--out`` has the output folder's own check)."""
     if not text.strip():
         raise argparse.ArgumentTypeError(f"must not be empty, got {text!r}")
     if "\0" in text:

@@ -525,7 +525,7 @@ class MarginalizedParticleFilter(ImuIntake, Readout):
         of the vertical) at zero, which the length's fit leaves out (the same array while both stay). The RMS was
         read from the modes near the vertical only, the length from all: on a banked scan (S5, S6) the grazing
         rays' modes, whose flat-ground sensitivity the spectrum assumes, drew the length away once a reading
-        without a ruling mode read it too (999de27: S5 short 8.6 → 9.7 m, 8 seeds)."""
+        without a ruling mode read it too (since 999de27; S5's RMSE grew by about an eighth)."""
         key = (id(spectrum), reads.tobytes())
         if self._spectrum_read is None or self._spectrum_read[0] != key:
             mask = reads[: spectrum.shape[1]] > 0.5

@@ -382,7 +382,7 @@ class Likelihood:
         Before, ``σ_d = σ_e`` (a slope of 1, the whole error): on the 90 m rugged tile (RMS slope 0.14, S8's
         footprint 693 m) σ_d is 5.8 σ_e for L = 300 m, 2.7 σ_e for 1 km and 0.9 σ_e for 3 km. With σ_d = σ_e the
         reported σ fell below the error on short-correlated and cluttered worlds, most in the stretches where the
-        terrain fixes the position weakly (S8 short, 8 seeds, 30–50 s: RMSE 9 m against σ 4.7 m); with this σ_d
+        terrain fixes the position weakly; with this σ_d
         the ``short`` and ``clutter`` rows of S7 and S8 went from σ/RMSE 0.6–0.75 to 0.9–1.1 for about 10 % of RMSE
         (``results/learned``, 20 seeds)."""
         share = 1.0 - footprint_correlation(self.fix_footprint_m / self.map_error_corr_m) if (

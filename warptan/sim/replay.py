@@ -117,25 +117,26 @@ def check_settings(log: FlightLog) -> None:
         kind = SETTINGS.get(key)
         if kind is None:
             hint = difflib.get_close_matches(str(key), list(SETTINGS), n=1)
-            problems.append(f": unknown key {key!r}" + (f" (did you mean {hint[0]!r}?)" if hint else ""))
+            problems.append(f"settings: unknown key {key!r}" + (f" (did you mean {hint[0]!r}?)" if hint else ""))
         elif kind is int and (isinstance(value, bool) or not isinstance(value, int) or value < 0):
-            problems.append(f"{key} must be a whole number ≥ 0, got {value!r}")
+            problems.append(f"settings.{key} must be a whole number ≥ 0, got {value!r}")
         elif not isinstance(value, kind):
-            problems.append(f"{key} must be a JSON {'object' if kind is dict else 'string'}, got {value!r:.60}")
+            problems.append(f"settings.{key} must be a JSON {'object' if kind is dict else 'string'}, got "
+                            f"{value!r:.60}")
     config, stored = log.settings.get("config"), log.settings.get("likelihood")
     if isinstance(config, dict):
-        problems += [f"config: {p[2:]}" for p in validate(with_optional_defaults(dict(config)), "")]
+        problems += [f"settings.config: {p[2:]}" for p in validate(with_optional_defaults(dict(config)), "")]
     if isinstance(stored, dict):
         names = {f.name for f in dataclasses.fields(Likelihood)}
         unknown = sorted(set(stored) - names, key=str)
-        problems += [f"likelihood: unknown key {k!r}" for k in unknown]
+        problems += [f"settings.likelihood: unknown key {k!r}" for k in unknown]
         if not unknown:
             try:
                 Likelihood(**stored)
             except (TypeError, ValueError, FilterError) as err:
-                problems.append(f"likelihood: {err}")
+                problems.append(f"settings.likelihood: {err}")
     if problems:
-        raise LogError(f"flight log {log.name}", [f"settings{p}" if p[0] == ":" else f"settings.{p}" for p in problems])
+        raise LogError(f"flight log {log.name}", problems)
 
 
 def replay_config(log: FlightLog, model: str | None = None, backend: str | None = None,
@@ -251,8 +252,7 @@ def _likelihood(log: FlightLog, scenario: Scenario, the_map, own: bool = True) -
                                                            lik.map_error_learn, lik.map_error_confidence):
             lik = dataclasses.replace(lik, map_error_sigma_m=rms, map_error_corr_m=corr, map_error_learn=learn,
                                       map_error_confidence=lk.map_error_confidence,
-                                      fix_corr_m=the_map.slope_correlation_m if rms > 0 else 0.0,
-                                      **fix_geometry(the_map, _footprint(lik, ran) if rms > 0 else None))
+                                      **fix_geometry(the_map, rms, _footprint(lik, ran)))
         if not own and lk.map_aware:
             lik = dataclasses.replace(lik, map_sigma_m=math.hypot(lik.map_sigma_m,
                                                                   the_map.interpolation_sigma_m(lik.map_sigma_m)))

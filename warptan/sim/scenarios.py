@@ -263,19 +263,22 @@ def scenario_likelihood(scenario: Scenario, the_map: Terrain, truth: Terrain | N
                       map_correlation=n_corr, footprint_correlation=n_fp,
                       map_error_sigma_m=rms, map_error_corr_m=corr, map_error_learn=learn,
                       map_error_confidence=lk.map_error_confidence, track_step_m=step_m,
-                      fix_corr_m=the_map.slope_correlation_m if rms > 0 else 0.0,
-                      **fix_geometry(the_map, footprint_m if rms > 0 and s.model != "altimeter" else None))
+                      **fix_geometry(the_map, rms, footprint_m if s.model != "altimeter" else None))
 
 
-def fix_geometry(the_map: Terrain, footprint_m: float | None) -> dict:
-    """The likelihood's ``fix_slope`` (the map's RMS slope, at least
-    :data:`~warptan.sensing.likelihood.MIN_FIX_SLOPE`) and ``fix_footprint_m`` for a scan of ``footprint_m`` under a
-    stated map error (:meth:`~warptan.sensing.likelihood.Likelihood.fix_sigma_m`); none without a footprint."""
+def fix_geometry(the_map: Terrain, rms: float, footprint_m: float | None) -> dict:
+    """The likelihood's terms of the fix wander under a map error of RMS ``rms`` (none without one:
+    :meth:`~warptan.sensing.likelihood.Likelihood.fix_process`): ``fix_corr_m``, the map's slope correlation length,
+    and for a scan of ``footprint_m``, ``fix_slope`` (the map's RMS slope, at least
+    :data:`~warptan.sensing.likelihood.MIN_FIX_SLOPE`) and ``fix_footprint_m``."""
     from warptan.sensing.likelihood import MIN_FIX_SLOPE
 
-    if not footprint_m:
-        return {}
-    return {"fix_slope": max(the_map.slope_rms, MIN_FIX_SLOPE), "fix_footprint_m": float(footprint_m)}
+    if not rms > 0:
+        return {"fix_corr_m": 0.0}
+    terms = {"fix_corr_m": the_map.slope_correlation_m}
+    if footprint_m:
+        terms.update(fix_slope=max(the_map.slope_rms, MIN_FIX_SLOPE), fix_footprint_m=float(footprint_m))
+    return terms
 
 
 def prepare(name_or_path, seed: int = 0, terrain=None, *, seeds=None, device=None, batched: bool = False,
@@ -291,7 +294,7 @@ def prepare(name_or_path, seed: int = 0, terrain=None, *, seeds=None, device=Non
         raise ScenarioError(f"{scenario.id}: map_noise_m with map_seed = -1, or a [world] with seed = -1, gives "
                             "every seed its own map or world; run the seeds one by one (without --batch), or fix "
                             "terrain.map_seed / world.seed")
-    if device is not None:  # seeds one by one hold one seed's memory at a time
+    if device is not None:  # seeds one by one hold one seed's filter at a time, and every seed's result
         check_memory(scenario, len(seeds) if batched else 1, device, kept=0 if batched else len(seeds))
     truth_terrain = world_terrain(resolve_terrain(scenario, terrain), scenario, base + seeds[0])
     flight = build_flight(scenario, truth_terrain)

@@ -47,11 +47,11 @@ NAMED_TERRAINS = {
 Thuringia (±22 km, ≈ 93 × 59 m posts), ``rugged30`` SRTM1 San Gabriel Mountains (19 × 36 km, 30 m UTM), ``flat``
 SRTM3 Ganges plain (±12 km)."""
 PLAUSIBLE_HEIGHTS_M = (-500.0, 9000.0)
-_SYNTHETIC_DEFAULTS = {"size_m": 20_000.0, "spacing": 30.0, "seed": 0}
-"""A generated terrain's default options (:meth:`Terrain.synthetic`; its name lists the others)."""
 """Heights a land DEM can hold (the Dead Sea shore is at −430 m, Everest at 8 849 m): posts outside are nodata
 (a fill value the file does not declare, a corrupt post), with a :class:`TerrainWarning`. Pass another
 ``valid_range_m`` for bathymetry."""
+_SYNTHETIC_DEFAULTS = {"size_m": 20_000.0, "spacing": 30.0, "seed": 0}
+"""A generated terrain's default options (:meth:`Terrain.synthetic`; its name lists the others)."""
 DEM_DIR_ENV = "WARPTAN_DEM_DIR"
 """A folder that, when set, replaces the package's copies of the named terrains (same file names, or the
 ``.npz`` of :meth:`Terrain.save_npz` for machines without rasterio)."""

@@ -266,7 +266,7 @@ def information_map(terrain, dirs_body, altitude_agl_m: float, sigma_m: float, *
     scan = scan_footprint(dirs_body, altitude_agl_m, heading_deg, 1, scan_step_m)
     psi = math.radians(float(heading_deg))
     leg = leg_shifts((math.cos(psi), math.sin(psi)), n_scans, scan_step_m)  # the scans' centres
-    span = np.ptp(np.concatenate([scan, scan[:1] + np.ptp(leg, axis=0)]), axis=0)  # (the leg's scans' footprint)
+    span = np.ptp(scan, axis=0) + np.ptp(leg, axis=0)  # (the extent of the leg's scans' points)
     extent = ((terrain.shape[0] - 1) * terrain.dn, (terrain.shape[1] - 1) * terrain.de)
     if span[0] >= extent[0] or span[1] >= extent[1]:
         raise TerrainError(f"at {altitude_agl_m:g} m above the terrain the scans cover {span[0]:.4g} × {span[1]:.4g} m "
