@@ -677,6 +677,32 @@ def test_ground_read_again_after_the_modes_forgot_it_weighs_less():
         wt.Likelihood("gaussian", revisit_correlation=1.0)
 
 
+def test_the_learner_acquires_fast_then_remembers_slowly():
+    """MapErrorLearner's first readings weigh more (``PRIOR_READINGS``): a statement 16× the map's error (modes' ratio
+    at its clip, 1/4) comes down past a quarter of itself within 30 readings (at the memory's gain alone: half of
+    itself), while readings scattered around the truth keep σ_e near it."""
+    from warptan.sensing.learner import MapErrorLearner
+
+    def reading(ratio):
+        return np.array([1.0, 1.0, ratio, 4, 0.5, 0.5])
+
+    fast = MapErrorLearner(10.0)
+    for _ in range(30):
+        fast.read(reading(0.25))
+    assert fast.sigma_m < 2.5
+    slow = MapErrorLearner(10.0)
+    slow.PRIOR_READINGS = 1e9  # (the memory's gain alone)
+    for _ in range(30):
+        slow.read(reading(0.25))
+    assert slow.sigma_m == pytest.approx(5.0, rel=0.01)
+    rng = np.random.default_rng(3)
+    for seed in range(20):  # (the ratio a reading sees is the true variance over the one in use, scattered)
+        steady = MapErrorLearner(4.0)
+        for noise in np.exp(rng.normal(0.0, 0.3, 200)):
+            steady.read(reading(noise * (4.0 / steady.sigma_m) ** 2))
+        assert 0.85 * 4.0 < steady.sigma_m < 1.15 * 4.0, seed
+
+
 def test_the_learner_moves_the_rms_towards_what_the_modes_say_and_only_when_converged():
     """MapErrorLearner: readings whose modes' ratio is 1/4 (a map better than stated) bring σ_e down towards its floor,
     ratio 2 raises it to at most twice the prior; a filter spread over 100 m, one whose NIS says it is lost, or a

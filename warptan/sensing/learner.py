@@ -25,7 +25,8 @@ class MapErrorLearner:
     whose fixed point is ``σ_t² + σ² / λ_i``: the true variance plus the noise a mode cannot tell from it (about (σ /
     8)² for a 10×10 scan). It is applied in the log domain with gain ``every / time_constant`` per reading (an
     exponential memory of ``time_constant`` updates, 30 s at 10 Hz by default: the error of one correlation length is
-    read over 10 s at 100 m/s), each reading's ratio clipped to [1/4, 4]. Only the modes that lie mostly on points
+    read over 10 s at 100 m/s), the first readings faster (:attr:`PRIOR_READINGS`), each reading's ratio clipped to
+    [1/4, 4]. Only the modes that lie mostly on points
     within 48° of the vertical are read (``MeasurementModel.mode_reads``): a banked scan's grazing rays, whose
     flat-ground sensitivity 1/u_z claims more error than a ray meeting a hill face sees, took the learned RMS of S5
     (60° bank) to a metre over a 5 m world.
@@ -81,6 +82,11 @@ class MapErrorLearner:
 
     LENGTH_FACTORS = 2.0 ** (np.arange(-4, 5) / 2.0)
     """The correlation lengths weighed against each other at a reading, as factors of the one in use."""
+    PRIOR_READINGS = 2.0
+    """The prior's weight, in readings: the k-th reading that moves the RMS steps with gain ``max(every /
+    time_constant, 1 / (PRIOR_READINGS + k))``, the running mean of its log ratios until the memory's time constant
+    takes over (acquisition). At the memory's gain alone a reading moves ``log σ_e`` by at most ``ln 4 / 60``: a
+    statement 16 times the map's error needed the whole of a 120 s flight to come down."""
     WHITE_EXCESS = 1.5
     """The residuals' energy outside the modes, as a multiple of what the likelihood expects, above which the map's
     white error is learned to be larger than its prior."""
@@ -151,7 +157,8 @@ class MapErrorLearner:
         if spread > max(self.converged_m, 3.0 * self.sigma_m) or not (np.isfinite(nis) and nis <= self.nis_max):
             return None
         if used >= 1 and np.isfinite(ratio) and ratio > 0:  # (no mode the scan rules: the RMS keeps, the rest reads)
-            step = self.gain * math.log(min(max(ratio, 0.25), 4.0))
+            gain = max(self.gain, 1.0 / (self.PRIOR_READINGS + self.readings + 1))
+            step = gain * math.log(min(max(ratio, 0.25), 4.0))
             lo, hi = 2.0 * math.log(self.floor_m), 2.0 * math.log(self.ceiling_m)
             self.log_var = min(max(self.log_var + step, lo), hi)
             self.readings += 1
