@@ -144,7 +144,8 @@ def map_error_block() -> str:
 
 def long_flight_block() -> str:
     data = _load("results/long_flight_check.json")
-    lines = [data["what"], f"Terrain `{data.get('terrain', '?')}`. " + _provenance("results/long_flight_check.json"),
+    terrain = Path(data.get("terrain", "?")).name  # (the file's name: the path was the measuring machine's)
+    lines = [data["what"], f"Terrain `{terrain}`. " + _provenance("results/long_flight_check.json"),
              "", "| likelihood | runs | epochs outside 3σ (mean) | runs > 5 % outside | runs re-spread | "
              "outside > 5 % and never re-spread | largest horizontal error after 30 s (m) |",
              "|---|---|---|---|---|---|---|"]
