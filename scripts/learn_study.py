@@ -23,6 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from warptan.meta import run_meta
+from warptan.sim.replay import replay
 from warptan.sim.report import ci95, declared_unconverged
 from warptan.sim.scenarios import run_scenario
 
@@ -39,7 +40,11 @@ FAMILIES = {
 MISSTATED = {"rms-half": (0.5, 1.0), "rms-double": (2.0, 1.0), "corr-third": (1.0, 1.0 / 3.0),
              "corr-triple": (1.0, 3.0)}
 """Misstated modes: (factor on the RMS, factor on the correlation length) of the family's own error."""
-MODES = ("learn", "off", "told", *MISSTATED)
+MODES = ("learn", "off", "told", *MISSTATED, "replay-told")
+REPLAYED = ("replay-told",)
+"""Modes that fly the scenario, export its flight log and replay that log (``warptan.sim.replay.replay``) told
+:data:`EXACT_STATEMENT`, the user guide's sequence: over the ``exact`` family a replay over the log's own DEM, a map
+better than stated (run over that family only)."""
 LOST_M = 50.0
 """A seed whose converged horizontal RMSE exceeds this is lost; ``lost_unflagged`` counts those that did not declare
 themselves unconverged (``warptan.sim.report.declared_unconverged``: their horizontal 3σ over 50 m)."""
@@ -53,7 +58,7 @@ def mode_keywords(mode: str, family: str) -> dict:
     that statement scaled."""
     if mode == "off":
         return {"map_error_learn": False}
-    if mode == "learn":
+    if mode in ("learn", *REPLAYED):
         return {}
     kw = FAMILIES[family]
     rms, corr = EXACT_STATEMENT if family == "exact" else (kw.get("world_error_rms_m", 3.0),
@@ -65,8 +70,11 @@ def mode_keywords(mode: str, family: str) -> dict:
 def fly(job: tuple) -> dict:
     """One seed of a row (a worker's task): its converged horizontal RMSE, errors and 3σ after convergence, learned
     RMS and white error, the map-minus-world RMS, its re-spreads and whether it declared itself unconverged."""
-    sid, seed, world_seed, kw, device = job
-    r = run_scenario(sid, seed, device=device, world_seed=world_seed, bound=False, **kw)
+    sid, seed, world_seed, kw, device, mode = job
+    logs = [] if mode in REPLAYED else None
+    r = run_scenario(sid, seed, device=device, world_seed=world_seed, bound=False, export_logs=logs, **kw)
+    if logs:
+        r = replay(logs[0], device=device, map_error=EXACT_STATEMENT)
     conv = r.run.t_s >= r.config.filter.converged_after_s
     parts = getattr(r.truth_terrain, "parts", None) or {}
     return {"horiz": float(np.hypot(*r.rmse_converged[:2])), "err": r.run.error[conv], "sig3": r.run.sigma3_pos[conv],
@@ -78,7 +86,7 @@ def fly(job: tuple) -> dict:
 def run_row(sid: str, family: str, mode: str, seeds: int, worlds: int, duration_s: float, device: str,
             pool=None) -> dict:
     kw = {**FAMILIES[family], **mode_keywords(mode, family), "duration_s": duration_s}
-    jobs = [(sid, seed, 2000 + seed * worlds // seeds, kw, device) for seed in range(seeds)]
+    jobs = [(sid, seed, 2000 + seed * worlds // seeds, kw, device, mode) for seed in range(seeds)]
     runs = list(pool.map(fly, jobs)) if pool is not None else [fly(j) for j in jobs]
     horiz = np.array([r["horiz"] for r in runs])
     err = np.concatenate([r["err"] for r in runs])
@@ -120,7 +128,8 @@ def write_md(rows: list[dict], path: Path) -> None:
              "stated (the default: the learner starts from 5 m / 500 m), `off` nothing stated with the learner off "
              "(the filter as it was), `told` the world's own error stated (a prior; over `exact`, where the map is the "
              "world, 5 m / 1 km: a map better than stated), `rms-half` / `rms-double` / `corr-third` / `corr-triple` "
-             "that statement with its RMS × 0.5 / × 2 or its correlation length × 1/3 / × 3. Horizontal RMSE after "
+             "that statement with its RMS × 0.5 / × 2 or its correlation length × 1/3 / × 3, `replay-told` the "
+             "flight's log replayed told 5 m / 1 km. Horizontal RMSE after "
              "convergence, mean ± 95 % interval over seeds; 3σ coverage pooled over seeds and epochs after "
              "convergence; σ/RMSE the mean reported σ over the RMSE per axis; learned: the learned RMS at the end of "
              "the flight, mean (min–max) over seeds. Commands and machines: `PROVENANCE.md`.", "",
@@ -175,13 +184,16 @@ def main(argv=None) -> int:
     for sid in args.scenarios:
         for family in args.families:
             for mode in args.modes:
-                if (sid, family, mode, args.seeds) in done or (family == "exact" and mode == "off"):
+                if (sid, family, mode, args.seeds) in done or (family == "exact" and mode == "off") or (
+                        family != "exact" and mode in REPLAYED):
                     continue
                 rows.append(run_row(sid, family, mode, args.seeds, args.worlds, args.duration_s, args.device, pool))
                 path.write_text(json.dumps({"meta": run_meta((args.device,)), "rows": rows}, indent=1))
                 write_md(rows, args.out / "study.md")
                 print(f"{sid} {family} {mode}: {rows[-1]['horizontal_rmse_m']:.2f} m, "
                       f"coverage {rows[-1]['coverage_3sigma']}", flush=True)
+    if pool is not None:
+        pool.shutdown()  # (left to the interpreter's exit, the pool's wake-up wrote to a closed pipe)
     return 0
 
 
