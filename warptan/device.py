@@ -6,13 +6,37 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
+AUTO = "auto"
+"""The device the CLI and the API default to: a CUDA GPU when Warp sees one, else the CPU (:func:`auto_device`)."""
+
+
+def auto_device(device=AUTO, cluster: bool = False):
+    """``device`` with :data:`AUTO` decided: ``"cuda:0"`` when Warp sees a CUDA device (``"cuda"`` for a Ray
+    campaign, ``cluster``: each of its tasks gets one GPU), else ``"cpu"``. Any other value is returned as given
+    (``"cpu"`` keeps the CPU where a GPU is present)."""
+    if isinstance(device, str) and device == AUTO:
+        if wp.is_cuda_available():
+            return "cuda" if cluster else "cuda:0"
+        return "cpu"
+    return device
+
+
+def device_words(given, chosen) -> str:
+    """How a run names its device in its first line: ``cuda:0 (auto: a CUDA GPU was found)``, ``cpu (auto: no CUDA
+    GPU)``, or the device as given."""
+    if given != AUTO:
+        return str(chosen)
+    return f"{chosen} (auto: " + ("a CUDA GPU was found; --device cpu forces the CPU)" if str(chosen).startswith(
+        "cuda") else "no CUDA GPU)")
+
 
 def resolve_device(device=None) -> wp.Device:
-    """Return the Warp device for ``device`` ("cpu", "cuda", "cuda:0", a Device, or None).
+    """Return the Warp device for ``device`` ("cpu", "cuda", "cuda:0", :data:`AUTO`, a Device, or None).
 
     Raises:
         ValueError: the name is not a device Warp knows, or names a CUDA device that is not present.
     """
+    device = auto_device(device)
     if isinstance(device, wp.Device):
         return device
     if device is not None and not isinstance(device, str):

@@ -34,6 +34,9 @@ __all__ = ["DEFAULT_TERRAIN", "Terminated", "build_parser", "count_arg", "main",
            "seed_arg"]
 
 
+DEVICE_HELP = "Warp device: auto (the default: a CUDA GPU when Warp sees one, else cpu), cpu, cuda:0"
+
+
 def build_parser() -> argparse.ArgumentParser:
     from warptan import __version__
 
@@ -90,7 +93,7 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--batch", action="store_true",
                      help="run the seeds of a scenario as one batched filter (one launch per kernel for all; "
                           "results as without it)")
-    run.add_argument("--device", default="cpu", help="Warp device (cpu, cuda:0)")
+    run.add_argument("--device", default="auto", help=DEVICE_HELP)
     run.add_argument("--out", default=None,
                      help="output folder (default warptan-results, demo: warptan-demo)")
     run.add_argument("--paper-rates", action="store_true", help="terrain measurements at the IMU rate, as the paper")
@@ -158,7 +161,7 @@ def build_parser() -> argparse.ArgumentParser:
     rep.add_argument("--likelihood", default=None, help="paper, gaussian or student_t")
     rep.add_argument("--particles", type=count_arg, default=None, help="particle count")
     rep.add_argument("--seed", type=seed_arg, default=None, help="the filter's seed (default: the log's, else 0)")
-    rep.add_argument("--device", default="cpu", help="Warp device (cpu, cuda:0)")
+    rep.add_argument("--device", default="auto", help=DEVICE_HELP)
     rep.add_argument("--out", default=None, help="output folder (default warptan-replay)")
     rep.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
     rep.add_argument("--allow-gaps", action="store_true",
@@ -199,8 +202,9 @@ def build_parser() -> argparse.ArgumentParser:
                            "(pip install 'warptan[cluster]')")
     camp.add_argument("--address", default=None,
                       help="Ray cluster address (default: start a local cluster for the campaign)")
-    camp.add_argument("--device", default="cpu",
-                      help="cpu or a CUDA device (local: cuda:0; ray: cuda = one GPU per task)")
+    camp.add_argument("--device", default="auto",
+                      help="auto (the default: a CUDA GPU when Warp sees one, else cpu), cpu or a CUDA device (local: "
+                           "cuda:0; ray: cuda = one GPU per task)")
     camp.add_argument("--cpus-per-task", type=count_arg, default=1,
                       help="ray on the CPU: CPUs each task asks for (its launch threads; default 1)")
     camp.add_argument("--out", default="warptan-campaign",

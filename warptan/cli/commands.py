@@ -127,7 +127,7 @@ def _scenario_key(name: str) -> str:
 
 
 def _run(args) -> int:
-    from warptan.device import resolve_device
+    from warptan.device import auto_device, device_words, resolve_device
     from warptan.outputs import OutputFolder
     from warptan.sim.report import write_outputs
     from warptan.sim.scenario_config import SCENARIO_IDS, ScenarioError
@@ -158,6 +158,7 @@ def _run(args) -> int:
             _require_rosbags()
     elif args.export_bag:
         raise ScenarioError("--export-bag writes beside --export-log; give --export-log DIR")
+    given, args.device = args.device, auto_device(args.device)
     resolve_device(args.device)
     overrides = {"particles": args.particles, "backend": args.backend, "surface": args.surface,
                  "likelihood": args.likelihood,
@@ -193,7 +194,10 @@ def _run(args) -> int:
         return 0
     if demo:
         print(f"warptan run: no scenario given, running the demonstration: S8 (sliding, navigation IMU) for "
-              f"{duration:.0f} s on {terrain}, {seeds} seed(s), device {args.device}")
+              f"{duration:.0f} s on {terrain}, {seeds} seed(s), device {device_words(given, args.device)}")
+    elif not args.quiet:
+        print(f"warptan run: {', '.join(ids)}, {seeds} seed(s), device {device_words(given, args.device)}",
+              file=sys.stderr)
     total = 0
     for scenario, _, flight in plans.values():
         decim = 1 if args.paper_rates else round(scenario.imu.rate_hz / scenario.sensor.rate_hz)
@@ -328,6 +332,7 @@ def _scenario_inputs(name: str, scenario, terrain) -> list:
 
 
 def _campaign(args) -> int:
+    from warptan.device import auto_device, device_words
     from warptan.outputs import OutputFolder
     from warptan.sim.campaign import Campaign
     from warptan.sim.campaign_report import write_campaign
@@ -335,6 +340,7 @@ def _campaign(args) -> int:
 
     out = OutputFolder(args.out, kind="campaign")
     campaign = Campaign.load(args.file)
+    given, args.device = args.device, auto_device(args.device, cluster=args.engine == "ray")
     plans = campaign.check(check_options(args.engine, args.device, args.address, args.cpus_per_task))
     scenario_dems = [d for scenario, _, _ in plans for d in (scenario.terrain.dem, scenario.terrain.map_path or None)]
     out.refuse_inputs(_input_files([args.file, *campaign.inputs(), *scenario_dems]))
@@ -346,7 +352,7 @@ def _campaign(args) -> int:
         return 0
     if not args.quiet:
         print(f"warptan campaign {campaign.title}: {len(campaign.batches)} batch(es) × {len(campaign.seeds)} seed(s), "
-              f"engine {args.engine}, device {args.device}", file=sys.stderr)
+              f"engine {args.engine}, device {device_words(given, args.device)}", file=sys.stderr)
     result = run_campaign(campaign, engine=args.engine, device=args.device, address=args.address,
                           cpus_per_task=args.cpus_per_task, progress=not args.quiet, checked=True)
     written = write_campaign(result, out, plots=not args.no_plots)
@@ -392,13 +398,14 @@ def _write_logs(logs, folder, bags: bool) -> None:
 
 
 def _replay(args) -> int:
-    from warptan.device import resolve_device
+    from warptan.device import auto_device, device_words, resolve_device
     from warptan.outputs import OutputFolder
     from warptan.sim.replay import replay
     from warptan.sim.report import write_outputs
 
     out = OutputFolder(args.out if args.out is not None else "warptan-replay", kind="replay")
     out.refuse_inputs(_input_files([args.log, _bag_folder(args.log), args.terrain, args.bag_config]))
+    given, args.device = args.device, auto_device(args.device)
     resolve_device(args.device)
     log = _load_flight(args)
     out.refuse_inputs(_input_files([log.dem_reference or None, log.settings.get("terrain_spec")]))
@@ -416,6 +423,8 @@ def _replay(args) -> int:
     check_replay_memory(log, scenario, args.device)
     replay_terrain(log, scenario, args.terrain)  # loads (and caches) the DEM before the progress bar
     n_meas = len(log.alt_t if scenario.sensor.model == "altimeter" else log.scan_t)
+    if not args.quiet:
+        print(f"warptan replay: {log.name}, device {device_words(given, args.device)}", file=sys.stderr)
     with progress_bar(n_meas, "update", disable=args.quiet) as bar:
         bar.set_description(f"replay {log.name}")
         result = replay(log, args.terrain, model=args.model, backend=args.backend, particles=args.particles,

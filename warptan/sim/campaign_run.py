@@ -108,14 +108,15 @@ def check_options(engine: str, device, address: str | None = None, cpus_per_task
     return "cpu"
 
 
-def run_campaign(campaign: Campaign, engine: str = "local", device: str = "cpu", address: str | None = None,
+def run_campaign(campaign: Campaign, engine: str = "local", device: str = "auto", address: str | None = None,
                  cpus_per_task: int = 1, progress: bool = True, task: Callable | None = None,
                  checked: bool = False) -> CampaignResult:
     """Run every batch of ``campaign``.
 
     Args:
         engine: ``local`` (in this process, one batch after another) or ``ray`` (one Ray task per batch).
-        device: ``cpu`` or a CUDA device; with Ray, ``cuda`` (each task gets one GPU of the cluster and runs on it).
+        device: ``auto`` (the default: a CUDA GPU when Warp sees one here, else ``cpu``), ``cpu`` or a CUDA device;
+            with Ray, ``cuda`` (each task gets one GPU of the cluster and runs on it).
         address: Ray cluster address (default: a local cluster started for the campaign, or the one this process
             is already connected to).
         cpus_per_task: CPUs a Ray task asks for on a CPU device (its CPU launch threads).
@@ -125,6 +126,9 @@ def run_campaign(campaign: Campaign, engine: str = "local", device: str = "cpu",
 
     A batch that raises is run once more, then reported in ``failures``; the other batches are kept.
     """
+    from warptan.device import auto_device
+
+    device = auto_device(device, cluster=engine == "ray")
     memory_device = check_options(engine, device, address, cpus_per_task)
     if not checked:
         campaign.check(memory_device)

@@ -25,6 +25,7 @@ import time
 import numpy as np
 
 from warptan.checks import FilterError, check_seed
+from warptan.device import auto_device
 from warptan.filter.config import MIN_PARTICLES
 from warptan.filter.mpf import MarginalizedParticleFilter
 from warptan.io.export import convert_log
@@ -394,7 +395,7 @@ def same_posts(log: FlightLog, terrain) -> bool:
 
 
 def replay(log: FlightLog, terrain=None, *, model: str | None = None, backend: str | None = None,
-           particles: int | None = None, likelihood: str | None = None, seed: int | None = None, device="cpu",
+           particles: int | None = None, likelihood: str | None = None, seed: int | None = None, device="auto",
            progress=None, allow_gaps: bool = False, map_error: tuple[float, float] | None = None,
            map_error_learn: bool | str | None = None, map_error_confidence: float | None = None):
     """Filter a recorded flight; returns a :class:`~warptan.sim.scenarios.ScenarioResult` (errors NaN without truth).
@@ -405,7 +406,7 @@ def replay(log: FlightLog, terrain=None, *, model: str | None = None, backend: s
         model, backend, particles, likelihood: Override the log's settings (default: the settings of the run that
             wrote the log, else S8's with the log's sensors).
         seed: The filter's seed (default the log's, else 0).
-        device: Warp device.
+        device: Warp device (default ``"auto"``: a CUDA GPU when Warp sees one, else the CPU).
         progress: Optional callable(k, n) per update.
         allow_gaps: Fly through nodata under the track (its updates are skipped and counted) instead of refusing.
         map_error: The DEM's stated accuracy, ``(RMS, correlation length)`` of its correlated vertical error in m (a
@@ -423,6 +424,7 @@ def replay(log: FlightLog, terrain=None, *, model: str | None = None, backend: s
     from warptan.sim.scenarios import ScenarioResult, map_terrain, scenario_model
 
     log.validate(f"flight log {log.name}")
+    device = auto_device(device)
     scenario = replay_config(log, model, backend, particles, likelihood, map_error, map_error_learn,
                              map_error_confidence)
     check_replay_memory(log, scenario, device)

@@ -40,6 +40,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from warptan.device import auto_device
 from warptan.nav.flightplan import FlightPlanError, track_problem
 from warptan.nav.imu import ImuModel
 from warptan.nav.trajectory import Trajectory
@@ -314,7 +315,7 @@ def per_seed_maps(scenario: Scenario) -> bool:
     return scenario.terrain.per_seed or scenario.world.per_seed
 
 
-def run_scenario(name_or_path, seed: int = 0, device="cpu", progress=None, export_logs=None, bound: bool = True,
+def run_scenario(name_or_path, seed: int = 0, device="auto", progress=None, export_logs=None, bound: bool = True,
                  **overrides) -> ScenarioResult:
     """Run one scenario with one seed.
 
@@ -354,7 +355,7 @@ def terrain_spec(scenario: Scenario, terrain=None) -> str:
     return scenario.terrain.dem
 
 
-def run_scenario_batch(name_or_path, seeds, device="cpu", progress=None, export_logs=None, bound: bool = True,
+def run_scenario_batch(name_or_path, seeds, device="auto", progress=None, export_logs=None, bound: bool = True,
                        **overrides) -> list[ScenarioResult]:
     """Run one scenario with several seeds as one batched filter (every run's particles in one array, one
     launch per kernel for all of them); each result is the same as :func:`run_scenario` with that seed on the
@@ -369,6 +370,7 @@ def run_scenario_batch(name_or_path, seeds, device="cpu", progress=None, export_
 
     terrain = overrides.pop("terrain", None)
     seeds = list(seeds)
+    device = auto_device(device)
     scenario, truth_terrain, flight = prepare(name_or_path, terrain=terrain, seeds=seeds, device=device, batched=True,
                                             **overrides)
     seeds = [int(seed) for seed in seeds]  # checked by prepare
