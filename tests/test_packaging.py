@@ -21,6 +21,21 @@ def test_import_needs_only_numpy_and_warp():
     subprocess.run([sys.executable, "-c", code], check=True, cwd="/")
 
 
+def test_help_and_the_public_names_load_nothing_until_used():
+    """`import warptan` and the command's parser load neither Warp nor NumPy (`warptan --help` and usage errors come
+    at once: scripts/bench_cli_start.py); every public name of `warptan.__all__` loads on first use, and a name that
+    is not one is an AttributeError."""
+    code = ("import sys, warptan, warptan.cli; warptan.cli.build_parser().format_help(); "
+            "assert 'warp' not in sys.modules and 'numpy' not in sys.modules, sorted(sys.modules); "
+            "assert set(warptan.__all__) <= set(dir(warptan)); "
+            "[getattr(warptan, name) for name in warptan.__all__]; "
+            "assert warptan.frames.__name__ == 'warptan.nav.frames' and 'warp' in sys.modules; "
+            "assert not hasattr(warptan, 'no_such_name')")
+    subprocess.run([sys.executable, "-c", code], check=True, cwd="/")
+    proc = subprocess.run([sys.executable, "-m", "warptan", "--help"], capture_output=True, text=True, cwd="/")
+    assert proc.returncode == 0 and "--device" not in proc.stdout and "run" in proc.stdout and not proc.stderr
+
+
 @pytest.mark.slow
 def test_fresh_virtualenv_install(tmp_path):
     """`pip install .` into a fresh venv gives warptan and warptan.kernels; `import kernels` is not ours. Works

@@ -12,38 +12,57 @@ Conventions (SPEC §1), used everywhere in the package:
 * SI units inside; degrees, deg/h, mg, µg/√Hz only at the configuration boundary.
 * float32 on the device for kernels; float64 on the host for the INS and the filter covariance.
 
-``import warptan`` needs only numpy and warp; rasterio, trimesh and matplotlib are imported where used.
+``import warptan`` needs only numpy and warp; rasterio, trimesh and matplotlib are imported where used. The public
+names are loaded on first use (``warptan.run_scenario``, ``from warptan import Terrain``).
 """
 
-from warptan.checks import FilterError, FilterWarning
-from warptan.device import resolve_device
-from warptan.filter.config import FilterConfig
-from warptan.filter.mpf import MarginalizedParticleFilter
-from warptan.filter.prior import InitialErrors
-from warptan.nav import frames
-from warptan.nav.imu import IMU_GRADES, ImuModel
-from warptan.nav.ins import Ins, NavState
-from warptan.nav.trajectory import Climb, Orbit, Straight, Trajectory, Turn
-from warptan.outputs import OutputError
-from warptan.sensing.likelihood import Likelihood
-from warptan.sensing.measurement import AltimeterModel, RaycastModel, SlidingModel, make_model
-from warptan.sensing.sensors import (
-    AltimeterReading,
-    Barometer,
-    PointCloud,
-    PointCloudSensor,
-    RadarAltimeter,
-    ScanPattern,
-)
-from warptan.sim.campaign import Campaign, CampaignError
-from warptan.sim.campaign_report import write_campaign
-from warptan.sim.campaign_run import run_campaign
-from warptan.sim.runner import run_filter
-from warptan.sim.scenario_config import ScenarioError
-from warptan.sim.scenarios import run_scenario, run_scenario_batch
-from warptan.terrain.grid import Terrain
-from warptan.terrain.raster import TerrainError
-from warptan.terrain.raycast import RayCaster, raycast
+import importlib
+
+_EXPORTS = {
+    "FilterError": "warptan.checks",
+    "FilterWarning": "warptan.checks",
+    "resolve_device": "warptan.device",
+    "FilterConfig": "warptan.filter.config",
+    "MarginalizedParticleFilter": "warptan.filter.mpf",
+    "InitialErrors": "warptan.filter.prior",
+    "frames": "warptan.nav.frames",
+    "IMU_GRADES": "warptan.nav.imu",
+    "ImuModel": "warptan.nav.imu",
+    "Ins": "warptan.nav.ins",
+    "NavState": "warptan.nav.ins",
+    "Climb": "warptan.nav.trajectory",
+    "Orbit": "warptan.nav.trajectory",
+    "Straight": "warptan.nav.trajectory",
+    "Trajectory": "warptan.nav.trajectory",
+    "Turn": "warptan.nav.trajectory",
+    "OutputError": "warptan.outputs",
+    "Likelihood": "warptan.sensing.likelihood",
+    "AltimeterModel": "warptan.sensing.measurement",
+    "RaycastModel": "warptan.sensing.measurement",
+    "SlidingModel": "warptan.sensing.measurement",
+    "make_model": "warptan.sensing.measurement",
+    "AltimeterReading": "warptan.sensing.sensors",
+    "Barometer": "warptan.sensing.sensors",
+    "PointCloud": "warptan.sensing.sensors",
+    "PointCloudSensor": "warptan.sensing.sensors",
+    "RadarAltimeter": "warptan.sensing.sensors",
+    "ScanPattern": "warptan.sensing.sensors",
+    "Campaign": "warptan.sim.campaign",
+    "CampaignError": "warptan.sim.campaign",
+    "write_campaign": "warptan.sim.campaign_report",
+    "run_campaign": "warptan.sim.campaign_run",
+    "run_filter": "warptan.sim.runner",
+    "ScenarioError": "warptan.sim.scenario_config",
+    "run_scenario": "warptan.sim.scenarios",
+    "run_scenario_batch": "warptan.sim.scenarios",
+    "Terrain": "warptan.terrain.grid",
+    "TerrainError": "warptan.terrain.raster",
+    "RayCaster": "warptan.terrain.raycast",
+    "raycast": "warptan.terrain.raycast",
+}
+"""Where each public name lives: imported on first use (PEP 562), so that ``import warptan`` and ``warptan --help`` do
+not load Warp and every kernel module first."""
+
 
 __version__ = "0.2.0"
 
@@ -90,3 +109,17 @@ __all__ = [
     "run_scenario_batch",
     "write_campaign",
 ]
+
+
+def __getattr__(name: str):
+    module = _EXPORTS.get(name)
+    if module is None:
+        raise AttributeError(f"module 'warptan' has no attribute {name!r}")
+    found = importlib.import_module(module)
+    value = found if name == "frames" else getattr(found, name)
+    globals()[name] = value  # (the next access does not come here)
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(__all__))

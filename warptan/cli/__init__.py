@@ -219,11 +219,11 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the ``warptan`` command; returns the exit status."""
+    args = build_parser().parse_args(argv)  # (before Warp is imported: --help and usage errors come at once)
     from warptan.device import quiet_warp
     from warptan.outputs import release_locks
 
     quiet_warp()
-    args = build_parser().parse_args(argv)
     warnings.formatwarning = _warning_line
     global _SIGTERM_SEEN
     _SIGTERM_SEEN = False
