@@ -36,6 +36,19 @@ def test_help_and_the_public_names_load_nothing_until_used():
     assert proc.returncode == 0 and "--device" not in proc.stdout and "run" in proc.stdout and not proc.stderr
 
 
+def test_the_api_prints_nothing_of_warps_unless_asked():
+    """A scenario run through the API writes nothing on stdout (Warp's banner and "Module … load" lines are off);
+    ``WARPTAN_WARP_OUTPUT=1`` keeps them."""
+    code = ("import warptan; warptan.run_scenario('S8', duration_s=0.2, particles=16, bound=False, device='cpu'); "
+            "import warp; print('quiet' if getattr(warp.config, 'quiet', False) else 'verbose')")
+    env = {k: v for k, v in os.environ.items() if k != "WARPTAN_WARP_OUTPUT"}
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd="/", env=env)
+    assert proc.returncode == 0 and proc.stdout == "quiet\n", proc.stdout + proc.stderr
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd="/",
+                          env={**env, "WARPTAN_WARP_OUTPUT": "1"})
+    assert proc.returncode == 0 and proc.stdout.endswith("verbose\n") and "Warp" in proc.stdout, proc.stdout
+
+
 @pytest.mark.slow
 def test_fresh_virtualenv_install(tmp_path):
     """`pip install .` into a fresh venv gives warptan and warptan.kernels; `import kernels` is not ours. Works

@@ -3,6 +3,8 @@ copies that do not hold the host (pinned staging, :class:`HostEcho`)."""
 
 from __future__ import annotations
 
+import os
+
 import numpy as np
 import warp as wp
 
@@ -121,10 +123,19 @@ class Uploads:
         slot["next"] = k ^ 1
 
 
+WARP_OUTPUT_ENV = "WARPTAN_WARP_OUTPUT"
+"""Set to 1 to keep Warp's own output (its start-up banner, "Module … load" lines) when warptan is imported."""
+
+
 def quiet_warp() -> None:
-    """Silence Warp's start-up banner and per-module load messages (for the CLI, scripts and tests)."""
+    """Silence Warp's start-up banner and per-module load messages (done when warptan's device layer is imported,
+    unless ``$WARPTAN_WARP_OUTPUT`` is 1: the API prints nothing of its own on stdout)."""
     wp.config.quiet = True
     wp.config.log_level = max(wp.config.log_level, wp.LOG_WARNING)
+
+
+if os.environ.get(WARP_OUTPUT_ENV, "") != "1":
+    quiet_warp()
 
 
 class HostEcho:
