@@ -112,3 +112,16 @@ def test_cli_bad_terrain_is_a_clear_error(spec, message):
     out = _cli("terrain", "info", spec)
     assert out.returncode == 2
     assert message in out.stderr and "Traceback" not in out.stderr
+
+
+def test_the_help_tells_simulated_damage_from_what_the_filter_is_told():
+    """`warptan run --help`: the options that simulate a wrong map or world say so and that the filter is not told;
+    `--map-error-m` says it tells the filter and simulates nothing (their help texts were the same words)."""
+    from warptan.cli import build_parser
+
+    parser = build_parser()
+    sub = parser._subparsers._group_actions[0].choices["run"]
+    helps = {a.option_strings[0]: a.help for a in sub._actions if a.option_strings}
+    for option in ("--map-noise-m", "--map-bias-m", "--map-spacing-m", "--world-error-m"):
+        assert helps[option].startswith("SIMULATES") and "not told" in helps[option], option
+    assert helps["--map-error-m"].startswith("TELLS the filter") and "simulates nothing" in helps["--map-error-m"]

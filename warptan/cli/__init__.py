@@ -109,11 +109,11 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--map", type=text_arg, default=None,
                      help="the filter's map from another DEM file of the same ground")
     run.add_argument("--map-spacing-m", type=number_arg(0.0, True), default=None,
-                     help="map error: coarser posts (block means)")
+                     help="SIMULATES a damaged map: coarser posts (block means); the filter is not told")
     run.add_argument("--map-noise-m", type=number_arg(0.0, False), default=None,
-                     help="map error: white noise σ per post, m")
+                     help="SIMULATES a damaged map: white noise σ per post, m; the filter is not told")
     run.add_argument("--map-bias-m", type=_finite, default=None,
-                     help="map error: vertical offset of the map, m")
+                     help="SIMULATES a damaged map: vertical offset of the map, m; the filter is not told")
     _stated_accuracy(run, "what the filter is told of its map's correlated error (a published accuracy; not the "
                           "simulation's)")
     world = run.add_argument_group("world", "a world that is not the map: the DEM (or --terrain) becomes the filter's "
@@ -123,7 +123,8 @@ def build_parser() -> argparse.ArgumentParser:
     world.add_argument("--world-relief-slope", default=None, type=_relief_arg,
                        help="spectral slope β of the relief (2-D PSD ∝ k^-β, 2…5), or 'auto'")
     world.add_argument("--world-error-m", type=number_arg(0.0, False), default=None,
-                       help="RMS of the map's correlated vertical error, m")
+                       help="SIMULATES a world that is not the map: RMS of the map's correlated vertical error "
+                            "against it, m; the filter is not told")
     world.add_argument("--world-error-corr-m", type=number_arg(0.0, False), default=None,
                        help="correlation length of that error, m (≥ one map post)")
     world.add_argument("--world-bias-m", type=_finite, default=None, help="the map reads this much higher, m")

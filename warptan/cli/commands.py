@@ -457,7 +457,8 @@ def _stated_accuracy(parser, description: str) -> None:
     map_error_corr_m)."""
     group = parser.add_argument_group("the DEM's stated accuracy", description)
     group.add_argument("--map-error-m", type=number_arg(0.0, False), default=None,
-                       help="RMS of the map's correlated vertical error, m (likelihood.map_error_rms_m)")
+                       help="TELLS the filter the RMS of its map's correlated vertical error (a published "
+                            "accuracy), m; simulates nothing (likelihood.map_error_rms_m)")
     group.add_argument("--map-error-corr-m", type=number_arg(0.0, False), default=None,
                        help="its correlation length, m (likelihood.map_error_corr_m)")
     group.add_argument("--map-error-learn", choices=("auto", "on", "off"), default=None,
