@@ -160,6 +160,24 @@ def test_outputs_table_json_and_one_plot_per_swept_parameter(tmp_path, small_loc
     assert "| S8 | 200 | 2 |" in table and "Every run: `duration_s = 3.0`" in table
 
 
+def test_the_plot_interval_of_a_positive_rmse_stays_positive():
+    """The campaign plot's interval of the mean RMSE over seeds is a bootstrap percentile interval: with a few skewed
+    seeds (1, 1, 1, 100 m) it stays above zero and around the mean, where the symmetric t interval reached -100 m;
+    one seed gives the mean itself, no finite seed NaN."""
+    from warptan.sim.campaign_report import _rmse_3d
+    from warptan.sim.report import ci95
+
+    def row(values):
+        return {"per_seed": [{"rmse_m": [v, 0.0, 0.0]} for v in values]}
+
+    mean, lo, hi = _rmse_3d(row([1.0, 1.0, 1.0, 100.0]), "rmse_m")
+    assert mean == pytest.approx(25.75) and 1.0 <= lo < mean < hi <= 100.0
+    t_mean, t_half = ci95(np.array([1.0, 1.0, 1.0, 100.0]))
+    assert t_mean - t_half < 0  # (what the plot drew before)
+    assert _rmse_3d(row([3.0]), "rmse_m") == (3.0, 3.0, 3.0)
+    assert all(np.isnan(_rmse_3d(row([float("nan")]), "rmse_m")))
+
+
 def test_cli_check_and_bad_input(tmp_path):
     good = tmp_path / "c.toml"
     good.write_text('scenarios = ["S8"]\nseeds = 2\n[overrides]\nduration_s = 3.0\n[sweep]\nparticles = [100, 200]\n')
