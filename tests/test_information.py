@@ -202,3 +202,24 @@ def test_host_gradient_is_the_surface_slope(hills, surface):
     np.testing.assert_allclose(gn, want_n, rtol=1e-6, atol=1e-7)
     np.testing.assert_allclose(ge, want_e, rtol=1e-6, atol=1e-7)
     assert np.isnan(hills.gradient_at(np.array([1e7]), np.array([0.0]), surface)[0]).all()
+
+
+def test_the_png_paints_no_fix_grey_as_its_colour_bar_says(tmp_path):
+    """Cells where the terrain fixes nothing (a flat half: bound inf) are grey in the PNG, as the colour bar's label
+    says; before, an inf was masked as bad and painted white, the colour of no footprint."""
+    pytest.importorskip("matplotlib")
+    import matplotlib.image as mpimg
+
+    from warptan.sim.scenario_config import load_config
+    from warptan.sim.scenarios import scenario_scan
+
+    rng = np.random.default_rng(0)
+    h = 300.0 + np.cumsum(np.cumsum(rng.normal(0.0, 1.0, (60, 60)), axis=0), axis=1) * 0.5
+    h[:, :30] = 300.0  # no relief: no fix
+    t = wt.Terrain.from_grid(h, 90.0, name="half flat")
+    scan = scenario_scan(load_config("S8"))
+    m = t.information_map(scan["dirs_body"], 600.0, scan["sigma_m"], n_scans=5, scan_step_m=scan["step_m"], stride=2)
+    assert np.isinf(m.bound_scan_m).any() and np.isfinite(m.bound_scan_m).any()
+    rgb = mpimg.imread(m.save_png(tmp_path / "map.png"))[..., :3]
+    grey = np.all(np.abs(rgb - 0.6) < 0.02, axis=2)
+    assert grey.mean() > 0.03  # (the colour bar's over-triangle alone is far less)

@@ -110,7 +110,9 @@ class InformationMap:
         cmap.set_bad("white")
         for ax, bound, what in ((axes[0], self.bound_scan_m, "one scan"),
                                 (axes[1], self.bound_leg_m, f"{self.settings['n_scans']} scans along the leg")):
-            shown = np.where(np.isinf(bound), np.inf, np.minimum(bound, norm.vmax))  # (finite: at most the top)
+            # no fix (inf) above the scale's top, where the colour map's "over" paints it grey (imshow masks an inf
+            # as bad: white, which is for no footprint, NaN); a finite bound at most the top
+            shown = np.where(np.isinf(bound), 10.0 * norm.vmax, np.minimum(bound, norm.vmax))
             im = ax.imshow(shown, origin="lower", extent=extent, cmap=cmap, norm=norm, interpolation="nearest")
             ax.set_title(what)
             ax.set_xlabel("east (km)")
