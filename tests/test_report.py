@@ -228,3 +228,32 @@ def test_warptan_run_notes_an_unconverged_run(capsys):
                              SimpleNamespace(scenario="S8", seed=1, run=narrow, config=config)])
     out = capsys.readouterr().out
     assert "S9 seed 4: unconverged" in out and "S8" not in out
+
+
+def test_the_plots_say_what_they_show(monkeypatch, tmp_path):
+    """The errors plot's title gives the RMSE after convergence (the whole run's beside it) and its bands are named
+    apart (the filter's ±3σ, the best possible); the ESS threshold is labelled; the track plot has a colour bar of the
+    terrain's height and a start in its legend (issue 67)."""
+    pytest.importorskip("matplotlib")
+    import matplotlib.figure
+
+    from warptan.sim.report import plot_run
+    from warptan.sim.scenarios import run_scenario
+
+    seen = []
+    save = matplotlib.figure.Figure.savefig
+
+    def spy(fig, *args, **kwargs):
+        seen.append([(ax.get_title(), ax.get_ylabel(), [t.get_text() for t in (ax.get_legend().get_texts()
+                      if ax.get_legend() else [])]) for ax in fig.axes])
+        return save(fig, *args, **kwargs)
+
+    monkeypatch.setattr(matplotlib.figure.Figure, "savefig", spy)
+    r = run_scenario("S8", duration_s=35.0, particles=64, device="cpu")
+    plot_run(r, r.truth_terrain, tmp_path / "x")
+    track, errors = seen
+    assert any(label == "terrain height (m)" for _, label, _ in track) and "start" in track[0][2]
+    title = errors[0][0]
+    assert "after 30 s" in title and "whole run" in title
+    assert {"±3σ the filter reports", "±3σ best possible (PCRB)"} <= set(errors[0][2])
+    assert any(text.startswith("N/2 = 32") for _, _, texts in errors for text in texts)

@@ -335,14 +335,21 @@ def plot_run(result, terrain, out_prefix: str | os.PathLike) -> list[str]:
               terrain.n0 + i0 * terrain.dn, terrain.n0 + (i1 - 1) * terrain.dn]
     fig, ax = plt.subplots(figsize=(7, 7))
     ax.imshow(hillshade(crop, terrain.dn, terrain.de), origin="lower", extent=extent, cmap="gray", alpha=0.9)
-    ax.imshow(crop, origin="lower", extent=extent, cmap="terrain", alpha=0.35)
+    heights = ax.imshow(crop, origin="lower", extent=extent, cmap="terrain", alpha=0.35)
+    fig.colorbar(heights, ax=ax, shrink=0.7, label="terrain height (m)")
     ax.plot(run.truth_pos[:, 1], run.truth_pos[:, 0], "k-", lw=2, label="truth")
     ax.plot(run.ins_pos[:, 1], run.ins_pos[:, 0], "r--", lw=1.2, label="INS only")
     ax.plot(run.est_pos[:, 1], run.est_pos[:, 0], "c-", lw=1.2, label="estimate")
-    ax.plot(run.truth_pos[0, 1], run.truth_pos[0, 0], "ko")
+    ax.plot(run.truth_pos[0, 1], run.truth_pos[0, 0], "ko", label="start")
+    if len(run.t_s) > 2:  # the direction of flight, halfway along the truth
+        k = len(run.t_s) // 2
+        ax.annotate("", xy=(run.truth_pos[k + 1, 1], run.truth_pos[k + 1, 0]),
+                    xytext=(run.truth_pos[k - 1, 1], run.truth_pos[k - 1, 0]),
+                    arrowprops={"arrowstyle": "-|>", "color": "k", "lw": 1.5, "mutation_scale": 18})
     ax.set_xlabel("east (m)")
     ax.set_ylabel("north (m)")
-    ax.set_title(f"{result.scenario} seed {result.seed}: {Path(result.terrain).name}")
+    where = Path(result.terrain).name if os.path.exists(str(result.terrain)) else str(result.terrain)
+    ax.set_title(f"{result.scenario} seed {result.seed}: {where}".replace(" + ", "\n+ "), fontsize=10)
     ax.legend(loc="best")
     ax.set_aspect("equal")
     fig.tight_layout()
@@ -354,11 +361,12 @@ def plot_run(result, terrain, out_prefix: str | os.PathLike) -> list[str]:
     for k, name in enumerate(("north", "east", "down")):
         ax = axes[k]
         ax.plot(run.t_s, run.error[:, k], "b-", lw=1, label="estimate − truth")
-        ax.fill_between(run.t_s, -run.sigma3_pos[:, k], run.sigma3_pos[:, k], color="b", alpha=0.15, label="±3σ")
-        ax.plot(run.t_s, (run.ins_pos - run.truth_pos)[:, k], "r--", lw=0.8, label="INS only")
+        ax.fill_between(run.t_s, -run.sigma3_pos[:, k], run.sigma3_pos[:, k], color="b", alpha=0.15,
+                        label="±3σ the filter reports")
+        ax.plot(run.t_s, (run.ins_pos - run.truth_pos)[:, k], "r--", lw=0.8, label="INS only (may leave the scale)")
         bound = getattr(result, "pcrb_sigma_m", None)
         if bound is not None:  # the flight's posterior Cramér–Rao bound, ±3σ
-            ax.plot(run.t_s, 3 * bound[:, k], "k--", lw=0.9, label="±3σ bound (PCRB)")
+            ax.plot(run.t_s, 3 * bound[:, k], "k--", lw=0.9, label="±3σ best possible (PCRB)")
             ax.plot(run.t_s, -3 * bound[:, k], "k--", lw=0.9)
         lim = max(5.0, 1.5 * _p95(run.error[:, k]) if truth else 1.2 * _p95(run.sigma3_pos[:, k]))
         ax.set_ylim(-lim, lim)
@@ -376,10 +384,16 @@ def plot_run(result, terrain, out_prefix: str | os.PathLike) -> list[str]:
     axes[3].legend(loc="upper right", fontsize=8)
     axes[3].grid(alpha=0.3)
     axes[4].plot(run.t_s, run.ess, "g-", lw=1)
-    axes[4].axhline(0.5 * run.n_particles, color="gray", ls=":", lw=1)
-    axes[4].set_ylabel("ESS")
+    axes[4].axhline(0.5 * run.n_particles, color="gray", ls=":", lw=1, label=f"N/2 = {0.5 * run.n_particles:g}")
+    axes[4].set_ylabel("ESS (particles)")
+    axes[4].legend(loc="upper right", fontsize=8, title="effective sample size", title_fontsize=8)
     axes[4].set_xlabel("time (s)")
-    axes[0].set_title(f"{result.scenario} seed {result.seed}: RMSE N/E/D {_fmt(result.rmse, [np.nan] * 3)} m")
+    after = result.config.filter.converged_after_s
+    axes[0].set_title(f"{result.scenario} seed {result.seed}: RMSE N/E/D after {after:g} s "
+                      f"{_fmt(result.rmse_converged, [np.nan] * 3)} m (whole run {_fmt(result.rmse, [np.nan] * 3)} m)",
+                      fontsize=10)
+    for ax in axes[:4]:
+        ax.axvline(after, color="gray", lw=0.8, ls="-.")
     fig.tight_layout()
     errors = f"{prefix}_errors.png"
     fig.savefig(errors, dpi=110)
