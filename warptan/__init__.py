@@ -25,7 +25,7 @@ _EXPORTS = {
     "FilterConfig": "warptan.filter.config",
     "MarginalizedParticleFilter": "warptan.filter.mpf",
     "InitialErrors": "warptan.filter.prior",
-    "frames": "warptan.nav.frames",
+    "frames": "warptan.nav",
     "IMU_GRADES": "warptan.nav.imu",
     "ImuModel": "warptan.nav.imu",
     "Ins": "warptan.nav.ins",
@@ -66,49 +66,7 @@ not load Warp and every kernel module first."""
 
 __version__ = "0.2.0"
 
-__all__ = [
-    "IMU_GRADES",
-    "AltimeterModel",
-    "AltimeterReading",
-    "Barometer",
-    "Campaign",
-    "CampaignError",
-    "Climb",
-    "FilterConfig",
-    "FilterError",
-    "FilterWarning",
-    "ImuModel",
-    "InitialErrors",
-    "Ins",
-    "Likelihood",
-    "MarginalizedParticleFilter",
-    "NavState",
-    "Orbit",
-    "OutputError",
-    "PointCloud",
-    "PointCloudSensor",
-    "RadarAltimeter",
-    "RayCaster",
-    "RaycastModel",
-    "ScanPattern",
-    "ScenarioError",
-    "SlidingModel",
-    "Straight",
-    "Terrain",
-    "TerrainError",
-    "Trajectory",
-    "Turn",
-    "__version__",
-    "frames",
-    "make_model",
-    "raycast",
-    "resolve_device",
-    "run_campaign",
-    "run_filter",
-    "run_scenario",
-    "run_scenario_batch",
-    "write_campaign",
-]
+__all__ = sorted([*_EXPORTS, "__version__"])
 
 
 def __getattr__(name: str):
@@ -116,7 +74,8 @@ def __getattr__(name: str):
     if module is None:
         raise AttributeError(f"module 'warptan' has no attribute {name!r}")
     found = importlib.import_module(module)
-    value = found if name == "frames" else getattr(found, name)
+    # (a submodule, frames, is an attribute of its package once imported)
+    value = getattr(found, name) if hasattr(found, name) else importlib.import_module(f"{module}.{name}")
     globals()[name] = value  # (the next access does not come here)
     return value
 

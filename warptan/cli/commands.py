@@ -126,8 +126,17 @@ def _scenario_key(name: str) -> str:
     return name.upper() if name.upper() in SCENARIO_IDS else os.path.realpath(name)
 
 
+def _pick_device(args, cluster: bool = False) -> str:
+    """``args.device`` with ``auto`` decided (:func:`warptan.device.auto_device`), in place; returns how the run's
+    first line names it (:func:`warptan.device.device_words`)."""
+    from warptan.device import auto_device, device_words
+
+    given, args.device = args.device, auto_device(args.device, cluster=cluster)
+    return device_words(given, args.device)
+
+
 def _run(args) -> int:
-    from warptan.device import auto_device, device_words, resolve_device
+    from warptan.device import resolve_device
     from warptan.outputs import OutputFolder
     from warptan.sim.report import write_outputs
     from warptan.sim.scenario_config import SCENARIO_IDS, ScenarioError
@@ -158,7 +167,7 @@ def _run(args) -> int:
             _require_rosbags()
     elif args.export_bag:
         raise ScenarioError("--export-bag writes beside --export-log; give --export-log DIR")
-    given, args.device = args.device, auto_device(args.device)
+    device_words = _pick_device(args)
     resolve_device(args.device)
     overrides = {"particles": args.particles, "backend": args.backend, "surface": args.surface,
                  "likelihood": args.likelihood,
@@ -194,9 +203,9 @@ def _run(args) -> int:
         return 0
     if demo:
         print(f"warptan run: no scenario given, running the demonstration: S8 (sliding, navigation IMU) for "
-              f"{duration:.0f} s on {terrain}, {seeds} seed(s), device {device_words(given, args.device)}")
+              f"{duration:.0f} s on {terrain}, {seeds} seed(s), device {device_words}")
     elif not args.quiet:
-        print(f"warptan run: {', '.join(ids)}, {seeds} seed(s), device {device_words(given, args.device)}",
+        print(f"warptan run: {', '.join(ids)}, {seeds} seed(s), device {device_words}",
               file=sys.stderr)
     total = 0
     for scenario, _, flight in plans.values():
@@ -332,7 +341,6 @@ def _scenario_inputs(name: str, scenario, terrain) -> list:
 
 
 def _campaign(args) -> int:
-    from warptan.device import auto_device, device_words
     from warptan.outputs import OutputFolder
     from warptan.sim.campaign import Campaign
     from warptan.sim.campaign_report import write_campaign
@@ -340,7 +348,7 @@ def _campaign(args) -> int:
 
     out = OutputFolder(args.out, kind="campaign")
     campaign = Campaign.load(args.file)
-    given, args.device = args.device, auto_device(args.device, cluster=args.engine == "ray")
+    device_words = _pick_device(args, cluster=args.engine == "ray")
     plans = campaign.check(check_options(args.engine, args.device, args.address, args.cpus_per_task))
     scenario_dems = [d for scenario, _, _ in plans for d in (scenario.terrain.dem, scenario.terrain.map_path or None)]
     out.refuse_inputs(_input_files([args.file, *campaign.inputs(), *scenario_dems]))
@@ -352,7 +360,7 @@ def _campaign(args) -> int:
         return 0
     if not args.quiet:
         print(f"warptan campaign {campaign.title}: {len(campaign.batches)} batch(es) × {len(campaign.seeds)} seed(s), "
-              f"engine {args.engine}, device {device_words(given, args.device)}", file=sys.stderr)
+              f"engine {args.engine}, device {device_words}", file=sys.stderr)
     result = run_campaign(campaign, engine=args.engine, device=args.device, address=args.address,
                           cpus_per_task=args.cpus_per_task, progress=not args.quiet, checked=True)
     written = write_campaign(result, out, plots=not args.no_plots)
@@ -398,14 +406,14 @@ def _write_logs(logs, folder, bags: bool) -> None:
 
 
 def _replay(args) -> int:
-    from warptan.device import auto_device, device_words, resolve_device
+    from warptan.device import resolve_device
     from warptan.outputs import OutputFolder
     from warptan.sim.replay import replay
     from warptan.sim.report import write_outputs
 
     out = OutputFolder(args.out if args.out is not None else "warptan-replay", kind="replay")
     out.refuse_inputs(_input_files([args.log, _bag_folder(args.log), args.terrain, args.bag_config]))
-    given, args.device = args.device, auto_device(args.device)
+    device_words = _pick_device(args)
     resolve_device(args.device)
     log = _load_flight(args)
     out.refuse_inputs(_input_files([log.dem_reference or None, log.settings.get("terrain_spec")]))
@@ -424,7 +432,7 @@ def _replay(args) -> int:
     replay_terrain(log, scenario, args.terrain)  # loads (and caches) the DEM before the progress bar
     n_meas = len(log.alt_t if scenario.sensor.model == "altimeter" else log.scan_t)
     if not args.quiet:
-        print(f"warptan replay: {log.name}, device {device_words(given, args.device)}", file=sys.stderr)
+        print(f"warptan replay: {log.name}, device {device_words}", file=sys.stderr)
     with progress_bar(n_meas, "update", disable=args.quiet) as bar:
         bar.set_description(f"replay {log.name}")
         result = replay(log, args.terrain, model=args.model, backend=args.backend, particles=args.particles,
