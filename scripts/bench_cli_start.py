@@ -16,6 +16,7 @@ import sys
 import time
 from pathlib import Path
 
+from warptan.device import quiet_warp
 from warptan.meta import run_meta
 
 COMMANDS = (["--help"], ["run", "--help"], ["replay", "--help"], ["campaign", "--help"], ["terrain", "info", "--help"],
@@ -36,6 +37,7 @@ def main(argv=None) -> int:
     p.add_argument("--warmup", type=int, default=2)
     p.add_argument("--json", type=Path, default=None)
     args = p.parse_args(argv)
+    quiet_warp()  # (the meta's Warp import printed its banner among the results)
     exe = shutil.which("warptan")
     base = [exe] if exe else [sys.executable, "-m", "warptan"]
     rows = []
