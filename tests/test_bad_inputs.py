@@ -295,9 +295,11 @@ def test_a_signal_mid_run_exits_and_keeps_the_old_outputs(tmp_path, signum, stat
     out = tmp_path / "res"
     out.mkdir()
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    # the run's SIGINT as at a terminal: a process started with SIGINT ignored (pytest in a shell's background job)
+    # keeps it ignored, as Python and every program that respects its parent's choice do
     proc = subprocess.Popen([sys.executable, "-m", "warptan", "run", "S7", "--seeds", "50", "--particles", "64",
                              "--out", str(out), "--no-plots"], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                            env=env, cwd=tmp_path)
+                            env=env, cwd=tmp_path, preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     seen = b""
     deadline = time.monotonic() + 120
     while b"update" not in seen and time.monotonic() < deadline:  # the progress bar: the run is under way
