@@ -84,6 +84,11 @@ def test_fresh_virtualenv_install(tmp_path):
     import warptan
 
     assert version.stdout.strip() == f"warptan {warptan.__version__}"
+    # the installed copy names the commit it was built from (results.json's git_commit; it said "unknown" before)
+    built = subprocess.run([py, "-c", "from warptan.meta import git_commit; print(git_commit())"], check=True,
+                           cwd=tmp_path, capture_output=True, text=True, env=env).stdout.strip()
+    head = subprocess.run(["git", "rev-parse", "HEAD"], cwd=ROOT, capture_output=True, text=True).stdout.strip()
+    assert built.startswith(head) and built.endswith(" (installed)"), built
 
 
 def _cli(*args):

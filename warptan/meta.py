@@ -21,22 +21,33 @@ REQUIRED = ("git_commit", "date_utc", "cpu_model", "cpu_cores", "cpu_threads", "
 
 def git_commit(path: str | os.PathLike | None = None) -> str:
     """The commit of the checkout that holds ``path`` (default: this package), with ``+dirty`` when tracked files
-    differ from it; ``unknown (…)`` outside a git checkout (an installed package, a copy on a GPU machine, where
-    ``WARPTAN_GIT_COMMIT`` may name the commit the copy was made from)."""
+    differ from it. Outside a git checkout: the commit an installed package was built from (``BUILD_COMMIT``, which
+    the build writes into the wheel: ``"<commit> (installed)"``), else ``unknown (…)`` (a copy on a GPU machine,
+    where ``WARPTAN_GIT_COMMIT`` may name the commit the copy was made from)."""
     if os.environ.get("WARPTAN_GIT_COMMIT"):
         return os.environ["WARPTAN_GIT_COMMIT"]
     where = Path(path or Path(__file__).resolve().parent)
     try:
         head = subprocess.run(["git", "rev-parse", "HEAD"], cwd=where, capture_output=True, text=True, timeout=10)
         if head.returncode != 0:
-            return "unknown (not a git checkout)"
+            return _built_commit(where) or "unknown (not a git checkout)"
         # (--no-optional-locks: a plain `git status` refreshes the checkout's index, writing .git/index.lock; under
         # a file size limit that write was cut and a stale lock blocked the user's next git command)
         dirty = subprocess.run(["git", "--no-optional-locks", "status", "--porcelain", "--untracked-files=no"],
                                cwd=where, capture_output=True, text=True, timeout=10).stdout.strip()
         return head.stdout.strip() + ("+dirty" if dirty else "")
     except (OSError, subprocess.SubprocessError):
-        return "unknown (git not available)"
+        return _built_commit(where) or "unknown (git not available)"
+
+
+def _built_commit(where: Path) -> str | None:
+    """The commit a non-editable install was built from (``setup.py`` writes ``BUILD_COMMIT`` beside this module),
+    None when there is none (a copy, a build outside a clone)."""
+    try:
+        text = (Path(__file__).resolve().parent / "BUILD_COMMIT").read_text().strip()
+    except OSError:
+        return None
+    return f"{text} (installed)" if text and where == Path(__file__).resolve().parent else None
 
 
 def cpu_model() -> str:
