@@ -7,7 +7,7 @@ import os
 import sys
 
 from warptan.cli.args import number_arg
-from warptan.progress import progress_bar
+from warptan.progress import compile_notice, progress_bar
 
 
 def _terrain_info(args) -> int:
@@ -212,7 +212,7 @@ def _run(args) -> int:
         decim = 1 if args.paper_rates else round(scenario.imu.rate_hz / scenario.sensor.rate_hz)
         total += seeds * (len(flight.f_b) // decim)
     results, terrains, logs = [], {}, ([] if export is not None else None)
-    with progress_bar(total, "update", disable=args.quiet) as bar:
+    with progress_bar(total, "update", disable=args.quiet) as bar, compile_notice(_say(args, bar)):
         for name in names:
             if args.batch:
                 bar.set_description(f"{name} seeds 0-{seeds - 1} (batch)")
@@ -230,6 +230,7 @@ def _run(args) -> int:
             terrains[batch[0].scenario] = batch[0].truth_terrain
     if export is not None:
         _write_logs(logs, export, args.export_bag)
+    _say(args)(f"writing results{'' if args.no_plots else ' and plots'} to {out.path} ...")
     written = write_outputs(results, out, terrains, plots=not args.no_plots)
     print(written["table"])
     if not written["plots"] and not args.no_plots:
@@ -237,6 +238,16 @@ def _run(args) -> int:
     print("wrote " + ", ".join(written["files"]))
     _report_unconverged(results)
     return _report_skipped(results)
+
+
+def _say(args, bar=None):
+    """A line on stderr for what the run is doing (through the progress bar's ``write`` while one is shown, so the
+    bar is not torn); nothing with ``--quiet``."""
+    if args.quiet:
+        return lambda text: None
+    if bar is not None and hasattr(bar, "write"):
+        return bar.write
+    return lambda text: print(text, file=sys.stderr)
 
 
 def _report_unconverged(results) -> None:
@@ -433,7 +444,7 @@ def _replay(args) -> int:
     n_meas = len(log.alt_t if scenario.sensor.model == "altimeter" else log.scan_t)
     if not args.quiet:
         print(f"warptan replay: {log.name}, device {device_words}", file=sys.stderr)
-    with progress_bar(n_meas, "update", disable=args.quiet) as bar:
+    with progress_bar(n_meas, "update", disable=args.quiet) as bar, compile_notice(_say(args, bar)):
         bar.set_description(f"replay {log.name}")
         result = replay(log, args.terrain, model=args.model, backend=args.backend, particles=args.particles,
                         likelihood=args.likelihood, seed=args.seed, device=args.device,
@@ -445,6 +456,7 @@ def _replay(args) -> int:
     if result.run.info.get("gaps_allowed"):
         print(f"warptan: note: --allow-gaps: {result.run.info['track_points_over_nodata']} track point(s) over nodata; "
               "the updates there were skipped (skipped_updates in results.json)")
+    _say(args)(f"writing results{'' if args.no_plots else ' and plots'} to {out.path} ...")
     written = write_outputs([result], out, {result.scenario: result.truth_terrain}, plots=not args.no_plots,
                             trajectories=True, title=f"warptan replay of {log.name}")
     print(written["table"])
