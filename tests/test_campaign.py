@@ -2,6 +2,7 @@
 engines giving identical rows, retries and failure reports."""
 
 import json
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -184,6 +185,9 @@ def test_cli_check_and_bad_input(tmp_path):
     proc = _cli("campaign", str(good), "--check", cwd=tmp_path)
     assert proc.returncode == 0, proc.stderr
     assert "S8 particles=200: ok" in proc.stdout and "2 batch(es)" in proc.stdout
+    # its time, from a pilot of each batch (issue 67: --check gave none)
+    assert re.search(r"S8 particles=100: ok \(.*; about \d+ s on c", proc.stdout), proc.stdout
+    assert re.search(r"2 batch\(es\), about \d+ s one after the other on c", proc.stdout), proc.stdout
     assert not (tmp_path / "warptan-campaign").exists()
     bad = tmp_path / "bad.toml"
     bad.write_text('scenarios = ["S8"]\nseeds = 0\n')

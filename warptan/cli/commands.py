@@ -240,6 +240,13 @@ def _run(args) -> int:
     return _report_skipped(results)
 
 
+def _duration_words(seconds: float) -> str:
+    """``42 s``, ``3.5 min``, ``2.1 h``."""
+    if seconds < 90:
+        return f"{seconds:.0f} s"
+    return f"{seconds / 60:.1f} min" if seconds < 5400 else f"{seconds / 3600:.1f} h"
+
+
 def _say(args, bar=None):
     """A line on stderr for what the run is doing (through the progress bar's ``write`` while one is shown, so the
     bar is not torn); nothing with ``--quiet``."""
@@ -364,10 +371,18 @@ def _campaign(args) -> int:
     scenario_dems = [d for scenario, _, _ in plans for d in (scenario.terrain.dem, scenario.terrain.map_path or None)]
     out.refuse_inputs(_input_files([args.file, *campaign.inputs(), *scenario_dems]))
     if args.check:
+        from warptan.device import auto_device
+        from warptan.sim.campaign_run import estimate_batch_s
+
+        where, total = auto_device(args.device), 0.0
         for b, (scenario, truth, flight) in zip(campaign.batches, plans, strict=True):
+            eta = estimate_batch_s(b, flight.duration_s, where)
+            total += eta
             print(f"{b.label}: ok ({truth.name}{_map_words(scenario)}, {flight.duration_s:.0f} s, "
-                  f"{scenario.sensor.model}, {len(b.seeds)} seed(s){'' if b.batched else ', seed by seed'})")
-        print(f"{len(campaign.batches)} batch(es); output folder {out.path}: ok")
+                  f"{scenario.sensor.model}, {len(b.seeds)} seed(s){'' if b.batched else ', seed by seed'}; "
+                  f"about {_duration_words(eta)} on {where})")
+        print(f"{len(campaign.batches)} batch(es), about {_duration_words(total)} one after the other on {where} "
+              f"(timed from a 1 s pilot of each batch); output folder {out.path}: ok")
         return 0
     if not args.quiet:
         print(f"warptan campaign {campaign.title}: {len(campaign.batches)} batch(es) × {len(campaign.seeds)} seed(s), "

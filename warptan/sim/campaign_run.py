@@ -47,6 +47,25 @@ def run_batch(spec: dict, device: str = "cpu", cpu_threads: int | None = None) -
             "end_unix": time.time()}
 
 
+def estimate_batch_s(batch: Batch, duration_s: float, device: str = "cpu", pilot_s: float = 1.0) -> float:
+    """The wall time (s) one batch will take on ``device``, from a pilot: the batch's own runs (its seeds, batched or
+    seed by seed as it will run) over the first ``pilot_s`` of the flight, timed after a first pilot that compiles
+    what the batch needs; the filter's time scales with the flight (``duration_s``), the setup (world, map, flight,
+    bound) is counted once per run. A local estimate: on a cluster the batches run side by side."""
+    from warptan.sim.scenarios import run_scenario_batch
+
+    short = min(float(pilot_s), float(duration_s))
+    kw = {**batch.overrides, "duration_s": short}
+    seed_sets = [list(batch.seeds)] if batch.batched else [[s] for s in batch.seeds[:1]]
+    run_scenario_batch(batch.scenario, seed_sets[0], device=device, **kw)  # compiles; the next is timed
+    t0 = time.perf_counter()
+    results = run_scenario_batch(batch.scenario, seed_sets[0], device=device, **kw)
+    call = time.perf_counter() - t0
+    loop = results[0].wall_s
+    one = max(call - loop, 0.0) + loop * (float(duration_s) / short)
+    return one if batch.batched else one * len(batch.seeds)
+
+
 def make_row(batch: Batch, summaries: list[dict]) -> dict:
     """The campaign row of a finished batch: RMSE (whole run and after convergence) mean ± 95 % interval over the
     seeds, mean 3σ coverage after convergence, and the per-seed values. Only numbers that the scenario, combination,
