@@ -159,7 +159,7 @@ def test_cli_arguments_out_of_range_exit_2_before_work(capsys, tmp_path):
     out = tmp_path / "o"
     for argv, fragment in ((["--seeds", "0"], "--seeds"), (["--duration-s", "0"], "--duration-s"),
                            (["--duration-s", "nan"], "--duration-s"), (["--particles", "-3"], "--particles"),
-                           (["--map-noise-m", "-1"], "--map-noise-m")):
+                           (["--sim-map-noise-m", "-1"], "--sim-map-noise-m")):
         status, _, err = _run_cli(capsys, "run", "S8", "--out", str(out), *argv)
         assert status == 2 and fragment in err
     status, _, err = _run_cli(capsys, "run", "S8", "--duration-s", "0.05", "--out", str(out))
@@ -327,7 +327,7 @@ def test_other_expected_failures_are_one_line(capsys, tmp_path):
         (["run", "S8", "--map", str(tmp_path / "absent.tif"), "--check"], "absent.tif"),
         (["run", "S8", "--terrain", "synthetic:rugged,size_m=500", "--check"], "leaves the DEM"),
         (["run", "S8", "--out", "", "--check"], "output folder name is empty"),
-        (["run", "S8", "--batch", "--seeds", "2", "--map-noise-m", "1", "--check"], "own map"),
+        (["run", "S8", "--batch", "--seeds", "2", "--sim-map-noise-m", "1", "--check"], "own map"),
     )
     for argv, fragment in cases:
         status, _, err = _run_cli(capsys, *argv)

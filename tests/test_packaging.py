@@ -127,6 +127,22 @@ def test_the_help_tells_simulated_damage_from_what_the_filter_is_told():
     parser = build_parser()
     sub = parser._subparsers._group_actions[0].choices["run"]
     helps = {a.option_strings[0]: a.help for a in sub._actions if a.option_strings}
-    for option in ("--map-noise-m", "--map-bias-m", "--map-spacing-m", "--world-error-m"):
+    for option in ("--sim-map-noise-m", "--sim-map-bias-m", "--sim-map-spacing-m", "--world-error-m"):
         assert helps[option].startswith("SIMULATES") and "not told" in helps[option], option
     assert helps["--map-error-m"].startswith("TELLS the filter") and "simulates nothing" in helps["--map-error-m"]
+
+
+def test_the_old_names_of_the_simulated_damage_still_work_with_a_warning(capsys):
+    """--map-noise-m, --map-bias-m and --map-spacing-m (renamed --sim-map-*: they simulate, --map-error-m tells)
+    stay one release as hidden aliases: the same value, and a warning naming the new option."""
+    from warptan.cli import build_parser
+
+    parser = build_parser()
+    for old, new, value in (("--map-noise-m", "--sim-map-noise-m", "1.5"), ("--map-bias-m", "--sim-map-bias-m", "-2"),
+                            ("--map-spacing-m", "--sim-map-spacing-m", "180")):
+        a = parser.parse_args(["run", "S8", old, value])
+        warned = capsys.readouterr().err
+        b = parser.parse_args(["run", "S8", new, value])
+        assert vars(a) == vars(b) and f"{old} is deprecated" in warned and new in warned
+        assert capsys.readouterr().err == ""
+    assert "--map-noise-m" not in parser._subparsers._group_actions[0].choices["run"].format_help()

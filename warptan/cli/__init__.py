@@ -108,12 +108,12 @@ def build_parser() -> argparse.ArgumentParser:
                           "or synthetic:KIND (default: the scenario's)")
     run.add_argument("--map", type=text_arg, default=None,
                      help="the filter's map from another DEM file of the same ground")
-    run.add_argument("--map-spacing-m", type=number_arg(0.0, True), default=None,
-                     help="SIMULATES a damaged map: coarser posts (block means); the filter is not told")
-    run.add_argument("--map-noise-m", type=number_arg(0.0, False), default=None,
-                     help="SIMULATES a damaged map: white noise σ per post, m; the filter is not told")
-    run.add_argument("--map-bias-m", type=_finite, default=None,
-                     help="SIMULATES a damaged map: vertical offset of the map, m; the filter is not told")
+    _renamed(run, "--sim-map-spacing-m", "--map-spacing-m", dest="map_spacing_m", type=number_arg(0.0, True),
+             help="SIMULATES a damaged map: coarser posts (block means); the filter is not told")
+    _renamed(run, "--sim-map-noise-m", "--map-noise-m", dest="map_noise_m", type=number_arg(0.0, False),
+             help="SIMULATES a damaged map: white noise σ per post, m; the filter is not told")
+    _renamed(run, "--sim-map-bias-m", "--map-bias-m", dest="map_bias_m", type=_finite,
+             help="SIMULATES a damaged map: vertical offset of the map, m; the filter is not told")
     _stated_accuracy(run, "what the filter is told of its map's correlated error (a published accuracy; not the "
                           "simulation's)")
     world = run.add_argument_group("world", "a world that is not the map: the DEM (or --terrain) becomes the filter's "
@@ -249,6 +249,27 @@ def main(argv: list[str] | None = None) -> int:
 _SIGTERM_SEEN = False
 """SIGTERM arrived (a library between the handler and :func:`main` may turn :class:`Terminated` into a plain
 KeyboardInterrupt)."""
+
+
+class _Deprecated(argparse.Action):
+    """An option's old name: stores as the new one and says, once per use, that the name will go."""
+
+    def __init__(self, option_strings, dest, new_name: str = "", **kwargs):
+        self.new_name = new_name
+        super().__init__(option_strings, dest, **kwargs)
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        print(f"warptan: warning: {option_string} is deprecated and will be removed in the next release: use "
+              f"{self.new_name} (the same value: it SIMULATES a damaged map; --map-error-m TELLS the filter)",
+              file=sys.stderr)
+        setattr(namespace, self.dest, values)
+
+
+def _renamed(parser, new: str, old: str, dest: str, **kwargs) -> None:
+    """``new`` (shown in --help) and its deprecated alias ``old`` (hidden; a warning when used), one value."""
+    parser.add_argument(new, dest=dest, default=None, metavar="M", **kwargs)
+    parser.add_argument(old, dest=dest, default=None, action=_Deprecated, new_name=new, type=kwargs.get("type"),
+                        help=argparse.SUPPRESS)
 
 
 class Terminated(KeyboardInterrupt):
