@@ -140,5 +140,5 @@ def test_a_world_runs_bound_holds_the_worlds_error_or_is_not_given():
     assert np.all(erring[:2] > 3.0 * exact[:2])
     relief = run_scenario("S8", world_relief_rms_m="auto", **kw)
     assert relief.pcrb_sigma_m is None
-    row = [ln for ln in markdown_table(aggregate([relief])).splitlines() if ln.startswith("| S8")][0]
+    row = next(ln for ln in markdown_table(aggregate([relief])).splitlines() if ln.startswith("| S8"))
     assert "/ – |" in row
