@@ -77,3 +77,15 @@ def test_the_command_lines_run_as_written(tmp_path, page):
                               timeout=600)
         assert proc.returncode == 0, f"{line}\n{proc.stderr[-3000:]}"
         assert "Warp" not in proc.stdout and "Module" not in proc.stdout, proc.stdout  # (Warp's banner is off)
+
+
+def test_every_picture_the_docs_show_is_in_the_repository():
+    """The example plots (``docs/images``, made by ``scripts/docs_images.py``) and the results' figures the pages
+    show exist where the pages point."""
+    shown = 0
+    for page in ["README.md", "docs/user-guide.md", "docs/results.md"]:
+        for target in re.findall(r"!\[[^\]]*\]\(([^)\s]+)\)", (ROOT / page).read_text()):
+            assert (ROOT / page).parent.joinpath(target).resolve().is_file(), f"{page}: {target}"
+            shown += 1
+    assert shown >= 5 and all((ROOT / "docs" / "images" / n).is_file() for n in (
+        "run_track.png", "run_errors.png", "information_S8.png", "campaign_particles.png"))

@@ -310,6 +310,32 @@ def _p95(values) -> float:
     return float(np.percentile(v, 95)) if v.size else float("nan")
 
 
+def _horizontal_error_panel(ax, run, converged_after_s: float, truth: bool) -> None:
+    """The track's error scale: the horizontal error along the distance flown (at a map's scale the estimate hides
+    under the truth), with the filter's horizontal 3σ and the INS's error (clipped)."""
+    dist_km = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(run.truth_pos[:, :2], axis=0), axis=1))] / 1e3 \
+        if truth else run.t_s
+    sigma = np.hypot(run.sigma3_pos[:, 0], run.sigma3_pos[:, 1])  # 3 DRMS: 3 √(σ_N² + σ_E²)
+    ax.fill_between(dist_km, 0.0, sigma, color="b", alpha=0.15, label="3 DRMS the filter reports (3√(σN²+σE²))")
+    if truth:
+        ax.plot(dist_km, np.hypot(run.error[:, 0], run.error[:, 1]), "c-", lw=1.2, label="estimate error")
+        ins = np.hypot(*(run.ins_pos - run.truth_pos)[:, :2].T)
+        converged = np.searchsorted(run.t_s, converged_after_s)
+        if converged < len(dist_km):
+            ax.axvline(dist_km[converged], color="gray", lw=0.8, ls="-.",
+                       label=f"convergence ({converged_after_s:g} s)")
+        lim = max(2.0, 1.5 * _p95(np.hypot(run.error[:, 0], run.error[:, 1])))
+        off = f" (off scale: {np.nanmin(ins):.0f}–{np.nanmax(ins):.0f} m)" if np.nanmax(ins) > lim else ""
+        ax.plot(dist_km, ins, "r--", lw=0.8, label="INS only" + off)
+    else:
+        lim = max(2.0, 1.2 * _p95(sigma))
+    ax.set_ylim(0.0, lim)
+    ax.set_xlabel("distance flown (km)" if truth else "time (s)")
+    ax.set_ylabel("horizontal error (m)")
+    ax.grid(alpha=0.3)
+    ax.legend(loc="upper right", fontsize=7)
+
+
 def plot_run(result, terrain, out_prefix: str | os.PathLike) -> list[str]:
     """Two PNGs for one run: ``_track.png`` (truth, INS only, estimate over a hillshade) and ``_errors.png``
     (error per axis with ±3σ, and ESS). Returns the paths."""
@@ -325,6 +351,10 @@ def plot_run(result, terrain, out_prefix: str | os.PathLike) -> list[str]:
     pts = np.concatenate([run.truth_pos[:, :2], run.ins_pos[:, :2], run.est_pos[:, :2]])
     n_lo, e_lo = np.nanmin(pts, axis=0) - pad
     n_hi, e_hi = np.nanmax(pts, axis=0) + pad
+    grow = 0.5 * max(0.0, 0.75 * (n_hi - n_lo) - (e_hi - e_lo))  # a straight leg's map no narrower than 3/4 its length
+    e_lo, e_hi = e_lo - grow, e_hi + grow
+    grow = 0.5 * max(0.0, 0.75 * (e_hi - e_lo) - (n_hi - n_lo))
+    n_lo, n_hi = n_lo - grow, n_hi + grow
     rows, cols = terrain.shape
     i0 = int(np.clip((n_lo - terrain.n0) / terrain.dn, 0, rows - 1))
     i1 = int(np.clip((n_hi - terrain.n0) / terrain.dn, 0, rows - 1)) + 1
@@ -333,12 +363,12 @@ def plot_run(result, terrain, out_prefix: str | os.PathLike) -> list[str]:
     crop = terrain.heights_m[i0:i1, j0:j1]
     extent = [terrain.e0 + j0 * terrain.de, terrain.e0 + (j1 - 1) * terrain.de,
               terrain.n0 + i0 * terrain.dn, terrain.n0 + (i1 - 1) * terrain.dn]
-    fig, ax = plt.subplots(figsize=(7, 7))
+    fig, (ax, along) = plt.subplots(2, 1, figsize=(7, 9.2), gridspec_kw={"height_ratios": [3.2, 1]})
     ax.imshow(hillshade(crop, terrain.dn, terrain.de), origin="lower", extent=extent, cmap="gray", alpha=0.9)
     heights = ax.imshow(crop, origin="lower", extent=extent, cmap="terrain", alpha=0.35)
     fig.colorbar(heights, ax=ax, shrink=0.7, label="terrain height (m)")
     ax.plot(run.truth_pos[:, 1], run.truth_pos[:, 0], "k-", lw=2, label="truth")
-    ax.plot(run.ins_pos[:, 1], run.ins_pos[:, 0], "r--", lw=1.2, label="INS only")
+    ax.plot(run.ins_pos[:, 1], run.ins_pos[:, 0], "r--", lw=1.2, label="INS only (from the initial error)")
     ax.plot(run.est_pos[:, 1], run.est_pos[:, 0], "c-", lw=1.2, label="estimate")
     ax.plot(run.truth_pos[0, 1], run.truth_pos[0, 0], "ko", label="start")
     if len(run.t_s) > 2:  # the direction of flight, halfway along the truth
@@ -350,8 +380,9 @@ def plot_run(result, terrain, out_prefix: str | os.PathLike) -> list[str]:
     ax.set_ylabel("north (m)")
     where = Path(result.terrain).name if os.path.exists(str(result.terrain)) else str(result.terrain)
     ax.set_title(f"{result.scenario} seed {result.seed}: {where}".replace(" + ", "\n+ "), fontsize=10)
-    ax.legend(loc="best")
+    ax.legend(loc="best", fontsize=8, framealpha=0.85)
     ax.set_aspect("equal")
+    _horizontal_error_panel(along, run, result.config.filter.converged_after_s, truth)
     fig.tight_layout()
     track = f"{prefix}_track.png"
     fig.savefig(track, dpi=110)
