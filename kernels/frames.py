@@ -1,4 +1,4 @@
-"""Rotation math for kernels (SPEC §1): Hamilton quaternions stored scalar-first as ``wp.vec4`` [w, x, y, z].
+"""Rotation math for kernels (design notes §1): Hamilton quaternions stored scalar-first as ``wp.vec4`` [w, x, y, z].
 
 Warp's own ``wp.quat`` is scalar-last; these functions take and return the project's scalar-first
 ``vec4`` so that device arrays match the host arrays of :mod:`warptan.nav.frames` element for element.

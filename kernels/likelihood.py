@@ -1,6 +1,6 @@
 # Over 500 lines on purpose: the per-point accumulators (Acc, ModeAcc) and their init, add, pack, unpack, block sum
 # and finish are one unit (a field added to Acc touches each of them) compiled into every likelihood kernel.
-"""Per-particle reduction of residuals into the paper's scalar error and a log-likelihood (SPEC §5).
+"""Per-particle reduction of residuals into the paper's scalar error and a log-likelihood (design notes §5).
 
 Input: an (N, M) array of residuals (m, NaN = the particle's prediction for point j is invalid), and per
 point j a flag that the *received* point is valid and a vector of axis weights. Output per particle i:
@@ -19,7 +19,7 @@ point j a flag that the *received* point is valid and a vector of axis weights. 
     particle's attitude uncertainty (its Kalman covariance ``A`` of dθ): with ``H_ij`` the Jacobian of the
     prediction w.r.t. dθ (``res ≈ H δθ + e``), ``Λ = Σ Hᵀ H / σ²``, ``b = Σ Hᵀ r / σ²``, it adds
     ``0.5 bᵀ A (I + ΛA)⁻¹ b - 0.5 log det(I + AΛ)`` (the log of ``N(r; 0, H A Hᵀ + σ² I)`` up to a constant,
-    SPEC §6b). Without it the attitude error the filter cannot see biases the position: the position absorbs
+    design notes §6b). Without it the attitude error the filter cannot see biases the position: the position absorbs
     the residual pattern a tilt or yaw causes;
   - ``LIK_STUDENT``: ``sum_j -(nu+1)/2 log(1 + res_ij^2 / (nu sigma^2))``, marginalised the same way with
     each point's precision the Student-t's iteratively-reweighted one, ``(nu+1)/(nu + (res/σ)²) / σ²`` (a

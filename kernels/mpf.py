@@ -1,4 +1,4 @@
-"""Marginalized particle filter kernels (SPEC §6; Schön, Gustafsson & Nordlund 2005; paper §IV).
+"""Marginalized particle filter kernels (design notes §6; Schön, Gustafsson & Nordlund 2005; paper §IV).
 
 Particle i holds the position error ``dp_i`` (vec3, m) and the mean ``l_i`` (vec12) of its Kalman filter
 over ``[dv, dth, dba, dbg]``; the 12×12 covariance is shared and lives on the host (its measurement update reads

@@ -1,6 +1,7 @@
 # About 500 lines on purpose: the nominal INS, the Riccati recursion and the interval's composition of one kernel,
 # in its CPU (a thread per filter) and CUDA (a block per filter) forms, which share every function.
-"""The nominal INS and the shared Kalman covariance of B filters, one measurement interval per launch (SPEC §3, §6).
+"""The nominal INS and the shared Kalman covariance of B filters, one measurement interval per launch (design
+notes §3, §6).
 
 Float64, on the filter's device: on the CPU one thread per filter b steps through the K IMU samples of the interval;
 on CUDA one block per filter whose lanes share the work of each sample (:data:`NAV_BLOCK_DIM`). Per sample, from the
@@ -12,7 +13,7 @@ evenly spaced; the noise per step scales as ``dt_k / dt``):
       A^n = [dt I, dt/2 A, dt/2 B, 0]            A = -R [a]x dt,  B = -R dt
       A^l = [[I, A, B, 0], [0, E, 0, J], [0, 0, I, 0], [0, 0, 0, I]]   E = Exp(w dt)ᵀ, J = -J_r(w dt) dt
 
-* the Riccati recursion of the marginalized filter (SPEC §6 step 5)::
+* the Riccati recursion of the marginalized filter (design notes §6 step 5)::
 
       N_k = A^n P A^nᵀ + Q^n,  L_k = A^l P A^nᵀ N_k⁻¹,  P <- A^l P A^lᵀ + Q^l - L_k N_k L_kᵀ
 

@@ -1,4 +1,4 @@
-"""Ray casting against the DEM (paper §III, eq. 6 and 15; SPEC §5): mesh BVH, heightfield DDA, bisection.
+"""Ray casting against the DEM (paper §III, eq. 6 and 15; design notes §5): mesh BVH, heightfield DDA, bisection.
 
 All three backends see the same surface: the triangulated grid of :mod:`warptan.kernels.terrain` (two
 triangles per cell, diagonal (i, j)-(i+1, j+1)). A ray is ``o + t d`` in NED metres; ``d`` is normalised
@@ -358,7 +358,8 @@ def raycast_residual_kernel(
     With ``c_j = r_j d_j`` and ``c^_ij = t_ij d_j`` the point residual is ``(r_j - t_ij) d_j`` (eq. 15).
     Also what the range's derivatives need: with the surface ``F = z + h(n, e) = 0``, ``∇F = (h_n, h_e, 1)`` at the
     hit and ``u = R d``, the scaled normal ``s = ∇F / (∇F · u)`` (zero at a grazing hit), from which
-    :func:`warptan.kernels.likelihood.ray_jacobians` forms ``∂t/∂dθ = t (Rᵀs) × d`` (SPEC §6b) and ``∂t/∂p = -s``.
+    :func:`warptan.kernels.likelihood.ray_jacobians` forms ``∂t/∂dθ = t (Rᵀs) × d`` (design notes §6b) and
+    ``∂t/∂p = -s``.
     With ``want_vertical`` (the likelihood is told its map is not the world: :func:`warptan.kernels.likelihood.
     map_not_world`) also the received point's height above the map's surface, ``-q_z - h(q_n, q_e)`` with ``q = p +
     r_j d`` (m; NaN where the point is invalid or off the map): what a ray that met another surface still says

@@ -45,11 +45,11 @@ wp.set_module_options({"enable_backward": False})
 
 @wp.func
 def sliding_jacobian(mat: wp.mat33, c: wp.vec3, gap: float, n_s: wp.vec3) -> wp.vec3:
-    """``∂ĉ_z/∂dθ`` of the sliding prediction (SPEC §6b), m/rad: with ``g = R e₃``, the map gradient ``(h_n, h_e)``
-    under the point and ``u = (g_n - h_n g_z, g_e - h_e g_z, 0)`` it is ``H = e₃ × ĉ - (Rᵀu) × c``; as ``u = g -
-    g_z ∇F`` (``∇F = (h_n, h_e, 1)``) and ``ĉ - c = gap Rᵀe₃``, the same ``H = gap e₃ × Rᵀe₃ + g_z (n_s × c)``
-    with ``n_s = Rᵀ∇F`` (the map's normal in the sensor frame) and ``gap`` the point's height below the map's
-    surface (m)."""
+    """``∂ĉ_z/∂dθ`` of the sliding prediction (design notes §6b), m/rad: with ``g = R e₃``, the map gradient
+    ``(h_n, h_e)`` under the point and ``u = (g_n - h_n g_z, g_e - h_e g_z, 0)`` it is ``H = e₃ × ĉ - (Rᵀu) × c``;
+    as ``u = g - g_z ∇F`` (``∇F = (h_n, h_e, 1)``) and ``ĉ - c = gap Rᵀe₃``, the same
+    ``H = gap e₃ × Rᵀe₃ + g_z (n_s × c)`` with ``n_s = Rᵀ∇F`` (the map's normal in the sensor frame) and ``gap`` the
+    point's height below the map's surface (m)."""
     return wp.vec3(-gap * mat[2, 1], gap * mat[2, 0], 0.0) + mat[2, 2] * wp.cross(n_s, c)
 
 

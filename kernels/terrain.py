@@ -1,4 +1,4 @@
-"""Terrain kernels: the height grid as a Warp struct and its samplers (SPEC §2).
+"""Terrain kernels: the height grid as a Warp struct and its samplers (design notes §2).
 
 The grid has posts at ``north = n0 + i*dn``, ``east = e0 + j*de`` (``i`` grows north, ``j`` east);
 ``heights[i, j]`` is metres above MSL (positive up), NaN where the DEM has no data. A *cell* is the

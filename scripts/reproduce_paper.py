@@ -1,6 +1,6 @@
 #!/usr/bin/env python3
 """Reproduce the paper's scenarios S1–S12 with N seeds, the altitude-observability runs (S8 and S9 without a
-barometer), and check the paper's claims (SPEC §7) against the numbers.
+barometer), and check the paper's claims (design notes §7) against the numbers.
 
 Writes into --out: results.json / results.md / plots (as ``warptan run``), ``no_baro/`` (the observability
 runs), and ``claims.md`` + ``claims.json`` (each claim: holds or not, with the numbers behind it).

@@ -89,3 +89,22 @@ def test_every_picture_the_docs_show_is_in_the_repository():
             shown += 1
     assert shown >= 5 and all((ROOT / "docs" / "images" / n).is_file() for n in (
         "run_track.png", "run_errors.png", "information_S8.png", "campaign_particles.png"))
+
+
+def test_the_project_cites_only_what_it_ships():
+    """Self-contained (issue 67): no path outside the repository in README, docs, tests, scripts or the package, and
+    the specification the code cites is the project's own design notes (``docs/design.md``, §1–§7 as cited), not a
+    file a user never has."""
+    design = (ROOT / "docs" / "design.md").read_text()
+    sections = set(re.findall(r"^## (\d+b?)\. ", design, re.M))
+    cited = set()
+    outside = ("../" + "shared", "/work/" + "shared", "SPEC " + "§")
+    for path in [ROOT / "README.md", *(ROOT / "docs").glob("*.*"), *(ROOT / "tests").glob("*.py"),
+                 *(ROOT / "scripts").glob("*.py"), *(ROOT / "warptan").rglob("*.py"), *(ROOT / "kernels").rglob("*.py"),
+                 *(ROOT / "warptan" / "scenario_files").glob("*.toml")]:
+        if path.suffix not in (".md", ".rst", ".py", ".toml"):
+            continue
+        text = path.read_text()
+        assert not any(word in text for word in outside), path
+        cited |= set(re.findall(r"design notes (?:\([^)]*\) )?§(\d+b?)", text))
+    assert cited and cited <= sections, cited - sections

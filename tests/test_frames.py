@@ -1,4 +1,4 @@
-"""Rotation math: host round trips and the @wp.func versions against NumPy on every device (SPEC §1)."""
+"""Rotation math: host round trips and the @wp.func versions against NumPy on every device (design notes §1)."""
 
 import numpy as np
 import pytest

@@ -1,4 +1,4 @@
-"""INS, IMU grades and truth trajectories (SPEC §3, §4): truth first, then the INS against it (pyins style)."""
+"""INS, IMU grades and truth trajectories (design notes §3, §4): truth first, then the INS against it (pyins style)."""
 
 import math
 
@@ -68,7 +68,8 @@ def _dx_scaled(scale, seed=0):
 
 def test_error_transition_is_the_jacobian():
     """x' ⊖ x_nom' vs F dx after one step from a banked, climbing state: the mismatch shrinks quadratically
-    with the perturbation (exact Jacobian); SPEC's first-order F differs from it only by O(dt²) terms."""
+    with the perturbation (exact Jacobian); the design notes' first-order F (§3) differs from it only by O(dt²)
+    terms."""
     nominal = NavState([10.0, -5.0, -800.0], [90.0, 30.0, -5.0], [0.9, 0.2, -0.1, 0.37] / np.linalg.norm(
         [0.9, 0.2, -0.1, 0.37]), [0.01, -0.02, 0.005], [1e-4, -2e-4, 5e-5])
     f, w, dt = np.array([0.5, 2.0, -9.0]), np.array([0.05, -0.1, 0.2]), 0.01

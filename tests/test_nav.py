@@ -12,8 +12,8 @@ from warptan.nav.trajectory import Straight, Trajectory, Turn
 
 
 def _python_interval(nominal, f, w, dt, P, q_n, q_l, steps=None):
-    """Reference: the MPF Riccati of SPEC §6 step by step, and Φ, S composed from the 15×15 transitions (``steps``:
-    each sample's own step, the noise scaled by ``step / dt``)."""
+    """Reference: the MPF Riccati of design notes §6 step by step, and Φ, S composed from the 15×15 transitions
+    (``steps``: each sample's own step, the noise scaled by ``step / dt``)."""
     state = nominal.copy()
     steps = np.full(len(f), dt) if steps is None else steps
     phi, S = np.eye(15), np.zeros((15, 15))

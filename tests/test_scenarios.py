@@ -30,8 +30,8 @@ def test_short_scenario_runs(sid):
     assert r.terrain.startswith("synthetic")
 
 
-# SPEC §7's table, typed from the specification (id: terrain, IMU, bank, altitude, model, paper RMSE x / y / z).
-SPEC_TABLE = {
+# design notes §7's table, typed from the specification (id: terrain, IMU, bank, altitude, model, paper RMSE x / y / z).
+DESIGN_TABLE = {
     "S1": ("rugged", "navigation", 30, "high", "sliding", (4.85, 2.80, 0.24)),
     "S2": ("rugged", "tactical_low", 30, "high", "sliding", (5.12, 3.39, 0.25)),
     "S3": ("rugged", "navigation", 30, "high", "raycast", (2.45, 1.91, 0.15)),
@@ -48,15 +48,15 @@ SPEC_TABLE = {
 
 
 def test_files_state_every_parameter():
-    """Each shipped file validates on its own (no defaults are filled in) and matches SPEC §7's table in every
-    column for all twelve scenarios, with SPEC §7's common parameters (speed, scan, initial σ)."""
-    assert set(SPEC_TABLE) == set(SCENARIO_IDS)
+    """Each shipped file validates on its own (no defaults are filled in) and matches design notes §7's table in every
+    column for all twelve scenarios, with design notes §7's common parameters (speed, scan, initial σ)."""
+    assert set(DESIGN_TABLE) == set(SCENARIO_IDS)
     for sid in SCENARIO_IDS:
         c = load_config(sid)
         assert c.id == sid and c.filter.particles == 500 and c.imu.rate_hz == 100.0
         assert c.sensor.rate_hz == 10.0 and c.flight.duration_s == 120.0
         assert c.flight.speed_mps == 100.0
-        terrain, grade, bank, rule, model, paper = SPEC_TABLE[sid]
+        terrain, grade, bank, rule, model, paper = DESIGN_TABLE[sid]
         assert (c.terrain.kind, c.imu.grade, c.flight.bank_deg, c.flight.altitude_rule,
                 c.sensor.model) == (terrain, grade, bank, rule, model), sid
         assert c.paper_rmse_m == pytest.approx(paper), sid
@@ -145,8 +145,8 @@ def _highest_post_within(terrain, track, radius):
 @pytest.mark.parametrize(("sid", "radius", "above", "discriminates"),
                          [("S8", 2000.0, 600.0, True), ("S6", 1000.0, 150.0, False)])
 def test_altitude_rule_is_exact(sid, radius, above, discriminates):
-    """SPEC §7: high = 600 m above the highest terrain within 2 km (horizontal distance) of the track, low = 150 m
-    within 1 km; the track is sampled once per second (100 m apart). A brute-force search over every post is the
+    """design notes §7: high = 600 m above the highest terrain within 2 km (horizontal distance) of the track, low =
+    150 m within 1 km; the track is sampled once per second (100 m apart). A brute-force search over every post is the
     oracle; the rule's disc matters (the highest post within 1.5× the radius is higher on this terrain)."""
     terrain = wt.Terrain.load(SMALL)
     _, _, flight = prepare(sid, terrain=terrain, duration_s=60.0)

@@ -1,4 +1,4 @@
-"""Terrain: loading real DEMs, bad input, synthetic terrains, samplers and mesh (SPEC §2)."""
+"""Terrain: loading real DEMs, bad input, synthetic terrains, samplers and mesh (design notes §2)."""
 
 import numpy as np
 import pytest

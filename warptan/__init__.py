@@ -1,6 +1,6 @@
 """warptan: terrain-aided navigation with a point-cloud sensor, as kernels on NVIDIA Warp.
 
-Conventions (SPEC §1), used everywhere in the package:
+Conventions (design notes §1), used everywhere in the package:
 
 * Navigation frame n: local-level NED (x north, y east, z down), metres, flat earth, origin at the
   terrain's reference point; gravity ``g_n = [0, 0, 9.80665]`` m/s².

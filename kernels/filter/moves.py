@@ -35,7 +35,7 @@ def move_particle(
     dp: wp.array(dtype=wp.vec3),
     lin: wp.array(dtype=vec12),
 ):
-    """One measurement interval of every particle (SPEC §6 steps 3–4 over its K IMU steps, composed by
+    """One measurement interval of every particle (design notes §6 steps 3–4 over its K IMU steps, composed by
     :mod:`warptan.kernels.nav`): ``x = [dp, l] <- Φ x + C z``, ``z ~ N(0, I15)``, in 3×3 blocks.
     ``row0`` is the global index of this launch's first particle (the random stream does not depend on
     chunking)."""

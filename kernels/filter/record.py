@@ -402,7 +402,7 @@ def reset_particle(
     """Closed loop: :func:`covariance_update_kernel` injected the filter's mean error ``[d̂p, d̂v, θ̂, d̂ba, d̂bg]``
     (``feedback``) into its nominal INS; every particle's error is taken relative to the new nominal, so that each
     particle's total state is unchanged: additive parts minus the mean, the attitude
-    ``dθ_i <- Log(Exp(θ̂)⁻¹ Exp(dθ_i))`` (right perturbations, SPEC §3). Filters not injected (FB_CONVERGED = 0)
+    ``dθ_i <- Log(Exp(θ̂)⁻¹ Exp(dθ_i))`` (right perturbations, design notes §3). Filters not injected (FB_CONVERGED = 0)
     are left alone."""
     b = i // n_per
     if feedback[b, FB_CONVERGED] == wp.float64(0.0):

@@ -328,7 +328,7 @@ def kalman_update(
     info: wp.array(dtype=wp.vec3),
     lin: wp.array(dtype=vec12),
 ):
-    """The Kalman measurement update of each particle's linear states (SPEC §6b), in the stage that applies the
+    """The Kalman measurement update of each particle's linear states (design notes §6b), in the stage that applies the
     last of the filter's exponent (not in a skipped update): with the shared prior ``P``, ``A = P_θθ`` and the
     particle's own attitude information ``Λ_i``, ``b_i`` (its residuals at its own pose, scaled by the exponent
     applied), ``l_i += P_:θ (I + Λ_i A)⁻¹ b_i`` — 3×3 work per particle whatever the number of points.

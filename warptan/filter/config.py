@@ -57,7 +57,7 @@ class FilterConfig:
     respread_scale: float = 1.0
     """Re-spread covariance = respread_scale² · the position prior (≥ 0)."""
     measurement_update: bool = True
-    """Kalman measurement update of the linear states from each particle's residuals (C ≠ 0, SPEC §6b); False is
+    """Kalman measurement update of the linear states from each particle's residuals (C ≠ 0, design notes §6b); False is
     the paper's filter (C = 0)."""
     closed_loop: bool = False
     """Inject the mean error into the nominal INS after every update the integrity monitor judges consistent."""

@@ -1,13 +1,14 @@
 # Over 500 lines for now: the filter's construction (its device state, the Kalman part's noise, the map-error
 # learner) and the update's host side (staging, the learner's readings) share that state; issue 69 (filter state as
 # typed data) is where it gets split.
-"""The marginalized particle filter on the device, open- or closed-loop INS correction (SPEC §6, §6b; paper §IV).
+"""The marginalized particle filter on the device, open- or closed-loop INS correction (design notes
+§6, §6b; paper §IV).
 
 Nonlinear state ``s^n = dp`` (3, N particles on the device); linear state ``s^l = [dv, dth, dba, dbg]``
 (12), one Kalman mean per particle and one shared 12×12 covariance ``P`` per filter (float64), all on the device:
 ``A^n``, ``A^l`` and ``Q`` do not depend on the particle, so the time update of ``P`` does not.
 
-Measurement update of the linear states (C ≠ 0, SPEC §6b; ``measurement_update``): the point cloud sees the
+Measurement update of the linear states (C ≠ 0, design notes §6b; ``measurement_update``): the point cloud sees the
 attitude. Every model returns, per particle, the information its residuals (at the particle's own pose, its dθ
 applied) carry on dθ: ``Λ_i = Σ_j H_jᵀ H_j / σ_att²``, ``b_i = Σ_j H_jᵀ r_j / σ_att²`` (H_j the prediction's
 Jacobian w.r.t. dθ; velocity and biases do not enter a prediction). In the tempering stage that applies the last of
@@ -44,7 +45,7 @@ the record; graphs, recorded launches and the CUDA block forms) is :class:`warpt
 this class's base.
 
 ``A^n`` and ``A^l`` are blocks of the INS error transition of :func:`warptan.nav.ins.error_transition`
-(exact Jacobian: ``A^n = [dt I, 0.5 dt² (-R[a]x), 0.5 dt² (-R), 0]``; SPEC's ``[dt I, 0]`` plus the
+(exact Jacobian: ``A^n = [dt I, 0.5 dt² (-R[a]x), 0.5 dt² (-R), 0]``; the design notes' (§6) ``[dt I, 0]`` plus the
 O(dt²) terms). ``Q^n`` (``kalman_pos_noise``) is the position noise the Kalman part models (in N_k and L_k);
 roughening (``pos_noise``) is added to the particles' dp only, so L_k never reads it as velocity. Measured on
 S8 (paper likelihood, 6 seeds): roughening outside with a small Kalman noise (0.05 m/√s) was worse (5.3/4.2 m)

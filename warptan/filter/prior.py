@@ -1,5 +1,5 @@
 """The filter's prior: the INS's initial error σ (:class:`InitialErrors`), the nominal drawn from it, and the prior
-σ and covariance of the filter's states (SPEC §7)."""
+σ and covariance of the filter's states (design notes §7)."""
 
 from __future__ import annotations
 
@@ -14,7 +14,7 @@ from warptan.nav.ins import NavState
 
 @dataclass(frozen=True)
 class InitialErrors:
-    """σ of the INS's initial error, drawn per seed; also the filter's prior (SPEC §7 "high" defaults)."""
+    """σ of the INS's initial error, drawn per seed; also the filter's prior (design notes §7 "high" defaults)."""
 
     pos_m: tuple[float, float, float] = (100.0, 100.0, 20.0)
     vel_mps: float = 0.5

@@ -15,7 +15,7 @@ graph on CUDA:
    the Riccati recursion (``N_k``, ``L_k``, ``P``), and the K steps a particle would take are composed into one
    affine map with Gaussian noise (``Φ``, ``chol S``) — the same distribution as K separate moves;
 2. every particle moves, the model scores its pose, and the log-likelihood is
-   applied in tempering stages (progressive correction, Oudjane & Musso 2000; SPEC §6b): each stage applies
+   applied in tempering stages (progressive correction, Oudjane & Musso 2000; design notes §6b): each stage applies
    the largest exponent ``γ`` of what remains that keeps ESS ≥ ``temper_ess · n`` (chosen on the device from
    20 geometric candidates by streaming log-sum-exp reductions), normalises per filter, and resamples when
    exponent remains or ESS < ``resample_threshold · n``; the next stage re-evaluates the model at the moved

@@ -8,7 +8,7 @@ and how high, and the truth :class:`~warptan.nav.trajectory.Trajectory` it gives
   beside the highest hill that is at least ``margin_m`` inside the DEM, the hill outside the circle, so that the
   banked sensor looks away from it, into open ground).
 * Altitude: ``high`` = 600 m above the highest terrain within 2 km of the track; ``low`` = 150 m within 1 km
-  (SPEC §7); constant along the track.
+  (design notes §7); constant along the track.
 * The track must stay ``margin_m`` inside the DEM (the footprint of the scan and the initial error) and off nodata.
 """
 

@@ -1,4 +1,4 @@
-"""Rotation math on the host, float64 NumPy (SPEC §1; Solà 2017 §2–4 for Exp/Log).
+"""Rotation math on the host, float64 NumPy (design notes §1; Solà 2017 §2–4 for Exp/Log).
 
 Quaternions are Hamilton, scalar first ``[w, x, y, z]``, ``q = q_nb``; ``quat_to_mat(q)`` maps body to
 navigation vectors. Euler angles are ZYX: ``R = Rz(yaw) Ry(pitch) Rx(roll)``, returned/accepted as

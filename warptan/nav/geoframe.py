@@ -15,8 +15,8 @@ difference of their meridian convergences, e.g. up to 1–2° between a UTM grid
 Neglected: the frames' scale difference (a UTM grid is 0.9996–1.0004 of true length; the factor is reported as
 ``scale_ppm``) applied to velocities and to the IMU's integrated distances — at most 0.4 m per km flown in UTM, 0 in
 the tangent frames warptan builds itself (scale 1 at their origin, 1.2 ppm at 10 km) — and the vertical difference
-between tangent planes (flat-earth frames, as the filter's INS: SPEC §1). Heights are not converted between vertical
-datums (no geoid grid ships with warptan): a log's heights must be above the DEM's datum, which the log names.
+between tangent planes (flat-earth frames, as the filter's INS: design notes §1). Heights are not converted between
+vertical datums (no geoid grid ships with warptan): a log's heights must be above the DEM's datum, which the log names.
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""IMU grades and the IMU error model (SPEC §4; paper Table I after Groves, ch. 4).
+"""IMU grades and the IMU error model (design notes §4; paper Table I after Groves, ch. 4).
 
 A measured sample is ``ideal + bias + white noise``, the bias drawn at turn-on per axis from N(0, σ²)
 and then walking: ``b_{k+1} = b_k + B sqrt(dt) n_k``. White noise from a density ``N`` has the discrete
@@ -72,7 +72,7 @@ IMU_GRADES: dict[str, ImuGrade] = {
         ImuGrade.from_datasheet("marine", 0.01, 0.001, 10.0, 0.0005),
     )
 }
-"""The SPEC §4 presets. The paper's "low-end tactical" is ``tactical_low``; "navigation/aviation" is
+"""The design notes §4 presets. The paper's "low-end tactical" is ``tactical_low``; "navigation/aviation" is
 ``navigation``."""
 
 

@@ -1,4 +1,4 @@
-"""Strapdown INS: the nominal mechanization and its error-state model (SPEC §3; Solà 2017 §5.4; paper §II).
+"""Strapdown INS: the nominal mechanization and its error-state model (design notes §3; Solà 2017 §5.4; paper §II).
 
 Mechanization per IMU sample ``(f~, w~)`` with period ``dt`` and constant nominal biases ``ba, bg``::
 
@@ -10,10 +10,10 @@ Mechanization per IMU sample ``(f~, w~)`` with period ``dt`` and constant nomina
 The INS runs open loop. Error state ``dx = [dp, dv, dth, dba, dbg]`` (15) with true = nominal ⊕ error:
 ``p = p_nom + dp``, ``v = v_nom + dv``, ``q = q_nom ⊗ Exp(dth)``, ``ba = ba_nom + dba``, ``bg = bg_nom + dbg``.
 
-:func:`error_transition` returns the discrete transition ``F`` (15×15). With ``exact=False`` it is SPEC §3
+:func:`error_transition` returns the discrete transition ``F`` (15×15). With ``exact=False`` it is design notes §3
 (Solà's first-order form); with ``exact=True`` (default) it is the exact Jacobian of the discrete
 mechanization above: the position row also gets ``0.5 dt² (-R [a]x dth - R dba)`` and the gyro-bias
-column of the attitude row uses the right Jacobian ``-J_r(w dt) dt``; both differ from SPEC's by O(dt²).
+column of the attitude row uses the right Jacobian ``-J_r(w dt) dt``; both differ from the design notes' (§3) by O(dt²).
 :func:`process_noise` returns ``Q`` (15×15) from the noise densities.
 """
 
@@ -29,7 +29,7 @@ from warptan.nav.frames import check_unit_quat, quat_conj, quat_exp, quat_log, q
 from warptan.nav.imu import ImuGrade, check_rate
 
 GRAVITY_N = np.array([0.0, 0.0, 9.80665])
-"""Gravity in NED, m/s² (flat earth, SPEC §1)."""
+"""Gravity in NED, m/s² (flat earth, design notes §1)."""
 
 
 @dataclass
@@ -218,7 +218,7 @@ def error_transition(state: NavState, f_b, w_b, dt: float, exact: bool = True) -
 
 
 def process_noise(grade: ImuGrade, dt: float) -> np.ndarray:
-    """``Q`` (15×15): ``Na² dt`` on dv, ``Ng² dt`` on dth, ``Ba² dt`` on dba, ``Bg² dt`` on dbg (SPEC §3)."""
+    """``Q`` (15×15): ``Na² dt`` on dv, ``Ng² dt`` on dth, ``Ba² dt`` on dba, ``Bg² dt`` on dbg (design notes §3)."""
     q = np.zeros(15)
     q[3:6] = grade.accel_noise**2 * dt
     q[6:9] = grade.gyro_noise**2 * dt

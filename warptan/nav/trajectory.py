@@ -1,11 +1,11 @@
-"""Truth trajectories: flights built from segments, with ideal IMU samples (SPEC §4; paper §V).
+"""Truth trajectories: flights built from segments, with ideal IMU samples (design notes §4; paper §V).
 
 The aircraft flies at constant airspeed ``V`` with its velocity along the body x axis (no angle of attack
 or sideslip): pitch = flight-path angle γ, yaw = heading ψ, roll = bank φ, and coordinated turns have
 ``dψ/dt = g tan φ / V``. Bank and flight-path angle change smoothly (quintic "smootherstep", so body
 rates and accelerations are continuous) over ``roll_time_s`` / ``transition_s``.
 
-Consistency with the INS (SPEC §4): the commanded attitude ``q_k`` and velocity ``v_k`` are sampled at
+Consistency with the INS (design notes §4): the commanded attitude ``q_k`` and velocity ``v_k`` are sampled at
 the IMU rate and the ideal samples are *derived* from them for the mechanization of :mod:`warptan.nav.ins`:
 ``w_k = Log(q_k^-1 ⊗ q_{k+1}) / dt`` and ``f_k = R(q_k)^T ((v_{k+1} - v_k) / dt - g_n)``, and the truth
 position is ``p_{k+1} = p_k + v_k dt + 0.5 a_k dt²``. A perfect IMU therefore reproduces the truth to

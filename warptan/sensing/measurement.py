@@ -1,7 +1,7 @@
 # Over 500 lines on purpose: the three models share one base (MeasurementModel: validation, staging, buffers, the
 # map-error mode table, binding to the filter) and differ only in their launches; the likelihood's settings and its
 # calibration are warptan.sensing.likelihood.
-"""Measurement models: one log-likelihood per particle from its hypothetical pose (paper eqs. 14–17, SPEC §5).
+"""Measurement models: one log-likelihood per particle from its hypothetical pose (paper eqs. 14–17, design notes §5).
 
 Each model takes the particles' poses on the device — positions (N,) vec3 NED in m and attitudes (N,)
 vec4 [w, x, y, z] — and the received measurement, and gives every particle its log-likelihood with no

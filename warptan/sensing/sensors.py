@@ -1,4 +1,4 @@
-"""Sensors: scan patterns, the point-cloud sensor, the radar altimeter and the barometer (SPEC §5).
+"""Sensors: scan patterns, the point-cloud sensor, the radar altimeter and the barometer (design notes §5).
 
 A scan pattern is M unit directions ``d_j`` in the sensor frame (FRD = body frame; nadir is +z). The
 point-cloud sensor casts ``R_true d_j`` from ``p_true`` against the *truth* terrain: range ``r_j`` plus
@@ -162,7 +162,7 @@ class PointCloudSensor:
 
     Args:
         pattern: The scan pattern (sensor = body frame).
-        range_sigma_m: Range noise σ in m (SPEC default 0.5 m).
+        range_sigma_m: Range noise σ in m (default 0.5 m).
         max_range_m: Returns beyond this range are dropped (None: no limit).
         caster: Ray-cast backend for the truth (default exact heightfield DDA).
     """

@@ -1,4 +1,4 @@
-"""The paper's claims (SPEC §7), decided from per-seed numbers by stated tests.
+"""The paper's claims (design notes §7), decided from per-seed numbers by stated tests.
 
 Every claim is evaluated from the per-run summaries a scenario run writes (``results.json`` → ``runs``), so a
 committed results file re-derives its verdicts. Each comparison is one of:
@@ -71,7 +71,7 @@ def _close(runs, pairs) -> tuple[str, str]:
 
 
 def evaluate(runs: list[dict], no_baro_runs: list[dict] | None = None) -> list[dict]:
-    """SPEC §7's claims from run summaries (``ScenarioResult.summary()`` dicts, any seeds and scenarios).
+    """design notes §7's claims from run summaries (``ScenarioResult.summary()`` dicts, any seeds and scenarios).
 
     Returns a list of {claim, scenarios, verdict, test, evidence}; ``verdict`` is ``holds``, ``does not hold``,
     ``inconclusive`` or ``not run`` (a scenario it needs is missing)."""

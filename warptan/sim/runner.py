@@ -1,4 +1,4 @@
-"""Driving a filter through a simulated flight: truth → IMU and sensors → MPF → time series (SPEC §6, §7).
+"""Driving a filter through a simulated flight: truth → IMU and sensors → MPF → time series (design notes §6, §7).
 
 ``run_filter`` draws the INS's initial error from the prior σ (the filter's prior uses the same σ),
 corrupts the ideal IMU samples with the grade's errors, runs the filter's time update at the IMU rate and

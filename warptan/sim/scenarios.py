@@ -1,4 +1,4 @@
-"""Scenarios S1–S12 (paper §V, SPEC §7): the world, the map and the flight a configuration describes, and
+"""Scenarios S1–S12 (paper §V, design notes §7): the world, the map and the flight a configuration describes, and
 ``run_scenario`` (the files, their schema and validation: :mod:`warptan.sim.scenario_config`).
 
 A scenario file states every parameter (see ``warptan/scenario_files/S1.toml``); a file is validated as a
@@ -8,7 +8,7 @@ and the world are built by the terrain layer (:mod:`warptan.terrain.maps`), the 
 (:mod:`warptan.nav.flightplan`), each from its own table of the typed
 :class:`~warptan.sim.scenario_config.Scenario`.
 
-Choices the paper leaves open (SPEC §7 fixes the rest):
+Choices the paper leaves open (design notes §7 fixes the rest):
 
 * ``rugged`` / ``flat`` / ``rugged30`` terrains are the real DEMs shipped with the package
   (:data:`~warptan.terrain.grid.NAMED_TERRAINS`, ``warptan/data/dem``; ``$WARPTAN_DEM_DIR`` may replace them); any
@@ -26,7 +26,7 @@ Choices the paper leaves open (SPEC §7 fixes the rest):
   the bank angle, placed so that the circle passes ``hill_offset_m`` beside the highest hill with the
   hill outside the circle, so the banked sensor looks away from it, into open ground).
 * Altitude: ``high`` = 600 m above the highest terrain within 2 km of the track; ``low`` = 150 m within
-  1 km (SPEC §7); constant along the track.
+  1 km (design notes §7); constant along the track.
 * The track must stay ``margin_m`` inside the DEM (the footprint of the scan and the initial error).
 * S4 has S1's parameters (the paper lists them identically); it differs only by its seed base.
 """

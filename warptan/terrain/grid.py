@@ -1,7 +1,7 @@
 # Over 500 lines on purpose: Terrain is the one object users hold (heights, frame, CRS, device copies), and its
 # loaders, height queries, map statistics and views are its methods; what is not (raster I/O, generated surfaces,
 # mesh files, maps and worlds) lives in the sibling modules.
-"""Terrain: a DEM as a regular north/east height grid, its samplers and its triangle mesh (SPEC §2, §9).
+"""Terrain: a DEM as a regular north/east height grid, its samplers and its triangle mesh (design notes §2, §9).
 
 Posts are at ``north = n0 + i*dn``, ``east = e0 + j*de`` (``i`` grows north); heights are metres above
 MSL, positive up, and a point at NED position ``p`` is on the terrain when ``p_z = -h(p_x, p_y)``.

@@ -1,8 +1,8 @@
-"""Reading real DEMs (DTED, SRTM .hgt, GeoTIFF) into a metric north/east height grid (SPEC §2).
+"""Reading real DEMs (DTED, SRTM .hgt, GeoTIFF) into a metric north/east height grid (design notes §2).
 
 rasterio is imported inside the functions: ``import warptan`` needs only numpy and warp.
 
-Choices made here (SPEC leaves them open):
+Choices made here (the paper leaves them open):
 
 * A geographic raster (lat/lon), a projected raster whose unit is not the metre, or a rotated one, is
   reprojected with rasterio to a transverse Mercator (scale 1, WGS84) centred on the raster's centre;

@@ -1,4 +1,4 @@
-"""Ray casting launchers: ``wt.raycast`` for arbitrary rays and the per-pose pattern form (SPEC §5, §9).
+"""Ray casting launchers: ``wt.raycast`` for arbitrary rays and the per-pose pattern form (design notes §5, §9).
 
 Backends (see :mod:`warptan.kernels.raycast` for what each does and when it returns NaN):
 
