@@ -295,3 +295,16 @@ def test_ray_gpu_tasks_run_on_the_gpu_ray_assigned(tmp_path):
     assert overlapping and all(a["device_given"] != b["device_given"] for a, b in overlapping)
     with pytest.raises(CampaignError, match="not 'cuda:1'"):
         run_campaign(Campaign.from_dict(SMALL), engine="ray", device="cuda:1")
+
+
+@pytest.mark.parametrize("batched", [True, False], ids=["batched", "seed-by-seed"])
+def test_a_batch_reports_its_own_progress(batched):
+    """A campaign's bar moved only per batch (issue 67): a batch now reports its steps, ``k`` of ``n`` rising to
+    ``n`` whether its seeds run as one filter or one after another."""
+    seen = []
+    spec = {"scenario": "S8", "seeds": [0, 1], "batched": batched,
+            "overrides": {"duration_s": 0.5, "particles": 32, "bound": False}}
+    out = run_batch(spec, "cpu", progress=lambda k, n: seen.append((k, n)))
+    assert len(out["summaries"]) == 2 and seen
+    fractions = [k / n for k, n in seen]
+    assert fractions == sorted(fractions) and fractions[-1] == 1.0 and len({n for _, n in seen}) == 1

@@ -27,6 +27,9 @@ class NoProgress:
     def set_description(self, *_):
         pass
 
+    def set_postfix_str(self, *_, **__):
+        pass
+
     @staticmethod
     def write(text: str) -> None:
         print(text, file=sys.stderr)

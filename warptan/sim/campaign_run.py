@@ -21,11 +21,12 @@ from warptan.sim.report import ci95
 
 
 # ---------------------------------------------------------------------- one batch (a task)
-def run_batch(spec: dict, device: str = "cpu", cpu_threads: int | None = None) -> dict:
+def run_batch(spec: dict, device: str = "cpu", cpu_threads: int | None = None, progress=None) -> dict:
     """Run one batch (``Batch.spec()``) on ``device``; the function a task runs, here or on a Ray worker.
 
     Returns the per-seed summaries (:meth:`~warptan.sim.scenarios.ScenarioResult.summary`) and where and how long it
-    ran. ``cpu_threads`` sets ``WARPTAN_CPU_THREADS`` first (the CPUs the task was given)."""
+    ran. ``cpu_threads`` sets ``WARPTAN_CPU_THREADS`` first (the CPUs the task was given); ``progress(k, n)`` is
+    called at every update, ``k`` of ``n`` the batch's steps done (seeds one by one: theirs in turn)."""
     if cpu_threads:
         os.environ["WARPTAN_CPU_THREADS"] = str(int(cpu_threads))
     from warptan.device import quiet_warp, resolve_device
@@ -36,9 +37,12 @@ def run_batch(spec: dict, device: str = "cpu", cpu_threads: int | None = None) -
     start, t0 = time.time(), time.perf_counter()
     seeds, overrides = list(spec["seeds"]), dict(spec["overrides"])
     if spec.get("batched", True):
-        results = run_scenario_batch(spec["scenario"], seeds, device=device, **overrides)
+        results = run_scenario_batch(spec["scenario"], seeds, device=device, progress=progress, **overrides)
     else:
-        results = [run_scenario(spec["scenario"], seed=s, device=device, **overrides) for s in seeds]
+        results = []
+        for i, s in enumerate(seeds):
+            each = None if progress is None else (lambda k, n, i=i: progress(i * n + k, len(seeds) * n))
+            results.append(run_scenario(spec["scenario"], seed=s, device=device, progress=each, **overrides))
     wall = time.perf_counter() - t0
     dev = resolve_device(device)
     return {"summaries": [r.summary() for r in results], "wall_s": wall, "device": dev.alias,
@@ -185,11 +189,20 @@ def _bar(total: int, progress: bool):
 def _run_local(campaign: Campaign, device: str, task: Callable, progress: bool) -> dict[int, dict]:
     outcomes = {}
     with _bar(len(campaign.batches), progress) as bar:
+        shown = [0.0]
+
+        def within(k: int, n: int) -> None:  # how far the batch is, beside the bar over batches
+            now = time.monotonic()
+            if now - shown[0] >= 0.2 or k >= n:
+                shown[0] = now
+                bar.set_postfix_str(f"this batch {100.0 * min(k, n) / max(n, 1):.0f} %", refresh=True)
+
+        extra = {"progress": within} if progress and task is run_batch else {}
         for b in campaign.batches:
             bar.set_description(b.label)
             for attempt in range(1, RETRIES + 2):
                 try:
-                    outcomes[b.index] = task(b.spec(), device)
+                    outcomes[b.index] = task(b.spec(), device, **extra)
                     break
                 except Exception as err:  # a failed batch is reported, the campaign goes on
                     outcomes[b.index] = {"error": _describe_error(err), "attempts": attempt,
