@@ -108,3 +108,32 @@ def test_the_project_cites_only_what_it_ships():
         assert not any(word in text for word in outside), path
         cited |= set(re.findall(r"design notes (?:\([^)]*\) )?§(\d+b?)", text))
     assert cited and cited <= sections, cited - sections
+
+
+def test_the_paths_the_docs_name_exist():
+    """A module path the docs name (``warptan/nav/{ins,imu}.py`` included) is in the repository: docs/features.md
+    listed paths that had moved."""
+    missing = []
+    for page in ["README.md", "docs/features.md", "docs/user-guide.md", "docs/design.md"]:
+        for token in re.findall(r"`((?:warptan|kernels|scripts|campaigns)/[^`\s*]+\.(?:py|toml|md))`",
+                                (ROOT / page).read_text()):
+            brace = re.search(r"\{([^}]*)\}", token)
+            names = [token[:brace.start()] + p + token[brace.end():] for p in brace.group(1).split(",")] \
+                if brace else [token]
+            missing += [f"{page}: {n}" for n in names if not (ROOT / n).exists()]
+    assert not missing, missing
+
+
+def test_the_synopses_name_every_option_of_the_commands():
+    """The user guide's synopses hold every option ``--help`` shows (they missed ``--surface``, the information map's
+    options, the bag topics, …)."""
+    from warptan.cli import build_parser
+
+    synopsis = re.search(r"```text\n(warptan run .*?)```", (ROOT / "docs/user-guide.md").read_text(), re.S).group(1)
+    commands = build_parser()._subparsers._group_actions[0].choices
+    parsers = [commands[c] for c in ("run", "replay", "campaign")]
+    for group in ("terrain", "log"):
+        parsers += list(commands[group]._subparsers._group_actions[0].choices.values())
+    missing = {o for p in parsers for a in p._actions for o in a.option_strings
+               if o.startswith("--") and o != "--help" and a.help != "==SUPPRESS==" and o not in synopsis}
+    assert not missing, sorted(missing)
