@@ -20,15 +20,9 @@ from warptan.cli.args import (
     seed_arg,
     text_arg,
 )
-from warptan.cli.commands import (
-    _campaign,
-    _replay,
-    _run,
-    _stated_accuracy,
-    _terrain_export,
-    _terrain_info,
-)
+from warptan.cli.commands import _campaign, _replay, _run, _stated_accuracy
 from warptan.cli.logs import _log_export, _log_import
+from warptan.cli.terrain import _terrain_export, _terrain_info
 
 __all__ = ["DEFAULT_TERRAIN", "Terminated", "build_parser", "count_arg", "main", "number_arg", "script_inputs",
            "seed_arg"]
