@@ -677,6 +677,47 @@ def test_ground_read_again_after_the_modes_forgot_it_weighs_less():
         wt.Likelihood("gaussian", revisit_correlation=1.0)
 
 
+def test_a_learned_length_keeps_the_passes_flown(monkeypatch):
+    """A restated correlation length (the learner's) keeps the revisit memory's ground: after two orbits the third is
+    still discounted (as a memory of the new length fed every pass would), where a new memory at the restatement
+    weighed it as fresh ground (exponent 1): S6's orbit went overconfident (σ/RMSE 0.6–0.9) only when learning.
+    The filter restates its memory rather than replacing it."""
+    from warptan.sensing.likelihood import RevisitMemory
+
+    steps = np.arange(800)
+    angle = steps * 10.0 / 600.0
+    orbit = 600.0 * np.c_[np.cos(angle), np.sin(angle)]
+    first = wt.Likelihood("gaussian", sensor_sigma_m=0.5, **STATED)
+    second = wt.Likelihood("gaussian", sensor_sigma_m=0.5, **{**STATED, "map_error_corr_m": 700.0})
+    kept, fed = RevisitMemory(first, 1), RevisitMemory(second, 1)
+    for x in orbit[:600]:
+        kept.exponents(np.asarray(x))
+        fed.exponents(np.asarray(x))
+    kept.restate(second)
+    assert kept.kappa == pytest.approx(second.point_sharing())
+    tail_kept = np.array([kept.exponents(np.asarray(x))[0] for x in orbit[600:]])
+    tail_fed = np.array([fed.exponents(np.asarray(x))[0] for x in orbit[600:]])
+    fresh = RevisitMemory(second, 1)
+    assert np.all(np.array([fresh.exponents(np.asarray(x))[0] for x in orbit[600:700]]) == 1.0)
+    assert tail_kept.max() < 0.3 and np.allclose(tail_kept, tail_fed, atol=0.05)
+
+    made = []
+    monkeypatch.setattr("warptan.filter.mpf.RevisitMemory", lambda *a: made.append(a) or RevisitMemory(*a))
+    filt = _filter_for_memory(first)
+    filt._read_again(first, np.zeros((1, 3)))
+    memory = filt._revisits
+    filt._read_again(second, np.zeros((1, 3)))
+    assert filt._revisits is memory and memory.likelihood is second and len(made) == 1
+
+
+def _filter_for_memory(likelihood):
+    """A filter with a sliding model of ``likelihood`` on the rugged tile (the revisit memory's owner)."""
+    dem = wt.Terrain.load("rugged")
+    truth = wt.Trajectory.build([wt.Straight(2.0)], 100.0, [0.0, 0.0, -(dem.h_max + 600.0)])
+    return wt.MarginalizedParticleFilter(wt.SlidingModel(dem, likelihood), truth.state(0), "navigation", 100.0,
+                                         [20.0, 20.0, 5.0], np.full(12, 1e-3), n_particles=16, device="cpu")
+
+
 def test_the_learner_acquires_fast_then_remembers_slowly():
     """MapErrorLearner's first readings weigh more (``PRIOR_READINGS``): a statement 16× the map's error (modes' ratio
     at its clip, 1/4) comes down past a quarter of itself within 30 readings (at the memory's gain alone: half of

@@ -509,7 +509,7 @@ class MarginalizedParticleFilter(ImuIntake, Readout):
         self.model.restate_map_error(*restated)
         lk = self.model.likelihood
         if self._revisits is not None and self._revisits.likelihood.map_error_corr_m == lk.map_error_corr_m:
-            self._revisits.likelihood = lk  # (a new length: a new memory at the next update)
+            self._revisits.likelihood = lk  # (a new length: restated at the next reading, _read_again)
         if getattr(self.model, "absorbs_map_offset", False):
             # the offset under the scan rides on the altitude: no scan sees it, so its variance stays as built (F times
             # the prior: a map 5 m high everywhere looks exact to the modes); its change along the track is the learned
@@ -552,8 +552,10 @@ class MarginalizedParticleFilter(ImuIntake, Readout):
         """The update's exponent over ground read again after the modes forgot it (:class:`RevisitMemory`), at the
         scan's footprint (the model's last) under the platform's position ``pos`` (B, 3), standing for the scans since
         the last reading."""
-        if self._revisits is None or self._revisits.likelihood.map_error_corr_m != likelihood.map_error_corr_m:
+        if self._revisits is None:
             self._revisits = RevisitMemory(likelihood, self.n_filters)
+        elif self._revisits.likelihood.map_error_corr_m != likelihood.map_error_corr_m:
+            self._revisits.restate(likelihood)  # (a learned length: the passes flown stay in the memory)
         ground = pos[:, :2] + getattr(self.model, "footprint_centre", np.zeros(2))
         exponent = self._revisits.exponents(ground, scans=self._unread_scans).astype(np.float32)
         self._unread_scans = 0
