@@ -424,6 +424,27 @@ def test_s8_over_a_world_with_a_map_error_is_honest_told_or_not():
     assert 650.0 < np.exp(np.mean(np.log(learned))) < 2000.0, learned
 
 
+def test_the_altimeters_default_length_is_the_long_one():
+    """Nothing stated, a single range learns from :data:`~warptan.sim.scenarios.DEFAULT_ALTIMETER_CORR_M` (2 km), a
+    point cloud from 500 m: one range has no scan to structure its error, and a length shorter than the map's takes an
+    error that persists for a moving position. S9 over a 10 m / 3 km world with a 5 m bias (its hardest world, 4 seeds,
+    120 s): with the point cloud's 500 m two seeds were lost by 1.9 and 3.4 km; with the default every seed within
+    200 m."""
+    from warptan.sim.scenarios import DEFAULT_ALTIMETER_CORR_M, prepare, run_scenario, scenario_likelihood
+
+    world = {"world_error_rms_m": 10.0, "world_error_corr_m": 3000.0, "world_bias_m": 5.0, "world_seed": 2000}
+    for sid, length in (("S9", DEFAULT_ALTIMETER_CORR_M), ("S8", 500.0)):
+        scenario, truth, _ = prepare(sid, **world)
+        lk = scenario_likelihood(scenario, wt.Terrain.load("rugged"), truth)
+        assert lk.map_error_corr_m == length and lk.map_error_learn, sid
+
+    def worst(**kw):
+        return max(float(np.hypot(*run_scenario("S9", s, "cpu", bound=False, **world, **kw).rmse_converged[:2]))
+                   for s in range(4))
+
+    assert worst() < 200.0 < 1000.0 < worst(map_error_rms_m=5.0, map_error_corr_m=500.0)
+
+
 @pytest.mark.parametrize("name", ["sliding", "raycast"])
 def test_a_statement_over_a_map_better_than_stated_keeps_the_likelihood_falling_with_distance(name, device):
     """Map = world, told 4 m / 1 km while the point's own σ is 0.5 m: a particle further below or above the true pose

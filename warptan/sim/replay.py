@@ -248,7 +248,8 @@ def _likelihood(log: FlightLog, scenario: Scenario, the_map, own: bool = True) -
     if stored is not None and ran is not None and (ran.sensor.model, ran.likelihood.kind) == (scenario.sensor.model,
                                                                                            lk.kind):
         lik = Likelihood(**stored)
-        rms, corr, learn = learned_statement(lk, own and _simulated_on_its_map(ran), max(the_map.dn, the_map.de))
+        rms, corr, learn = learned_statement(lk, own and _simulated_on_its_map(ran), max(the_map.dn, the_map.de),
+                                             scenario.sensor.model == "altimeter")
         if (rms, corr, learn, lk.map_error_confidence) != (lik.map_error_sigma_m, lik.map_error_corr_m,
                                                            lik.map_error_learn, lik.map_error_confidence):
             lik = dataclasses.replace(lik, map_error_sigma_m=rms, map_error_corr_m=corr, map_error_learn=learn,
