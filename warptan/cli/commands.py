@@ -389,9 +389,9 @@ def _stated_accuracy(parser, description: str) -> None:
     group.add_argument("--map-error-corr-m", type=number_arg(0.0, False), default=None,
                        help="its correlation length, m (likelihood.map_error_corr_m)")
     group.add_argument("--map-error-learn", choices=("auto", "on", "off"), default=None,
-                       help="learn the error's RMS in flight, the statement (or 5 m / 500 m) its prior: auto (the "
-                            "default) whenever the map is not known to be the world or an error is stated "
-                            "(likelihood.map_error_learn)")
+                       help="learn the error's RMS in flight, the statement (or 5 m / 500 m; an altimeter 5 m / 2 km) "
+                            "its prior: auto (the default) whenever the map is not known to be the world or an error "
+                            "is stated (likelihood.map_error_learn)")
     group.add_argument("--map-error-confidence", type=number_arg(1.0, False), default=None, metavar="F",
                        help="the factor (1-10) the stated (or default) RMS is right within, default 2: the learned "
                             "RMS stays under F times it and the altitude's σ counts F times it for the map's offset, "
