@@ -2,7 +2,7 @@
 non-editable copy of a clone still names its commit in every ``results.json`` (:func:`warptan.meta.git_commit`).
 Everything else about the package is in pyproject.toml."""
 
-import subprocess
+import importlib.util
 from pathlib import Path
 
 from setuptools import setup
@@ -12,16 +12,14 @@ HERE = Path(__file__).resolve().parent
 
 
 def source_commit() -> str | None:
-    """The clone's commit (``+dirty`` when tracked files differ), None outside a git checkout or without git."""
-    try:
-        head = subprocess.run(["git", "rev-parse", "HEAD"], cwd=HERE, capture_output=True, text=True, timeout=10)
-        if head.returncode != 0:
-            return None
-        dirty = subprocess.run(["git", "--no-optional-locks", "status", "--porcelain", "--untracked-files=no"],
-                               cwd=HERE, capture_output=True, text=True, timeout=10).stdout.strip()
-        return head.stdout.strip() + ("+dirty" if dirty else "")
-    except (OSError, subprocess.SubprocessError):
-        return None
+    """The clone's commit as :func:`warptan.meta.git_commit` names it (``+dirty`` when tracked files differ), None
+    outside a git checkout or without git. ``warptan/meta.py`` is loaded by its path: the build has neither the
+    package installed nor its dependencies (the module's own imports are the standard library's)."""
+    spec = importlib.util.spec_from_file_location("_warptan_meta", HERE / "warptan" / "meta.py")
+    meta = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(meta)
+    commit = meta.git_commit(HERE)
+    return None if commit.startswith("unknown") else commit
 
 
 class BuildWithCommit(build_py):

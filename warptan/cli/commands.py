@@ -263,10 +263,9 @@ def _campaign(args) -> int:
     scenario_dems = [d for scenario, _, _ in plans for d in (scenario.terrain.dem, scenario.terrain.map_path or None)]
     out.refuse_inputs(_input_files([args.file, *campaign.inputs(), *scenario_dems]))
     if args.check:
-        from warptan.device import auto_device
         from warptan.sim.campaign_run import estimate_batch_s
 
-        where, total = auto_device(args.device), 0.0
+        where, total = args.device, 0.0  # (auto decided by _pick_device)
         for b, (scenario, truth, flight) in zip(campaign.batches, plans, strict=True):
             eta = estimate_batch_s(b, flight.duration_s, where)
             total += eta

@@ -60,10 +60,10 @@ def estimate_batch_s(batch: Batch, duration_s: float, device: str = "cpu", pilot
 
     short = min(float(pilot_s), float(duration_s))
     kw = {**batch.overrides, "duration_s": short}
-    seed_sets = [list(batch.seeds)] if batch.batched else [[s] for s in batch.seeds[:1]]
-    run_scenario_batch(batch.scenario, seed_sets[0], device=device, **kw)  # compiles; the next is timed
+    seeds = list(batch.seeds if batch.batched else batch.seeds[:1])  # (seed by seed: one, times their number)
+    run_scenario_batch(batch.scenario, seeds, device=device, **kw)  # compiles; the next is timed
     t0 = time.perf_counter()
-    results = run_scenario_batch(batch.scenario, seed_sets[0], device=device, **kw)
+    results = run_scenario_batch(batch.scenario, seeds, device=device, **kw)
     call = time.perf_counter() - t0
     loop = results[0].wall_s
     one = max(call - loop, 0.0) + loop * (float(duration_s) / short)
