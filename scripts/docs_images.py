@@ -2,7 +2,7 @@
 """The example plots the docs show (``docs/images/``), made by the commands a user runs: a run's track and errors
 (``warptan run S8``, the demonstration), the information map (``warptan terrain info rugged --information --sensor
 S8``) and a campaign's plot (S8, 60 s, 4 seeds, particles × likelihood). Each is written by warptan itself into a
-scratch folder, then copied into ``docs/images/`` at a width the pages show (at most 760 px, a 256-colour PNG).
+scratch folder, then copied into ``docs/images/`` at a width the pages show (at most 760 px).
 
     python scripts/docs_images.py            # CPU: about a minute
 """
@@ -35,7 +35,7 @@ def shrink(src: Path, dst: Path, width: int = 760) -> None:
     with Image.open(src) as img:
         if img.width > width:
             img = img.resize((width, round(img.height * width / img.width)), Image.LANCZOS)
-        img.convert("RGB").quantize(colors=256).save(dst, optimize=True)  # (a palette: a third of the bytes)
+        img.convert("RGB").save(dst, optimize=True)  # (full colour: a 256-colour palette drew thin red lines purple)
 
 
 def main() -> int:

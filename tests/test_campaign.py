@@ -147,9 +147,18 @@ def _assert_flaky_outcome(result, reference, marks: Path):
     assert failure["error"] == "RuntimeError: injected failure of particles=300, attempt 1"
 
 
-def test_outputs_table_json_and_one_plot_per_swept_parameter(tmp_path, small_local):
+def test_outputs_table_json_and_one_plot_per_swept_parameter(tmp_path, small_local, monkeypatch):
     pytest.importorskip("matplotlib", reason="plots need the plot extra")
+    import matplotlib.figure
+
+    texts = []
+    save = matplotlib.figure.Figure.savefig
+    monkeypatch.setattr(matplotlib.figure.Figure, "savefig", lambda fig, *a, **k: (
+        texts.extend(t.get_text() for ax in fig.axes for t in [ax.title, *ax.texts]), save(fig, *a, **k))[1])
     written = write_campaign(small_local, tmp_path / "out")
+    # the plot gives each point's number and the seeds it is a mean over
+    seeds = len(small_local.rows[0]["per_seed"])
+    assert f"mean over {seeds} seeds" in texts[0] and len(texts) >= 2 and all(float(t) > 0 for t in texts[1:])
     names = sorted(Path(f).name for f in written["files"])
     assert names == ["campaign.json", "campaign.md", "campaign_particles.png"]
     data = json.loads((tmp_path / "out" / "campaign.json").read_text())

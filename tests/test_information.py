@@ -223,3 +223,27 @@ def test_the_png_paints_no_fix_grey_as_its_colour_bar_says(tmp_path):
     rgb = mpimg.imread(m.save_png(tmp_path / "map.png"))[..., :3]
     grey = np.all(np.abs(rgb - 0.6) < 0.02, axis=2)
     assert grey.mean() > 0.03  # (the colour bar's over-triangle alone is far less)
+
+
+def test_the_png_gives_each_panels_number(tmp_path, monkeypatch):
+    """Each panel's title gives its median bound and the share of the map that fixes, and the colour bar reads in
+    plain metres (it read 4×10⁰)."""
+    pytest.importorskip("matplotlib")
+    import matplotlib.figure
+
+    from warptan.sim.scenario_config import load_config
+    from warptan.sim.scenarios import scenario_scan
+
+    seen = []
+    save = matplotlib.figure.Figure.savefig
+    monkeypatch.setattr(matplotlib.figure.Figure, "savefig", lambda fig, *a, **k: (
+        seen.append([(ax.get_title(), [t.get_text() for t in ax.get_yticklabels()]) for ax in fig.axes]),
+        save(fig, *a, **k))[1])
+    t = wt.Terrain.synthetic("rugged", size_m=6000.0, spacing=90.0, seed=0)
+    scan = scenario_scan(load_config("S8"))
+    m = t.information_map(scan["dirs_body"], 600.0, scan["sigma_m"], n_scans=5, scan_step_m=scan["step_m"], stride=2)
+    m.save_png(tmp_path / "map.png")
+    (one, _), (leg, _), (_, bar) = seen[0][:3]
+    median = np.median(m.bound_scan_m[np.isfinite(m.bound_scan_m)])
+    assert one.startswith(f"one scan: median {median:.2g} m, ") and "% of the map fixes" in one
+    assert leg.startswith("5 scans along the leg: median") and bar and all("×" not in b for b in bar)

@@ -245,15 +245,21 @@ def test_the_plots_say_what_they_show(monkeypatch, tmp_path):
 
     def spy(fig, *args, **kwargs):
         seen.append([(ax.get_title(), ax.get_ylabel(), [t.get_text() for t in (ax.get_legend().get_texts()
-                      if ax.get_legend() else [])]) for ax in fig.axes])
+                      if ax.get_legend() else [])], ax.get_ylim()) for ax in fig.axes])
         return save(fig, *args, **kwargs)
 
     monkeypatch.setattr(matplotlib.figure.Figure, "savefig", spy)
     r = run_scenario("S8", duration_s=35.0, particles=64, device="cpu")
     plot_run(r, r.truth_terrain, tmp_path / "x")
     track, errors = seen
-    assert any(label == "terrain height (m)" for _, label, _ in track) and "start" in track[0][2]
+    assert any(label == "terrain height (m)" for _, label, _, _ in track) and "start" in track[0][2]
+    # the track's error scale: its panel gives its number (it is under the truth at the map's scale)
+    along = next(t for t in track if t[1] == "horizontal error (m)")
+    assert along[0].startswith("horizontal RMSE after 30 s") and "3 DRMS" in along[2][0]
+    # the axes' scales are read after convergence (a 5 m floor drew 0.25 m errors in a ±5 m panel)
+    north = next(t for t in errors if t[1] == "north error (m)")
+    assert north[3][1] < 5.0
     title = errors[0][0]
     assert "after 30 s" in title and "whole run" in title
     assert {"±3σ the filter reports", "±3σ best possible (PCRB)"} <= set(errors[0][2])
-    assert any(text.startswith("N/2 = 32") for _, _, texts in errors for text in texts)
+    assert any(text.startswith("N/2 = 32") for _, _, texts, _ in errors for text in texts)

@@ -92,6 +92,7 @@ def plot_parameter(result: CampaignResult, param: str, path: str | os.PathLike) 
         rest = tuple((k, v) for k, v in r["params"].items() if k != param)
         groups.setdefault((r["scenario"], rest), []).append(r)
     fig, ax = plt.subplots(figsize=(7, 4.5))
+    points = []
     for (scenario, rest), rows in groups.items():
         rows = sorted(rows, key=lambda r: values.index(r["params"][param]))
         x = [r["params"][param] if numeric else values.index(r["params"][param]) for r in rows]
@@ -100,16 +101,25 @@ def plot_parameter(result: CampaignResult, param: str, path: str | os.PathLike) 
         mean = np.array([m for m, _, _ in stats])
         below = np.nan_to_num(mean - np.array([lo for _, lo, _ in stats]))
         above = np.nan_to_num(np.array([hi for _, _, hi in stats]) - mean)
-        ax.errorbar(x, mean, yerr=[below, above], marker="o", capsize=3, label=label)
+        line = ax.errorbar(x, mean, yerr=[below, above], marker="o", capsize=3, label=label)[0]
+        points += [(xi, m, line.get_color()) for xi, m in zip(x, mean, strict=True) if np.isfinite(m)]
+    # the number at each point (a row far below another reads as 0), but not over a number already written there
+    top, written = max((m for _, m, _ in points), default=1.0), []
+    for xi, m, colour in sorted(points, key=lambda p: -p[1]):
+        if all(xi != xw or abs(m - mw) > 0.06 * top for xw, mw in written):
+            ax.annotate(f"{m:.3g}", (xi, m), textcoords="offset points", xytext=(5, 4), fontsize=7, color=colour)
+            written.append((xi, m))
     if numeric and min(values) > 0 and max(values) >= 10 * min(values):
         ax.set_xscale("log")
     if not numeric:
         ax.set_xticks(range(len(values)), [str(v) for v in values])
     ax.set_xlabel(param)
     ax.set_ylabel("3-D RMSE" + (" after convergence" if key == "rmse_converged_m" else ", whole run") + " (m)")
-    ax.set_title(f"{result.campaign.title}: {param}\nmean over seeds, bars: 95 % bootstrap interval of the mean",
-                 fontsize=10)
+    seeds = sorted({len(r.get("per_seed", [])) for r in result.rows})
+    ax.set_title(f"{result.campaign.title}: {param}\nmean over {'/'.join(map(str, seeds))} seeds, bars: 95 % "
+                 "bootstrap interval of the mean", fontsize=10)
     ax.set_ylim(bottom=0.0)
+    ax.margins(x=0.08)  # (room for the last point's number)
     ax.grid(alpha=0.3)
     ax.legend(fontsize=7, loc="best")
     fig.tight_layout()

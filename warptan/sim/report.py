@@ -310,9 +310,9 @@ def _p95(values) -> float:
     return float(np.percentile(v, 95)) if v.size else float("nan")
 
 
-def _horizontal_error_panel(ax, run, converged_after_s: float, truth: bool) -> None:
+def _horizontal_error_panel(ax, run, converged_after_s: float, truth: bool, title: str) -> None:
     """The track's error scale: the horizontal error along the distance flown (at a map's scale the estimate hides
-    under the truth), with the filter's horizontal 3σ and the INS's error (clipped)."""
+    under the truth), with the filter's horizontal 3σ and the INS's error (clipped); ``title`` its number."""
     dist_km = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(run.truth_pos[:, :2], axis=0), axis=1))] / 1e3 \
         if truth else run.t_s
     sigma = np.hypot(run.sigma3_pos[:, 0], run.sigma3_pos[:, 1])  # 3 DRMS: 3 √(σ_N² + σ_E²)
@@ -332,6 +332,7 @@ def _horizontal_error_panel(ax, run, converged_after_s: float, truth: bool) -> N
     ax.set_ylim(0.0, lim)
     ax.set_xlabel("distance flown (km)" if truth else "time (s)")
     ax.set_ylabel("horizontal error (m)")
+    ax.set_title(title, fontsize=9)
     ax.grid(alpha=0.3)
     ax.legend(loc="upper right", fontsize=7)
 
@@ -382,13 +383,19 @@ def plot_run(result, terrain, out_prefix: str | os.PathLike) -> list[str]:
     ax.set_title(f"{result.scenario} seed {result.seed}: {where}".replace(" + ", "\n+ "), fontsize=10)
     ax.legend(loc="best", fontsize=8, framealpha=0.85)
     ax.set_aspect("equal")
-    _horizontal_error_panel(along, run, result.config.filter.converged_after_s, truth)
+    after = result.config.filter.converged_after_s
+    horizontal = [float(np.hypot(*rmse[:2])) for rmse in (result.rmse_converged, result.rmse)]
+    _horizontal_error_panel(along, run, after, truth,
+                            f"horizontal RMSE after {after:g} s {horizontal[0]:.2f} m (whole run {horizontal[1]:.2f} m)"
+                            if truth else "horizontal 3 DRMS the filter reports (the flight has no truth)")
     fig.tight_layout()
     track = f"{prefix}_track.png"
     fig.savefig(track, dpi=110)
     plt.close(fig)
 
     fig, axes = plt.subplots(5, 1, figsize=(8, 11), sharex=True)
+    settled = run.t_s >= after  # (the scales are read after convergence: the first seconds' metres leave them)
+    settled = settled if settled.any() else np.ones_like(settled)
     for k, name in enumerate(("north", "east", "down")):
         ax = axes[k]
         ax.plot(run.t_s, run.error[:, k], "b-", lw=1, label="estimate − truth")
@@ -399,7 +406,7 @@ def plot_run(result, terrain, out_prefix: str | os.PathLike) -> list[str]:
         if bound is not None:  # the flight's posterior Cramér–Rao bound, ±3σ
             ax.plot(run.t_s, 3 * bound[:, k], "k--", lw=0.9, label="±3σ best possible (PCRB)")
             ax.plot(run.t_s, -3 * bound[:, k], "k--", lw=0.9)
-        lim = max(5.0, 1.5 * _p95(run.error[:, k]) if truth else 1.2 * _p95(run.sigma3_pos[:, k]))
+        lim = max(0.5, 1.2 * _p95(run.sigma3_pos[settled, k]), 1.5 * _p95(run.error[settled, k]) if truth else 0.0)
         ax.set_ylim(-lim, lim)
         ax.set_ylabel(f"{name} error (m)")
         ax.grid(alpha=0.3)
@@ -419,7 +426,6 @@ def plot_run(result, terrain, out_prefix: str | os.PathLike) -> list[str]:
     axes[4].set_ylabel("ESS (particles)")
     axes[4].legend(loc="upper right", fontsize=8, title="effective sample size", title_fontsize=8)
     axes[4].set_xlabel("time (s)")
-    after = result.config.filter.converged_after_s
     axes[0].set_title(f"{result.scenario} seed {result.seed}: RMSE N/E/D after {after:g} s "
                       f"{_fmt(result.rmse_converged, [np.nan] * 3)} m (whole run {_fmt(result.rmse, [np.nan] * 3)} m)",
                       fontsize=10)

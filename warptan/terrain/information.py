@@ -98,6 +98,7 @@ class InformationMap:
 
         matplotlib.use("Agg")
         import matplotlib.pyplot as plt
+        import matplotlib.ticker
         from matplotlib.colors import LogNorm
 
         extent = [self.east_m[0] / 1e3, self.east_m[-1] / 1e3, self.north_m[0] / 1e3, self.north_m[-1] / 1e3]
@@ -114,10 +115,16 @@ class InformationMap:
             # as bad: white, which is for no footprint, NaN); a finite bound at most the top
             shown = np.where(np.isinf(bound), 10.0 * norm.vmax, np.minimum(bound, norm.vmax))
             im = ax.imshow(shown, origin="lower", extent=extent, cmap=cmap, norm=norm, interpolation="nearest")
-            ax.set_title(what)
+            fixed = np.isfinite(bound)
+            on_map = ~np.isnan(bound)
+            median = f"median {np.median(bound[fixed]):.2g} m" if fixed.any() else "no fix"
+            ax.set_title(f"{what}: {median}, {100 * fixed.sum() / max(on_map.sum(), 1):.0f} % of the map fixes")
             ax.set_xlabel("east (km)")
             ax.set_ylabel("north (km)")
-        fig.colorbar(im, ax=axes, extend="max", label="1σ horizontal position bound (m), grey: no fix")
+        bar = fig.colorbar(im, ax=axes, extend="max", label="1σ horizontal position bound (m), grey: no fix")
+        ticks = [t * 10.0**e for e in range(-3, 5) for t in (1, 2, 5) if norm.vmin <= t * 10.0**e <= norm.vmax]
+        bar.set_ticks(ticks, labels=[f"{t:g}" for t in ticks])  # (1-2-5 in metres, not 4×10⁰)
+        bar.ax.yaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
         s = self.settings
         fig.suptitle(title or f"{s['sensor']} at {s['altitude_agl_m']:g} m AGL, heading {s['heading_deg']:g}°")
         fig.savefig(os.fspath(path), dpi=110)
