@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from warptan.progress import progress_bar
+from warptan.progress import compile_notice, progress_bar
 from warptan.sim.campaign import ENGINES, RETRIES, Batch, Campaign, CampaignError
 from warptan.sim.report import ci95
 
@@ -188,7 +188,7 @@ def _bar(total: int, progress: bool):
 
 def _run_local(campaign: Campaign, device: str, task: Callable, progress: bool) -> dict[int, dict]:
     outcomes = {}
-    with _bar(len(campaign.batches), progress) as bar:
+    with _bar(len(campaign.batches), progress) as bar, compile_notice(bar.write if progress else lambda text: None):
         shown = [0.0]
 
         def within(k: int, n: int) -> None:  # how far the batch is, beside the bar over batches
