@@ -80,7 +80,8 @@ def fly(job: tuple) -> dict:
     return {"horiz": float(np.hypot(*r.rmse_converged[:2])), "err": r.run.error[conv], "sig3": r.run.sigma3_pos[conv],
             "learned": r.run.info.get("map_error_learned_m"), "white": r.run.info.get("map_white_learned_m"),
             "world_rms": float(parts.get("map_minus_world_rms_m", 0.0)), "respreads": int(r.run.respread.sum()),
-            "flagged": declared_unconverged(r.run, r.config.filter.converged_after_s)}
+            "flagged": declared_unconverged(r.run, r.config.filter.converged_after_s),
+            "lin_err": r.run.lin_err[conv, :6], "lin_sig3": r.run.sigma3_lin[conv, :6]}
 
 
 def run_row(sid: str, family: str, mode: str, seeds: int, worlds: int, duration_s: float, device: str,
@@ -92,6 +93,9 @@ def run_row(sid: str, family: str, mode: str, seeds: int, worlds: int, duration_
     err = np.concatenate([r["err"] for r in runs])
     sig3 = np.concatenate([r["sig3"] for r in runs])
     rmse = np.sqrt(np.mean(err**2, axis=0))
+    lin_err = np.concatenate([r["lin_err"] for r in runs])
+    lin_sig3 = np.concatenate([r["lin_sig3"] for r in runs])
+    lin_rmse = np.sqrt(np.mean(lin_err**2, axis=0))
     mean, half = ci95(horiz)
     learned, white = [r["learned"] for r in runs], [r["white"] for r in runs]
     return {"scenario": sid, "family": family, "mode": mode, "seeds": seeds, "worlds": worlds,
@@ -101,6 +105,9 @@ def run_row(sid: str, family: str, mode: str, seeds: int, worlds: int, duration_
             "coverage_3sigma": np.mean(np.abs(err) <= sig3, axis=0).tolist(),
             "sigma_over_rmse": (np.mean(sig3, axis=0) / 3.0 / rmse).tolist(),
             "world_rms_m": float(np.mean([r["world_rms"] for r in runs])),
+            "velocity_coverage_3sigma": np.mean(np.abs(lin_err[:, :3]) <= lin_sig3[:, :3], axis=0).tolist(),
+            "attitude_coverage_3sigma": np.mean(np.abs(lin_err[:, 3:]) <= lin_sig3[:, 3:], axis=0).tolist(),
+            "attitude_sigma_over_rmse": (np.mean(lin_sig3[:, 3:], axis=0) / 3.0 / lin_rmse[3:]).tolist(),
             "learned_m": None if learned[0] is None else [float(v) for v in learned],
             "white_learned_m": None if white[0] is None else [float(v) for v in white],
             "respreads": int(sum(r["respreads"] for r in runs)),
@@ -132,16 +139,20 @@ def write_md(rows: list[dict], path: Path) -> None:
              "flight's log replayed told 5 m / 1 km. Horizontal RMSE after "
              "convergence, mean ± 95 % interval over seeds; 3σ coverage pooled over seeds and epochs after "
              "convergence; σ/RMSE the mean reported σ over the RMSE per axis; learned: the learned RMS at the end of "
-             "the flight, mean (min–max) over seeds. Commands and machines: `PROVENANCE.md`.", "",
+             "the flight, mean (min–max) over seeds; attitude: the roll / pitch / yaw error's 3σ coverage likewise "
+             "(rows run since it was recorded; — before). Commands and machines: `PROVENANCE.md`.", "",
              "| scenario | family | map − world RMS (m) | mode | horizontal RMSE (m) | 3σ coverage N / E / D | "
-             "σ/RMSE N / E / D | learned RMS (m) | re-spreads | device |", "|---|---|---|---|---|---|---|---|---|---|"]
+             "σ/RMSE N / E / D | attitude 3σ coverage r / p / y | learned RMS (m) | re-spreads | device |",
+             "|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in sorted(rows, key=lambda r: (r["scenario"], r["family"], r["mode"])):
         cov = " / ".join(f"{100 * c:.0f}%" for c in r["coverage_3sigma"])
         sr = " / ".join(f"{v:.2f}" for v in r["sigma_over_rmse"])
+        att = " / ".join(f"{100 * c:.0f}%" for c in r["attitude_coverage_3sigma"]) if (
+            "attitude_coverage_3sigma" in r) else "—"
         lm = "—" if not r["learned_m"] else (f"{np.mean(r['learned_m']):.2f} ({min(r['learned_m']):.2f}–"
                                             f"{max(r['learned_m']):.2f})")
         lines.append(f"| {r['scenario']} | {r['family']} | {r['world_rms_m']:.2f} | {r['mode']} | "
-                     f"{r['horizontal_rmse_m']:.2f} ± {r['horizontal_rmse_ci95_m']:.2f} | {cov} | {sr} | {lm} | "
+                     f"{r['horizontal_rmse_m']:.2f} ± {r['horizontal_rmse_ci95_m']:.2f} | {cov} | {sr} | {att} | {lm} | "
                      f"{r['respreads']} | {', '.join(r['meta']['devices'].values())} |")
     path.write_text("\n".join(lines) + "\n")
 

@@ -1,6 +1,7 @@
 """The benchmark scripts run end to end (no timing is asserted)."""
 
 import json
+import runpy
 import subprocess
 import sys
 from pathlib import Path
@@ -214,6 +215,14 @@ def test_learn_study_runs_resumes_and_reports(tmp_path):
     white = {r["mode"]: r["white_learned_m"] for r in rows}
     assert white["off"] is None and len(white["learn"]) == 2
     assert (out / "study.md").read_text().count("| S8 | short |") == 2
+    for r in rows:  # the attitude's and the velocity's honesty beside the position's
+        assert len(r["attitude_coverage_3sigma"]) == 3 and len(r["velocity_coverage_3sigma"]) == 3
+        assert all(0.0 <= c <= 1.0 for c in (*r["attitude_coverage_3sigma"], *r["velocity_coverage_3sigma"]))
+        assert all(v > 0 for v in r["attitude_sigma_over_rmse"])
+    old = {k: v for k, v in rows[0].items() if not k.startswith(("attitude_", "velocity_"))}
+    md = tmp_path / "old.md"
+    runpy.run_path(script)["write_md"]([old], md)  # a row recorded before the attitude was: a dash
+    assert "| — |" in md.read_text()
 
 
 def test_bench_learned_cost_pools_alternated_runs(tmp_path):
