@@ -139,20 +139,22 @@ def write_md(rows: list[dict], path: Path) -> None:
              "flight's log replayed told 5 m / 1 km. Horizontal RMSE after "
              "convergence, mean ± 95 % interval over seeds; 3σ coverage pooled over seeds and epochs after "
              "convergence; σ/RMSE the mean reported σ over the RMSE per axis; learned: the learned RMS at the end of "
-             "the flight, mean (min–max) over seeds; attitude: the roll / pitch / yaw error's 3σ coverage likewise "
-             "(rows run since it was recorded; — before). Commands and machines: `PROVENANCE.md`.", "",
+             "the flight, mean (min–max) over seeds; attitude and velocity: the roll / pitch / yaw and the north / "
+             "east / down velocity errors' 3σ coverage likewise (rows run since they were recorded; — before). "
+             "Commands and machines: `PROVENANCE.md`.", "",
              "| scenario | family | map − world RMS (m) | mode | horizontal RMSE (m) | 3σ coverage N / E / D | "
-             "σ/RMSE N / E / D | attitude 3σ coverage r / p / y | learned RMS (m) | re-spreads | device |",
-             "|---|---|---|---|---|---|---|---|---|---|---|"]
+             "σ/RMSE N / E / D | attitude 3σ coverage r / p / y | velocity 3σ coverage N / E / D | learned RMS (m) | "
+             "re-spreads | device |", "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in sorted(rows, key=lambda r: (r["scenario"], r["family"], r["mode"])):
         cov = " / ".join(f"{100 * c:.0f}%" for c in r["coverage_3sigma"])
         sr = " / ".join(f"{v:.2f}" for v in r["sigma_over_rmse"])
-        att = " / ".join(f"{100 * c:.0f}%" for c in r["attitude_coverage_3sigma"]) if (
-            "attitude_coverage_3sigma" in r) else "—"
+        att, vel = (" / ".join(f"{100 * c:.0f}%" for c in r[key]) if key in r else "—"
+                    for key in ("attitude_coverage_3sigma", "velocity_coverage_3sigma"))
         lm = "—" if not r["learned_m"] else (f"{np.mean(r['learned_m']):.2f} ({min(r['learned_m']):.2f}–"
                                             f"{max(r['learned_m']):.2f})")
         lines.append(f"| {r['scenario']} | {r['family']} | {r['world_rms_m']:.2f} | {r['mode']} | "
-                     f"{r['horizontal_rmse_m']:.2f} ± {r['horizontal_rmse_ci95_m']:.2f} | {cov} | {sr} | {att} | {lm} | "
+                     f"{r['horizontal_rmse_m']:.2f} ± {r['horizontal_rmse_ci95_m']:.2f} | {cov} | {sr} | {att} | "
+                     f"{vel} | {lm} | "
                      f"{r['respreads']} | {', '.join(r['meta']['devices'].values())} |")
     path.write_text("\n".join(lines) + "\n")
 

@@ -222,7 +222,7 @@ def test_learn_study_runs_resumes_and_reports(tmp_path):
     old = {k: v for k, v in rows[0].items() if not k.startswith(("attitude_", "velocity_"))}
     md = tmp_path / "old.md"
     runpy.run_path(script)["write_md"]([old], md)  # a row recorded before the attitude was: a dash
-    assert "| — |" in md.read_text()
+    assert "| — | — |" in md.read_text()
 
 
 def test_bench_learned_cost_pools_alternated_runs(tmp_path):
