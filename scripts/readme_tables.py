@@ -15,12 +15,15 @@ on a timing, percentage, ratio or decimal length written in the prose (:func:`ha
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import json
 import re
 import sys
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
+if importlib.util.find_spec("warptan") is None:  # not installed: the checkout's package (pure-Python modules only)
+    sys.path.insert(0, str(ROOT))
 
 
 def _load(path: str | Path) -> dict:
