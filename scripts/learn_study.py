@@ -84,30 +84,33 @@ def fly(job: tuple) -> dict:
             "lin_err": r.run.lin_err[conv, :6], "lin_sig3": r.run.sigma3_lin[conv, :6]}
 
 
+def honesty(runs: list[dict], err_key: str, sig3_key: str) -> tuple[list[float], list[float]]:
+    """Per axis, pooled over the runs' epochs after convergence: the share of errors within the reported 3σ, and the
+    mean reported σ over the RMSE."""
+    err = np.concatenate([r[err_key] for r in runs])
+    sig3 = np.concatenate([r[sig3_key] for r in runs])
+    rmse = np.sqrt(np.mean(err**2, axis=0))
+    return np.mean(np.abs(err) <= sig3, axis=0).tolist(), (np.mean(sig3, axis=0) / 3.0 / rmse).tolist()
+
+
 def run_row(sid: str, family: str, mode: str, seeds: int, worlds: int, duration_s: float, device: str,
             pool=None) -> dict:
     kw = {**FAMILIES[family], **mode_keywords(mode, family), "duration_s": duration_s}
     jobs = [(sid, seed, 2000 + seed * worlds // seeds, kw, device, mode) for seed in range(seeds)]
     runs = list(pool.map(fly, jobs)) if pool is not None else [fly(j) for j in jobs]
     horiz = np.array([r["horiz"] for r in runs])
-    err = np.concatenate([r["err"] for r in runs])
-    sig3 = np.concatenate([r["sig3"] for r in runs])
-    rmse = np.sqrt(np.mean(err**2, axis=0))
-    lin_err = np.concatenate([r["lin_err"] for r in runs])
-    lin_sig3 = np.concatenate([r["lin_sig3"] for r in runs])
-    lin_rmse = np.sqrt(np.mean(lin_err**2, axis=0))
+    coverage, sigma_over_rmse = honesty(runs, "err", "sig3")
+    lin_coverage, lin_sigma_over_rmse = honesty(runs, "lin_err", "lin_sig3")
     mean, half = ci95(horiz)
     learned, white = [r["learned"] for r in runs], [r["white"] for r in runs]
     return {"scenario": sid, "family": family, "mode": mode, "seeds": seeds, "worlds": worlds,
             "duration_s": duration_s,
             "keywords": {k: v for k, v in kw.items() if k != "duration_s"},
             "horizontal_rmse_m": float(mean), "horizontal_rmse_ci95_m": float(half), "per_seed_m": horiz.tolist(),
-            "coverage_3sigma": np.mean(np.abs(err) <= sig3, axis=0).tolist(),
-            "sigma_over_rmse": (np.mean(sig3, axis=0) / 3.0 / rmse).tolist(),
+            "coverage_3sigma": coverage, "sigma_over_rmse": sigma_over_rmse,
             "world_rms_m": float(np.mean([r["world_rms"] for r in runs])),
-            "velocity_coverage_3sigma": np.mean(np.abs(lin_err[:, :3]) <= lin_sig3[:, :3], axis=0).tolist(),
-            "attitude_coverage_3sigma": np.mean(np.abs(lin_err[:, 3:]) <= lin_sig3[:, 3:], axis=0).tolist(),
-            "attitude_sigma_over_rmse": (np.mean(lin_sig3[:, 3:], axis=0) / 3.0 / lin_rmse[3:]).tolist(),
+            "velocity_coverage_3sigma": lin_coverage[:3], "attitude_coverage_3sigma": lin_coverage[3:],
+            "attitude_sigma_over_rmse": lin_sigma_over_rmse[3:],
             "learned_m": None if learned[0] is None else [float(v) for v in learned],
             "white_learned_m": None if white[0] is None else [float(v) for v in white],
             "respreads": int(sum(r["respreads"] for r in runs)),
