@@ -84,8 +84,9 @@ MODE_C0 = 1
 MODE_RHO = 2
 """Row ``M + MODE_RHO``: ``ρ_i``, a mode amplitude's correlation from one scan to the next (first-order model)."""
 MODE_CA = 3
-"""Row ``M + MODE_CA``: ``cᵃ_i = κ_i k⁰_i / (1 + κ_i k⁰_i)``, the attitude information's weights (a mode's error
-counted once per κ_i scans that share it; :func:`attitude_information`)."""
+"""Row ``M + MODE_CA``: ``cᵃ_i = κᵃ_i k⁰_i / (1 + κᵃ_i k⁰_i)``, the attitude information's weights (a mode's error
+counted once per κᵃ_i scans that share it, :meth:`warptan.sensing.likelihood.Likelihood.error_modes`;
+:func:`attitude_information`)."""
 MODE_T = 4
 """Rows ``M + MODE_T + i``: the new mode i's coefficients on the previous table's modes (identity when the table was
 not rebuilt since the last scan, zero when there was none: nothing to carry)."""
@@ -692,18 +693,18 @@ def attitude_information(acc: Acc, macc: ModeAcc, p: LikParams):
     the residuals' information on dθ that the position cannot explain, the Schur complement
     ``Λ - Λ_θp (Λ_pp + π I)⁻¹ Λ_pθ``, ``b - Λ_θp (Λ_pp + π I)⁻¹ b_p`` (float64).
 
-    With map-error modes the attitude reads the scan through the modes with the weights ``cᵃ_i = κ_i k⁰_i / (1 +
-    κ_i k⁰_i)`` (``MODE_CA``), μ = 0: the Kalman update of dθ is made apart from the amplitudes' (no
-    cross-covariance), and a mode's error is shared by the κ_i consecutive scans that see the same ground, so each
-    scan may read only about 1/κ_i of what one scan alone would say through it (κ_i scans then hold what one
-    independent patch holds: a map tilt read κ_i times as independent is the tilt read as the attitude with a 3σ
-    √κ_i too small). Measured (5 m / 1 km worlds, CPU): with the one-scan weights ``c⁰_i`` S8 over the world of
-    seed 1003 kept the roll 10 σ off and the east velocity 2.2 m/s off at 17 σ (east 3σ coverage 4–15 %, 6.0–6.6
-    m); with ``cᵃ`` 0.4–1.3 σ and 93–96 % (2.0–2.3 m). It needs the fix's wander in the Kalman part's position
-    noise (:meth:`warptan.sensing.likelihood.Likelihood.fix_process`): without it S2's velocity ran away. Before
+    With map-error modes the attitude reads the scan through the modes with the weights ``cᵃ_i = κᵃ_i k⁰_i / (1 + κᵃ_i
+    k⁰_i)`` (``MODE_CA``), μ = 0: the Kalman update of dθ is made apart from the amplitudes' (no cross-covariance), and
+    a mode's error is shared by the κᵃ_i consecutive scans that see the same ground (along the track as flown, turns
+    included), so each scan may read only about 1/κᵃ_i of what one scan alone would say through it (κᵃ_i scans then hold
+    what one independent patch holds: a map tilt read κᵃ_i times as independent is the tilt read as the attitude with a
+    3σ √κᵃ_i too small). Measured (5 m / 1 km worlds, CPU): with the one-scan weights ``c⁰_i`` S8 over the world of seed
+    1003 kept the roll 10 σ off and the east velocity 2.2 m/s off at 17 σ (east 3σ coverage 4–15 %, 6.0–6.6 m); with
+    ``cᵃ`` 0.4–1.3 σ and 93–96 % (2.0–2.3 m). It needs the fix's wander in the Kalman part's position noise
+    (:meth:`warptan.sensing.likelihood.Likelihood.fix_process`): without it S2's velocity ran away. Before
     (``results/world`` at 4397e95, 20 seeds, H100): the one-scan weights gave S7/S8 east coverage 68/60 %, the
-    amplitudes' gains S2 7.7 m and S5 7.6 m, projecting every mode out of the attitude's information 250 m on S2
-    (the tactical IMU needs the attitude).
+    amplitudes' gains S2 7.7 m and S5 7.6 m, projecting every mode out of the attitude's information 250 m on S2 (the
+    tactical IMU needs the attitude).
     """
     lam, info = modes_lam_info_fixed(acc, macc, macc.mode_wa, p)
     if p.pos_precision >= 0.0:

@@ -40,7 +40,7 @@ def test_the_modes_hold_the_stated_covariance_and_its_sharing():
     np.testing.assert_allclose(table[m + klik.MODE_K0, :q], 100.0 * lam, rtol=1e-6)  # σ_e² λ_i / σ²
     np.testing.assert_allclose(table[m + klik.MODE_C0, :q], 100.0 * lam / (1.0 + 100.0 * lam), rtol=1e-6)
     np.testing.assert_allclose(table[m + klik.MODE_RHO, :q], (kappa - 1) / (kappa + 1), rtol=1e-6)
-    k_shared = kappa * 100.0 * lam  # the attitude's weights: each mode's error read once per κ scans
+    k_shared = kappa * 100.0 * lam  # the attitude's weights: each mode's error read once per κ scans (straight)
     np.testing.assert_allclose(table[m + klik.MODE_CA, :q], k_shared / (1.0 + k_shared), rtol=1e-6)
     np.testing.assert_allclose(u.T @ u, np.eye(q), atol=1e-4)  # orthonormal modes
     d = np.linalg.norm(xy[:, None] - xy[None], axis=2)
@@ -55,6 +55,43 @@ def test_the_modes_hold_the_stated_covariance_and_its_sharing():
     assert wt.Likelihood("gaussian").error_modes(xy, np.ones(len(xy)), 0.5)[1]["n_modes"] == 0
     assert wt.Likelihood("paper", **STATED).error_modes(xy, np.ones(len(xy)), 0.5)[1]["n_modes"] == 0
 
+
+
+def _arc_sharing_oracle(xy, u, lam, length, step, turn, k_max):
+    """κᵃ by brute force: the aircraft stepped scan by scan along the arc (heading ψ_k = k·turn, each step along the
+    mean heading of the step), the footprint turned with it, every lag summed (no trapezoid)."""
+    pos, plain, turned = np.zeros(2), 0.0, 0.0
+    for k in range(1, k_max + 1):
+        mid = (k - 0.5) * turn
+        pos = pos + step * np.array([math.cos(mid), math.sin(mid)]) * (math.sin(turn / 2) / (turn / 2) if turn else 1)
+        c, s = math.cos(k * turn), math.sin(k * turn)
+        later = np.c_[c * xy[:, 0] - s * xy[:, 1], s * xy[:, 0] + c * xy[:, 1]] + pos
+        d2 = ((xy[:, None, :] - later[None, :, :]) ** 2).sum(axis=2)
+        rho = np.sum(u * (np.exp(-d2 / length**2) @ u), axis=0) / lam
+        plain, turned = plain + rho, turned + rho * c
+    return 1.0 + 2.0 * np.maximum(plain, turned)
+
+
+def test_the_attitude_shares_a_mode_over_the_turning_track():
+    """A mode shaped like the along-track slope telescopes on a straight pass (κ = 1: the mean slope of a pass is the
+    difference of its ends) but not for the attitude in a turn: κᵃ sums ``max(ρ, ρ cos Δψ)`` along the arc, the
+    later footprint turned with the aircraft (NumPy brute force over every scan); straight, κᵃ = κ; an orbit inside
+    one correlation length shares both slopes over most of its scans."""
+    lk = wt.Likelihood("gaussian", map_error_sigma_m=5.0, map_error_corr_m=1000.0, track_step_m=10.0)
+    x, y = np.meshgrid(np.linspace(-60.0, 60.0, 10), np.linspace(-30.0, 30.0, 10))
+    xy = np.c_[x.ravel(), y.ravel()]
+    straight = lk.error_modes(xy, np.ones(100), 0.5, (1.0, 0.0), absorb_offset=True)[1]
+    assert straight["sharing"][0] == pytest.approx(1.0) and straight["sharing"][1] > 150  # along, cross slope
+    np.testing.assert_allclose(straight["sharing_att"], straight["sharing"])
+    for turn in (0.003, -0.003, 10.0 / 590.0):  # an S-turn's, the other way, a 60° bank's orbit at 100 m/s
+        table, info = lk.error_modes(xy, np.ones(100), 0.5, (1.0, 0.0), absorb_offset=True, turn=turn)
+        q, lam = info["n_modes"], np.array(info["eigenvalues"])
+        oracle = _arc_sharing_oracle(xy, table[:100, :q].astype(np.float64), lam, 1000.0, 10.0, turn, 400)
+        expected = np.maximum(oracle, info["sharing"])[:4]
+        np.testing.assert_allclose(info["sharing_att"][:4], expected, rtol=0.03, atol=0.3)
+        k_att = np.array(info["sharing_att"]) * np.array(info["k0"])
+        np.testing.assert_allclose(table[100 + klik.MODE_CA, :q], k_att / (1.0 + k_att), rtol=1e-5)
+    assert info["sharing_att"][0] > 0.5 * straight["sharing"][1]  # the orbit: the along slope read again and again
 
 def test_an_offset_the_altitude_carries_leaves_the_modes():
     """With ``absorb_offset`` the modes are orthogonal to the offset direction a/|a| (a vertical shift of the
@@ -606,6 +643,7 @@ def test_a_mode_table_built_behind_the_updates_is_the_one_built_at_once_two_scan
     for behind in (0, 2):
         model = wt.make_model("sliding", dem, wt.Likelihood("gaussian", sensor_sigma_m=0.5, **STATED), surface=True)
         model.MODES_BEHIND, model.MODES_CHECK_EVERY = behind, 1  # (the geometry looked at every scan)
+        model.MODES_REBUILD_TURN = math.inf  # (a 40° step in one scan: the geometry's rebuild, not a turn's)
         got = []
         for k in range(8):
             quat = euler_to_quat(0.0, 0.0, 0.0 if k < 3 else math.radians(40.0))

@@ -154,6 +154,9 @@ class MeasurementModel:
         self._modes: wp.array | None = None
         self._modes_host: np.ndarray | None = None
         self._modes_skip = 0
+        self._scans = 0  # scans staged (the turn's clock)
+        self._heading: tuple | None = None  # (the flight's horizontal direction, scans) at the last look
+        self._turn = self._turn_built = 0.0  # the flight's heading change per scan at the last look, at the build
         self._pending: tuple | None = None  # a mode table built behind the updates (MODES_BEHIND)
         self._no_cloud: wp.array | None = None
         self._amp_scale = 1.0  # the stored amplitudes' factor for the next scan (a new per-point σ whitens them anew)
@@ -420,6 +423,7 @@ class MeasurementModel:
         the first particle's. The table keeps its array (a captured graph
         reads the new values) and ``n_modes`` stays :data:`~warptan.kernels.likelihood.MAX_MODES` (unused
         columns are zero)."""
+        self._scans += 1
         m = self._staged.shape[1] if self._staged.ndim == 2 else 1
         rows = m + klik.MODE_EXTRA_ROWS
         fresh = self._modes is None or self._modes.device is not device or self._modes.shape[0] != rows
@@ -440,10 +444,13 @@ class MeasurementModel:
         quat = np.asarray(attitude if attitude is not None else quat_nb[:1].numpy()[0], dtype=np.float64).reshape(4)
         xy, sens, along = self._scan_geometry(quat)
         self.footprint_centre = xy.mean(axis=0)  # where the scan reads the map, from the aircraft (m)
+        self._read_turn(along)
         old, host = self._modes_geometry, self._modes_host
         size = max(float(np.ptp(xy, axis=0).max()) if len(xy) > 1 else 0.0, 1.0)
+        span = self.likelihood.map_error_corr_m / max(self.likelihood.track_step_m, 1e-9)  # steps in one length
+        turned = abs(np.clip(self._turn * span, -1.0, 1.0) - np.clip(self._turn_built * span, -1.0, 1.0))
         if old is not None and old[0].shape == xy.shape and np.abs(old[0] - xy).max() <= self.MODES_REBUILD * size \
-                and np.abs(old[1] - along).max() <= self.MODES_REBUILD:
+                and np.abs(old[1] - along).max() <= self.MODES_REBUILD and turned <= self.MODES_REBUILD_TURN:
             if self._amp_scale != 1.0:  # the amplitudes whitened anew (restate_map_error's white_m)
                 host[m + klik.MODE_T:] = self._amp_scale * np.eye(klik.MAX_MODES, dtype=np.float32)
                 self._table_uploads.put("modes", self._modes, host)
@@ -454,13 +461,28 @@ class MeasurementModel:
             else:
                 self._modes_skip = self.MODES_CHECK_EVERY - 1
             return
+        self._turn_built = self._turn
         if host is not None and self.MODES_BEHIND > 0:  # built on the worker, applied MODES_BEHIND scans on
             self._pending = (_modes_worker().submit(self.likelihood.error_modes, xy, sens, self.sigma_m, along,
-                                                    self.absorbs_map_offset),
+                                                    self.absorbs_map_offset, self._turn),
                              self.MODES_BEHIND, self.likelihood, self.sigma_m, (xy, along, sens))
             return
-        self._apply_modes(self.likelihood.error_modes(xy, sens, self.sigma_m, along, self.absorbs_map_offset),
-                          (xy, along, sens))
+        self._apply_modes(self.likelihood.error_modes(xy, sens, self.sigma_m, along, self.absorbs_map_offset,
+                                                      self._turn), (xy, along, sens))
+
+    MODES_REBUILD_TURN = 0.3
+    """The table is rebuilt too when the flight's turn over one correlation length (its heading change per scan ×
+    ``L / s``, capped at 1 rad) changed by more than this (rad) since it was built: the attitude's sharing of the
+    modes depends on it (:meth:`~warptan.sensing.likelihood.Likelihood.error_modes`' ``turn``)."""
+
+    def _read_turn(self, along: np.ndarray) -> None:
+        """The flight's heading change per scan (rad, positive: the heading grows) from the flight's horizontal
+        direction ``along`` now and at the last look, over the scans staged in between."""
+        if self._heading is not None and self._scans > self._heading[1]:
+            was = self._heading[0]
+            change = math.atan2(was[0] * along[1] - was[1] * along[0], float(was @ along))
+            self._turn = change / (self._scans - self._heading[1])
+        self._heading = (np.asarray(along, dtype=np.float64).copy(), self._scans)
 
     MODES_BEHIND = 8
     """Scans between the one whose geometry asks for a new mode table and the one that first uses it: the table
@@ -482,7 +504,7 @@ class MeasurementModel:
         self._pending = None
         if likelihood is not self.likelihood or sigma != self.sigma_m:  # restated meanwhile: for the statement now
             xy, along, sens = geometry
-            built = self.likelihood.error_modes(xy, sens, self.sigma_m, along, self.absorbs_map_offset)
+            built = self.likelihood.error_modes(xy, sens, self.sigma_m, along, self.absorbs_map_offset, self._turn)
         self._apply_modes(built, geometry)
         return True
 
