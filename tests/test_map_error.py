@@ -83,15 +83,19 @@ def test_the_attitude_shares_a_mode_over_the_turning_track():
     straight = lk.error_modes(xy, np.ones(100), 0.5, (1.0, 0.0), absorb_offset=True)[1]
     assert straight["sharing"][0] == pytest.approx(1.0) and straight["sharing"][1] > 150  # along, cross slope
     np.testing.assert_allclose(straight["sharing_att"], straight["sharing"])
+    tiny = lk.error_modes(xy, np.ones(100), 0.5, (1.0, 0.0), absorb_offset=True, turn=1e-6)[1]  # heading noise
+    np.testing.assert_array_equal(tiny["sharing_att"], tiny["sharing"])
+    shared = {}
     for turn in (0.003, -0.003, 10.0 / 590.0):  # an S-turn's, the other way, a 60° bank's orbit at 100 m/s
         table, info = lk.error_modes(xy, np.ones(100), 0.5, (1.0, 0.0), absorb_offset=True, turn=turn)
+        shared[turn] = info["sharing_att"]
         q, lam = info["n_modes"], np.array(info["eigenvalues"])
         oracle = _arc_sharing_oracle(xy, table[:100, :q].astype(np.float64), lam, 1000.0, 10.0, turn, 400)
         expected = np.maximum(oracle, info["sharing"])[:4]
         np.testing.assert_allclose(info["sharing_att"][:4], expected, rtol=0.03, atol=0.3)
         k_att = np.array(info["sharing_att"]) * np.array(info["k0"])
         np.testing.assert_allclose(table[100 + klik.MODE_CA, :q], k_att / (1.0 + k_att), rtol=1e-5)
-    assert info["sharing_att"][0] > 0.5 * straight["sharing"][1]  # the orbit: the along slope read again and again
+    assert shared[10.0 / 590.0][0] > 0.5 * straight["sharing"][1]  # the orbit: the along slope read again and again
 
 def test_an_offset_the_altitude_carries_leaves_the_modes():
     """With ``absorb_offset`` the modes are orthogonal to the offset direction a/|a| (a vertical shift of the
