@@ -465,7 +465,6 @@ def test_s8_over_a_world_with_a_map_error_is_honest_told_or_not():
     assert 650.0 < np.exp(np.mean(np.log(learned))) < 2000.0, learned
 
 
-
 def test_an_s_turn_flight_over_a_long_correlated_error_keeps_its_attitude_honest():
     """S1 (S-turns) over a world whose map error is 10 m RMS correlated over 3 km plus a 5 m bias, nothing stated (2
     seeds, 90 s): the roll, pitch and yaw errors stay within their 3σ after convergence (over 90 % of the epochs on
@@ -483,6 +482,7 @@ def test_an_s_turn_flight_over_a_long_correlated_error_keeps_its_attitude_honest
         inside.append(np.abs(r.run.lin_err[conv, 3:6]) <= r.run.sigma3_lin[conv, 3:6])
     coverage = np.mean(np.concatenate(inside), axis=0)
     assert coverage.min() > 0.9, coverage
+
 
 def test_the_altimeters_default_length_is_the_long_one():
     """Nothing stated, a single range learns from :data:`~warptan.sim.scenarios.DEFAULT_ALTIMETER_CORR_M` (2 km), a
