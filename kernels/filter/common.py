@@ -57,7 +57,7 @@ converged ``h² Σ̂`` is far inside one measurement's resolution and nothing ch
 TEMPER_RATIO = wp.constant(0.57434918)  # 2^-0.8: the smallest candidate is 2^-15.2 ≈ 2.7e-5 of the remaining
 
 # ---- per-filter statistics of an update (columns of ``stats``)
-N_STATS = wp.constant(32)
+N_STATS = wp.constant(33)
 ST_ESS = wp.constant(0)  # ESS after the last applied stage's weights (before its resampling)
 ST_LOGNORM = wp.constant(1)
 ST_BAD = wp.constant(2)  # particles whose log-likelihood was not finite (scored the floor)
@@ -78,6 +78,7 @@ ST_APPLIED = wp.constant(23)  # total exponent applied
 ST_JITTER = wp.constant(24)  # the regularisation bandwidth's factor in this stage's resampling (≤ 1; JITTER_NIS)
 ST_NIS_MIN = wp.constant(25)  # smallest NIS of any particle (the integrity monitor's input)
 ST_LAM = wp.constant(26)  # 6 values: weighted mean of the particles' attitude information Λ (00 11 22 01 02 12)
+ST_INFLATE = wp.constant(32)  # share of the shrinkage's growth this stage's resampling keeps (≤ 1; free_var)
 
 # ---- persistent integrity state per filter (columns of ``integrity``)
 MAX_WINDOW = wp.constant(64)
@@ -130,6 +131,7 @@ class UpdateParams:
     gate_linear: int  # 1: the linear states' measurement update waits for the integrity monitor's consistent verdict
     integrity_min_updates: int  # informative updates (since the start / a re-spread) before it may be declared lost
     respread_chol: wp.mat33  # Cholesky factor of the re-spread covariance of dp, m
+    free_var: wp.array(dtype=wp.float32)  # (B,) horizontal variance of the unaided INS's position error, m²
 
 
 @wp.func
@@ -146,7 +148,7 @@ def chunk_range(c: int, n: int):
     return chunk_span(c, n, N_CHUNKS)
 
 
-stats_vec = wp.types.vector(length=32, dtype=wp.float64)
+stats_vec = wp.types.vector(length=33, dtype=wp.float64)
 """A filter's row of the statistics (``N_STATS`` values) in registers."""
 
 

@@ -4,6 +4,7 @@ shrinkage, and the map-error modes' state."""
 import warp as wp
 
 from warptan.kernels.filter.common import (
+    ST_INFLATE,
     ST_JITTER,
     ST_MEAN_DP,
     ST_REMAIN,
@@ -143,7 +144,9 @@ def gathered(
     jitter with (partial) kernel shrinkage (Liu & West 2001): ``dp = a dp_anc + (1 - a) m + h chol(Σ̂) z``,
     ``a = sqrt(1 - s h²)``, ``h`` the bandwidth times the stage's ``ST_JITTER`` (:data:`JITTER_NIS`), Σ̂ and m the
     weighted covariance and mean of dp before resampling (stream
-    ``stage · 2n + n + j``): the mean is kept and the covariance grows by ``1 + (1 - s) h²``.
+    ``stage · 2n + n + j``): the mean is kept and the covariance grows by ``1 + (1 - s) h² f`` (``f`` the stage's
+    ``ST_INFLATE``: 1 unless the cloud would pass the unaided INS's horizontal variance,
+    :func:`warptan.kernels.filter.weights.weight_stats`).
     The Kalman mean is the ancestor's (see :mod:`warptan.filter.mpf`). In other filters its own (the ancestor is
     the slot). Returns (dp, l, log-weight)."""
     b = i // n_per
@@ -155,7 +158,8 @@ def gathered(
         h = params.bandwidth * wp.float32(stats[b, ST_JITTER])
         if h > 0.0:
             state = wp.rand_init(seeds[b], stage * 2 * n_per + n_per + i % n_per)
-            shrink = wp.sqrt(wp.max(1.0 - params.shrinkage * h * h, 0.0))
+            s_eff = 1.0 - (1.0 - params.shrinkage) * wp.float32(stats[b, ST_INFLATE])
+            shrink = wp.sqrt(wp.max(1.0 - s_eff * h * h, 0.0))
             mean = wp.vec3(wp.float32(stats[b, ST_MEAN_DP]), wp.float32(stats[b, ST_MEAN_DP + 1]),
                            wp.float32(stats[b, ST_MEAN_DP + 2]))
             d = shrink * d + (1.0 - shrink) * mean + h * (stats_chol(stats, b) * gaussian3(state))

@@ -254,6 +254,8 @@ class MarginalizedParticleFilter(ImuIntake, Readout):
         params.integrity_min_updates = 2 * int(c.integrity_window)
         chol_p0 = np.linalg.cholesky(self.p0_pos + 1e-12 * np.eye(3))
         params.respread_chol = wp.mat33(*(c.respread_scale * chol_p0).ravel())
+        params.free_var = wp.full(b, 3.0e38, dtype=wp.float32, device=self.device)  # (set at each update)
+        self._free_terms = self._unaided_terms(p0)
         self._kernel_chol = wp.array(np.broadcast_to(self.bandwidth * chol_p0, (b, 3, 3)).copy(), dtype=wp.mat33,
                                      device=self.device)
         """(B,) each filter's regularisation kernel factor (m): ``h · chol(P0)`` at the start and ``h ·`` the
@@ -447,6 +449,9 @@ class MarginalizedParticleFilter(ImuIntake, Readout):
         if not self._early:
             self._stage_interval()
         self.n_updates += 1
+        self._uploads.put("free_var", self.params.free_var,  # (the time flown: the IMU steps taken)
+                          np.full(self.n_filters, np.polyval(self._free_terms, self.n_imu_steps * self.dt),
+                                  dtype=np.float32))
         timer, events = self.timer, None
         if timer is not None and self.device.is_cuda:
             events = (wp.Event(self.device, enable_timing=True), wp.Event(self.device, enable_timing=True))
@@ -467,6 +472,23 @@ class MarginalizedParticleFilter(ImuIntake, Readout):
             self._platform_echo.queue()  # (what the next update reads)
         self.last_n_received = np.array(out.n_received)  # (after the device work is queued: nothing there reads it)
         return self._info(out) if sync else None
+
+    def _unaided_terms(self, p0: np.ndarray) -> np.ndarray:
+        """The unaided INS's horizontal position error variance (m²) as a polynomial in the time flown t (numpy's
+        order, highest power first), from the prior ``p0_pos``, ``p0_lin`` ([dv, dθ, db_a, db_g]) and the grade's
+        accelerometer noise: ``tr P0 + tr P_v t² + VRW² t³ / 3 + (g² σ_tilt² + σ_ba²) t⁴ / 4 + g² σ_bg² t⁶ / 36``
+        (the horizontal traces; each error integrated once or twice into position, independent, the Schuler loop
+        ignored: an upper estimate that grows without bound, so that after tens of minutes it caps nothing). The
+        regularisation's covariance growth stops there (``UpdateParams.free_var``,
+        :func:`warptan.kernels.filter.weights.weight_stats`)."""
+        g = 9.81
+        pos = float(np.trace(self.p0_pos[:2, :2]))
+        vel = float(p0[0, 0] + p0[1, 1])
+        tilt = float(p0[3, 3] + p0[4, 4])
+        ba = float(p0[6, 6] + p0[7, 7])
+        bg = float(p0[9, 9] + p0[10, 10])
+        vrw = 2.0 * self.grade.accel_noise**2
+        return np.array([g * g * bg / 36.0, 0.0, (g * g * tilt + ba) / 4.0, vrw / 3.0, vel, 0.0, pos])
 
     def _learn_map_error(self) -> None:
         """A reading of the map-error evidence for :attr:`learner` (the modes' moments and, to learn the length, the
