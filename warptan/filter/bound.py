@@ -34,6 +34,33 @@ def _skew(u: np.ndarray) -> np.ndarray:
                      np.stack([-u[:, 1], u[:, 0], z], -1)], axis=1)
 
 
+def scan_rows(terrain, pos_n: np.ndarray, quat_nb: np.ndarray, dirs_body: np.ndarray, surface: bool = False,
+              agl: float | None = None) -> tuple[np.ndarray, np.ndarray] | None:
+    """The rows of a scan at the true pose (see the module docstring): ``(off, g)``, each valid point's horizontal
+    offset from the aircraft where its ray meets level ground at the aircraft's height above the map under it (M, 2)
+    and the height residual's sensitivity to the 15 error states (M, 15); None where no ray reads a valid map."""
+    if agl is None:
+        agl = -pos_n[2] - float(terrain.height_at(pos_n[0], pos_n[1]))
+        if not (agl > 0.0):
+            return None
+    rot = quat_to_mat(quat_nb)
+    u_b = dirs_body / np.linalg.norm(dirs_body, axis=1, keepdims=True)
+    u_n = u_b @ rot.T
+    keep = u_n[:, 2] > MIN_DOWN
+    u_b, u_n = u_b[keep], u_n[keep]
+    r = agl / u_n[:, 2]
+    off = r[:, None] * u_n[:, :2]
+    gn, ge = terrain.gradient_at(pos_n[0] + off[:, 0], pos_n[1] + off[:, 1], surface)
+    ok = np.isfinite(gn + ge)
+    if not ok.any():
+        return None
+    v = np.stack([gn, ge, np.ones_like(gn)], axis=1)[ok]
+    g = np.zeros((int(ok.sum()), 15))
+    g[:, 0:3] = v
+    g[:, 6:9] = -r[ok, None] * np.einsum("pi,ij,pjk->pk", v, rot, _skew(u_b[ok]))
+    return off[ok], g
+
+
 def scan_information(terrain, pos_n: np.ndarray, quat_nb: np.ndarray, dirs_body: np.ndarray | None, sigma_m: float,
                      baro_sigma_m: float | None = None, map_error_rms_m: float = 0.0, map_error_corr_m: float = 0.0,
                      track_step_m: float = 10.0, surface: bool = False, kappa_cache: dict | None = None) -> np.ndarray:
@@ -55,26 +82,16 @@ def scan_information(terrain, pos_n: np.ndarray, quat_nb: np.ndarray, dirs_body:
             g = np.array([gn[0], ge[0], 1.0])
             j[:3, :3] = np.outer(g, g) / max(sigma_m, 1e-3) ** 2
         return j
-    rot = quat_to_mat(quat_nb)
-    u_b = dirs_body / np.linalg.norm(dirs_body, axis=1, keepdims=True)
-    u_n = u_b @ rot.T
-    keep = u_n[:, 2] > MIN_DOWN
-    u_b, u_n = u_b[keep], u_n[keep]
-    r = agl / u_n[:, 2]
-    off = r[:, None] * u_n[:, :2]
-    gn, ge = terrain.gradient_at(pos_n[0] + off[:, 0], pos_n[1] + off[:, 1], surface)
-    ok = np.isfinite(gn + ge)
-    if not ok.any():
+    rows = scan_rows(terrain, pos_n, quat_nb, dirs_body, surface, agl)
+    if rows is None:
         return j
-    v = np.stack([gn, ge, np.ones_like(gn)], axis=1)[ok]
-    g = np.zeros((int(ok.sum()), 15))
-    g[:, 0:3] = v
-    g[:, 6:9] = -r[ok, None] * np.einsum("pi,ij,pjk->pk", v, rot, _skew(u_b[ok]))
+    off, g = rows
+    rot = quat_to_mat(quat_nb)
     white = max(sigma_m, 1e-3) ** 2  # (a noiseless sensor would fix the position exactly: a bound of zero)
     if map_error_rms_m > 0.0:
         shifts = leg_shifts(rot[:2, 0], TRACK_SCANS, track_step_m)  # along the body's x axis
         first = kappa_cache is None or "kappa" not in kappa_cache
-        modes, lam, kappa, white = error_modes(off[ok], map_error_rms_m, map_error_corr_m, white,
+        modes, lam, kappa, white = error_modes(off, map_error_rms_m, map_error_corr_m, white,
                                                shifts if first else None)
         if kappa_cache is not None:  # κ of the first scan's footprint, mode by mode, for the whole flight (a lag
             kappa_cache.setdefault("kappa", kappa)  # costs a correlation matrix); a mode beyond them counts once
