@@ -761,17 +761,15 @@ def _weighted_cloud(seed: int, factor, n: int = 200_000):
     return dp, logw, w, mean, (dp - mean).T @ ((dp - mean) * w[:, None])
 
 
-def _weigh_and_resample(device, dp, logw, lam, info, bandwidth, shrinkage=1.0, free_var=3.0e38):
+def _weigh_and_resample(device, dp, logw, lam, info, bandwidth):
     """The weight statistics (``exp_partials``, ``weight_stats``; ``info`` None: no position information) and one
-    regularised resampling with every particle its own ancestor (shrinkage s, the unaided INS's horizontal variance
-    ``free_var``): (stats, kernel factor, the jitter ``dp_out - (a dp + (1 - a) m)`` with ``a = sqrt(1 - s (h f)²)``,
-    f the stats' jitter factor)."""
+    regularised resampling with every particle its own ancestor and full shrinkage: (stats, kernel factor, the
+    jitter ``dp_out - (a dp + (1 - a) m)`` with ``a = sqrt(1 - (h f)²)``, f the stats' jitter factor)."""
     n = len(dp)
     params = kmpf.UpdateParams()
     params.resample_threshold = 1.0
     params.bandwidth = bandwidth
-    params.shrinkage = shrinkage
-    params.free_var = wp.full(1, free_var, dtype=wp.float32, device=device)
+    params.shrinkage = 1.0
     stats = wp.zeros((1, kmpf.N_STATS), dtype=wp.float64, device=device)
     stats.assign(np.eye(1, kmpf.N_STATS, kmpf.ST_ACTIVE))
     d_dp = wp.array(dp, dtype=wp.vec3, device=device)
@@ -793,7 +791,7 @@ def _weigh_and_resample(device, dp, logw, lam, info, bandwidth, shrinkage=1.0, f
                       wp.array(np.arange(n, dtype=np.int32), device=device), d_dp,
                       wp.zeros(n, dtype=kmpf.vec12, device=device), d_logw], outputs=out, device=device)
     np.testing.assert_allclose(out[2].numpy(), -np.log(n), rtol=1e-6)
-    shrink = np.sqrt(1.0 - shrinkage * (bandwidth * s[kmpf.ST_JITTER]) ** 2)
+    shrink = np.sqrt(1.0 - (bandwidth * s[kmpf.ST_JITTER]) ** 2)
     mean = s[kmpf.ST_MEAN_DP:kmpf.ST_MEAN_DP + 3]
     jitter = out[0].numpy().astype(np.float64) - (shrink * dp + (1.0 - shrink) * mean)
     return s, kernel_chol.numpy()[0], jitter
@@ -818,28 +816,6 @@ def test_regularisation_jitter_matches_numpy(device):
     assert s[kmpf.ST_RESAMPLE] == 1.0 and s[kmpf.ST_JITTER] == 1.0
     np.testing.assert_allclose(s[kmpf.ST_MEAN_DP:kmpf.ST_MEAN_DP + 3], mean, atol=1e-6)
     np.testing.assert_allclose(np.cov(jitter.T), 0.16 * cov, atol=0.03 * 0.16 * np.abs(cov).max())
-
-
-def test_the_growth_held_at_the_unaided_ins_variance_is_the_jitters(device):
-    """Partial shrinkage s = 0.5 grows the cloud's covariance by ``1 + (1 - s) h²`` per resampling; at the unaided
-    INS's horizontal variance (``free_var`` = the cloud's own ``tr Σ̂``: ``ST_INFLATE`` = 0) it grows no more, and
-    what is held back is the jitter's (covariance ``s h² Σ̂``), not the pull towards the mean, which stays
-    ``a = sqrt(1 - s h²)``: a multimodal cloud's modes close no faster than the shrinkage draws them (a larger
-    shrinkage instead locked the flat tile's first scans onto a wrong mode). Below the cap the jitter is ``h² Σ̂``
-    (200 000 particles, 3 %)."""
-    dp, logw, w, mean, cov = _weighted_cloud(3, [[50.0, 0.0, 0.0], [10.0, 40.0, 0.0], [0.0, 0.0, 5.0]])
-    h = 0.4
-    s, _, jitter = _weigh_and_resample(device, dp, logw, np.zeros((len(dp), 3, 3), np.float32), None, h, 0.5)
-    assert s[kmpf.ST_INFLATE] == 1.0
-    np.testing.assert_allclose(np.cov(jitter.T), h * h * cov, atol=0.03 * h * h * np.abs(cov).max())
-    s, _, jitter = _weigh_and_resample(device, dp, logw, np.zeros((len(dp), 3, 3), np.float32), None, h, 0.5,
-                                       free_var=cov[0, 0] + cov[1, 1])
-    assert s[kmpf.ST_INFLATE] == pytest.approx(0.0, abs=1e-4)
-    np.testing.assert_allclose(np.cov(jitter.T), 0.5 * h * h * cov, atol=0.03 * 0.5 * h * h * np.abs(cov).max())
-    # the cloud after it (resampled in place, uniform weights): the shrunk particles about the mean plus the jitter
-    a = np.sqrt(1.0 - 0.5 * h * h)
-    after = a * (dp - mean) + jitter
-    np.testing.assert_allclose(after.T @ (after * w[:, None]), cov, atol=0.03 * np.abs(cov).max())
 
 
 def test_jitter_stays_within_what_one_reading_resolves(device):
