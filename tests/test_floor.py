@@ -144,3 +144,23 @@ def test_a_nonsense_statement_is_refused(rugged_small, kw, message):
     args = {"sigma_m": 0.5, **kw}
     with pytest.raises(ValueError, match=message):
         exact_pcrb(truth, rugged_small, epochs, GRADE, P0, dirs_body=ScanPattern.grid(5, 5, 30.0).dirs_s, **args)
+
+
+def test_a_filter_over_a_map_error_never_beats_the_exact_floor():
+    """S8 over a world whose map error is 5 m RMS over 1 km, the filter told it (8 seeds as one batch, 200 particles,
+    40 s): its horizontal mean squared error after convergence is not below the flight's exact floor
+    (``run_scenario_batch(..., bound="exact")``) by more than twice its Monte-Carlo standard error, and the floor
+    is finite and positive at every epoch."""
+    import math
+
+    from warptan.sim.scenarios import run_scenario_batch
+
+    kw = {"world_error_rms_m": 5.0, "world_error_corr_m": 1000.0, "map_error_rms_m": 5.0, "map_error_corr_m": 1000.0,
+          "world_seed": 2000, "duration_s": 40.0, "particles": 200}
+    runs = run_scenario_batch("S8", list(range(8)), "cpu", bound="exact", **kw)
+    first = runs[0]
+    sel = first.run.t_s >= first.config.filter.converged_after_s
+    mse = np.array([(r.run.error[sel, :2] ** 2).sum(axis=1).mean() for r in runs])
+    floor2 = float(np.mean(first.pcrb_m[sel] ** 2))
+    assert np.isfinite(first.pcrb_m).all() and floor2 > 0.0
+    assert mse.mean() >= floor2 - 2.0 * mse.std(ddof=1) / math.sqrt(len(mse)), (mse.mean(), floor2)

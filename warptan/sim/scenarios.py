@@ -326,7 +326,7 @@ def per_seed_maps(scenario: Scenario) -> bool:
     return scenario.terrain.per_seed or scenario.world.per_seed
 
 
-def run_scenario(name_or_path, seed: int = 0, device="auto", progress=None, export_logs=None, bound: bool = True,
+def run_scenario(name_or_path, seed: int = 0, device="auto", progress=None, export_logs=None, bound: bool | str = True,
                  **overrides) -> ScenarioResult:
     """Run one scenario with one seed.
 
@@ -341,7 +341,8 @@ def run_scenario(name_or_path, seed: int = 0, device="auto", progress=None, expo
         export_logs: A list to append the run's :class:`~warptan.io.flightlog.FlightLog` to (see
             :func:`run_scenario_batch`).
         bound: Compute the flight's posterior Cramér–Rao bound (``pcrb_sigma_m``; False: None, which saves its
-            host work, about a third of a CPU run of S8 over a world).
+            host work, about a third of a CPU run of S8 over a world; ``"exact"``: the exact floor with the map's
+            error field in the state, :func:`warptan.filter.floor.exact_pcrb`, seconds to minutes more).
     """
     return run_scenario_batch(name_or_path, [seed], device, progress, export_logs, bound=bound, **overrides)[0]
 
@@ -366,7 +367,7 @@ def terrain_spec(scenario: Scenario, terrain=None) -> str:
     return scenario.terrain.dem
 
 
-def run_scenario_batch(name_or_path, seeds, device="auto", progress=None, export_logs=None, bound: bool = True,
+def run_scenario_batch(name_or_path, seeds, device="auto", progress=None, export_logs=None, bound: bool | str = True,
                        **overrides) -> list[ScenarioResult]:
     """Run one scenario with several seeds as one batched filter (every run's particles in one array, one
     launch per kernel for all of them); each result is the same as :func:`run_scenario` with that seed on the
@@ -409,7 +410,7 @@ def run_scenario_batch(name_or_path, seeds, device="auto", progress=None, export
 
         export_logs.extend(logs_from_record(record, flight, scenario.to_dict(), likelihood, total_seeds, seeds,
                                             terrain_spec(scenario, terrain), truth_terrain))
-    bound = scenario_bound(scenario, flight, the_map, runs[0].t_s) if bound else None
+    bound = scenario_bound(scenario, flight, the_map, runs[0].t_s, exact=bound == "exact") if bound else None
     return [ScenarioResult(scenario=scenario.id, seed=seed, device=run.device, terrain=truth_terrain.name,
                            config=scenario, run=run, wall_s=wall, truth_terrain=truth_terrain, map=the_map.name,
                            map_sigma_m=likelihood.map_sigma_m, pcrb_sigma_m=bound)
@@ -429,14 +430,17 @@ def scenario_scan(scenario: Scenario) -> dict:
             "step_m": scenario.flight.speed_mps / s.rate_hz}
 
 
-def scenario_bound(scenario: Scenario, flight: Trajectory, the_map: Terrain, t_s: np.ndarray) -> np.ndarray | None:
+def scenario_bound(scenario: Scenario, flight: Trajectory, the_map: Terrain, t_s: np.ndarray,
+                   exact: bool = False) -> np.ndarray | None:
     """(T, 3) σ north, east, down of the flight's posterior Cramér–Rao bound at the epochs ``t_s`` (:func:`warptan.
     filter.bound.pcrb`): the scenario's sensor (its noise alone: the bound's truth), the filter's map, the map's error
     as it is (a simulated world's correlated error when it has one; else the stated one), the IMU grade and the
     filter's prior; None for a world the bound cannot hold (relief the map lacks, clutter: the bound models a
     correlated Gaussian error and noise only; a table showed such a run's 3.3 m RMSE beside a 0.34 m "bound" of a
-    map taken for exact)."""
+    map taken for exact). ``exact``: the exact floor instead (:func:`warptan.filter.floor.exact_pcrb`: the world's
+    error field and bias in the state; the fast bound's per-scan κ rule is an approximation of it)."""
     from warptan.filter.bound import pcrb
+    from warptan.filter.floor import exact_pcrb
     from warptan.filter.prior import prior_sigma
     from warptan.nav.imu import imu_grade
 
@@ -449,7 +453,10 @@ def scenario_bound(scenario: Scenario, flight: Trajectory, the_map: Terrain, t_s
     grade = imu_grade(scenario.imu.grade)
     epochs = np.rint(np.asarray(t_s[1:]) * flight.rate_hz).astype(np.int64)
     p0 = np.diag(prior_sigma(scenario.initial_error.errors(), grade) ** 2)
-    sigmas = pcrb(flight, the_map, epochs, grade, p0, dirs_body=scan["dirs_body"], sigma_m=scan["sigma_m"],
-                  baro_sigma_m=scan["baro_sigma_m"], map_error_rms_m=error_rms, map_error_corr_m=error_corr,
-                  surface=scan["surface"])
+    kw = {"dirs_body": scan["dirs_body"], "sigma_m": scan["sigma_m"], "baro_sigma_m": scan["baro_sigma_m"],
+          "map_error_rms_m": error_rms, "map_error_corr_m": error_corr, "surface": scan["surface"]}
+    if exact:
+        sigmas = exact_pcrb(flight, the_map, epochs, grade, p0, map_bias_m=abs(w.bias_m) if w.active else 0.0, **kw)
+    else:
+        sigmas = pcrb(flight, the_map, epochs, grade, p0, **kw)
     return sigmas[:, :3]
