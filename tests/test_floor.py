@@ -150,7 +150,8 @@ def test_a_filter_over_a_map_error_never_beats_the_exact_floor():
     """S8 over a world whose map error is 5 m RMS over 1 km, the filter told it (8 seeds as one batch, 200 particles,
     40 s): its horizontal mean squared error after convergence is not below the flight's exact floor
     (``run_scenario_batch(..., bound="exact")``) by more than twice its Monte-Carlo standard error, and the floor
-    is finite and positive at every epoch."""
+    is finite and positive at every epoch (and below the fast κ-rule bound on this flight: 0.26 against 0.33 m over
+    60 s of seed 0)."""
     import math
 
     from warptan.sim.scenarios import run_scenario_batch
@@ -161,6 +162,7 @@ def test_a_filter_over_a_map_error_never_beats_the_exact_floor():
     first = runs[0]
     sel = first.run.t_s >= first.config.filter.converged_after_s
     mse = np.array([(r.run.error[sel, :2] ** 2).sum(axis=1).mean() for r in runs])
-    floor2 = float(np.mean(first.pcrb_m[sel] ** 2))
-    assert np.isfinite(first.pcrb_m).all() and floor2 > 0.0
+    floor2 = first.floor_converged_m ** 2
+    assert np.isfinite(first.floor_sigma_m).all() and floor2 > 0.0
+    assert first.floor_converged_m < first.pcrb_converged_m  # (on this flight the κ rule is pessimistic)
     assert mse.mean() >= floor2 - 2.0 * mse.std(ddof=1) / math.sqrt(len(mse)), (mse.mean(), floor2)

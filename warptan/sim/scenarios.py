@@ -121,6 +121,9 @@ class ScenarioResult:
     pcrb_sigma_m: np.ndarray | None = field(default=None, repr=False)
     """(T, 3) σ north, east, down of the posterior Cramér–Rao bound at the epochs (:mod:`warptan.filter.bound`; a
     simulated flight's, None for a recorded one), m."""
+    floor_sigma_m: np.ndarray | None = field(default=None, repr=False)
+    """(T, 3) σ north, east, down of the exact floor (:func:`warptan.filter.floor.exact_pcrb`: the map's error field
+    in the state) at the epochs, m; None unless asked for (``bound="exact"``)."""
     rmse: np.ndarray = field(init=False)
     """(3,) RMSE north, east, down over the whole run, m."""
     rmse_converged: np.ndarray = field(init=False)
@@ -143,6 +146,15 @@ class ScenarioResult:
         if self.pcrb_sigma_m is None or not sel.any():
             return math.nan
         return float(np.sqrt(np.mean(self.pcrb_m[sel] ** 2)))
+
+    @property
+    def floor_converged_m(self) -> float:
+        """The exact floor's horizontal DRMS, RMS over the epochs after convergence (as :attr:`pcrb_converged_m`),
+        m; NaN without it."""
+        sel = self.run.t_s >= self.config.filter.converged_after_s
+        if self.floor_sigma_m is None or not sel.any():
+            return math.nan
+        return float(np.sqrt(np.mean(np.sum(self.floor_sigma_m[sel, :2] ** 2, axis=1))))
 
     def summary(self) -> dict:
         """JSON-ready numbers of this run."""
@@ -341,8 +353,9 @@ def run_scenario(name_or_path, seed: int = 0, device="auto", progress=None, expo
         export_logs: A list to append the run's :class:`~warptan.io.flightlog.FlightLog` to (see
             :func:`run_scenario_batch`).
         bound: Compute the flight's posterior Cramér–Rao bound (``pcrb_sigma_m``; False: None, which saves its
-            host work, about a third of a CPU run of S8 over a world; ``"exact"``: the exact floor with the map's
-            error field in the state, :func:`warptan.filter.floor.exact_pcrb`, seconds to minutes more).
+            host work, about a third of a CPU run of S8 over a world; ``"exact"``: also the exact floor with the
+            map's error field in the state, ``floor_sigma_m``, :func:`warptan.filter.floor.exact_pcrb`, seconds to
+            minutes more).
     """
     return run_scenario_batch(name_or_path, [seed], device, progress, export_logs, bound=bound, **overrides)[0]
 
@@ -410,10 +423,11 @@ def run_scenario_batch(name_or_path, seeds, device="auto", progress=None, export
 
         export_logs.extend(logs_from_record(record, flight, scenario.to_dict(), likelihood, total_seeds, seeds,
                                             terrain_spec(scenario, terrain), truth_terrain))
-    bound = scenario_bound(scenario, flight, the_map, runs[0].t_s, exact=bound == "exact") if bound else None
+    floor = scenario_bound(scenario, flight, the_map, runs[0].t_s, exact=True) if bound == "exact" else None
+    bound = scenario_bound(scenario, flight, the_map, runs[0].t_s) if bound else None
     return [ScenarioResult(scenario=scenario.id, seed=seed, device=run.device, terrain=truth_terrain.name,
                            config=scenario, run=run, wall_s=wall, truth_terrain=truth_terrain, map=the_map.name,
-                           map_sigma_m=likelihood.map_sigma_m, pcrb_sigma_m=bound)
+                           map_sigma_m=likelihood.map_sigma_m, pcrb_sigma_m=bound, floor_sigma_m=floor)
             for seed, run in zip(seeds, runs, strict=True)]
 
 
