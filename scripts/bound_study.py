@@ -2,7 +2,13 @@
 squared error after convergence against the flight's posterior Cramér–Rao bound (:mod:`warptan.filter.bound`), and
 whether the filter is ever better than the bound by more than twice its Monte-Carlo standard error (it must not be).
 
+With ``--world-error-m`` (and ``--world-corr-m``, ``--world-bias-m``) the world carries a correlated error the map
+lacks (world seed 2000), the filter told it (``--told``) or learning it; each row then has the exact floor too
+(:func:`warptan.filter.floor.exact_pcrb`, the error field in the state) beside the fast per-scan bound, and the
+check is against the floor.
+
     python scripts/bound_study.py --scenarios all --seeds 20 --device cuda:0 --json results/bound/bound_study.json
+    python scripts/bound_study.py --scenarios S8 S1 --world-error-m 5 --world-corr-m 1000 --told --json out.json
 """
 
 from __future__ import annotations
@@ -27,8 +33,19 @@ def main(argv=None) -> int:
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--duration-s", type=float, default=None)
     parser.add_argument("--particles", type=count_arg, default=None)
+    parser.add_argument("--world-error-m", type=float, default=0.0)
+    parser.add_argument("--world-corr-m", type=float, default=1000.0)
+    parser.add_argument("--world-bias-m", type=float, default=0.0)
+    parser.add_argument("--told", action="store_true", help="state the world's error to the filter")
     parser.add_argument("--json", dest="json_out")
     args = parser.parse_args(argv)
+    world = {}
+    if args.world_error_m > 0.0 or args.world_bias_m != 0.0:
+        world = {"world_error_rms_m": args.world_error_m, "world_error_corr_m": args.world_corr_m,
+                 "world_bias_m": args.world_bias_m, "world_seed": 2000}
+        if args.told:
+            world.update(map_error_rms_m=max(args.world_error_m, abs(args.world_bias_m)),
+                         map_error_corr_m=args.world_corr_m)
     quiet_warp()
     from warptan.sim.scenario_config import SCENARIO_IDS
     from warptan.sim.scenarios import run_scenario_batch
@@ -38,15 +55,18 @@ def main(argv=None) -> int:
     for sid in ids:
         t0 = time.perf_counter()
         runs = run_scenario_batch(sid, list(range(args.seeds)), args.device, duration_s=args.duration_s,
-                                  particles=args.particles)
+                                  particles=args.particles, bound="exact" if world else True, **world)
         first = runs[0]
         sel = first.run.t_s >= first.config.filter.converged_after_s
         mse = np.array([float((r.run.error[sel, :2] ** 2).sum(axis=1).mean()) for r in runs])
-        bound2 = float(np.mean(first.pcrb_m[sel] ** 2))
+        fast = float(np.mean(first.pcrb_m[sel] ** 2))
+        bound2 = first.floor_converged_m ** 2 if world else fast
         se = float(mse.std(ddof=1) / math.sqrt(len(mse))) if len(mse) > 1 else math.nan
         row = {"scenario": sid, "seeds": args.seeds, "model": first.config.sensor.model,
                "rmse_horizontal_converged_m": math.sqrt(mse.mean()), "mse_se_m2": se,
                "bound_converged_m": math.sqrt(bound2), "rmse_over_bound": math.sqrt(mse.mean() / bound2),
+               "fast_bound_converged_m": math.sqrt(fast), "bound": "exact floor" if world else "fast PCRB",
+               "world": world,
                "below_bound_beyond_mc_error": bool(mse.mean() < bound2 - 2.0 * se),
                "per_seed_rmse_horizontal_m": np.sqrt(mse).tolist(), "wall_s": time.perf_counter() - t0}
         rows.append(row)
