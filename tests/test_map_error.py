@@ -1196,9 +1196,9 @@ def test_the_length_is_read_from_the_modes_the_learner_reads():
 def test_an_altimeter_over_flat_ground_stays_as_known_as_its_ins():
     """S12 (radar altimeter over the flat tile) over a world whose map error is 10 m RMS over 3 km plus a 5 m bias,
     nothing stated (seed 17, 60 s): the regularisation's covariance growth stops at the unaided INS's horizontal
-    variance, so the cloud no reading narrows stays near the INS's own size: its 3σ under 800 m (570 m; uncapped it
-    reached 1.3 km here and 8 km by 120 s, its mean following the map error's slopes, the error 0.86 km against the
-    INS's 0.27 km at 60 s)."""
+    variance plus one prior's, so the cloud no reading narrows stays near the INS's own size: its 3σ under 800 m
+    (657 m; 570 m without the margin; uncapped it reached 1.3 km here and 8 km by 120 s, its mean following the map
+    error's slopes, the error 0.86 km against the INS's 0.27 km at 60 s)."""
     from warptan.sim.scenarios import run_scenario
 
     r = run_scenario("S12", 17, device="cpu", bound=False, world_seed=2001, duration_s=60.0, world_error_rms_m=10.0,

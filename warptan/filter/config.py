@@ -41,8 +41,9 @@ class FilterConfig:
     rule; 0.39 at n = 500); 0 disables the jitter after resampling."""
     shrinkage: float = 0.5
     """Fraction of the kernel shrinkage in [0, 1]: the cloud's covariance grows by ``1 + (1 - shrinkage) h²`` per
-    resampling (1: kept exactly), until its horizontal variance reaches the unaided INS's (the growth forgets what
-    the map taught, never what the INS knows: :func:`warptan.kernels.filter.weights.weight_stats`)."""
+    resampling (1: kept exactly), until its horizontal variance reaches the unaided INS's plus one prior's (the
+    growth forgets what the map taught, never what the INS knows, with a margin for the acquisition:
+    :func:`warptan.kernels.filter.weights.weight_stats`)."""
     temper_ess: float = 0.1
     """Tempering: each stage of an update applies the largest exponent that keeps ESS ≥ temper_ess · n (in [0, 1]; 0
     applies every update in one stage)."""
