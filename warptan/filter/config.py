@@ -57,7 +57,9 @@ class FilterConfig:
     integrity_threshold: float = 9.0
     """Above it (after 2 · ``integrity_window`` informative updates) the filter is lost and re-spreads (> 0)."""
     respread_scale: float = 1.0
-    """Re-spread covariance = respread_scale² · the position prior (≥ 0)."""
+    """Re-spread covariance = respread_scale² · the position prior (≥ 0), about the estimate for half the particles;
+    the other half about the unaided INS, that covariance grown to the INS's own variance where larger
+    (:func:`warptan.kernels.filter.integrity.respread_particle`)."""
     measurement_update: bool = True
     """Kalman measurement update of the linear states from each particle's residuals (C ≠ 0, design notes §6b); False is
     the paper's filter (C = 0)."""
