@@ -488,8 +488,9 @@ def test_the_altimeters_default_length_is_the_long_one():
     """Nothing stated, a single range learns from :data:`~warptan.sim.scenarios.DEFAULT_ALTIMETER_CORR_M` (2 km), a
     point cloud from 500 m: one range has no scan to structure its error, and a length shorter than the map's takes an
     error that persists for a moving position. S9 over a 10 m / 3 km world with a 5 m bias (its hardest world, 4 seeds,
-    120 s): with the point cloud's 500 m two seeds were lost by 1.9 and 3.4 km; with the default every seed within
-    200 m."""
+    120 s): with the default every seed within 200 m. (With the point cloud's 500 m two seeds were lost by 1.9 and
+    3.4 km while a lost filter re-spread around its own estimate only; since it re-spreads over the INS too, the
+    worst is 119 m.)"""
     from warptan.sim.scenarios import DEFAULT_ALTIMETER_CORR_M, prepare, run_scenario, scenario_likelihood
 
     world = {"world_error_rms_m": 10.0, "world_error_corr_m": 3000.0, "world_bias_m": 5.0, "world_seed": 2000}
@@ -502,7 +503,7 @@ def test_the_altimeters_default_length_is_the_long_one():
         return max(float(np.hypot(*run_scenario("S9", s, "cpu", bound=False, **world, **kw).rmse_converged[:2]))
                    for s in range(4))
 
-    assert worst() < 200.0 < 1000.0 < worst(map_error_rms_m=5.0, map_error_corr_m=500.0)
+    assert worst() < 200.0
 
 
 @pytest.mark.parametrize("name", ["sliding", "raycast"])
