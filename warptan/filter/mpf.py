@@ -487,14 +487,14 @@ class MarginalizedParticleFilter(ImuIntake, Readout):
     def _unaided_terms(self, p0: np.ndarray) -> np.ndarray:
         """The unaided INS's horizontal position error variance (m²) as a polynomial in the time flown t (numpy's
         order, highest power first), from the prior ``p0_pos``, ``p0_lin`` ([dv, dθ, db_a, db_g]) and the grade's
-        accelerometer noise: ``tr P0 + tr P_v t² + VRW² t³ / 3 + (g² σ_tilt² + σ_ba²) t⁴ / 4 + g² σ_bg² t⁶ / 36``
-        (the horizontal traces; each error integrated once or twice into position, independent; the gyro's angle
-        random walk, ``g² ARW² t⁵ / 10``, left out: under 0.1 m² in 120 s for the navigation grade, but 5 000 m² for
-        the low tactical grade, whose variance this is then 12 % short of at 120 s; the Schuler loop ignored: after
-        tens of minutes the polynomial grows past the INS and caps nothing). Against the float64 propagation of the
-        15-state error model along a level straight flight it is exact to 1e-4 for the navigation grade over 120 s
-        (``tests/test_mpf.py::test_the_unaided_variance_is_the_ins_error_models``). The regularisation's covariance
-        growth stops there, plus :data:`CAP_MARGIN` priors (``UpdateParams.free_var``,
+        accelerometer and gyro noise: ``tr P0 + tr P_v t² + VRW² t³ / 3 + (g² σ_tilt² + σ_ba²) t⁴ / 4 + g² ARW² t⁵ /
+        10 + g² σ_bg² t⁶ / 36`` (the horizontal traces, VRW² and ARW² per axis; each error integrated once or twice
+        into position, independent; the Schuler loop ignored: after tens of minutes the polynomial grows past the INS
+        and caps nothing). Against the float64 propagation of the 15-state error model along a level straight flight
+        it is within 1e-3 over 60 s and 1 % at 120 s for the navigation and the low tactical grade
+        (``tests/test_mpf.py::test_the_unaided_variance_is_the_ins_error_models``; without the angle random walk
+        term, left out before session 13, the low tactical grade's was 12 % short at 120 s). The regularisation's
+        covariance growth stops there, plus :data:`CAP_MARGIN` priors (``UpdateParams.free_var``,
         :func:`warptan.kernels.filter.weights.weight_stats`)."""
         g = G0
         pos = float(np.trace(self.p0_pos[:2, :2]))
@@ -503,7 +503,8 @@ class MarginalizedParticleFilter(ImuIntake, Readout):
         ba = float(p0[6, 6] + p0[7, 7])
         bg = float(p0[9, 9] + p0[10, 10])
         vrw = 2.0 * self.grade.accel_noise**2
-        return np.array([g * g * bg / 36.0, 0.0, (g * g * tilt + ba) / 4.0, vrw / 3.0, vel, 0.0, pos])
+        arw = 2.0 * self.grade.gyro_noise**2
+        return np.array([g * g * bg / 36.0, g * g * arw / 20.0, (g * g * tilt + ba) / 4.0, vrw / 3.0, vel, 0.0, pos])
 
     def _learn_map_error(self) -> None:
         """A reading of the map-error evidence for :attr:`learner` (the modes' moments and, to learn the length, the
