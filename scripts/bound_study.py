@@ -36,7 +36,9 @@ def main(argv=None) -> int:
     parser.add_argument("--world-error-m", type=float, default=0.0)
     parser.add_argument("--world-corr-m", type=float, default=1000.0)
     parser.add_argument("--world-bias-m", type=float, default=0.0)
-    parser.add_argument("--told", action="store_true", help="state the world's error to the filter")
+    parser.add_argument("--told", action="store_true",
+                        help="state the world's error to the filter (its RMS, or the bias where larger, over its "
+                             "correlation length: the statement has no separate bias)")
     parser.add_argument("--json", dest="json_out")
     args = parser.parse_args(argv)
     world = {}

@@ -422,7 +422,7 @@ def test_the_unaided_variance_is_the_ins_error_models(grade):
     low tactical grade; without the gyro's angle random walk term ``g² N_g² t⁵ / 10``, 12 % short there)."""
     import types
 
-    from warptan.filter.floor import interval_transition
+    from warptan.filter.bound import interval_transition
     from warptan.nav.imu import G0, imu_grade
     from warptan.nav.ins import process_noise
 

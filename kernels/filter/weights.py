@@ -241,15 +241,14 @@ def weight_stats(
     ``ST_INFLATE`` of the shrinkage's covariance growth ``g = (1 − s) h²`` the resampling keeps, and the decision to
     resample: when ESS < threshold · n, or when exponent remains (between tempering stages).
 
-    ``ST_INFLATE`` is 1 unless the growth would take the cloud's horizontal variance ``tr Σ̂`` past the unaided
-    INS's ``params.free_var[b]`` (:meth:`warptan.filter.mpf.MarginalizedParticleFilter._unaided_terms`, plus one
-    prior of margin for the acquisition, ``CAP_MARGIN``), then ``(free − tr Σ̂) / (g tr Σ̂)`` clipped to [0, 1]: the
-    growth is a forgetting of what the map taught, and forgetting it cannot make the position less known than the
-    INS alone knows it. A cloud that no reading narrows (an
-    altimeter over flat ground with a map error: S12) otherwise grows by ``1 + g`` at each resampling without end,
-    and its mean follows the map error's spurious slopes: S12 over a 10 m / 3 km biased world (20 seeds, 120 s) was
-    852 m off against the INS's own 163 m, and 187 m with the cap (without the margin), 3σ coverage 83/94 → 97/98 %.
-    A cloud a scan narrows is far inside it (S8 and S5 gave the same bits)."""
+    ``ST_INFLATE`` is 1 unless the growth would take the cloud's horizontal variance ``tr Σ̂`` past the unaided INS's
+    ``params.free_var[b]`` (:meth:`warptan.filter.mpf.MarginalizedParticleFilter._unaided_terms`, plus one prior of
+    margin for the acquisition, ``CAP_MARGIN``), then ``(free − tr Σ̂) / (g tr Σ̂)`` clipped to [0, 1]: the growth is a
+    forgetting of what the map taught, and forgetting it cannot make the position less known than the INS alone knows
+    it. A cloud that no reading narrows (an altimeter over flat ground with a map error: S12) otherwise grows by ``1 +
+    g`` at each resampling without end, and its mean follows the map error's spurious slopes: S12 over a 10 m / 3 km
+    biased world (20 seeds, 120 s) was 852 m off against the INS's own 163 m, and 187 m with the cap (without the
+    margin), 3σ coverage 83/94 → 97/98 %. A cloud a scan narrows is far inside it (S8 and S5 gave the same bits)."""
     if stats[b, ST_ACTIVE] == wp.float64(0.0):
         return
     # what lane 0 reads of the statistics, read before it writes any (a load after a store waits for it: on an H100

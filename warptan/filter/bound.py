@@ -34,15 +34,23 @@ def _skew(u: np.ndarray) -> np.ndarray:
                      np.stack([-u[:, 1], u[:, 0], z], -1)], axis=1)
 
 
-def scan_rows(terrain, pos_n: np.ndarray, quat_nb: np.ndarray, dirs_body: np.ndarray, surface: bool = False,
+def scan_rows(terrain, pos_n: np.ndarray, quat_nb: np.ndarray, dirs_body: np.ndarray | None, surface: bool = False,
               agl: float | None = None) -> tuple[np.ndarray, np.ndarray] | None:
     """The rows of a scan at the true pose (see the module docstring): ``(off, g)``, each valid point's horizontal
     offset from the aircraft where its ray meets level ground at the aircraft's height above the map under it (M, 2)
-    and the height residual's sensitivity to the 15 error states (M, 15); None where no ray reads a valid map."""
+    and the height residual's sensitivity to the 15 error states (M, 15); None where no ray reads a valid map.
+    ``dirs_body`` None: the altimeter, one row under the aircraft, ``(∂h/∂n, ∂h/∂e, 1)`` on the position."""
     if agl is None:
         agl = -pos_n[2] - float(terrain.height_at(pos_n[0], pos_n[1]))
         if not (agl > 0.0):
             return None
+    if dirs_body is None:
+        gn, ge = terrain.gradient_at(np.array([pos_n[0]]), np.array([pos_n[1]]), surface)
+        if not np.isfinite(gn[0] + ge[0]):
+            return None
+        g = np.zeros((1, 15))
+        g[0, :3] = (gn[0], ge[0], 1.0)
+        return np.zeros((1, 2)), g
     rot = quat_to_mat(quat_nb)
     u_b = dirs_body / np.linalg.norm(dirs_body, axis=1, keepdims=True)
     u_n = u_b @ rot.T
@@ -70,22 +78,19 @@ def scan_information(terrain, pos_n: np.ndarray, quat_nb: np.ndarray, dirs_body:
     agl = -pos_n[2] - float(terrain.height_at(pos_n[0], pos_n[1]))
     if not (agl > 0.0):
         return j
-    if dirs_body is None:  # the altimeter: the terrain under the aircraft
-        gn, ge = terrain.gradient_at(np.array([pos_n[0]]), np.array([pos_n[1]]), surface)
-        if not np.isfinite(gn[0] + ge[0]):
-            return j
-        if baro_sigma_m is not None:
-            g = np.array([gn[0], ge[0], 0.0])
-            j[:3, :3] = np.outer(g, g) / max(sigma_m ** 2 + baro_sigma_m ** 2, 1e-6)
-            j[2, 2] += 1.0 / max(baro_sigma_m, 1e-3) ** 2
-        else:
-            g = np.array([gn[0], ge[0], 1.0])
-            j[:3, :3] = np.outer(g, g) / max(sigma_m, 1e-3) ** 2
-        return j
     rows = scan_rows(terrain, pos_n, quat_nb, dirs_body, surface, agl)
     if rows is None:
         return j
     off, g = rows
+    if dirs_body is None:  # the altimeter: the terrain under the aircraft
+        g = g[0, :3].copy()
+        if baro_sigma_m is not None:
+            g[2] = 0.0
+            j[:3, :3] = np.outer(g, g) / max(sigma_m ** 2 + baro_sigma_m ** 2, 1e-6)
+            j[2, 2] += 1.0 / max(baro_sigma_m, 1e-3) ** 2
+        else:
+            j[:3, :3] = np.outer(g, g) / max(sigma_m, 1e-3) ** 2
+        return j
     rot = quat_to_mat(quat_nb)
     white = max(sigma_m, 1e-3) ** 2  # (a noiseless sensor would fix the position exactly: a bound of zero)
     if map_error_rms_m > 0.0:
@@ -104,6 +109,18 @@ def scan_information(terrain, pos_n: np.ndarray, quat_nb: np.ndarray, dirs_body:
     else:
         j = g.T @ g / white
     return j
+
+
+def interval_transition(truth, k0: int, k1: int, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(Φ, Q_d)`` of the INS error from IMU sample ``k0`` to ``k1``: the product of the steps' exact transitions at
+    the truth and the noise they accumulate (``Q_d ← F Q_d Fᵀ + q`` per step)."""
+    dt = 1.0 / truth.rate_hz
+    phi, qd = np.eye(15), np.zeros((15, 15))
+    for i in range(k0, k1):
+        f = error_transition(truth.state(i), truth.f_b[i], truth.w_b[i], dt)
+        phi = f @ phi
+        qd = f @ qd @ f.T + q
+    return phi, qd
 
 
 def pcrb(truth, terrain, epochs, grade, p0: np.ndarray, *, dirs_body=None, sigma_m: float, baro_sigma_m=None,
@@ -127,9 +144,8 @@ def pcrb(truth, terrain, epochs, grade, p0: np.ndarray, *, dirs_body=None, sigma
     cache: dict = {}
     k = 0
     for epoch in epochs:
-        for i in range(k, epoch):
-            f = error_transition(truth.state(i), truth.f_b[i], truth.w_b[i], dt)
-            p = f @ p @ f.T + q
+        phi, qd = interval_transition(truth, k, epoch, q)
+        p = phi @ p @ phi.T + qd
         k = epoch
         jz = scan_information(terrain, truth.pos_n[epoch], truth.quat_nb[epoch], dirs_body, sigma_m, baro_sigma_m,
                               map_error_rms_m, map_error_corr_m, step, surface, cache)

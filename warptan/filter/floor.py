@@ -31,8 +31,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from warptan.filter.bound import scan_rows
-from warptan.nav.ins import error_transition, process_noise
+from warptan.filter.bound import interval_transition, scan_rows
+from warptan.nav.ins import process_noise
 
 NODE_SPACING = 0.4
 """Grid spacing of the field's nodes, in correlation lengths."""
@@ -48,18 +48,6 @@ singular)."""
 def _kernel(a: np.ndarray, b: np.ndarray, corr_m: float) -> np.ndarray:
     d = a[:, None, :] - b[None, :, :]
     return np.exp(-np.einsum("ijk,ijk->ij", d, d) / (corr_m * corr_m))
-
-
-def interval_transition(truth, k0: int, k1: int, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """``(Φ, Q_d)`` of the INS error from IMU sample ``k0`` to ``k1``: the product of the steps' exact transitions at
-    the truth and the noise they accumulate (``Q_d ← F Q_d Fᵀ + q`` per step)."""
-    dt = 1.0 / truth.rate_hz
-    phi, qd = np.eye(15), np.zeros((15, 15))
-    for i in range(k0, k1):
-        f = error_transition(truth.state(i), truth.f_b[i], truth.w_b[i], dt)
-        phi = f @ phi
-        qd = f @ qd @ f.T + q
-    return phi, qd
 
 
 class _FieldWindow:
@@ -102,12 +90,11 @@ class _FieldWindow:
         n0 = p.shape[0]
         grown = np.zeros((n0 + len(new), n0 + len(new)))
         grown[:n0, :n0] = p
-        reg = np.arange(len(self.ij))
-        if len(reg):
-            c_rr = self.prior(self.xy[reg], self.xy[reg]) + JITTER * self.rms ** 2 * np.eye(len(reg))
-            c_rn = self.prior(self.xy[reg], xy_new)
-            gain = np.linalg.solve(c_rr, c_rn).T  # (new, reg): f_new = gain f_reg + w
-            cols = self.offset + reg
+        if n0 > self.offset:  # (nodes held)
+            c_hh = self.prior(self.xy, self.xy) + JITTER * self.rms ** 2 * np.eye(len(self.xy))
+            c_rn = self.prior(self.xy, xy_new)
+            gain = np.linalg.solve(c_hh, c_rn).T  # (new, held): f_new = gain f_held + w
+            cols = np.arange(self.offset, n0)
             cross = gain @ p[cols, :]  # (new, n0)
             grown[n0:, :n0] = cross
             grown[:n0, n0:] = cross.T
@@ -175,15 +162,7 @@ def exact_pcrb(truth, terrain, epochs, grade, p0: np.ndarray, *, dirs_body=None,
         p[:, :15] = p[:, :15] @ phi.T
         p[:15, :15] += qd
         pos = truth.pos_n[epoch]
-        if dirs_body is None:
-            gn, ge = terrain.gradient_at(np.array([pos[0]]), np.array([pos[1]]), surface)
-            ok = np.isfinite(gn[0] + ge[0]) and -pos[2] > float(terrain.height_at(pos[0], pos[1]))
-            rows = None
-            if ok:
-                rows = (np.zeros((1, 2)), np.zeros((1, 15)))
-                rows[1][0, :3] = (gn[0], ge[0], 1.0)
-        else:
-            rows = scan_rows(terrain, pos, truth.quat_nb[epoch], dirs_body, surface)
+        rows = scan_rows(terrain, pos, truth.quat_nb[epoch], dirs_body, surface)
         if rows is not None:
             off, g = rows
             pts = pos[:2] + off
