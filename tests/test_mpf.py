@@ -444,24 +444,32 @@ def test_the_unaided_variance_is_the_ins_error_models(grade):
         assert poly[1] * t ** 5 == pytest.approx(arw)
 
 
-def test_a_lost_filter_respreads_over_its_estimate_and_the_ins(device):
+@pytest.mark.parametrize("always", [0, 1])
+def test_a_lost_filter_respreads_over_its_estimate_and_the_ins(always, device):
     """A filter flagged lost re-spreads over two hypotheses (200 000 particles, NumPy): the even slots around its
     weighted mean with the re-spread covariance, the odd ones around the unaided INS (dp = 0 horizontally, the
     mean's altitude) with the horizontal covariance grown to the cap's variance ``free_var`` (here 4 × the
-    re-spread's horizontal trace: σ × 2); uniform weights; a filter not flagged keeps its particles."""
+    re-spread's horizontal trace: σ × 2) where the estimate lies beyond what the INS allows (|dp_h|² above χ²₂'s
+    99.73 % point of free_var / 2 per axis) or the model cannot fix the position with one reading
+    (``respread_ins``), every slot around the mean otherwise; uniform weights; a filter not flagged keeps its
+    particles."""
     n = 200_000
     chol = np.array([[30.0, 0.0, 0.0], [10.0, 20.0, 0.0], [0.0, 0.0, 5.0]])
     cov = chol @ chol.T
     params = kmpf.UpdateParams()
     params.respread_chol = wp.mat33(*chol.ravel())
-    params.free_var = wp.full(2, 4.0 * (cov[0, 0] + cov[1, 1]), dtype=wp.float32, device=device)
-    stats = np.zeros((2, kmpf.N_STATS))
-    stats[0, kmpf.ST_RESPREAD] = 1.0
-    stats[:, kmpf.ST_MEAN_DP:kmpf.ST_MEAN_DP + 3] = (800.0, -300.0, 4.0)
-    dp = wp.array(np.full((2 * n, 3), 7.0, np.float32), dtype=wp.vec3, device=device)
-    logw = wp.zeros(2 * n, dtype=wp.float32, device=device)
-    wp.launch(kmpf.respread_kernel, dim=2 * n, inputs=[n, 0, wp.array([3, 4], dtype=wp.int32, device=device), params,
-              wp.array(stats, dtype=wp.float64, device=device), dp, logw], device=device)
+    params.respread_ins = always
+    free_var = 4.0 * (cov[0, 0] + cov[1, 1])
+    params.free_var = wp.full(3, free_var, dtype=wp.float32, device=device)
+    stats = np.zeros((3, kmpf.N_STATS))
+    stats[[0, 2], kmpf.ST_RESPREAD] = 1.0
+    stats[:2, kmpf.ST_MEAN_DP:kmpf.ST_MEAN_DP + 3] = (800.0, -300.0, 4.0)
+    near = np.array([0.95 * np.sqrt(5.915 * free_var), 0.0, 4.0])  # just inside what the INS allows
+    stats[2, kmpf.ST_MEAN_DP:kmpf.ST_MEAN_DP + 3] = near
+    dp = wp.array(np.full((3 * n, 3), 7.0, np.float32), dtype=wp.vec3, device=device)
+    logw = wp.zeros(3 * n, dtype=wp.float32, device=device)
+    wp.launch(kmpf.respread_kernel, dim=3 * n, inputs=[n, 0, wp.array([3, 4, 5], dtype=wp.int32, device=device),
+              params, wp.array(stats, dtype=wp.float64, device=device), dp, logw], device=device)
     out, lw = dp.numpy().astype(np.float64), logw.numpy()
     own, ins = out[:n:2], out[1:n:2]
     np.testing.assert_allclose(own.mean(axis=0), (800.0, -300.0, 4.0), atol=0.5)
@@ -473,7 +481,13 @@ def test_a_lost_filter_respreads_over_its_estimate_and_the_ins(device):
     grown[2, :2] *= 2.0
     np.testing.assert_allclose(np.cov(ins.T), grown, atol=0.03 * grown.max())
     np.testing.assert_allclose(lw[:n], -np.log(n), rtol=1e-6)
-    assert (out[n:] == 7.0).all() and (lw[n:] == 0.0).all()
+    assert (out[n:2 * n] == 7.0).all() and (lw[n:2 * n] == 0.0).all()
+    third = out[2 * n::2] if always else out[2 * n:]
+    np.testing.assert_allclose(third.mean(axis=0), near, atol=0.5)
+    np.testing.assert_allclose(np.cov(third.T), cov, atol=0.03 * cov.max())
+    if always:
+        np.testing.assert_allclose(out[2 * n + 1::2].mean(axis=0), (0.0, 0.0, 4.0), atol=1.0)
+        np.testing.assert_allclose(np.cov(out[2 * n + 1::2].T), grown, atol=0.03 * grown.max())
 
 
 @pytest.mark.parametrize("name", sorted(RESAMPLERS))

@@ -131,6 +131,7 @@ class UpdateParams:
     gate_linear: int  # 1: the linear states' measurement update waits for the integrity monitor's consistent verdict
     integrity_min_updates: int  # informative updates (since the start / a re-spread) before it may be declared lost
     respread_chol: wp.mat33  # Cholesky factor of the re-spread covariance of dp, m
+    respread_ins: int  # 1: a re-spread always gives the INS half its slots; 0: only where the estimate is implausible
     free_var: wp.array(dtype=wp.float32)  # (B,) horizontal variance of the unaided INS's position error, m²
 
 

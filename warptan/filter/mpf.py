@@ -254,6 +254,7 @@ class MarginalizedParticleFilter(ImuIntake, Readout):
         params.integrity_min_updates = 2 * int(c.integrity_window)
         chol_p0 = np.linalg.cholesky(self.p0_pos + 1e-12 * np.eye(3))
         params.respread_chol = wp.mat33(*(c.respread_scale * chol_p0).ravel())
+        params.respread_ins = int(not getattr(model, "fixes_per_scan", False))
         params.free_var = wp.full(b, 3.0e38, dtype=wp.float32, device=self.device)  # (set at each update)
         self._free_terms = self._unaided_terms(p0)
         self._free_terms[-1] += self.CAP_MARGIN * float(np.trace(self.p0_pos[:2, :2]))
