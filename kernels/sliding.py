@@ -60,10 +60,22 @@ def sliding_var(p: LikParams, g_z: float, slope_dot: float) -> float:
     (``∇F = (h_n, h_e, 1)``, ``g_z = (R e₃)_z``); a vertical map error ``g_z`` times itself:
     ``σ_j = |g_z| sqrt(σ_range² (∇F · u)² + σ_map²)``, with ``|g_z| ≥ 0.2`` and ``|∇F · u| ≥ 0.25`` (a ray
     grazing the slope: the linear propagation no longer holds). A noiseless sensor (σ_range = 0) keeps the
-    likelihood's own σ (its floor)."""
+    likelihood's own σ (its floor).
+
+    Under map-error modes (``p.n_modes > 0``) the slope factor is 1 (``∇F · u`` of level ground under a vertical
+    ray): the modes are the error field's patterns whitened by one σ (:meth:`warptan.sensing.likelihood.Likelihood.
+    error_modes`), while a vertical map error moves this residual by ``g_z e`` whatever the slope, so a per-point
+    ``σ_j`` whitens the field ``e_j / σ_j`` off the modes' span by the spread of ``∇F · u`` over the scan (about
+    ±15 % on the 90 m rugged tile at 30° off nadir): with a 5 m error and σ = 0.5 m over a metre per point that no
+    mode holds, the same in every scan that sees the ground, read as independent. Measured (S8 over a world whose
+    only error is a 5 m / 1 km field on the map's own posts, ``world_refine = 1``, told it, 4 seeds, CPU): 4.0 m at
+    3σ coverage north/east 94/20 % with the slope factor, 2.3 m at 99/66 % without (the range noise's own ±15 %
+    spread is then left out: a small misstatement of the white part against a field 10 σ high)."""
     if p.sigma_range <= 0.0:
         return p.sigma * p.sigma
-    geo = wp.max(wp.abs(slope_dot), 0.25)
+    geo = float(1.0)
+    if p.n_modes == 0:
+        geo = wp.max(wp.abs(slope_dot), 0.25)
     g = wp.max(wp.abs(g_z), 0.2)
     return g * g * (p.sigma_range * p.sigma_range * geo * geo + p.sigma_map * p.sigma_map)
 

@@ -11,6 +11,7 @@ import warp as wp
 
 import warptan as wt
 from warptan.kernels import likelihood as klik
+from warptan.nav.frames import quat_to_mat
 from warptan.terrain.world import WorldModel
 
 STATED = {"map_error_sigma_m": 5.0, "map_error_corr_m": 1000.0, "track_step_m": 10.0}
@@ -1206,3 +1207,27 @@ def test_an_altimeter_over_flat_ground_stays_as_known_as_its_ins():
                      world_error_corr_m=3000.0, world_bias_m=5.0)
     sigma3 = r.run.sigma3_pos[:, :2]
     assert sigma3.max() < 800.0, sigma3.max()
+
+
+def test_the_sliding_model_whitens_by_one_sigma_under_the_modes(scan, device):
+    """Under a stated map error the sliding model's points share one σ (``sliding_var``'s slope factor 1): the modes
+    whiten the field by one σ, and a per-point slope factor took the field off their span. The kernel's log-likelihood
+    differences between particles that predict every point and gate none are those of ``−0.5 (zᵀz − Σ_i c⁰_i (u_iᵀ
+    z)²)`` with ``z = r / σ`` (float64; a fresh model: the modes' one-scan prior, no attitude covariance), and the
+    residuals' pattern in the modes' span scores the same whatever the ground's slope under each point."""
+    dem, cloud, pos, q = scan
+    model = wt.make_model("sliding", dem, wt.Likelihood("gaussian", sensor_sigma_m=0.5, **STATED), surface=True)
+    out = model.evaluate(wp.array(pos, dtype=wp.vec3, device=device),
+                         wp.array(np.tile(q, (len(pos), 1)), dtype=wp.vec4, device=device), cloud)
+    res = out.residual_m.numpy().astype(np.float64)
+    p = model.params()
+    g = abs(float(quat_to_mat(np.asarray(q, dtype=np.float64))[2, 2]))
+    keep = np.all(np.isfinite(res), axis=1) & np.all(np.abs(res) < 3.0 * math.hypot(p.sigma, p.sigma_err), axis=1)
+    assert keep.sum() >= 8
+    table = model._modes.numpy().astype(np.float64)
+    m = res.shape[1]
+    z = res[keep] / (g * p.sigma)
+    c = table[m + klik.MODE_C0]
+    expected = -0.5 * ((z**2).sum(axis=1) - (c * (z @ table[:m]) ** 2).sum(axis=1))
+    got = out.loglik.numpy().astype(np.float64)[keep]
+    np.testing.assert_allclose(got - got[0], expected - expected[0], rtol=1e-3, atol=1e-3 * np.abs(expected).max())
