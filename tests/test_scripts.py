@@ -246,3 +246,18 @@ def test_bench_learned_cost_pools_alternated_runs(tmp_path):
     assert rows["new"]["ms_per_update"] == pytest.approx(1e3 * 3.5 / 300)
     assert rows["old"]["ms_per_update"] == pytest.approx(1e3 * 0.5 / 300)
     assert len(data["meta"]["runs"]) == 3 and "3 runs alternated" in data["meta"]["label"]
+
+
+def test_attitude_leak_matches_its_float64_oracle(tmp_path):
+    """`attitude_leak.py` over S8's last seconds: the kernel's attitude information under the map-error modes,
+    accumulated at the true pose, is its float64 oracle's (finite-difference Jacobians, the model's table, Woodbury with
+    the attitude weights, Schur against the position), and removing modes from it only widens the claimed σ."""
+    out = tmp_path / "leak.json"
+    runpy.run_path(str(ROOT / "scripts" / "attitude_leak.py"))["main"](["--from-s", "112", "--json", str(out)])
+    rows = {r["weights"]: r for r in json.loads(out.read_text())["rows"]}
+    kernel, oracle = rows["kernel"], rows["oracle"]
+    np.testing.assert_allclose(kernel["sigma_deg"], oracle["sigma_deg"], rtol=0.02)
+    np.testing.assert_allclose(kernel["theta_deg"], oracle["theta_deg"], rtol=0.05,
+                               atol=0.05 * max(oracle["sigma_deg"]))
+    for name in ("kappa-1 modes out", "modes past 9 out", "all modes out"):
+        assert all(a >= b * (1 - 1e-6) for a, b in zip(rows[name]["sigma_deg"], oracle["sigma_deg"], strict=True))
