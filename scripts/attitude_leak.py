@@ -91,7 +91,7 @@ def main(argv=None) -> int:
             e = np.eye(3)[i]
             h_t[:, i] = -(residuals(p, _rotation(1e-5 * e) @ rot, scan) - r0) / 1e-5
             h_p[:, i] = -(residuals(p + 1e-3 * e, rot, scan) - r0) / 1e-3
-        table, n = model._modes_host, int(model.modes_info["n_modes"])
+        table, n = model.mode_table.numpy(), int(model.modes_info["n_modes"])
         u = table[:len(r0), :n].astype(np.float64)
         c_att = table[len(r0) + MODE_CA, :n].astype(np.float64)
         shared_once = np.asarray(model.modes_info["sharing"]) <= 1.0 + 1e-9

@@ -69,7 +69,7 @@ def main(argv=None) -> int:
         first = runs[0]
         sel = first.run.t_s >= first.config.filter.converged_after_s
         mse = np.array([float((r.run.error[sel, :2] ** 2).sum(axis=1).mean()) for r in runs])
-        fast = float(np.mean(first.pcrb_m[sel] ** 2))
+        fast = first.pcrb_converged_m ** 2
         bound2 = first.floor_converged_m ** 2 if world else fast
         se = float(mse.std(ddof=1) / math.sqrt(len(mse))) if len(mse) > 1 else math.nan
         row = {"scenario": sid, "seeds": args.seeds, "model": first.config.sensor.model,

@@ -1224,7 +1224,7 @@ def test_the_sliding_model_whitens_by_one_sigma_under_the_modes(scan, device):
     g = abs(float(quat_to_mat(np.asarray(q, dtype=np.float64))[2, 2]))
     keep = np.all(np.isfinite(res), axis=1) & np.all(np.abs(res) < 3.0 * math.hypot(p.sigma, p.sigma_err), axis=1)
     assert keep.sum() >= 8
-    table = model._modes.numpy().astype(np.float64)
+    table = model.mode_table.numpy().astype(np.float64)
     m = res.shape[1]
     z = res[keep] / (g * p.sigma)
     c = table[m + klik.MODE_C0]

@@ -86,8 +86,8 @@ def respread_particle(
     state = wp.rand_init(seeds[b], offset + i % n_per)
     centre = wp.vec3(wp.float32(stats[b, ST_MEAN_DP]), wp.float32(stats[b, ST_MEAN_DP + 1]),
                      wp.float32(stats[b, ST_MEAN_DP + 2]))
-    g = params.respread_chol * gaussian3(state)
     c = params.respread_chol
+    g = c * gaussian3(state)
     tr_h = c[0, 0] * c[0, 0] + c[1, 0] * c[1, 0] + c[1, 1] * c[1, 1]  # the re-spread's horizontal trace
     # the estimate beyond what the INS allows: |dp_h|² / (free_var / 2) above χ²₂'s 99.73 % point
     implausible = centre[0] * centre[0] + centre[1] * centre[1] > 5.915 * params.free_var[b]

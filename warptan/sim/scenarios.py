@@ -138,23 +138,23 @@ class ScenarioResult:
         """(T,) the bound's horizontal DRMS ``sqrt(σ_n² + σ_e²)`` at the epochs, m (None without a bound)."""
         return None if self.pcrb_sigma_m is None else np.hypot(self.pcrb_sigma_m[:, 0], self.pcrb_sigma_m[:, 1])
 
+    def _converged_drms(self, sigmas: np.ndarray | None) -> float:
+        """The horizontal DRMS of a bound's (T, 3) σ, RMS over the epochs after ``filter.converged_after_s`` (as the
+        RMSE is taken), m; NaN without the bound or such epochs."""
+        sel = self.run.t_s >= self.config.filter.converged_after_s
+        if sigmas is None or not sel.any():
+            return math.nan
+        return float(np.sqrt(np.mean(np.sum(sigmas[sel, :2] ** 2, axis=1))))
+
     @property
     def pcrb_converged_m(self) -> float:
-        """The bound's horizontal DRMS, RMS over the epochs after ``filter.converged_after_s`` (as the RMSE is
-        taken), m; NaN without a bound or such epochs."""
-        sel = self.run.t_s >= self.config.filter.converged_after_s
-        if self.pcrb_sigma_m is None or not sel.any():
-            return math.nan
-        return float(np.sqrt(np.mean(self.pcrb_m[sel] ** 2)))
+        """The fast bound's (:attr:`pcrb_sigma_m`) horizontal DRMS after convergence (:meth:`_converged_drms`), m."""
+        return self._converged_drms(self.pcrb_sigma_m)
 
     @property
     def floor_converged_m(self) -> float:
-        """The exact floor's horizontal DRMS, RMS over the epochs after convergence (as :attr:`pcrb_converged_m`),
-        m; NaN without it."""
-        sel = self.run.t_s >= self.config.filter.converged_after_s
-        if self.floor_sigma_m is None or not sel.any():
-            return math.nan
-        return float(np.sqrt(np.mean(np.sum(self.floor_sigma_m[sel, :2] ** 2, axis=1))))
+        """The exact floor's (:attr:`floor_sigma_m`) horizontal DRMS after convergence (:meth:`_converged_drms`), m."""
+        return self._converged_drms(self.floor_sigma_m)
 
     def summary(self) -> dict:
         """JSON-ready numbers of this run."""
