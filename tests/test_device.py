@@ -48,3 +48,30 @@ def test_auto_runs_on_cuda_when_warp_sees_a_gpu():
         pytest.skip("no CUDA device visible to Warp")
     r = run_scenario("S8", duration_s=2.0, particles=64, bound=False)
     assert str(r.device) == "cuda:0"
+
+
+def test_the_modes_tables_are_built_on_one_blas_thread(monkeypatch):
+    """``one_blas_thread``: NumPy's BLAS runs one thread inside (whatever it ran before, restored after), and the
+    map-error mode table's eigenproblem is solved inside it (``Likelihood.error_modes``)."""
+    import numpy as np
+    from threadpoolctl import threadpool_info
+
+    import warptan.sensing.likelihood as lk
+    from warptan.device import one_blas_thread
+
+    def blas_threads():
+        return [lib["num_threads"] for lib in threadpool_info() if lib["user_api"] == "blas"]
+
+    before = blas_threads()
+    assert before, "NumPy's BLAS is not visible to threadpoolctl"
+    with one_blas_thread():
+        assert blas_threads() == [1] * len(before)
+    assert blas_threads() == before
+    seen = []
+    eigh = np.linalg.eigh
+    monkeypatch.setattr(lk.np.linalg, "eigh", lambda a: (seen.append(blas_threads()), eigh(a))[1])
+    likelihood = lk.Likelihood(kind="gaussian", map_error_sigma_m=5.0, map_error_corr_m=1000.0, track_step_m=10.0)
+    xy = np.stack(np.meshgrid(np.linspace(-200, 200, 6), np.linspace(-200, 200, 6)), axis=-1).reshape(-1, 2)
+    table, info = likelihood.error_modes(xy, np.ones(len(xy)), 1.0, np.array([1.0, 0.0]), True, 0.01)
+    assert seen == [[1] * len(before)] and info["n_modes"] > 0 and np.isfinite(table).all()
+    assert blas_threads() == before

@@ -13,6 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from warptan.checks import FilterError
+from warptan.device import one_blas_thread
 from warptan.kernels import likelihood as klik
 
 POSITION_PRIOR_PRECISION = 1.0e-4
@@ -296,7 +297,8 @@ class Likelihood:
         def cov(shift: float) -> np.ndarray:
             return full(shift) if project is None else project @ full(shift) @ project
 
-        lam, vec = np.linalg.eigh(cov(0.0))
+        with one_blas_thread():
+            lam, vec = np.linalg.eigh(cov(0.0))
         order = np.argsort(lam)[::-1]
         lam, vec = np.maximum(lam[order], 0.0), vec[:, order]
         keep = [i for i in range(min(MAX_MODES, m)) if lam[i] > 1e-6 * lam[0]]
@@ -327,7 +329,9 @@ class Likelihood:
                     running *= grow
             total = np.sum(vec_k * (summed @ vec_k), axis=0) / lam_k
             sharing = np.maximum(1.0 + 2.0 * total, 1.0)
-            sharing_att = np.maximum(_turn_sharing(xy, aa, vec_k, lam_k, direction, turn, lags, length, step), sharing)
+            with one_blas_thread():
+                turned = _turn_sharing(xy, aa, vec_k, lam_k, direction, turn, lags, length, step)
+            sharing_att = np.maximum(turned, sharing)
         k_one = self.map_error_sigma_m**2 * lam_k / sigma_m**2  # k⁰_i: one scan's
         rho = (sharing - 1.0) / (sharing + 1.0)
         table[:m, :len(keep)] = vec_k.astype(np.float32)

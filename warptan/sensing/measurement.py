@@ -486,7 +486,8 @@ class MeasurementModel:
 
     MODES_BEHIND = 8
     """Scans between the one whose geometry asks for a new mode table and the one that first uses it: the table
-    (eigenvectors of the scan's error covariance, its sharing along the track: 3-5 ms of NumPy) is built on a worker
+    (eigenvectors of the scan's error covariance, its sharing along the track: 3-5 ms of NumPy on one BLAS thread,
+    :func:`warptan.device.one_blas_thread`) is built on a worker
     thread behind the filter's updates, which keep the table in use until then. Eight scans are 0.8 s at 10 Hz (a
     3°/s turn turns 2.4° more; the table is rebuilt when the footprint moved by :data:`MODES_REBUILD` of its size)
     and 5 ms of a GPU's updates (at two scans the GPU's host waited for the worker). The scan that uses it is fixed,
