@@ -12,6 +12,13 @@ floor leaves out and the filter's white map error counts, so the floor is optimi
 
     python scripts/bound_study.py --scenarios all --seeds 20 --device cuda:0 --json results/bound/bound_study.json
     python scripts/bound_study.py --scenarios S8 S1 --world-error-m 5 --world-corr-m 1000 --told --json out.json
+
+Rows of several runs (one per scenario and map error, say) merge into one file, each row keeping its run's ``meta``,
+and a merged file with exact floors draws "how close to the floor" (each scenario's RMSE over the floor against the
+error's correlation length, one line per RMS):
+
+    python scripts/bound_study.py --merge S8_e5_L1000.json S8_e2_L300.json ... --json floor_study.json
+    python scripts/bound_study.py --plot floor_study.json --png floor_study.png
 """
 
 from __future__ import annotations
@@ -46,7 +53,18 @@ def main(argv=None) -> int:
                         help="state the world's error to the filter (its RMS, or the bias where larger, over its "
                              "correlation length: the statement has no separate bias)")
     parser.add_argument("--json", dest="json_out")
+    parser.add_argument("--merge", nargs="+", metavar="JSON", help="merge these runs' rows into --json (no run)")
+    parser.add_argument("--plot", metavar="JSON", help="draw a merged file's exact-floor rows into --png (no run)")
+    parser.add_argument("--png")
     args = parser.parse_args(argv)
+    if args.merge:
+        if not args.json_out:
+            parser.error("--merge needs --json")
+        return merge(args.merge, args.json_out)
+    if args.plot:
+        if not args.png:
+            parser.error("--plot needs --png")
+        return plot(args.plot, args.png)
     world = {}
     if args.world_error_m > 0.0 or args.world_bias_m != 0.0:
         world = {"world_error_rms_m": args.world_error_m, "world_error_corr_m": args.world_corr_m,
@@ -88,6 +106,74 @@ def main(argv=None) -> int:
             json.dump({"meta": run_meta([args.device], what=__doc__.split("\n\n")[0]), "rows": rows}, fh, indent=1)
         print(f"wrote {args.json_out}")
     return 1 if any(r["below_bound_beyond_mc_error"] for r in rows) else 0
+
+
+def merge(paths: list[str], out: str) -> int:
+    """The rows of ``paths`` in one file: each row keeps its run's ``meta`` (commit, machine, command); the file's
+    ``meta`` is the first run's with ``runs``, every run's."""
+    rows, metas = [], []
+    for path in paths:
+        with open(path) as fh:
+            data = json.load(fh)
+        metas.append(data["meta"])
+        rows += [{**r, "meta": data["meta"]} for r in data["rows"]]
+    key = {s: i for i, s in enumerate(sorted({r["scenario"] for r in rows}, key=lambda s: int(s[1:])))}
+    rows.sort(key=lambda r: (key[r["scenario"]], r["world"].get("world_error_rms_m", 0.0),
+                             r["world"].get("world_error_corr_m", 0.0)))
+    with open(out, "w") as fh:
+        json.dump({"meta": {**metas[0], "runs": metas}, "rows": rows}, fh, indent=1)
+    print(f"wrote {out}: {len(rows)} rows from {len(paths)} runs")
+    return 0
+
+
+def plot(path: str, png: str) -> int:
+    """Each scenario's converged horizontal RMSE over the exact floor against the map error's correlation length, one
+    line per RMS, with the issue's 2× mark; a second panel the fast per-scan bound over the floor."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    with open(path) as fh:
+        rows = [r for r in json.load(fh)["rows"] if r.get("bound") == "exact floor"]
+    scenarios = sorted({r["scenario"] for r in rows}, key=lambda s: int(s[1:]))
+    rms_levels = sorted({r["world"]["world_error_rms_m"] for r in rows})
+    fig, (ax, bx) = plt.subplots(1, 2, figsize=(11, 4.5), gridspec_kw={"width_ratios": [2, 1]})
+    colours = plt.get_cmap("tab10")
+    styles = dict(zip(rms_levels, ("-", "--", ":", "-."), strict=False))
+    for i, sid in enumerate(scenarios):
+        label = sid
+        for rms in rms_levels:
+            line = sorted((r["world"]["world_error_corr_m"], r["rmse_over_bound"], r["fast_bound_converged_m"]
+                           / r["bound_converged_m"]) for r in rows
+                          if r["scenario"] == sid and r["world"]["world_error_rms_m"] == rms)
+            if not line:
+                continue
+            corr, ratio, fast = np.array(line).T
+            ax.plot(corr / 1e3, ratio, styles[rms], marker="o", color=colours(i), label=label)
+            label = None
+            bx.plot(corr / 1e3, fast, styles[rms], marker="o", color=colours(i))
+    for rms in rms_levels:
+        ax.plot([], [], styles[rms], color="grey", label=f"{rms:g} m RMS")
+    ax.axhline(2.0, color="k", lw=1)
+    ax.text(1.0, 2.15, "2× the floor", fontsize=8)
+    bx.axhline(1.0, color="k", lw=1)
+    for a in (ax, bx):
+        a.set_xscale("log")
+        a.set_xticks([0.3, 1.0, 3.0], ["0.3", "1", "3"])
+        a.minorticks_off()
+        a.set_xlabel("map error's correlation length (km)")
+        a.grid(True, which="both", alpha=0.3)
+    ax.set_yscale("log")
+    ax.set_ylabel("filter's horizontal RMSE / exact floor")
+    ax.set_title("How close to the floor (told the error; 20 seeds each)", fontsize=10)
+    bx.set_ylabel("fast per-scan bound / exact floor")
+    bx.set_title("The fast bound against the floor", fontsize=10)
+    ax.legend(fontsize=7, ncol=3, loc="lower left")
+    fig.tight_layout()
+    fig.savefig(png, dpi=110)
+    print(f"wrote {png}")
+    return 0
 
 
 if __name__ == "__main__":

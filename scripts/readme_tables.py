@@ -512,13 +512,42 @@ def bound_block(path: str = "results/bound/bound_study.json") -> str:
     return "\n".join(lines)
 
 
+def floor_block(path: str = "results/bound/floor_study.json") -> str:
+    """The filter told a correlated map error against the flight's exact floor (``scripts/bound_study.py``, merged
+    runs): per scenario and RMS, at each correlation length, converged horizontal RMSE / floor (ratio)."""
+    data = _load(path)
+    rows = [r for r in data["rows"] if r.get("bound") == "exact floor"]
+    lengths = sorted({r["world"]["world_error_corr_m"] for r in rows})
+    machines = sorted({", ".join(r["meta"]["gpu"]["names"]) if "gpu" in r["meta"] else "CPU" for r in rows})
+    commits = sorted({str(r["meta"].get("git_commit", "?"))[:7] for r in rows})
+    fast = [r["fast_bound_converged_m"] / r["bound_converged_m"] for r in rows]
+    lines = [f"Told the world's error (RMS and correlation length; a Gaussian field on the map's own posts, world seed "
+             f"2000), {rows[0]['seeds']} seeds a cell, 120 s: converged horizontal RMSE / the exact floor "
+             "(`warptan.filter.floor.exact_pcrb`: the whole flight's Fisher information with the error field in "
+             "the state), in metres, and their ratio. The fast per-scan bound is "
+             f"{min(fast):.2f}–{max(fast):.2f} × the floor over these cells. Sources: `{path}` (commits "
+             f"{', '.join(commits)}; {', '.join(machines)}; each row's command in its `meta`).", "",
+             "| scenario | RMS (m) | " + " | ".join(f"L = {length / 1e3:g} km" for length in lengths) + " |",
+             "|---|---|" + "---|" * len(lengths)]
+    cells = {(r["scenario"], r["world"]["world_error_rms_m"], r["world"]["world_error_corr_m"]): r for r in rows}
+    for sid, rms in sorted({(k[0], k[1]) for k in cells}, key=lambda k: (_sid_key(k[0]), k[1])):
+        out = []
+        for length in lengths:
+            r = cells.get((sid, rms, length))
+            out.append("–" if r is None else f"{r['rmse_horizontal_converged_m']:.2f} / {r['bound_converged_m']:.3f} "
+                                              f"({r['rmse_over_bound']:.0f}×)")
+        lines.append(f"| {sid} | {rms:g} | " + " | ".join(out) + " |")
+    return "\n".join(lines)
+
+
 BLOCKS = {"paper": paper_block, "attitude": attitude_block, "paper30": lambda: paper_block("results/paper30"),
           "closed_loop": closed_loop_block, "map_error": map_error_block, "long_flight": long_flight_block,
           "step": step_block, "scenario_step": scenario_step_block, "step_spread": step_spread_block,
           "idle": idle_block,
           "profile": profile_block, "stamps": stamps_block, "kernels": kernels_block,
           "threads": threads_block, "numpy": numpy_block, "batch": batch_block, "campaign": campaign_block,
-          "world": world_block, "learned": learned_block, "replay_frames": replay_frames_block, "bound": bound_block}
+          "world": world_block, "learned": learned_block, "replay_frames": replay_frames_block, "bound": bound_block,
+          "floor": floor_block}
 
 _BLOCK = re.compile(r"<!-- generated:(\w+) -->\n.*?<!-- /generated:\1 -->", re.S)
 _FENCE = re.compile(r"```.*?```", re.S)

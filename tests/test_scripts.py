@@ -261,3 +261,53 @@ def test_attitude_leak_matches_its_float64_oracle(tmp_path):
                                atol=0.05 * max(oracle["sigma_deg"]))
     for name in ("kappa-1 modes out", "modes past 9 out", "all modes out"):
         assert all(a >= b * (1 - 1e-6) for a, b in zip(rows[name]["sigma_deg"], oracle["sigma_deg"], strict=True))
+
+
+def test_bound_study_merges_runs_and_draws_how_close_to_the_floor(tmp_path):
+    """`bound_study.py --merge`: every run's rows in one file, each keeping its run's meta, ordered by scenario, RMS
+    and length; `--plot` draws the exact-floor rows; the results' `floor` block reads the merged file (a cell per
+    scenario, RMS and length, "–" where none ran)."""
+    sys.path.insert(0, str(ROOT / "scripts"))
+    import readme_tables
+
+    files = []
+    for k, (sid, rms, corr, rmse, floor) in enumerate([("S8", 5.0, 1000.0, 2.5, 0.2), ("S1", 2.0, 300.0, 3.0, 0.25),
+                                                       ("S8", 5.0, 300.0, 6.0, 0.3)]):
+        row = {"scenario": sid, "seeds": 20, "model": "sliding", "rmse_horizontal_converged_m": rmse,
+               "bound_converged_m": floor, "rmse_over_bound": rmse / floor, "fast_bound_converged_m": 1.5 * floor,
+               "bound": "exact floor", "world": {"world_error_rms_m": rms, "world_error_corr_m": corr},
+               "below_bound_beyond_mc_error": False}
+        path = tmp_path / f"run{k}.json"
+        path.write_text(json.dumps({"meta": {"git_commit": f"c{k}", "devices": ["cpu"]}, "rows": [row]}))
+        files.append(str(path))
+    merged, png = tmp_path / "floor.json", tmp_path / "floor.png"
+    script = str(ROOT / "scripts" / "bound_study.py")
+    for argv in (["--merge", *files, "--json", str(merged)], ["--plot", str(merged), "--png", str(png)]):
+        proc = subprocess.run([sys.executable, script, *argv], capture_output=True, text=True, timeout=120)
+        assert proc.returncode == 0, proc.stderr
+    data = json.loads(merged.read_text())
+    assert [(r["scenario"], r["world"]["world_error_corr_m"]) for r in data["rows"]] == [
+        ("S1", 300.0), ("S8", 300.0), ("S8", 1000.0)]
+    assert [r["meta"]["git_commit"] for r in data["rows"]] == ["c1", "c2", "c0"] and len(data["meta"]["runs"]) == 3
+    assert png.stat().st_size > 10_000
+    block = readme_tables.floor_block(str(merged))
+    assert "| S8 | 5 | 6.00 / 0.300 (20×) | 2.50 / 0.200 (12×) |" in block
+    assert "| S1 | 2 | 3.00 / 0.250 (12×) | – |" in block and "1.50–1.50 × the floor" in block
+
+
+@pytest.mark.slow
+def test_profile_update_host_times_the_pieces_per_segment(tmp_path):
+    """`profile_update_host.py`: per configuration the loop's period and the host time of the update's pieces per 30 s
+    segment (a short flight: one segment), the update's own time within the loop's."""
+    out = tmp_path / "prof.json"
+    proc = subprocess.run([sys.executable, str(ROOT / "scripts" / "profile_update_host.py"), "--device", "cpu",
+                           "--duration-s", "2", "--json", str(out)], capture_output=True, text=True, timeout=600,
+                          cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    rows = json.loads(out.read_text())["rows"]
+    assert [r["config"] for r in rows] == ["map=world", "world"]
+    for r in rows:
+        assert len(r["period_ms"]) == 1 and r["updates"] > 10
+        update = r["host_us_per_update"]["update"][0]
+        assert 0.0 < update < 1e3 * r["period_ms"][0]
+    assert "_learn_map_error" in rows[1]["host_us_per_update"]
