@@ -108,6 +108,14 @@ def main(argv=None) -> int:
     return 1 if any(r["below_bound_beyond_mc_error"] for r in rows) else 0
 
 
+DIVERGED_M = 100.0
+"""A cell whose converged horizontal RMSE exceeds this (m) is named on the picture with its RMSE."""
+
+
+def _sid_key(sid: str) -> int:
+    return int(sid[1:])
+
+
 def merge(paths: list[str], out: str) -> int:
     """The rows of ``paths`` in one file: each row keeps its run's ``meta`` (commit, machine, command); the file's
     ``meta`` is the first run's with ``runs``, every run's."""
@@ -117,8 +125,7 @@ def merge(paths: list[str], out: str) -> int:
             data = json.load(fh)
         metas.append(data["meta"])
         rows += [{**r, "meta": data["meta"]} for r in data["rows"]]
-    key = {s: i for i, s in enumerate(sorted({r["scenario"] for r in rows}, key=lambda s: int(s[1:])))}
-    rows.sort(key=lambda r: (key[r["scenario"]], r["world"].get("world_error_rms_m", 0.0),
+    rows.sort(key=lambda r: (_sid_key(r["scenario"]), r["world"].get("world_error_rms_m", 0.0),
                              r["world"].get("world_error_corr_m", 0.0)))
     with open(out, "w") as fh:
         json.dump({"meta": {**metas[0], "runs": metas}, "rows": rows}, fh, indent=1)
@@ -136,7 +143,7 @@ def plot(path: str, png: str) -> int:
 
     with open(path) as fh:
         rows = [r for r in json.load(fh)["rows"] if r.get("bound") == "exact floor"]
-    scenarios = sorted({r["scenario"] for r in rows}, key=lambda s: int(s[1:]))
+    scenarios = sorted({r["scenario"] for r in rows}, key=_sid_key)
     rms_levels = sorted({r["world"]["world_error_rms_m"] for r in rows})
     fig, (ax, bx) = plt.subplots(1, 2, figsize=(11, 4.5), gridspec_kw={"width_ratios": [2, 1]})
     colours = plt.get_cmap("tab10")
@@ -153,6 +160,12 @@ def plot(path: str, png: str) -> int:
             ax.plot(corr / 1e3, ratio, styles[rms], marker="o", color=colours(i), label=label)
             label = None
             bx.plot(corr / 1e3, fast, styles[rms], marker="o", color=colours(i))
+    for r in rows:  # a cell far off the scale of the rest: its RMSE written beside it
+        if r["rmse_horizontal_converged_m"] > DIVERGED_M:
+            ax.annotate(f"{r['scenario']} at {r['world']['world_error_rms_m']:g} m: "
+                        f"{r['rmse_horizontal_converged_m'] / 1e3:.1f} km RMSE (diverged)",
+                        (r["world"]["world_error_corr_m"] / 1e3, r["rmse_over_bound"]), xytext=(8, -4),
+                        textcoords="offset points", fontsize=7)
     for rms in rms_levels:
         ax.plot([], [], styles[rms], color="grey", label=f"{rms:g} m RMS")
     ax.axhline(2.0, color="k", lw=1)

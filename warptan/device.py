@@ -127,24 +127,26 @@ WARP_OUTPUT_ENV = "WARPTAN_WARP_OUTPUT"
 """Set to 1 to keep Warp's own output (its start-up banner, "Module … load" lines) when warptan is imported."""
 
 
+_BLAS = None  # (one_blas_thread's controller, made on first use)
+
+
 def one_blas_thread():
     """A context in which NumPy's BLAS/LAPACK runs on one thread (``threadpoolctl``), for the small dense
     problems the host solves behind a filter's updates (the map-error modes' eigendecomposition of a scan's few
     hundred points, their sharing along the track). A multi-threaded OpenBLAS wakes its pool for a 100 × 100
     ``eigh`` and, beside the threads that launch the device's work, spins: measured on the 2-core VM with another
-    process running, 130 ms for S8's first table against 0.5 ms on one thread (``python -c`` of the same matrix,
-    ``OPENBLAS_NUM_THREADS=1``), and an H200 host's updates waited for those tables about 120 µs per update
-    (``scripts/profile_update_host.py``). The limit is process-wide while the context is open (BLAS has no
-    per-thread setting); the calls inside give the same results at any thread count up to rounding."""
+    process running, 130 ms for S8's first table against 0.5 ms on one thread (the same matrix,
+    ``OPENBLAS_NUM_THREADS=1``); S8 learned over a 5 m / 1 km world (120 s, CPU) waited 0.27 s a run for its tables,
+    0.001 s on one thread. On an H200 host (``scripts/profile_update_host.py``, before this) the scan's staging, where
+    the wait shows, took 117–280 µs an update against 22 µs over the map. The limit is process-wide while the context
+    is open (BLAS has no per-thread setting); the calls inside give the same results at any thread count up to
+    rounding."""
     global _BLAS
     if _BLAS is None:
         from threadpoolctl import ThreadpoolController
 
         _BLAS = ThreadpoolController()
     return _BLAS.limit(limits=1, user_api="blas")
-
-
-_BLAS = None
 
 
 def quiet_warp() -> None:
