@@ -751,10 +751,11 @@ def test_ground_read_again_after_the_modes_forgot_it_weighs_less():
             assert got[-1] < 0.03  # three orbits on: the same error read a fourth time
             assert (got[mem:].sum() / (len(got) - mem)) * (len(got) / (2 * math.pi * 600.0 / 10.0)) < 1.0 / rho
         np.testing.assert_allclose(got, expected, atol=0.04)  # C counted from every κ/16-th scan
-        every = RevisitMemory(lk, 2)  # read every 5 scans (the filter's PLATFORM_EVERY), each ground for 5 scans
-        read = np.arange(4, 1200, 5)
-        got5 = np.array([every.exponents(np.stack([track[i], track[i] + 5.0]), scans=5)[0] for i in read])
-        np.testing.assert_allclose(got5, expected[read], atol=0.05)
+        k = wt.MarginalizedParticleFilter.PLATFORM_EVERY  # read every k scans as the filter does, each ground for k
+        every = RevisitMemory(lk, 2)
+        read = np.arange(k - 1, 1200, k)
+        got_k = np.array([every.exponents(np.stack([track[i], track[i] + 5.0]), scans=k)[0] for i in read])
+        np.testing.assert_allclose(got_k, expected[read], atol=0.05)
     independent = RevisitMemory(wt.Likelihood("gaussian", sensor_sigma_m=0.5, revisit_correlation=0.0, **STATED), 1)
     assert all(independent.exponents(np.asarray(x)) == 1.0 for x in orbit)
     with pytest.raises(wt.FilterError, match="revisit_correlation"):
@@ -804,20 +805,21 @@ def _filter_for_memory(likelihood):
 
 def test_the_learner_acquires_fast_then_remembers_slowly():
     """MapErrorLearner's first readings weigh more (``PRIOR_READINGS``): a statement 16× the map's error (modes' ratio
-    at its clip, 1/4) comes down past a quarter of itself within 30 readings (at the memory's gain alone: half of
-    itself), while readings scattered around the truth keep σ_e near it."""
+    at its clip, 1/4) comes down past a third of itself within the readings of 30 s of flight at 10 Hz (at the
+    memory's gain alone: half of itself), while readings scattered around the truth keep σ_e near it."""
     from warptan.sensing.learner import MapErrorLearner
 
     def reading(ratio):
         return np.array([1.0, 1.0, ratio, 4, 0.5, 0.5])
 
     fast = MapErrorLearner(10.0)
-    for _ in range(30):
+    readings = 300 // fast.every  # (30 s of updates at 10 Hz)
+    for _ in range(readings):
         fast.read(reading(0.25))
-    assert fast.sigma_m < 2.5
+    assert fast.sigma_m < 10.0 / 3.0
     slow = MapErrorLearner(10.0)
     slow.PRIOR_READINGS = 1e9  # (the memory's gain alone)
-    for _ in range(30):
+    for _ in range(readings):
         slow.read(reading(0.25))
     assert slow.sigma_m == pytest.approx(5.0, rel=0.01)
     rng = np.random.default_rng(3)

@@ -150,11 +150,12 @@ class MarginalizedParticleFilter(ImuIntake, Readout):
             :class:`~warptan.checks.FilterError`.
     """
 
-    PLATFORM_EVERY = 5
+    PLATFORM_EVERY = 10
     """Updates between two readings of the revisit memory (:class:`~warptan.sensing.likelihood.RevisitMemory`; each
-    reading's ground stands for the scans since the last): 0.5 s at 10 Hz, 25-50 m of flight against an error
+    reading's ground stands for the scans since the last): 1 s at 10 Hz, 50-100 m of flight against an error
     correlated over hundreds of metres (reading the platform's pose back and the memory's sums at every update was a
-    large part of a GPU update's host time)."""
+    large part of a GPU update's host time; a reading took about 0.12 ms on an H200 host). The same as the model's
+    geometry look (``MODES_CHECK_EVERY``): both read the one platform pose copied back for them."""
 
     def __init__(self, model, nominal, grade: str | ImuGrade, rate_hz: float, p0_pos, p0_lin,
                  config: FilterConfig | None = None, *, device=None, seed=0, graph: bool | None = None, **settings):
@@ -420,7 +421,7 @@ class MarginalizedParticleFilter(ImuIntake, Readout):
         if map_modes:
             # the map-error modes' scan geometry needs the platform's attitude and the revisit memory its ground, each
             # every few updates (the model's MODES_CHECK_EVERY, PLATFORM_EVERY): the nominal as an earlier update left
-            # it (copied to the host behind the device's work before an update that reads it, HostEcho: 0.5-1 s old at
+            # it (copied to the host behind the device's work before an update that reads it, HostEcho: 1-2 s old at
             # 10 Hz, within the geometry's tolerance; on the CPU, and before two copies, the last interval's), so
             # neither waits for the head
             if self._platform_echo is None:

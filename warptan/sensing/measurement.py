@@ -396,9 +396,13 @@ class MeasurementModel:
         meta[:, klik.META_FLOOR] = -0.5 * k * k * np.maximum(1, n_received)
         return meta
 
-    MODES_CHECK_EVERY = 5
-    """Scans between two looks at the map-error modes' geometry while it holds (its host work, ~0.5 ms, is most of a
-    GPU update's host time; 0.5 s of flight at 10 Hz turns a 3°/s turn by 1.5°, far inside :data:`MODES_REBUILD`)."""
+    MODES_CHECK_EVERY = 10
+    """Scans between two looks at the map-error modes' geometry while it holds (1 s of flight at 10 Hz turns a 3°/s
+    turn by 3°, far inside :data:`MODES_REBUILD`). A look's host work (the scan's nominal footprint and the rebuild
+    test) took a median 0.18 ms on an H200 host against 0.02 ms for a stage without it; at every 5 scans the looks
+    were about a fifth of the learned path's host cost there (``scripts/profile_update_host.py``). Looking every 10
+    scans instead of 5 (with the revisit memory and the learner's readings halved too) left S8 and S2 learned over
+    the ``biased`` and ``short`` families within their seeds' noise (20 seeds × 4 worlds, CHANGELOG session 16)."""
     MODES_REBUILD = 0.25
     """The map-error mode table is rebuilt when a scan's nominal ground geometry moved by more than this fraction
     of the footprint's size since it was built (a turn, a climb). Measured on this code (3σ coverage N/E/D,
