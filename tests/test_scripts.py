@@ -298,16 +298,21 @@ def test_bound_study_merges_runs_and_draws_how_close_to_the_floor(tmp_path):
 @pytest.mark.slow
 def test_profile_update_host_times_the_pieces_per_segment(tmp_path):
     """`profile_update_host.py`: per configuration the loop's period and the host time of the update's pieces per 30 s
-    segment (a short flight: one segment), the update's own time within the loop's."""
+    segment (a short flight: one segment), the update's own time within the loop's; the median update of each kind
+    and the device time from the filter's timers; the world with the learner off reads no learner."""
     out = tmp_path / "prof.json"
     proc = subprocess.run([sys.executable, str(ROOT / "scripts" / "profile_update_host.py"), "--device", "cpu",
                            "--duration-s", "2", "--json", str(out)], capture_output=True, text=True, timeout=600,
                           cwd=tmp_path)
     assert proc.returncode == 0, proc.stderr
     rows = json.loads(out.read_text())["rows"]
-    assert [r["config"] for r in rows] == ["map=world", "world"]
+    assert [r["config"] for r in rows] == ["map=world", "world", "world-off"]
     for r in rows:
         assert len(r["period_ms"]) == 1 and r["updates"] > 10
         update = r["host_us_per_update"]["update"][0]
         assert 0.0 < update < 1e3 * r["period_ms"][0]
+        assert 0.0 < r["update_median_ms"]["plain"] < r["period_median_ms"]
+        assert 0.0 < r["device_ms"]["median"] < r["period_median_ms"]  # (the CPU's launches, within the update)
     assert "_learn_map_error" in rows[1]["host_us_per_update"]
+    assert "_learn_map_error" in rows[1]["update_median_ms"] and "_read_again" in rows[1]["update_median_ms"]
+    assert "_learn_map_error" not in rows[2]["host_us_per_update"]  # (world-off: the learner off)

@@ -41,8 +41,9 @@ class MapErrorLearner:
     as independent Gaussians, on grids) for each length of ``LENGTH_FACTORS`` times the one in use and steps ``log L``
     towards the best with gain ``length_gain``; the length is restated (the table rebuilt) when it moved by 20 %, within
     ``[prior / length_range, prior · length_range]`` and at least ``min_corr_m``. Measured before it was wired in (S8,
-    120 s, seed 0, one reading a second: ``every`` was 10 then): a 5 m / 1 km world told 3 km read 1.16 km (geometric mean of the readings
-    after the first 20 s), told 1 km 0.80 km, and a 2 m / 300 m world from the default 500 m 0.38 km.
+    120 s, seed 0, one reading a second: ``every`` was 10 then): a 5 m / 1 km world told 3 km read 1.16 km (geometric
+    mean of the readings after the first 20 s), told 1 km 0.80 km, and a 2 m / 300 m world from the default 500 m
+    0.38 km.
 
     **Assumptions.** The error is a Gaussian covariance (one RMS, one length). The offset under the scan rides on the
     particles' altitude (it is not a mode), so the level and length are learned from the tilts and curvatures the
@@ -87,8 +88,8 @@ class MapErrorLearner:
     PRIOR_READINGS = 2.0
     """The prior's weight, in readings: the k-th reading that moves the RMS steps with gain ``max(every /
     time_constant, 1 / (PRIOR_READINGS + k))``, the running mean of its log ratios until the memory's time constant
-    takes over (acquisition). At the memory's gain alone a reading moves ``log σ_e`` by at most ``ln 4 · every / 600``: a
-    statement 16 times the map's error needed the whole of a 120 s flight to come down."""
+    takes over (acquisition). At the memory's gain alone a reading moves ``log σ_e`` by at most ``ln 4 · every /
+    600``: a statement 16 times the map's error needed the whole of a 120 s flight to come down."""
     WHITE_EXCESS = 1.5
     """The residuals' energy outside the modes, as a multiple of what the likelihood expects, above which the map's
     white error is learned to be larger than its prior."""
