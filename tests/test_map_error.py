@@ -58,6 +58,60 @@ def test_the_modes_hold_the_stated_covariance_and_its_sharing():
 
 
 
+def test_the_modes_a_table_drops_count_as_shared_white_variance():
+    """An error correlated over less than the footprint has more structure than 16 modes hold: ``truncation_unit``
+    is the dropped eigenvalues' sum per point (``dropped_unit``) times their sharing along the track, against a
+    brute-force oracle (every lag summed, the remainder ``tr C(l) − Σ_kept u_iᵀ C(l) u_i``); over a kilometre's
+    correlation it stays below what the model counts."""
+    lk = wt.Likelihood("gaussian", map_error_sigma_m=10.0, map_error_corr_m=300.0, track_step_m=10.0)
+    xy = _grid_xy()
+    table, info = lk.error_modes(xy, np.ones(len(xy)), 0.5)
+    m, q = len(xy), info["n_modes"]
+    d2 = ((xy[:, None] - xy[None]) ** 2).sum(axis=2)
+    lam = np.linalg.eigvalsh(np.exp(-d2 / 300.0**2))[::-1]
+    rest = lam[q:].sum()
+    assert info["dropped_unit"] == pytest.approx(rest / m, rel=1e-6)
+    assert rest / lam.sum() > 0.01  # (the 16 modes leave over a percent of the variance: not negligible)
+    u = table[:m, :q].astype(np.float64)
+    shared = 0.0
+    for k in range(1, 121):  # every lag to 4 L (the code: a trapezoid over 64 of them)
+        later = xy + np.array([k * 10.0, 0.0])
+        c = np.exp(-((xy[:, None] - later[None]) ** 2).sum(axis=2) / 300.0**2)
+        shared += np.trace(c) - np.sum(u * (c @ u))
+    kappa = 1.0 + 2.0 * shared / rest
+    assert kappa > 2.0
+    assert info["truncation_unit"] == pytest.approx(kappa * rest / m, rel=0.02)
+    from warptan.sensing.measurement import MeasurementModel
+
+    long = wt.Likelihood("gaussian", **STATED).error_modes(xy, np.ones(len(xy)), 0.5)[1]
+    assert STATED["map_error_sigma_m"] ** 2 * long["truncation_unit"] < MeasurementModel.TRUNCATION_MIN * 0.5**2
+
+
+def test_the_dropped_modes_count_in_the_point_sigma_once_they_matter(scan, device):
+    """The model's per-point σ adds ``σ_e² · truncation_unit`` once it is a percent of the point's variance, and the
+    table's one-scan variances are those of that σ; a restated RMS scales it (its square); over a kilometre's
+    correlation nothing is added."""
+    dem, cloud, pos, q = scan
+    poses = (wp.array(pos, dtype=wp.vec3, device=device), wp.array(np.tile(q, (len(pos), 1)), dtype=wp.vec4,
+                                                                     device=device))
+    short = wt.make_model("sliding", dem, wt.Likelihood("gaussian", sensor_sigma_m=0.5, map_error_sigma_m=10.0,
+                                                       map_error_corr_m=300.0, track_step_m=10.0))
+    short.evaluate(*poses, cloud)
+    base = short.likelihood.sigma_eff(short.surface_mismatch_m())
+    unit = short.modes_info["truncation_unit"]
+    assert 100.0 * unit > 0.01 * base**2
+    assert short.sigma_m == pytest.approx(math.sqrt(base**2 + 100.0 * unit), rel=1e-9)
+    assert short._params.sigma == pytest.approx(short.sigma_m, rel=1e-6)
+    m = short.mode_table.shape[0] - klik.MODE_EXTRA_ROWS
+    k0 = short.mode_table.numpy()[m + klik.MODE_K0, 0]
+    assert k0 == pytest.approx(100.0 * short.modes_info["eigenvalues"][0] / short.sigma_m**2, rel=1e-5)
+    short.restate_map_error(5.0)  # a quarter of the variance: the dropped modes' too
+    assert short.sigma_m == pytest.approx(math.sqrt(base**2 + 25.0 * unit), rel=1e-9)
+    long = wt.make_model("sliding", dem, wt.Likelihood("gaussian", sensor_sigma_m=0.5, **STATED))
+    long.evaluate(*poses, cloud)
+    assert long.sigma_m == long.likelihood.sigma_eff(long.surface_mismatch_m())
+
+
 def _arc_sharing_oracle(xy, u, lam, length, step, turn, k_max):
     """κᵃ by brute force: the aircraft stepped scan by scan along the arc (heading ψ_k = k·turn, each step along the
     mean heading of the step), the footprint turned with it, every lag summed (no trapezoid)."""
@@ -541,6 +595,19 @@ def test_a_statement_over_a_map_better_than_stated_does_not_diverge():
         horiz = max(np.hypot(*r.rmse_converged[:2]) for r in runs)
         cov = np.mean([r.summary()["coverage_3sigma"] for r in runs], axis=0)
         assert horiz < 3.0 and cov.min() >= 0.9, (sid, horiz, cov)
+
+
+def test_a_short_large_map_error_told_exactly_does_not_lose_the_filter():
+    """S2 (tactical INS) over a world whose map errs by 10 m RMS correlated over 300 m, told exactly that (120 s,
+    seed 0): the 16 modes leave 2.7 % of the error's variance, which the point σ now counts (18 m converged RMSE, no
+    re-spread); before (f7a19f4) the filter took it for information and was lost: 2.7 km converged RMSE, 28
+    re-spreads."""
+    from warptan.sim.scenarios import run_scenario
+
+    r = run_scenario("S2", 0, "cpu", bound=False, world_error_rms_m=10.0, world_error_corr_m=300.0,
+                     world_seed=2000, world_refine=1, map_error_rms_m=10.0, map_error_corr_m=300.0)
+    assert np.hypot(*r.rmse_converged[:2]) < 60.0 and r.run.info["respreads"] == 0
+    assert r.run.info["sigma_m"] > 2.0  # (the sensor's 0.5 m and the dropped modes' share)
 
 
 def test_the_command_line_states_the_accuracy(capsys, tmp_path):

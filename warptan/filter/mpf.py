@@ -543,7 +543,8 @@ class MarginalizedParticleFilter(ImuIntake, Readout):
         self._moments_echo.queue(tag=(spectrum, float(self.model.sigma_m)))
         moments, projections = self._moments_echo.read()
         spectrum, sigma = self._moments_echo.tag if self._moments_echo.tag is not None else (None, None)
-        restated = self.learner.read(moments[0], projections[0], spectrum, sigma)
+        restated = self.learner.read(moments[0], projections[0], spectrum, sigma,
+                                     getattr(self.model, "dropped_var_m2", 0.0))
         if restated is None:
             return
         self.model.restate_map_error(*restated)

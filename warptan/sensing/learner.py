@@ -147,14 +147,17 @@ class MapErrorLearner:
         return math.exp(0.5 * self.log_var)
 
     def read(self, moments: np.ndarray, projections: np.ndarray | None = None, spectrum: np.ndarray | None = None,
-             sigma_m: float | None = None) -> tuple[float, float | None, float | None] | None:
+             sigma_m: float | None = None, dropped_var: float = 0.0) -> tuple[float, float | None, float | None] | None:
         """One reading of :func:`~warptan.kernels.filter.resampling.map_error_moments_kernel`'s row (Σw, NIS, ratio,
         modes used, var north, var east) and, to learn the length and the white error, :func:`~warptan.kernels.
         filter.resampling.mode_projection_kernel`'s row (whitened by ``sigma_m``, the per-point σ it used) with the
         table's :meth:`~warptan.sensing.likelihood.Likelihood.mode_spectrum` at :attr:`LENGTH_FACTORS` times its
         length. Returns ``(RMS, correlation length, white error)`` to apply when any moved (the RMS by 10 %, the length
         by 20 %, the white error by 10 % of the per-point σ's map part) since last applied (the length and the white
-        error None when not learned), else None."""
+        error None when not learned), else None. ``dropped_var`` (m²): the energy a point's residual holds from the
+        modes the table drops (the stated error's structure beyond :data:`~warptan.kernels.likelihood.MAX_MODES`
+        modes, :meth:`~warptan.sensing.likelihood.Likelihood.error_modes`' ``truncation_unit`` unshared), which is
+        the statement's, not white error."""
         _sw, nis, ratio, used, var_n, var_e = (float(v) for v in moments[:6])
         spread = math.sqrt(max(var_n, 0.0) + max(var_e, 0.0))
         if spread > max(self.converged_m, 3.0 * self.sigma_m) or not (np.isfinite(nis) and nis <= self.nis_max):
@@ -176,7 +179,8 @@ class MapErrorLearner:
                 moved = abs(self.log_len - math.log(self.applied_corr_m)) > math.log(1.2)
         white_moved = False
         if ruled and self.white_var is not None and projections is not None and sigma_m is not None:
-            white_moved = self._read_white(np.asarray(projections, dtype=np.float64), float(sigma_m))
+            white_moved = self._read_white(np.asarray(projections, dtype=np.float64), float(sigma_m),
+                                           float(dropped_var))
         if moved or white_moved or abs(math.log(self.sigma_m / self.applied_sigma_m)) > math.log(1.1):
             self.applied_sigma_m = self.sigma_m
             if moved:
@@ -186,7 +190,7 @@ class MapErrorLearner:
             return self.applied_sigma_m, self.applied_corr_m, self.applied_white_m
         return None
 
-    def _read_white(self, projections: np.ndarray, sigma_m: float) -> bool:
+    def _read_white(self, projections: np.ndarray, sigma_m: float, dropped_var: float = 0.0) -> bool:
         """Step the white error's variance with one reading's energy outside the modes; True when it moved by more
         than a tenth of the map part's scale since last applied."""
         sw = projections[PROJ_HF_W]
@@ -195,8 +199,8 @@ class MapErrorLearner:
         energy = projections[PROJ_HF] / sw * sigma_m * sigma_m  # m²
         prior = self.white_prior_m**2
         target = prior
-        if energy > self.WHITE_EXCESS * (self.sensor_var + prior):
-            target = energy - self.sensor_var
+        if energy > self.WHITE_EXCESS * (self.sensor_var + dropped_var + prior):
+            target = energy - self.sensor_var - dropped_var
         self.white_var = min(max(self.white_var + self.length_gain * (target - self.white_var), prior),
                              self.white_ceiling_m**2)
         scale = max(self.applied_white_m, 0.1 * math.sqrt(max(self.sensor_var, 1e-6)))

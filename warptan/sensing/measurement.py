@@ -160,6 +160,8 @@ class MeasurementModel:
         self._pending: tuple | None = None  # a mode table built behind the updates (MODES_BEHIND)
         self._no_cloud: wp.array | None = None
         self._amp_scale = 1.0  # the stored amplitudes' factor for the next scan (a new per-point σ whitens them anew)
+        self._truncation_unit = 0.0  # the table's per-point variance for its dropped modes, per unit σ_e² (m² / m²)
+        self._truncation_var = 0.0  # what the per-point variance counts of it (TRUNCATION_MIN, TRUNCATION_MOVE), m²
         self.modes_version = 0
         """Bumped whenever the mode table gets new modes (a rebuild; not a rescale: the modes stay)."""
         self._spectrum: tuple | None = None  # ((version, factors), mode_spectrum's array)
@@ -190,6 +192,7 @@ class MeasurementModel:
         self._likelihood = value
         self._modes = None  # rebuilt for the new likelihood at the next stage
         self.modes_info = {"n_modes": 0}
+        self._truncation_unit = self._truncation_var = 0.0  # (the new table's)
         self._params = self.params()
         self.generation += 1
 
@@ -241,9 +244,11 @@ class MeasurementModel:
         if corr_m is not None and float(corr_m) != self._likelihood.map_error_corr_m:
             self._likelihood = dataclasses.replace(self._likelihood, map_error_sigma_m=float(sigma_m),
                                                    map_error_corr_m=float(corr_m))
+            self._count_truncation()  # (the old table's share until the new one's)
             self._modes_geometry, self._modes_skip = None, 0  # (rebuilt at the next stage, from the old table)
             return
         self._likelihood = dataclasses.replace(self._likelihood, map_error_sigma_m=float(sigma_m))
+        self._count_truncation()  # (the dropped modes' variance scales with σ_e²)
         host = self._modes_host
         if host is not None and self._modes_geometry is not None:  # the same modes, their variances scaled
             m = host.shape[0] - klik.MODE_EXTRA_ROWS
@@ -285,8 +290,49 @@ class MeasurementModel:
 
     @property
     def sigma_m(self) -> float:
-        """The per-point residual scale σ_eff in m (see :meth:`Likelihood.sigma_eff`)."""
+        """The per-point residual scale in m: :meth:`Likelihood.sigma_eff` and, under a stated map error, the variance
+        that stands for the modes the table drops (:meth:`Likelihood.error_modes`' ``truncation_unit`` times
+        ``σ_e²``; counted once it is :data:`TRUNCATION_MIN` of the point's variance)."""
+        return math.sqrt(self._base_sigma_m() ** 2 + self._truncation_var)
+
+    def _base_sigma_m(self) -> float:
+        """The per-point σ without the dropped modes' variance (what a mode table is built for)."""
         return self.likelihood.sigma_eff(self.surface_mismatch_m())
+
+    @property
+    def dropped_var_m2(self) -> float:
+        """The energy (m², a point's mean) of the stated error in the modes the table in use drops (its
+        ``dropped_unit`` times ``σ_e²``): what the residuals hold outside the modes besides white error."""
+        lk = self._likelihood
+        unit = float(self.modes_info.get("dropped_unit", 0.0))
+        return lk.map_error_sigma_m**2 * unit if lk.models_map_error else 0.0
+
+    TRUNCATION_MIN = 0.01
+    """The dropped modes' variance is counted in the per-point σ once it is at least this fraction of the point's
+    variance without it (over a map error correlated over kilometres it is 1e-5 of it and counts nothing)."""
+    TRUNCATION_MOVE = 0.2
+    """…and counted anew when it moved by more than this fraction (each change rebuilds the kernels' struct: a
+    re-capture on CUDA)."""
+
+    def _count_truncation(self) -> None:
+        """The dropped modes' variance for the statement now (:attr:`_truncation_unit` times ``σ_e²``) into the
+        per-point σ when it is due (:data:`TRUNCATION_MIN`, :data:`TRUNCATION_MOVE`): the kernels' struct rebuilt,
+        the stored amplitudes, whitened by the old σ, carried by ``σ_old / σ_new`` at the next scan."""
+        lk = self._likelihood
+        target = lk.map_error_sigma_m**2 * self._truncation_unit if lk.models_map_error else 0.0
+        if target < self.TRUNCATION_MIN * self._base_sigma_m() ** 2:
+            target = 0.0
+        now = self._truncation_var
+        if target == now or (now > 0.0 and target > 0.0 and abs(target / now - 1.0) <= self.TRUNCATION_MOVE):
+            return
+        old_point = self.sigma_m
+        self._truncation_var = target
+        statement, n_modes = self._params.sigma_err, self._params.n_modes
+        self._params = self.params()
+        self._params.sigma_err, self._params.n_modes = statement, n_modes
+        self.generation += 1
+        self._amp_scale *= old_point / self.sigma_m
+        self._modes_skip = 0
 
     def surface_mismatch_m(self) -> float:
         """RMS difference (m) between the surface this model reads and the triangulated map: 0 for models that
@@ -299,7 +345,7 @@ class MeasurementModel:
         p = klik.LikParams()
         p.err_kind, p.lik = int(self.err_kind), int(LIKELIHOODS[lk.kind])
         p.r_err, p.sigma, p.nu, p.k_out = float(lk.r_err), self.sigma_m, float(lk.nu), float(lk.outlier_sigmas)
-        p.att_scale = (self.sigma_m / lk.sigma_att(self.surface_mismatch_m())) ** 2
+        p.att_scale = self.sigma_m**2 / (lk.sigma_att(self.surface_mismatch_m()) ** 2 + self._truncation_var)
         p.pos_precision = POSITION_PRIOR_PRECISION if lk.project_position else -1.0
         p.n_modes = 0  # set by _ensure_modes when the first scan is staged
         p.sigma_err = float(lk.map_error_sigma_m) if lk.models_map_error else 0.0  # (a restatement keeps it)
@@ -307,7 +353,7 @@ class MeasurementModel:
             p.sigma_range = float(lk.sensor_sigma_m)
             p.sigma_map = math.sqrt(max(self.sigma_m**2 - lk.sensor_sigma_m**2, 0.0))
         else:
-            p.sigma_range, p.sigma_map = float(lk.sigma_m), 0.0
+            p.sigma_range, p.sigma_map = float(lk.sigma_m), math.sqrt(self._truncation_var)
         return p
 
     def _buffers(self, device, n: int, b: int, m: int) -> ModelOutput:
@@ -467,11 +513,11 @@ class MeasurementModel:
             return
         self._turn_built = self._turn
         if host is not None and self.MODES_BEHIND > 0:  # built on the worker, applied MODES_BEHIND scans on
-            self._pending = (_modes_worker().submit(self.likelihood.error_modes, xy, sens, self.sigma_m, along,
+            self._pending = (_modes_worker().submit(self.likelihood.error_modes, xy, sens, self._base_sigma_m(), along,
                                                     self.absorbs_map_offset, self._turn),
-                             self.MODES_BEHIND, self.likelihood, self.sigma_m, (xy, along, sens))
+                             self.MODES_BEHIND, self.likelihood, self._base_sigma_m(), (xy, along, sens))
             return
-        self._apply_modes(self.likelihood.error_modes(xy, sens, self.sigma_m, along, self.absorbs_map_offset,
+        self._apply_modes(self.likelihood.error_modes(xy, sens, self._base_sigma_m(), along, self.absorbs_map_offset,
                                                       self._turn), (xy, along, sens))
 
     MODES_REBUILD_TURN = 0.3
@@ -507,9 +553,10 @@ class MeasurementModel:
             return True
         built = job.result()  # (long done on a CPU's updates; on a GPU's, 8 scans are about the table's time)
         self._pending = None
-        if likelihood is not self.likelihood or sigma != self.sigma_m:  # restated meanwhile: for the statement now
+        if likelihood is not self.likelihood or sigma != self._base_sigma_m():  # restated meanwhile: for it now
             xy, along, sens = geometry
-            built = self.likelihood.error_modes(xy, sens, self.sigma_m, along, self.absorbs_map_offset, self._turn)
+            built = self.likelihood.error_modes(xy, sens, self._base_sigma_m(), along, self.absorbs_map_offset,
+                                                self._turn)
         self._apply_modes(built, geometry)
         return True
 
@@ -519,6 +566,10 @@ class MeasurementModel:
         table, info = built
         host = self._modes_host
         m = table.shape[0] - klik.MODE_EXTRA_ROWS
+        self._truncation_unit = float(info.get("truncation_unit", 0.0))
+        self._count_truncation()
+        if self._truncation_var > 0.0:  # built for the σ without the dropped modes: its variances for the σ with them
+            table = self.likelihood.rescale_error_modes(table, m, (self._base_sigma_m() / self.sigma_m) ** 2)
         # T = U_newᵀ U_old carries the stored amplitudes into the new modes; a first table (or one for a new
         # likelihood) carries nothing: T = 0 gives the one-scan prior whatever a filter stored
         table[m + klik.MODE_T:] = 0.0 if host is None else self._amp_scale * (table[:m].T @ host[:m])
