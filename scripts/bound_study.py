@@ -8,7 +8,9 @@ lacks (world seed 2000), the filter told it (``--told``) or learning it; each ro
 check is against the floor. ``--world-refine 1`` builds that world on the map's own posts: its only difference from
 the map is then the error field, which the floor holds exactly; at the scenarios' default (3) the world's finer
 triangles also differ from the map's by 0.1–0.8 m over the rugged tile's scans (correlated over a post), which the
-floor leaves out and the filter's white map error counts, so the floor is optimistic there.
+floor leaves out and the filter's white map error counts, so the floor is optimistic there. The floor bounds the
+error averaged over the field's realisations; the seeds of one world share one field, whose own error is common to
+them: ``--worlds K`` splits the seeds over K realisations (world seeds 2000 …) and gives each world's RMSE too.
 
     python scripts/bound_study.py --scenarios all --seeds 20 --device cuda:0 --json results/bound/bound_study.json
     python scripts/bound_study.py --scenarios S8 S1 --world-error-m 5 --world-corr-m 1000 --told --json out.json
@@ -49,6 +51,9 @@ def main(argv=None) -> int:
     parser.add_argument("--world-refine", type=count_arg, default=None,
                         help="the world's post refinement over the map (1: the map's own posts; default: the "
                              "scenario's)")
+    parser.add_argument("--worlds", type=count_arg, default=1,
+                        help="with --world-error-m: the seeds split over this many realisations of the world's error "
+                             "(world seeds 2000, 2001, …); one world makes every seed's error that one field's")
     parser.add_argument("--told", action="store_true",
                         help="state the world's error to the filter (its RMS, or the bias where larger, over its "
                              "correlation length: the statement has no separate bias)")
@@ -80,10 +85,18 @@ def main(argv=None) -> int:
 
     ids = list(SCENARIO_IDS) if args.scenarios == ["all"] else args.scenarios
     rows = []
+    worlds = args.worlds if world else 1
+    if worlds > args.seeds:
+        parser.error(f"--worlds {worlds} needs at least as many --seeds, got {args.seeds}")
     for sid in ids:
         t0 = time.perf_counter()
-        runs = run_scenario_batch(sid, list(range(args.seeds)), args.device, duration_s=args.duration_s,
-                                  particles=args.particles, bound="exact" if world else True, **world)
+        runs, per_world = [], []
+        for w, seeds in enumerate(np.array_split(np.arange(args.seeds), worlds)):
+            kw = {**world, "world_seed": 2000 + w} if world else world
+            batch = run_scenario_batch(sid, [int(x) for x in seeds], args.device, duration_s=args.duration_s,
+                                       particles=args.particles, bound="exact" if world else True, **kw)
+            runs += batch
+            per_world.append(len(batch))
         first = runs[0]
         sel = first.run.t_s >= first.config.filter.converged_after_s
         mse = np.array([float((r.run.error[sel, :2] ** 2).sum(axis=1).mean()) for r in runs])
@@ -97,6 +110,10 @@ def main(argv=None) -> int:
                "world": world,
                "below_bound_beyond_mc_error": bool(mse.mean() < bound2 - 2.0 * se),
                "per_seed_rmse_horizontal_m": np.sqrt(mse).tolist(), "wall_s": time.perf_counter() - t0}
+        if worlds > 1:  # (each world's seeds in turn, world seeds 2000 on)
+            row["worlds"] = worlds
+            row["rmse_horizontal_per_world_m"] = [float(np.sqrt(part.mean()))
+                                                  for part in np.split(mse, np.cumsum(per_world)[:-1])]
         rows.append(row)
         print(f"{sid}: horizontal RMSE {row['rmse_horizontal_converged_m']:.3g} m, bound "
               f"{row['bound_converged_m']:.3g} m, ratio {row['rmse_over_bound']:.2f}"

@@ -1,6 +1,7 @@
 """The benchmark scripts run end to end (no timing is asserted)."""
 
 import json
+import math
 import runpy
 import subprocess
 import sys
@@ -293,6 +294,29 @@ def test_bound_study_merges_runs_and_draws_how_close_to_the_floor(tmp_path):
     block = readme_tables.floor_block(str(merged))
     assert "| S8 | 5 | 6.00 / 0.300 (20×) | 2.50 / 0.200 (12×) |" in block
     assert "| S1 | 2 | 3.00 / 0.250 (12×) | – |" in block and "1.50–1.50 × the floor" in block
+
+
+@pytest.mark.slow
+def test_bound_study_splits_the_seeds_over_worlds(tmp_path):
+    """`bound_study.py --worlds 2`: four seeds over two realisations of the world's error (world seeds 2000, 2001),
+    the pooled RMSE the root mean of the two worlds' mean squares, the floor beside it; more worlds than seeds is
+    a usage error."""
+    out = tmp_path / "w.json"
+    script = str(ROOT / "scripts" / "bound_study.py")
+    argv = ["--scenarios", "S8", "--duration-s", "30", "--world-error-m", "5", "--world-corr-m", "1000", "--told",
+            "--world-refine", "1", "--worlds", "2"]
+    proc = subprocess.run([sys.executable, script, *argv, "--seeds", "4", "--json", str(out)], capture_output=True,
+                          text=True, timeout=600, cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    row = json.loads(out.read_text())["rows"][0]
+    assert row["worlds"] == 2 and len(row["per_seed_rmse_horizontal_m"]) == 4
+    per_world = np.array(row["rmse_horizontal_per_world_m"])
+    assert len(per_world) == 2 and not np.isclose(per_world[0], per_world[1])
+    assert row["rmse_horizontal_converged_m"] == pytest.approx(math.sqrt(np.mean(per_world**2)), rel=1e-9)
+    assert row["bound"] == "exact floor" and row["bound_converged_m"] > 0
+    bad = subprocess.run([sys.executable, script, *argv[:-2], "--worlds", "3", "--seeds", "2"], capture_output=True,
+                         text=True, timeout=120, cwd=tmp_path)
+    assert bad.returncode == 2 and "--worlds 3 needs at least as many --seeds" in bad.stderr
 
 
 @pytest.mark.slow
