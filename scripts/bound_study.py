@@ -134,14 +134,18 @@ def _sid_key(sid: str) -> int:
 
 
 def merge(paths: list[str], out: str) -> int:
-    """The rows of ``paths`` in one file: each row keeps its run's ``meta`` (commit, machine, command); the file's
-    ``meta`` is the first run's with ``runs``, every run's."""
-    rows, metas = [], []
+    """The rows of ``paths`` in one file: each row keeps its run's ``meta`` (commit, machine, command; a merged
+    file's rows their own), a later file's row replacing an earlier one of the same scenario, world and number of
+    worlds; the file's ``meta`` is the first run's with ``runs``, every run's."""
+    cells, metas = {}, []
     for path in paths:
         with open(path) as fh:
             data = json.load(fh)
-        metas.append(data["meta"])
-        rows += [{**r, "meta": data["meta"]} for r in data["rows"]]
+        metas += data["meta"].get("runs", [data["meta"]])
+        for r in data["rows"]:
+            key = (r["scenario"], json.dumps(r["world"], sort_keys=True), r.get("worlds", 1))
+            cells[key] = {**r, "meta": r.get("meta", data["meta"])}
+    rows = list(cells.values())
     rows.sort(key=lambda r: (_sid_key(r["scenario"]), r["world"].get("world_error_rms_m", 0.0),
                              r["world"].get("world_error_corr_m", 0.0)))
     with open(out, "w") as fh:

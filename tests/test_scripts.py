@@ -290,6 +290,16 @@ def test_bound_study_merges_runs_and_draws_how_close_to_the_floor(tmp_path):
     assert [(r["scenario"], r["world"]["world_error_corr_m"]) for r in data["rows"]] == [
         ("S1", 300.0), ("S8", 300.0), ("S8", 1000.0)]
     assert [r["meta"]["git_commit"] for r in data["rows"]] == ["c1", "c2", "c0"] and len(data["meta"]["runs"]) == 3
+    again = tmp_path / "again.json"  # a merged file merged with a newer run of one of its cells
+    newer = {**json.loads((tmp_path / "run2.json").read_text()), "meta": {"git_commit": "c3", "devices": ["cpu"]}}
+    newer["rows"][0]["rmse_horizontal_converged_m"] = 5.0
+    (tmp_path / "run3.json").write_text(json.dumps(newer))
+    proc = subprocess.run([sys.executable, script, "--merge", str(merged), str(tmp_path / "run3.json"), "--json",
+                           str(again)], capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    rows = json.loads(again.read_text())["rows"]
+    assert [(r["scenario"], r["meta"]["git_commit"], r["rmse_horizontal_converged_m"]) for r in rows] == [
+        ("S1", "c1", 3.0), ("S8", "c3", 5.0), ("S8", "c0", 2.5)]
     assert png.stat().st_size > 10_000
     block = readme_tables.floor_block(str(merged))
     assert "| S8 | 5 | 6.00 / 0.300 (20×) | 2.50 / 0.200 (12×) |" in block
