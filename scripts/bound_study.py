@@ -200,7 +200,7 @@ def plot(path: str, png: str) -> int:
         a.grid(True, which="both", alpha=0.3)
     ax.set_yscale("log")
     ax.set_ylabel("filter's horizontal RMSE / exact floor")
-    ax.set_title("How close to the floor (told the error; 20 seeds each)", fontsize=10)
+    ax.set_title("How close to the floor (told the error; one world, 20 seeds a cell)", fontsize=10)
     bx.set_ylabel("fast per-scan bound / exact floor")
     bx.set_title("The fast bound against the floor", fontsize=10)
     ax.legend(fontsize=7, ncol=3, loc="lower left")

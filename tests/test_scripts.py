@@ -344,7 +344,9 @@ def test_profile_update_host_times_the_pieces_per_segment(tmp_path):
     for r in rows:
         assert len(r["period_ms"]) == 1 and r["updates"] > 10
         update = r["host_us_per_update"]["update"][0]
-        assert 0.0 < update < 1e3 * r["period_ms"][0]
+        assert 0.0 < update * r["updates"] < 1e6 * r["wall_s"]  # (the updates' host time within the run's wall; the
+        # mean period leaves out the first update, which builds the first mode table, so a 2 s flight's mean update
+        # can exceed it)
         assert 0.0 < r["update_median_ms"]["plain"] < r["period_median_ms"]
         assert 0.0 < r["device_ms"]["median"] < r["period_median_ms"]  # (the CPU's launches, within the update)
     assert "_learn_map_error" in rows[1]["host_us_per_update"]

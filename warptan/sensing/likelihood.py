@@ -345,6 +345,8 @@ class Likelihood:
             with one_blas_thread():
                 turned = _turn_sharing(xy, aa, vec_k, lam_k, direction, turn, lags, length, step)
             sharing_att = np.maximum(turned, sharing)
+        dropped = rest / max(float(a @ a), 1e-300)  # the dropped modes' variance a point, per unit σ_e² and gain²
+        kappa_rest = max(1.0 + 2.0 * rest_shared / rest, 1.0) if rest > 0.0 else 1.0  # the scans that share it
         k_one = self.map_error_sigma_m**2 * lam_k / sigma_m**2  # k⁰_i: one scan's
         rho = (sharing - 1.0) / (sharing + 1.0)
         table[:m, :len(keep)] = vec_k.astype(np.float32)
@@ -356,8 +358,7 @@ class Likelihood:
                        "sharing_att": sharing_att.tolist(),
                        "k0": k_one.tolist(), "rho": rho.tolist(),
                        "remainder": float(1.0 - lam_k.sum() / max(lam.sum(), 1e-300)), "offset_var": offset_var,
-                       "truncation_unit": max(1.0 + 2.0 * rest_shared / rest, 1.0) * rest / max(float(a @ a), 1e-300)
-                       if rest > 0.0 else 0.0, "dropped_unit": rest / max(float(a @ a), 1e-300)}
+                       "dropped_unit": dropped, "truncation_unit": dropped * kappa_rest}
 
     def mode_spectrum(self, xy: np.ndarray, sensitivity: np.ndarray, modes: np.ndarray, sigma_m: float,
                       lengths: np.ndarray, absorb_offset: bool = False) -> np.ndarray:

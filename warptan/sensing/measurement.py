@@ -160,8 +160,8 @@ class MeasurementModel:
         self._pending: tuple | None = None  # a mode table built behind the updates (MODES_BEHIND)
         self._no_cloud: wp.array | None = None
         self._amp_scale = 1.0  # the stored amplitudes' factor for the next scan (a new per-point σ whitens them anew)
-        self._truncation_unit = 0.0  # the table's per-point variance for its dropped modes, per unit σ_e² (m² / m²)
-        self._truncation_var = 0.0  # what the per-point variance counts of it (TRUNCATION_MIN, TRUNCATION_MOVE), m²
+        self._truncation_var = 0.0  # what the per-point variance counts of the table's dropped modes (m²;
+        # _count_truncation)
         self.modes_version = 0
         """Bumped whenever the mode table gets new modes (a rebuild; not a rescale: the modes stay)."""
         self._spectrum: tuple | None = None  # ((version, factors), mode_spectrum's array)
@@ -192,7 +192,7 @@ class MeasurementModel:
         self._likelihood = value
         self._modes = None  # rebuilt for the new likelihood at the next stage
         self.modes_info = {"n_modes": 0}
-        self._truncation_unit = self._truncation_var = 0.0  # (the new table's)
+        self._truncation_var = 0.0  # (the new table's)
         self._params = self.params()
         self.generation += 1
 
@@ -233,14 +233,8 @@ class MeasurementModel:
             raise FilterError("restate_map_error needs a likelihood with a stated map error")
         old, old_point = self._likelihood.map_error_sigma_m, self.sigma_m
         if white_m is not None and float(white_m) != self._likelihood.map_sigma_m and self._likelihood.sigma_m is None:
-            statement = self._params.sigma_err
             self._likelihood = dataclasses.replace(self._likelihood, map_sigma_m=float(white_m))
-            self._params = self.params()
-            self._params.sigma_err = statement
-            self._params.n_modes = klik.MAX_MODES
-            self.generation += 1
-            self._amp_scale *= old_point / self.sigma_m
-            self._modes_skip = 0
+            self._whiten_anew(old_point)
         if corr_m is not None and float(corr_m) != self._likelihood.map_error_corr_m:
             self._likelihood = dataclasses.replace(self._likelihood, map_error_sigma_m=float(sigma_m),
                                                    map_error_corr_m=float(corr_m))
@@ -315,11 +309,11 @@ class MeasurementModel:
     re-capture on CUDA)."""
 
     def _count_truncation(self) -> None:
-        """The dropped modes' variance for the statement now (:attr:`_truncation_unit` times ``σ_e²``) into the
-        per-point σ when it is due (:data:`TRUNCATION_MIN`, :data:`TRUNCATION_MOVE`): the kernels' struct rebuilt,
-        the stored amplitudes, whitened by the old σ, carried by ``σ_old / σ_new`` at the next scan."""
+        """The dropped modes' variance for the statement now (the table's ``truncation_unit`` times ``σ_e²``) into the
+        per-point σ when it is due (:data:`TRUNCATION_MIN`, :data:`TRUNCATION_MOVE`; :meth:`_whiten_anew`)."""
         lk = self._likelihood
-        target = lk.map_error_sigma_m**2 * self._truncation_unit if lk.models_map_error else 0.0
+        unit = float(self.modes_info.get("truncation_unit", 0.0))
+        target = lk.map_error_sigma_m**2 * unit if lk.models_map_error else 0.0
         if target < self.TRUNCATION_MIN * self._base_sigma_m() ** 2:
             target = 0.0
         now = self._truncation_var
@@ -327,9 +321,15 @@ class MeasurementModel:
             return
         old_point = self.sigma_m
         self._truncation_var = target
-        statement, n_modes = self._params.sigma_err, self._params.n_modes
+        self._whiten_anew(old_point)
+
+    def _whiten_anew(self, old_point: float) -> None:
+        """After the per-point σ moved from ``old_point`` (a learned white error, the dropped modes' variance): the
+        kernels' struct rebuilt for it (a re-capture; the statement's ``sigma_err`` and the modes kept), and the
+        stored amplitudes, whitened by the old σ, carried by ``σ_old / σ_new`` at the next scan's look."""
+        statement = self._params.sigma_err
         self._params = self.params()
-        self._params.sigma_err, self._params.n_modes = statement, n_modes
+        self._params.sigma_err, self._params.n_modes = statement, klik.MAX_MODES
         self.generation += 1
         self._amp_scale *= old_point / self.sigma_m
         self._modes_skip = 0
@@ -566,10 +566,11 @@ class MeasurementModel:
         table, info = built
         host = self._modes_host
         m = table.shape[0] - klik.MODE_EXTRA_ROWS
-        self._truncation_unit = float(info.get("truncation_unit", 0.0))
+        self.modes_info = {**info, "rebuilds": self.modes_info.get("rebuilds", 0) + 1}
         self._count_truncation()
         if self._truncation_var > 0.0:  # built for the σ without the dropped modes: its variances for the σ with them
             table = self.likelihood.rescale_error_modes(table, m, (self._base_sigma_m() / self.sigma_m) ** 2)
+            self.modes_info["k0"] = table[m + klik.MODE_K0].tolist()
         # T = U_newᵀ U_old carries the stored amplitudes into the new modes; a first table (or one for a new
         # likelihood) carries nothing: T = 0 gives the one-scan prior whatever a filter stored
         table[m + klik.MODE_T:] = 0.0 if host is None else self._amp_scale * (table[:m].T @ host[:m])
@@ -579,7 +580,6 @@ class MeasurementModel:
         self._modes_geometry = geometry
         sens = geometry[2]
         self.modes_version += 1
-        self.modes_info = {**info, "rebuilds": self.modes_info.get("rebuilds", 0) + 1}
         near = np.abs(sens) <= WHITE_MAX_GAIN
         self.mode_reads = ((table[:m][near] ** 2).sum(axis=0) >= 0.5).astype(np.float32)
 
