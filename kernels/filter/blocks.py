@@ -4,7 +4,16 @@ resampling, the update's head and tail."""
 import warp as wp
 
 from warptan.kernels.block import block_sync, on_cuda
-from warptan.kernels.filter.common import N_CHUNKS, N_TEMPER, ST_REMAIN, ST_RESPREAD, WARP_LANES, UpdateParams, vec12
+from warptan.kernels.filter.common import (
+    N_CHUNKS,
+    N_TEMPER,
+    ST_REMAIN,
+    ST_RESAMPLE,
+    ST_RESPREAD,
+    WARP_LANES,
+    UpdateParams,
+    vec12,
+)
 from warptan.kernels.filter.integrity import integrity_step, respread_particle
 from warptan.kernels.filter.moves import move_particle, nominal_pose, pose_at, pose_of_particle
 from warptan.kernels.filter.record import (
@@ -14,7 +23,16 @@ from warptan.kernels.filter.record import (
     summary_partial,
     update_covariance_lanes,
 )
-from warptan.kernels.filter.resampling import ancestor, cdf_chunk, cdf_partial, copy_particle, gather, gathered
+from warptan.kernels.filter.resampling import (
+    ancestor,
+    cdf_chunk,
+    cdf_partial,
+    copy_particle,
+    gather,
+    gathered,
+    modes_finalize,
+    modes_variance,
+)
 from warptan.kernels.filter.tempering import begin_stats, temper_ess_lanes, temper_search, temper_select
 from warptan.kernels.filter.weights import (
     add_loglik_partial,
@@ -24,6 +42,7 @@ from warptan.kernels.filter.weights import (
     normalize_weight,
     weight_stats,
 )
+from warptan.kernels.likelihood import modes_vec
 
 wp.set_module_options({"enable_backward": False})
 
@@ -69,6 +88,34 @@ def put_particle(i: int, d: wp.vec3, lm: vec12, lw: float, p_nom: wp.vec3d, q_no
     quat_out[i] = q
 
 
+@wp.func
+def gather_modes_lanes(b: int, lane: int, n_per: int, ancestors: wp.array(dtype=wp.int32),
+                       values: wp.array(dtype=modes_vec), spare: wp.array(dtype=modes_vec)):
+    """``values[i] ← values[ancestors[i]]`` for filter b's particles over the lanes of its block (every lane must call
+    it): up to two a lane wait in registers for the barrier, more go through ``spare`` (the CPU's one-thread block)."""
+    bd = wp.block_dim()
+    if n_per <= 2 * bd:
+        i0 = b * n_per + lane
+        i1 = i0 + bd
+        v0 = modes_vec()
+        v1 = modes_vec()
+        if lane < n_per:
+            v0 = values[ancestors[i0]]
+        if lane + bd < n_per:
+            v1 = values[ancestors[i1]]
+        block_sync()
+        if lane < n_per:
+            values[i0] = v0
+        if lane + bd < n_per:
+            values[i1] = v1
+    else:
+        for k in range(lane, n_per, bd):
+            spare[b * n_per + k] = values[ancestors[b * n_per + k]]
+        block_sync()
+        for k in range(lane, n_per, bd):
+            values[b * n_per + k] = spare[b * n_per + k]
+
+
 @wp.kernel(cuda_max_registers=STAGE_MAX_REGISTERS)
 def stage_block_kernel(
     n_per: int,
@@ -109,6 +156,11 @@ def stage_block_kernel(
     logw_spare: wp.array(dtype=wp.float32),
     pos_out: wp.array(dtype=wp.vec3),
     quat_out: wp.array(dtype=wp.vec4),
+    with_modes: int,
+    mode_mean: wp.array(dtype=modes_vec),
+    mode_post: wp.array(dtype=modes_vec),
+    mode_mean_spare: wp.array(dtype=modes_vec),
+    mode_post_spare: wp.array(dtype=modes_vec),
     more: wp.array(dtype=wp.int32),
 ):
     """One tempering stage of filter b after :data:`temper_partials_kernel`, and its resampling, in one CUDA block
@@ -121,7 +173,10 @@ def stage_block_kernel(
       :data:`weight_stats_kernel`, :data:`normalize_weights_kernel` and (``kalman``) :data:`kalman_update_kernel`;
     * the resampling (the filters whose statistics say so; the others keep their particles):
       :data:`cdf_partials_kernel`, :data:`cdf_kernel`, :data:`ancestors_kernel`, :data:`gather_kernel` (into the
-      spare arrays), :data:`copy_particles_kernel` (back);
+      spare arrays), :data:`copy_particles_kernel` (back), and with ``with_modes`` in a filter that resampled
+      :data:`gather_modes_kernel` and :data:`copy_modes_kernel` (:func:`gather_modes_lanes`): the modes' prior means,
+      and their posteriors only at the filter's last stage (a later stage's model writes every particle's anew; the
+      same result);
     * what the next stage would launch before its model: the particles' poses (:data:`particle_poses_kernel`) and,
       when the filter has exponent left, ``more[stage + 1] = 1`` (the next stage's flag; :data:`advance_slot_kernel`
       or the record block clears the flags at the update's end).
@@ -196,6 +251,13 @@ def stage_block_kernel(
         for k in range(lane, n_per, bd):
             copy_particle(b * n_per + k, dp_spare, lin_spare, logw_spare, dp, lin, logw)
             pose_of_particle(b * n_per + k, n_per, pose, dp, lin, pos_out, quat_out)
+    if with_modes != 0 and stats[b, ST_RESAMPLE] != wp.float64(0.0):  # (the same for every lane of the block)
+        # the modes' prior means follow the particles; their posteriors only at the filter's last stage (a later
+        # stage's model writes every particle's anew)
+        last = last_stage != 0 or stats[b, ST_REMAIN] <= wp.float64(0.0)
+        gather_modes_lanes(b, lane, n_per, ancestors, mode_mean, mode_mean_spare)
+        if last:
+            gather_modes_lanes(b, lane, n_per, ancestors, mode_post, mode_post_spare)
     if lane == 0 and stats[b, ST_REMAIN] > wp.float64(0.0):
         more[stage + 1] = 1
 
@@ -289,11 +351,19 @@ def record_block_kernel(
     p_hist: wp.array3d(dtype=wp.float64),
     dp: wp.array(dtype=wp.vec3),
     lin: wp.array(dtype=vec12),
+    with_modes: int,
+    m: int,
+    table: wp.array(dtype=modes_vec),
+    mode_post: wp.array(dtype=modes_vec),
+    mode_var: wp.array(dtype=modes_vec),
+    mode_mean: wp.array(dtype=modes_vec),
     more: wp.array(dtype=wp.int32),
 ):
     """The record and feedback of filter b in one CUDA block (:data:`RECORD_BLOCK_DIM` lanes, so the block sum is
-    :data:`summary_kernel`'s): with ``with_integrity`` first :data:`integrity_block_kernel`'s work (when no map-error
-    mode runs between them: one graph node fewer), then :func:`summary_partial` (lane per chunk),
+    :data:`summary_kernel`'s): with ``with_integrity`` first :data:`integrity_block_kernel`'s work (one graph node
+    fewer), with ``with_modes`` then the map-error modes' prior for the next scan (:data:`modes_finalize_kernel` over
+    the lanes, a barrier, :data:`modes_variance_kernel` on lane 0: the modes need the re-spread's decision, the
+    record none of theirs), then :func:`summary_partial` (lane per chunk),
     :func:`record_summary`, :func:`update_covariance_lanes` and in closed loop :func:`reset_particle`, barriers
     between (:data:`summary_partials_kernel`, :data:`summary_kernel`, :data:`covariance_update_kernel`,
     :data:`reset_kernel`: the same bits). With ``advance`` (one filter: no other block reads the slot) lane 0 then
@@ -304,6 +374,12 @@ def record_block_kernel(
     if with_integrity != 0:  # (the same for every lane of the block: its barriers are reached by all)
         integrity_lanes(b, lane, n_per, offset, seeds, params, stats, integrity, kernel_chol, dp, logw)
         block_sync()
+    if with_modes != 0:
+        for k in range(lane, n_per, bd):
+            modes_finalize(b * n_per + k, n_per, m, table, stats, mode_post, mode_var, mode_mean)
+        block_sync()
+        if lane == 0:
+            modes_variance(b, m, table, stats, mode_var)
     for c in range(lane, N_CHUNKS, bd):
         summary_partial(b, c, n_per, logw, dp, lin, summary_sums)
     block_sync()

@@ -228,24 +228,37 @@ def copy_particles_kernel(dp_in: wp.array(dtype=wp.vec3), lin_in: wp.array(dtype
     copy_particle(i, dp_in, lin_in, logw_in, dp_out, lin_out, logw_out)
 
 
-@wp.kernel
-def gather_modes_kernel(ancestors: wp.array(dtype=wp.int32), mean_in: wp.array(dtype=modes_vec),
-                        post_in: wp.array(dtype=modes_vec), mean_out: wp.array(dtype=modes_vec),
-                        post_out: wp.array(dtype=modes_vec)):
+@wp.func
+def gather_modes(i: int, ancestors: wp.array(dtype=wp.int32), mean_in: wp.array(dtype=modes_vec),
+                 post_in: wp.array(dtype=modes_vec), mean_out: wp.array(dtype=modes_vec),
+                 post_out: wp.array(dtype=modes_vec)):
     """Slot i takes its ancestor's map-error mode amplitudes: the prior it was weighted with and its posterior (the
     map error under a hypothesis belongs to the hypothesis)."""
-    i = wp.tid()
     a = ancestors[i]
     mean_out[i] = mean_in[a]
     post_out[i] = post_in[a]
 
 
+@wp.func
+def copy_modes(i: int, mean_in: wp.array(dtype=modes_vec), post_in: wp.array(dtype=modes_vec),
+               mean_out: wp.array(dtype=modes_vec), post_out: wp.array(dtype=modes_vec)):
+    mean_out[i] = mean_in[i]
+    post_out[i] = post_in[i]
+
+
+@wp.kernel
+def gather_modes_kernel(ancestors: wp.array(dtype=wp.int32), mean_in: wp.array(dtype=modes_vec),
+                        post_in: wp.array(dtype=modes_vec), mean_out: wp.array(dtype=modes_vec),
+                        post_out: wp.array(dtype=modes_vec)):
+    """:func:`gather_modes`, one thread per slot."""
+    gather_modes(wp.tid(), ancestors, mean_in, post_in, mean_out, post_out)
+
+
 @wp.kernel
 def copy_modes_kernel(mean_in: wp.array(dtype=modes_vec), post_in: wp.array(dtype=modes_vec),
                       mean_out: wp.array(dtype=modes_vec), post_out: wp.array(dtype=modes_vec)):
-    i = wp.tid()
-    mean_out[i] = mean_in[i]
-    post_out[i] = post_in[i]
+    """:func:`copy_modes`, one thread per slot."""
+    copy_modes(wp.tid(), mean_in, post_in, mean_out, post_out)
 
 
 @wp.kernel
@@ -260,8 +273,9 @@ def keep_done_modes_kernel(n_per: int, stats: wp.array2d(dtype=wp.float64), held
         post[i] = held[i]
 
 
-@wp.kernel
-def modes_finalize_kernel(
+@wp.func
+def modes_finalize(
+    i: int,
     n_per: int,
     m: int,
     table: wp.array(dtype=modes_vec),
@@ -270,10 +284,9 @@ def modes_finalize_kernel(
     var: wp.array(dtype=modes_vec),
     mean: wp.array(dtype=modes_vec),
 ):
-    """After an update (and a re-spread): each particle's map-error mode amplitudes for the next scan. Applied: the
+    """After an update (and a re-spread): particle i's map-error mode amplitudes for the next scan. Applied: the
     model's ``ρ_i q_i`` (:func:`warptan.kernels.likelihood.mode_post`); skipped: the prediction alone (``μ ← ρ T
-    μ``); re-spread: zero. Before :func:`modes_variance_kernel` (it reads the filter's variances unchanged)."""
-    i = wp.tid()
+    μ``); re-spread: zero. Before :func:`modes_variance` (it reads the filter's variances unchanged)."""
     b = i // n_per
     if stats[b, ST_RESPREAD] != wp.float64(0.0):
         mean[i] = modes_vec()
@@ -285,13 +298,26 @@ def modes_finalize_kernel(
 
 
 @wp.kernel
-def modes_variance_kernel(m: int, table: wp.array(dtype=modes_vec), stats: wp.array2d(dtype=wp.float64),
-                          var: wp.array(dtype=modes_vec)):
+def modes_finalize_kernel(
+    n_per: int,
+    m: int,
+    table: wp.array(dtype=modes_vec),
+    stats: wp.array2d(dtype=wp.float64),
+    post: wp.array(dtype=modes_vec),
+    var: wp.array(dtype=modes_vec),
+    mean: wp.array(dtype=modes_vec),
+):
+    """:func:`modes_finalize`, one thread per particle."""
+    modes_finalize(wp.tid(), n_per, m, table, stats, post, var, mean)
+
+
+@wp.func
+def modes_variance(b: int, m: int, table: wp.array(dtype=modes_vec), stats: wp.array2d(dtype=wp.float64),
+                   var: wp.array(dtype=modes_vec)):
     """Filter b's variances of its mode amplitudes for the next scan: applied, ``P_i ← ρ_i² P⁻_i / (1 + P⁻_i) + (1 −
     ρ_i²) k⁰_i`` (the Kalman update of independent modes of unit noise, then a first-order step along the track);
     skipped, the step alone; re-spread (or none yet and skipped): none (negative: the next scan starts from the
     one-scan prior ``k⁰``)."""
-    b = wp.tid()
     skipped = stats[b, ST_SKIP] != wp.float64(0.0)
     if stats[b, ST_RESPREAD] != wp.float64(0.0) or (skipped and var[b][0] < 0.0):
         var[b] = modes_vec(-1.0)
@@ -307,6 +333,12 @@ def modes_variance_kernel(m: int, table: wp.array(dtype=modes_vec), stats: wp.ar
         v[k] = rho[k] * rho[k] * after + (1.0 - rho[k] * rho[k]) * k0[k]
     var[b] = v
 
+
+@wp.kernel
+def modes_variance_kernel(m: int, table: wp.array(dtype=modes_vec), stats: wp.array2d(dtype=wp.float64),
+                          var: wp.array(dtype=modes_vec)):
+    """:func:`modes_variance`, one thread per filter."""
+    modes_variance(wp.tid(), m, table, stats, var)
 
 MOMENTS_LEN = 6
 """Columns of :func:`map_error_moments_kernel`'s output: Σ w, the weighted mean NIS, the mean ratio of the data-ruled

@@ -270,6 +270,7 @@ class MarginalizedParticleFilter(ImuIntake, Readout):
         self.closed_loop = bool(c.closed_loop)
         self._no_info: tuple[wp.array, wp.array] | None = None
         self._no_pos_info: wp.array | None = None
+        self._no_mode_arrays: wp.array | None = None
         self.graph = self.device.is_cuda if graph is None else bool(graph)
         self._block_stages = True  # a stage and its resampling as one block per filter (same bits; program.py)
         # the update's head and tail fused, the stages' conditionals nested (same bits; the CPU runs it in

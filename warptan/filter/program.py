@@ -232,7 +232,7 @@ class UpdateProgram:
                    outputs=[self._temper_partials, self._unpred_partials, self._temper_ess, self._chunk_max,
                             self._chunk_counts, self._chunk_min_nis, self._chunk_sums, self._stats,
                             self._kernel_chol, self._cdf_sums, self._cdf, self._ancestors, st.dp, st.lin, st.logw,
-                            sp.dp, sp.lin, sp.logw, self._pos, self._quat, self._more_stages],
+                            sp.dp, sp.lin, sp.logw, self._pos, self._quat, *self._mode_arrays(), self._more_stages],
                    block_dim=kmpf.STAGE_BLOCK_DIM, device=d)
             return
         if not d.is_cpu:
@@ -295,7 +295,7 @@ class UpdateProgram:
                    st.dp, st.lin, st.logw], outputs=[sp.dp, sp.lin, sp.logw], device=d)
             launch(kmpf.copy_particles_kernel, dim=b * n, inputs=[sp.dp, sp.lin, sp.logw],
                    outputs=[st.dp, st.lin, st.logw], device=d)
-        if self._mode_table() is not None:
+        if self._mode_table() is not None and not self._block_stages:
             post, spare = self._out.mode_post, self._mode_spare
             launch(kmpf.gather_modes_kernel, dim=b * n, inputs=[self._ancestors, self._mode_mean, post],
                    outputs=list(spare), device=d)
@@ -305,6 +305,18 @@ class UpdateProgram:
         """The model's map-error mode table when its likelihood states a map error (else None: no mode state)."""
         table = getattr(self.model, "mode_table", None)
         return table if table is not None and self.model.likelihood.models_map_error else None
+
+    def _mode_arrays(self) -> tuple:
+        """The block kernels' map-error mode arguments: (1, the particles' stored means, the model's posteriors, their
+        two spare arrays) when the model states a map error, else (0, four one-element placeholders)."""
+        if self._mode_table() is not None:
+            return 1, self._mode_mean, self._out.mode_post, *self._mode_spare
+        return 0, *(self._no_modes(),) * 4
+
+    def _no_modes(self) -> wp.array:
+        if self._no_mode_arrays is None:
+            self._no_mode_arrays = wp.zeros(1, dtype=klik.modes_vec, device=self.device)
+        return self._no_mode_arrays
 
     def _launch_modes(self) -> None:
         """The particles' map-error mode prior for the next scan (after the integrity monitor's re-spread)."""
@@ -460,19 +472,19 @@ class UpdateProgram:
             return
         d, b, n, st, nav = self.device, self.n_filters, self.n, self.state, self._nav
         offset, seeds = 2 * n * self.max_stages, self._dev["resample_seeds"]
-        modes = self._mode_table() is not None  # (the modes run between the integrity monitor and the record)
-        if modes:
-            launch(kmpf.integrity_block_kernel, dim=[b], inputs=[n, offset, seeds, self.params, self._stats],
-                   outputs=[self._integrity, self._kernel_chol, st.dp, st.logw], block_dim=kmpf.RECORD_BLOCK_DIM,
-                   device=d)
-            self._launch_modes()
+        table = self._mode_table()  # (the modes run in the block between the integrity monitor and the record)
+        if table is None:
+            modes = (0, 0, self._no_modes(), self._no_modes(), self._no_modes(), self._no_modes())
+        else:
+            modes = (1, table.shape[0] - klik.MODE_EXTRA_ROWS, table, self._out.mode_post, self._mode_var,
+                     self._mode_mean)
         one = int(b == 1)  # (one filter: its block ends the update, no launch of its own)
         launch(kmpf.record_block_kernel, dim=[b],
-               inputs=[n, self.params, int(self.measurement_update), int(self.closed_loop), int(not modes), offset,
-                       one, seeds, self._kernel_chol, st.logw, self._stats, self._integrity, self._slot],
+               inputs=[n, self.params, int(self.measurement_update), int(self.closed_loop), 1, offset, one, seeds,
+                       self._kernel_chol, st.logw, self._stats, self._integrity, self._slot],
                outputs=[self._summary_sums, self._history, self._feedback, nav["cov"], nav["pos"], nav["vel"],
                         nav["quat"], nav["ba"], nav["bg"], self._injections, self._nominal_hist, self._p_hist, st.dp,
-                        st.lin, self._more_stages], block_dim=kmpf.RECORD_BLOCK_DIM, device=d)
+                        st.lin, *modes, self._more_stages], block_dim=kmpf.RECORD_BLOCK_DIM, device=d)
         if not one:
             launch(kmpf.advance_slot_kernel, dim=1, inputs=[self._slot], outputs=[self._more_stages], device=d)
 
