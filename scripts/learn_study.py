@@ -35,8 +35,10 @@ FAMILIES = {
     "clutter": {"world_error_rms_m": 3.0, "world_error_corr_m": 1000.0, "world_clutter_height_m": 8.0,
                 "world_clutter_fraction": 0.2},
     "exact": {},
+    "posts": {"world_error_rms_m": 5.0, "world_error_corr_m": 1000.0, "world_refine": 1},
 }
-"""World generator settings per family; ``exact``: the map is the world (a statement there is over-stated)."""
+"""World generator settings per family; ``exact``: the map is the world (a statement there is over-stated); ``posts``:
+the world on the map's own posts (nothing between them the map lacks) with a smooth error."""
 MISSTATED = {"rms-half": (0.5, 1.0), "rms-double": (2.0, 1.0), "corr-third": (1.0, 1.0 / 3.0),
              "corr-triple": (1.0, 3.0)}
 """Misstated modes: (factor on the RMS, factor on the correlation length) of the family's own error."""

@@ -298,15 +298,9 @@ def modes_finalize(
 
 
 @wp.kernel
-def modes_finalize_kernel(
-    n_per: int,
-    m: int,
-    table: wp.array(dtype=modes_vec),
-    stats: wp.array2d(dtype=wp.float64),
-    post: wp.array(dtype=modes_vec),
-    var: wp.array(dtype=modes_vec),
-    mean: wp.array(dtype=modes_vec),
-):
+def modes_finalize_kernel(n_per: int, m: int, table: wp.array(dtype=modes_vec), stats: wp.array2d(dtype=wp.float64),
+                          post: wp.array(dtype=modes_vec), var: wp.array(dtype=modes_vec),
+                          mean: wp.array(dtype=modes_vec)):
     """:func:`modes_finalize`, one thread per particle."""
     modes_finalize(wp.tid(), n_per, m, table, stats, post, var, mean)
 
