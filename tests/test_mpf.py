@@ -645,10 +645,12 @@ def test_block_forms_equal_the_separate_kernels(device, rugged, monkeypatch, mod
     """The fused forms of an update give bit-identical runs to its pieces launched one by one, eagerly and replayed
     from a graph: a tempering stage with its resampling as one block per filter (``stage_block_kernel``: the default;
     on the CPU it searches the candidates itself) and the lean update (the CUDA default: ``move_pose_kernel``,
-    ``integrity_block_kernel``, ``record_block_kernel``, nested stage conditionals). On the CPU a block is one thread
-    doing every piece in order, on CUDA its lanes share them between barriers. A stated map error adds the map-error
-    modes between the integrity monitor and the record."""
-    truth = Trajectory.build([Straight(3.0)], 100.0, [-3000.0, 0.0, -(rugged.h_max + 600.0)])
+    ``record_block_kernel``, nested stage conditionals). On the CPU a block is one thread doing every piece in order,
+    on CUDA its lanes share them between barriers. A stated map error adds the map-error modes to both blocks (their
+    gather after a resampling, their prior for the next scan between the integrity monitor and the record). The
+    flight is long enough (8 s) for the integrity monitor's verdict to open the Kalman update's gate: an integrity
+    monitor left out of a fused form then changes the run."""
+    truth = Trajectory.build([Straight(8.0)], 100.0, [-3000.0, 0.0, -(rugged.h_max + 600.0)])
     model = wt.make_model(model_name, rugged, wt.Likelihood("gaussian", **(STATED_ERROR if stated else {})))
     sensor = None if model_name == "altimeter" else wt.PointCloudSensor(wt.ScanPattern.grid(5, 5, 30.0))
     init = MarginalizedParticleFilter.__init__

@@ -61,8 +61,8 @@ STAGE_MAX_REGISTERS = 128
 """Registers a thread of :data:`stage_block_kernel` may hold on CUDA (``__maxnreg__``): 65 536 a multiprocessor over
 :data:`STAGE_BLOCK_DIM` = 512 lanes. The bits are those of the uncapped kernel (CUDA digest identical)."""
 RECORD_BLOCK_DIM = 64
-"""Threads of the blocks that run one filter's integrity monitor and record on CUDA (:data:`integrity_block_kernel`,
-:data:`record_block_kernel`): one lane per chunk (``N_CHUNKS``); the summary's sum over the chunks is the first warp's,
+"""Threads of the block that runs one filter's integrity monitor, map-error modes and record on CUDA
+(:data:`record_block_kernel`): one lane per chunk (``N_CHUNKS``); the summary's sum over the chunks is the first warp's,
 as in :data:`summary_kernel`."""
 
 TEMPER_BLOCK_DIM = 32
@@ -304,31 +304,11 @@ def integrity_lanes(b: int, lane: int, n_per: int, offset: int, seeds: wp.array(
 
 
 @wp.kernel
-def integrity_block_kernel(
-    n_per: int,
-    offset: int,
-    seeds: wp.array(dtype=wp.int32),
-    params: UpdateParams,
-    stats: wp.array2d(dtype=wp.float64),
-    integrity: wp.array2d(dtype=wp.float64),
-    kernel_chol: wp.array(dtype=wp.mat33),
-    dp: wp.array(dtype=wp.vec3),
-    logw: wp.array(dtype=wp.float32),
-):
-    """The integrity monitor of filter b in one CUDA block (:data:`RECORD_BLOCK_DIM` lanes): :func:`integrity_step`
-    (lane 0), a barrier, :func:`respread_particle` (:data:`integrity_kernel` + :data:`respread_kernel`, the same
-    bits)."""
-    b, lane = wp.tid()
-    integrity_lanes(b, lane, n_per, offset, seeds, params, stats, integrity, kernel_chol, dp, logw)
-
-
-@wp.kernel
 def record_block_kernel(
     n_per: int,
     params: UpdateParams,
     measurement_update: int,
     closed_loop: int,
-    with_integrity: int,
     offset: int,
     advance: int,
     seeds: wp.array(dtype=wp.int32),
@@ -360,10 +340,10 @@ def record_block_kernel(
     more: wp.array(dtype=wp.int32),
 ):
     """The record and feedback of filter b in one CUDA block (:data:`RECORD_BLOCK_DIM` lanes, so the block sum is
-    :data:`summary_kernel`'s): with ``with_integrity`` first :data:`integrity_block_kernel`'s work (one graph node
-    fewer), with ``with_modes`` then the map-error modes' prior for the next scan (:data:`modes_finalize_kernel` over
-    the lanes, a barrier, :data:`modes_variance_kernel` on lane 0: the modes need the re-spread's decision, the
-    record none of theirs), then :func:`summary_partial` (lane per chunk),
+    :data:`summary_kernel`'s): first the integrity monitor (:func:`integrity_lanes`: :data:`integrity_kernel` and
+    :data:`respread_kernel`), with ``with_modes`` then the map-error modes' prior for the next scan
+    (:data:`modes_finalize_kernel` over the lanes, a barrier, :data:`modes_variance_kernel` on lane 0: the modes need
+    the re-spread's decision, the record none of theirs), then :func:`summary_partial` (lane per chunk),
     :func:`record_summary`, :func:`update_covariance_lanes` and in closed loop :func:`reset_particle`, barriers
     between (:data:`summary_partials_kernel`, :data:`summary_kernel`, :data:`covariance_update_kernel`,
     :data:`reset_kernel`: the same bits). With ``advance`` (one filter: no other block reads the slot) lane 0 then
@@ -371,10 +351,9 @@ def record_block_kernel(
     (:data:`advance_slot_kernel`, after every filter's record)."""
     b, lane = wp.tid()
     bd = wp.block_dim()
-    if with_integrity != 0:  # (the same for every lane of the block: its barriers are reached by all)
-        integrity_lanes(b, lane, n_per, offset, seeds, params, stats, integrity, kernel_chol, dp, logw)
-        block_sync()
-    if with_modes != 0:
+    integrity_lanes(b, lane, n_per, offset, seeds, params, stats, integrity, kernel_chol, dp, logw)
+    block_sync()
+    if with_modes != 0:  # (the same for every lane of the block: its barrier is reached by all)
         for k in range(lane, n_per, bd):
             modes_finalize(b * n_per + k, n_per, m, table, stats, mode_post, mode_var, mode_mean)
         block_sync()

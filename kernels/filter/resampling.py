@@ -228,37 +228,25 @@ def copy_particles_kernel(dp_in: wp.array(dtype=wp.vec3), lin_in: wp.array(dtype
     copy_particle(i, dp_in, lin_in, logw_in, dp_out, lin_out, logw_out)
 
 
-@wp.func
-def gather_modes(i: int, ancestors: wp.array(dtype=wp.int32), mean_in: wp.array(dtype=modes_vec),
-                 post_in: wp.array(dtype=modes_vec), mean_out: wp.array(dtype=modes_vec),
-                 post_out: wp.array(dtype=modes_vec)):
+@wp.kernel
+def gather_modes_kernel(ancestors: wp.array(dtype=wp.int32), mean_in: wp.array(dtype=modes_vec),
+                        post_in: wp.array(dtype=modes_vec), mean_out: wp.array(dtype=modes_vec),
+                        post_out: wp.array(dtype=modes_vec)):
     """Slot i takes its ancestor's map-error mode amplitudes: the prior it was weighted with and its posterior (the
-    map error under a hypothesis belongs to the hypothesis)."""
+    map error under a hypothesis belongs to the hypothesis). The separate-kernel form; the stage block gathers them
+    itself (:func:`~warptan.kernels.filter.blocks.gather_modes_lanes`)."""
+    i = wp.tid()
     a = ancestors[i]
     mean_out[i] = mean_in[a]
     post_out[i] = post_in[a]
 
 
-@wp.func
-def copy_modes(i: int, mean_in: wp.array(dtype=modes_vec), post_in: wp.array(dtype=modes_vec),
-               mean_out: wp.array(dtype=modes_vec), post_out: wp.array(dtype=modes_vec)):
-    mean_out[i] = mean_in[i]
-    post_out[i] = post_in[i]
-
-
-@wp.kernel
-def gather_modes_kernel(ancestors: wp.array(dtype=wp.int32), mean_in: wp.array(dtype=modes_vec),
-                        post_in: wp.array(dtype=modes_vec), mean_out: wp.array(dtype=modes_vec),
-                        post_out: wp.array(dtype=modes_vec)):
-    """:func:`gather_modes`, one thread per slot."""
-    gather_modes(wp.tid(), ancestors, mean_in, post_in, mean_out, post_out)
-
-
 @wp.kernel
 def copy_modes_kernel(mean_in: wp.array(dtype=modes_vec), post_in: wp.array(dtype=modes_vec),
                       mean_out: wp.array(dtype=modes_vec), post_out: wp.array(dtype=modes_vec)):
-    """:func:`copy_modes`, one thread per slot."""
-    copy_modes(wp.tid(), mean_in, post_in, mean_out, post_out)
+    i = wp.tid()
+    mean_out[i] = mean_in[i]
+    post_out[i] = post_in[i]
 
 
 @wp.kernel
@@ -333,6 +321,7 @@ def modes_variance_kernel(m: int, table: wp.array(dtype=modes_vec), stats: wp.ar
                           var: wp.array(dtype=modes_vec)):
     """:func:`modes_variance`, one thread per filter."""
     modes_variance(wp.tid(), m, table, stats, var)
+
 
 MOMENTS_LEN = 6
 """Columns of :func:`map_error_moments_kernel`'s output: Σ w, the weighted mean NIS, the mean ratio of the data-ruled

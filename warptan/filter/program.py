@@ -311,12 +311,13 @@ class UpdateProgram:
         two spare arrays) when the model states a map error, else (0, four one-element placeholders)."""
         if self._mode_table() is not None:
             return 1, self._mode_mean, self._out.mode_post, *self._mode_spare
-        return 0, *(self._no_modes(),) * 4
+        return 0, *self._no_modes()
 
-    def _no_modes(self) -> wp.array:
+    def _no_modes(self) -> tuple[wp.array, ...]:
+        """Four one-element placeholders for a block kernel's mode arrays (no map error stated: unread)."""
         if self._no_mode_arrays is None:
             self._no_mode_arrays = wp.zeros(1, dtype=klik.modes_vec, device=self.device)
-        return self._no_mode_arrays
+        return (self._no_mode_arrays,) * 4
 
     def _launch_modes(self) -> None:
         """The particles' map-error mode prior for the next scan (after the integrity monitor's re-spread)."""
@@ -473,14 +474,11 @@ class UpdateProgram:
         d, b, n, st, nav = self.device, self.n_filters, self.n, self.state, self._nav
         offset, seeds = 2 * n * self.max_stages, self._dev["resample_seeds"]
         table = self._mode_table()  # (the modes run in the block between the integrity monitor and the record)
-        if table is None:
-            modes = (0, 0, self._no_modes(), self._no_modes(), self._no_modes(), self._no_modes())
-        else:
-            modes = (1, table.shape[0] - klik.MODE_EXTRA_ROWS, table, self._out.mode_post, self._mode_var,
-                     self._mode_mean)
+        modes = (0, 0, *self._no_modes()) if table is None else (
+            1, table.shape[0] - klik.MODE_EXTRA_ROWS, table, self._out.mode_post, self._mode_var, self._mode_mean)
         one = int(b == 1)  # (one filter: its block ends the update, no launch of its own)
         launch(kmpf.record_block_kernel, dim=[b],
-               inputs=[n, self.params, int(self.measurement_update), int(self.closed_loop), 1, offset, one, seeds,
+               inputs=[n, self.params, int(self.measurement_update), int(self.closed_loop), offset, one, seeds,
                        self._kernel_chol, st.logw, self._stats, self._integrity, self._slot],
                outputs=[self._summary_sums, self._history, self._feedback, nav["cov"], nav["pos"], nav["vel"],
                         nav["quat"], nav["ba"], nav["bg"], self._injections, self._nominal_hist, self._p_hist, st.dp,
