@@ -1300,3 +1300,43 @@ def test_the_sliding_model_whitens_by_one_sigma_under_the_modes(scan, device):
     expected = -0.5 * ((z**2).sum(axis=1) - (c * (z @ table[:m]) ** 2).sum(axis=1))
     got = out.loglik.numpy().astype(np.float64)[keep]
     np.testing.assert_allclose(got - got[0], expected - expected[0], rtol=1e-3, atol=1e-3 * np.abs(expected).max())
+
+
+def test_the_modes_follow_the_ground_points_as_measured():
+    """Under a stated map error a point-cloud model moves its table's modes to each scan's ground points as measured
+    (``_place_modes``): the eigenvectors of ``P R P`` at those points
+    (NumPy float64 oracle: the leading modes' span and one-scan variances ``σ_e² λ_i / σ²``), the attitude's weights
+    are ``κ k⁰ / (1 + κ k⁰)`` with κ at least a ground point's sharing, and the points over hills are not the nominal
+    footprint (the table's own, every ray meeting the median ground level)."""
+    from warptan.nav.frames import euler_to_quat
+
+    dem = wt.Terrain.load("rugged")
+    lk = wt.Likelihood("gaussian", sensor_sigma_m=0.5, **STATED)
+    model = wt.make_model("sliding", dem, lk, surface=True)
+    model.PLACE_MODES = True
+    sensor = wt.PointCloudSensor(wt.ScanPattern.grid(10, 10, 30.0), range_sigma_m=0.5)
+    pos = np.array([0.0, 0.0, -(dem.height_at(0.0, 0.0) + 700.0)])
+    quat = euler_to_quat(0.05, -0.03, 0.4)
+    cloud = sensor.measure(dem, pos, quat, np.random.default_rng(0))
+    for _ in range(2):  # (the second scan: the table's modes placed, not built anew)
+        model.stage(cloud, wp.array(np.tile(pos, (4, 1)), dtype=wp.vec3),
+                    wp.array(np.tile(quat, (4, 1)), dtype=wp.vec4), attitude=quat)
+    table = model.mode_table.numpy().astype(np.float64)
+    m, n = len(cloud.ranges_m), model.modes_info["n_modes"]
+    u_nav = np.asarray(cloud.dirs_s, dtype=np.float64) @ quat_to_mat(quat).T
+    xy = (u_nav * np.asarray(cloud.ranges_m, dtype=np.float64)[:, None])[:, :2]
+    assert np.abs(xy - model._modes_geometry[0]).max() > 20.0  # (the hills moved the points off the nominal places)
+    d2 = np.sum((xy[:, None] - xy[None]) ** 2, axis=2)
+    o = np.full(m, 1.0 / math.sqrt(m))
+    proj = np.eye(m) - np.outer(o, o)
+    lam, vec = np.linalg.eigh(proj @ np.exp(-d2 / 1000.0**2) @ proj)
+    lam, vec = lam[::-1][:n], vec[:, ::-1][:, :n]
+    u = table[:m, :n]
+    lead = 8  # (the leading modes: well separated, converged)
+    np.testing.assert_allclose(table[m + klik.MODE_K0, :lead], 25.0 * lam[:lead] / model.sigma_m**2, rtol=1e-3)
+    np.testing.assert_allclose(np.linalg.svd(vec[:, :lead].T @ u[:, :lead])[1], 1.0, atol=1e-4)  # one span
+    kappa = np.maximum(np.array(model._nominal[2]), lk.point_sharing())
+    assert np.all(kappa >= lk.point_sharing()) and lk.point_sharing() > 150.0
+    k0 = table[m + klik.MODE_K0, :n]
+    ca = table[m + klik.MODE_CA, :n]
+    assert np.all(ca >= lk.point_sharing() * k0 / (1.0 + lk.point_sharing() * k0) - 1e-6)
