@@ -59,6 +59,15 @@ def footprint_correlation(ratio: float) -> float:
     return m * m
 
 
+def without_offset(cov: np.ndarray, o: np.ndarray | None) -> np.ndarray:
+    """``P cov P`` with ``P = I − o oᵀ`` (``o`` a unit vector: the offset direction the particles' altitude carries,
+    :meth:`Likelihood.error_modes`' ``absorb_offset``); ``cov`` itself for ``o`` None."""
+    if o is None:
+        return cov
+    project = np.eye(len(o)) - np.outer(o, o)
+    return project @ cov @ project
+
+
 def _turn_sharing(xy, aa, vec, lam, along, turn, lags, length, step) -> np.ndarray:
     """The attitude's sharing ``κᵃ_i`` of each mode (``vec``, ``lam``: the kept modes of the footprint ``xy`` with the
     sensitivities' products ``aa``) over a flight turning by ``turn`` rad per track step ``step`` (positive: the
@@ -293,20 +302,14 @@ class Likelihood:
         d2, along_d = np.sum(delta * delta, axis=2), delta @ direction  # |x_j − x_k|², (x_j − x_k) · along
         aa = a[:, None] * a[None, :]
 
-        def full(shift: float) -> np.ndarray:  # A R(shift) A: |x_j − x_k − s·along|² = d2 − 2 s along_d + s²
-            return aa * np.exp(-(d2 - 2.0 * shift * along_d + shift * shift) / (length * length))
-
-        project, offset_var, o = None, 0.0, None
+        scan = aa * np.exp(-d2 / (length * length))  # A R A over the scan
+        offset_var, o = 0.0, None
         if absorb_offset:
             o = a / max(float(np.linalg.norm(a)), 1e-300)
-            project = np.eye(m) - np.outer(o, o)
-            offset_var = self.map_error_sigma_m**2 * float(o @ full(0.0) @ o) / float(a @ a)
-
-        def cov(shift: float) -> np.ndarray:
-            return full(shift) if project is None else project @ full(shift) @ project
+            offset_var = self.map_error_sigma_m**2 * float(o @ scan @ o) / float(a @ a)
 
         with one_blas_thread():
-            lam, vec = np.linalg.eigh(cov(0.0))
+            lam, vec = np.linalg.eigh(without_offset(scan, o))
         order = np.argsort(lam)[::-1]
         lam, vec = np.maximum(lam[order], 0.0), vec[:, order]
         keep = [i for i in range(min(MAX_MODES, m)) if lam[i] > 1e-6 * lam[0]]

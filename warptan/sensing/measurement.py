@@ -46,7 +46,7 @@ from warptan.kernels import simd_ray as ksimd_ray
 from warptan.kernels import sliding as kslide
 from warptan.kernels.filter.resampling import WHITE_MAX_GAIN
 from warptan.parallel import launch, launch_rows, rows_of
-from warptan.sensing.likelihood import LIKELIHOODS, POSITION_PRIOR_PRECISION, Likelihood
+from warptan.sensing.likelihood import LIKELIHOODS, POSITION_PRIOR_PRECISION, Likelihood, without_offset
 from warptan.sensing.sensors import AltimeterReading, PointCloud
 from warptan.terrain.raycast import RayCaster, check_same_device
 
@@ -160,7 +160,7 @@ class MeasurementModel:
         self._pending: tuple | None = None  # a mode table built behind the updates (MODES_BEHIND)
         self._nominal: tuple | None = None  # the table's own modes, ρ, κᵃ and sensitivities (_place_modes)
         self._placed_xy: np.ndarray | None = None  # the ground points the modes in use were placed at
-        self._look_quat: np.ndarray | None = None  # the platform's attitude at the last look at the geometry
+        self._built_quat: np.ndarray | None = None  # the platform's attitude the table in use was built under
         self._no_cloud: wp.array | None = None
         self._amp_scale = 1.0  # the stored amplitudes' factor for the next scan (a new per-point σ whitens them anew)
         self._truncation_var = 0.0  # what the per-point variance counts of the table's dropped modes (m²;
@@ -430,8 +430,8 @@ class MeasurementModel:
         self.n_per = n // b
         self.n_filters = b
         self._ensure_modes(device, quat_nb, attitude)
-        if self._look_quat is not None:
-            self._place_modes(self._look_quat)
+        if self._built_quat is not None:
+            self._place_modes(self._built_quat)
         return out
 
     def _meta(self, n_received: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
@@ -488,7 +488,7 @@ class MeasurementModel:
             self._modes_host = None
             self._modes_geometry = None
             self._pending = None
-            self._nominal = self._placed_xy = self._look_quat = None
+            self._nominal = self._placed_xy = self._built_quat = None
             self._params.n_modes = klik.MAX_MODES if self.likelihood.models_map_error else 0
             self.generation += 1
         if not self.likelihood.models_map_error:
@@ -590,8 +590,12 @@ class MeasurementModel:
         self._nominal = (table[:m, :n].astype(np.float64), table[m + klik.MODE_RHO, :n].astype(np.float64),
                          np.asarray(info.get("sharing_att", np.ones(n)), dtype=np.float64)[:n], np.asarray(sens))
         self._placed_xy = None
-        self._look_quat = quat
+        self._built_quat = quat
         self.modes_version += 1
+        self._read_modes_near(table, m, sens)
+
+    def _read_modes_near(self, table: np.ndarray, m: int, sens: np.ndarray) -> None:
+        """:attr:`mode_reads` of the table ``table`` in use (``m`` points, sensitivities ``sens``)."""
         near = np.abs(sens) <= WHITE_MAX_GAIN
         self.mode_reads = ((table[:m][near] ** 2).sum(axis=0) >= 0.5).astype(np.float32)
 
@@ -715,11 +719,8 @@ class MeasurementModel:
         lk = self._likelihood
         length = lk.map_error_corr_m
         d2 = np.sum((xy[:, None, :] - xy[None, :, :]) ** 2, axis=2)
-        cov = (sens[:, None] * sens[None, :]) * np.exp(-d2 / (length * length))
-        if self.absorbs_map_offset:
-            o = sens / max(float(np.linalg.norm(sens)), 1e-300)
-            co = cov @ o
-            cov = cov - np.outer(o, co) - np.outer(co, o) + float(o @ co) * np.outer(o, o)
+        o = sens / max(float(np.linalg.norm(sens)), 1e-300) if self.absorbs_map_offset else None
+        cov = without_offset((sens[:, None] * sens[None, :]) * np.exp(-d2 / (length * length)), o)
         before = host[:m, :n].astype(np.float64)
         with one_blas_thread():
             q = u_table
@@ -748,8 +749,7 @@ class MeasurementModel:
         self._modes_host = table
         self._placed_xy = xy
         self.modes_version += 1
-        near = np.abs(sens) <= WHITE_MAX_GAIN
-        self.mode_reads = ((table[:m][near] ** 2).sum(axis=0) >= 0.5).astype(np.float32)
+        self._read_modes_near(table, m, sens)
 
     def launch(self, pos_n: wp.array, quat_nb: wp.array) -> ModelOutput:
         """Launch the model on the staged measurement (device work only: can be captured in a graph)."""
@@ -800,15 +800,22 @@ class _PointCloudModel(MeasurementModel):
             return lambda a, b: [sums]
         return lambda a, b: [rows_of(sums, a, b)]
 
-    def _scan_geometry(self, quat: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def _rays(self, quat: np.ndarray) -> tuple:
+        """The first filter's staged scan under the attitude ``quat``: ``(rot, u, rng, down, ok, agl)``, the rotation,
+        the rays in the navigation frame (float64), their ranges, their down components (at least 0.1), the rays with
+        a range and more than 6° below the horizon, and the scan's median ground level under the aircraft (m)."""
         from warptan.nav.frames import quat_to_mat
 
         dirs, rng, _ = self._host["first"]  # the first filter's cloud as staged (float32 values)
         rot = quat_to_mat(quat / max(float(np.linalg.norm(quat)), 1e-12))
-        u = dirs @ rot.T  # the rays in the navigation frame (float64)
+        u = dirs @ rot.T
         down = np.maximum(u[:, 2], 0.1)
         ok = (u[:, 2] > 0.1) & np.isfinite(rng)
         agl = _median((rng * u[:, 2])[ok]) if ok.any() else 1.0
+        return rot, u, rng, down, ok, agl
+
+    def _scan_geometry(self, quat: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        rot, u, _rng, down, _ok, agl = self._rays(quat)
         # the nominal footprint: every ray meets the scan's median ground level (a smooth function of the altitude
         # and attitude; the points' own ranges moved it with every hill, and the modes with it)
         xy = (u * (agl / down)[:, None])[:, :2]
@@ -819,14 +826,7 @@ class _PointCloudModel(MeasurementModel):
         """The scan's ground points as measured (M, 2: horizontal offsets from the aircraft, navigation frame, m): each
         ray's own range along its direction under the platform's attitude ``quat``; a ray without a range (or
         within 6° of the horizon) keeps its nominal place (:meth:`_scan_geometry`)."""
-        from warptan.nav.frames import quat_to_mat
-
-        dirs, rng, _ = self._host["first"]
-        rot = quat_to_mat(quat / max(float(np.linalg.norm(quat)), 1e-12))
-        u = dirs @ rot.T
-        down = np.maximum(u[:, 2], 0.1)
-        ok = (u[:, 2] > 0.1) & np.isfinite(rng)
-        agl = _median((rng * u[:, 2])[ok]) if ok.any() else 1.0
+        _rot, u, rng, down, ok, agl = self._rays(quat)
         return (u * np.where(ok, rng, agl / down)[:, None])[:, :2]
 
     def _fill(self, items, meta: wp.array) -> np.ndarray:
